@@ -1,0 +1,3 @@
+from presim.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,51 @@
+"""``presim`` command line. Each sub-module registers its sub-commands (one-line help each)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Order = order in `presim --help`, following the data flow.
+_MODULES = [
+    "presim.cli.sample_cmd",      # sample-scene
+    "presim.cli.capture_cmds",    # import, info
+    "presim.cli.refine_eval_cmds",  # refine, eval-views
+    "presim.cli.render_cmd",      # render
+    "presim.cli.sim_cmds",        # drive
+    "presim.cli.outputs_cmds",    # ros
+    "presim.cli.dataset_cmds",    # gen-bop
+    "presim.cli.pose_cmds",       # pose-eval
+    "presim.cli.demo_cmd",        # demo
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="presim",
+        description="PreSim: photo-realistic RGB-D robot simulator built from captured RGB-D images.",
+    )
+    from presim import __version__
+
+    parser.add_argument("--version", action="version", version=f"presim {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
+    for name in _MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except (FileNotFoundError, FileExistsError, ValueError) as e:
+        # Bad input: one clear line naming the file and the problem, no traceback.
+        print(f"presim {args.command}: error: {e}", file=sys.stderr)
+        return 1

@@ -1,0 +1,5 @@
+"""Sub-commands (being built)."""
+
+
+def register(sub) -> None:
+    pass
