@@ -170,7 +170,7 @@ def load_scene(path: str | Path, _skip_points: bool = False) -> Scene:
     """Load a saved scene; pixel arrays are memory-mapped (read-only), nothing else is read eagerly."""
     path = Path(path)
     hdr_path = path / "scene.json"
-    if not hdr_path.is_file():
+    if not hdr_path.is_file() and not _skip_points:  # save_scene reads its arrays before scene.json exists
         if path.with_name(path.name + ".partial").exists():
             raise SceneError(f"{path}: scene is incomplete (an interrupted save left {path.name}.partial)")
         raise SceneError(f"{path}: not a PreSim scene (no scene.json); import a capture with `presim import`")

@@ -1,5 +1,62 @@
-"""Sub-commands (being built)."""
+"""``presim import`` and ``presim info``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
 
 
 def register(sub) -> None:
-    pass
+    from presim.capture.importers.registry import FORMATS
+
+    p = sub.add_parser(
+        "import", help="import an RGB-D capture folder (format auto-detected) into a PreSim scene",
+        description="Read a capture (KinectFusion/7-Scenes, APC shelf, TUM RGB-D, COLMAP + depth, nerfstudio, "
+                    "BOP, YCB-Video), fuse its point cloud, align the floor (gravity -z, floor z = 0) and save it.")
+    p.add_argument("src", type=Path, help="capture folder (or transforms.json)")
+    p.add_argument("dst", type=Path, help="output scene folder")
+    p.add_argument("--format", dest="fmt", choices=sorted(FORMATS), default=None, help="force a format")
+    p.add_argument("--every", type=int, default=1, metavar="N", help="keep every N-th frame (default 1)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="M", help="keep at most M frames")
+    p.add_argument("--gravity", type=float, nargs=3, default=None, metavar=("GX", "GY", "GZ"),
+                   help="gravity direction in the capture's world frame (default: from the cameras' up axes)")
+    p.add_argument("--no-floor", action="store_true", help="keep the capture's world frame (no floor alignment)")
+    p.add_argument("--overwrite", action="store_true", help="replace DST if it exists")
+    p.set_defaults(func=_cmd_import)
+
+    q = sub.add_parser("info", help="summarise a scene: frames, resolution, depth coverage, extent, trajectory",
+                       description="Print what a saved scene holds.")
+    q.add_argument("scene", type=Path, help="scene folder (written by `presim import` or `presim sample-scene`)")
+    q.add_argument("--json", action="store_true", help="print JSON instead of text")
+    q.add_argument("--sample-frames", type=int, default=50, help="frames sampled for depth coverage (default 50)")
+    q.set_defaults(func=_cmd_info)
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from presim.capture.importers import import_capture
+    from presim.capture.info import format_info, scene_info
+    from presim.capture.store import load_scene, save_scene
+
+    if args.dst.exists() and not args.overwrite:
+        raise FileExistsError(f"{args.dst}: already exists (pass --overwrite to replace it)")
+    scene = import_capture(args.src, fmt=args.fmt, every=args.every, max_frames=args.max_frames,
+                           gravity=args.gravity, align_floor=not args.no_floor)
+    save_scene(scene, args.dst, overwrite=args.overwrite)
+    saved = load_scene(args.dst)
+    print(format_info(scene_info(saved, max_sample_frames=10)))
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from presim.capture.info import format_info, scene_info
+    from presim.capture.store import load_scene
+
+    info = scene_info(load_scene(args.scene), max_sample_frames=max(1, args.sample_frames))
+    if args.json:
+        json.dump(info, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print(format_info(info))
+    return 0

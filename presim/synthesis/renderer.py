@@ -1,87 +1,318 @@
-"""Renderer: the thin stateful component of the view synthesis engine.
-
-PROVISIONAL: a naive z-buffer splat of the nearest views + inpainting, so that the simulator,
-recorder and dataset generator can be built against the final interface. The thesis pipeline
-(refinement, adaptive views, layered warping) replaces the internals; the interface stays:
+"""Renderer: the thin stateful component of the view synthesis engine (thesis §3.4.2-3.4.4).
 
     Renderer(scene, RenderConfig()).render(T_world_cam, K) -> RGBD
-    Renderer(...).render_batch(T_world_cams (B,4,4), K) -> list[RGBD]
+    Renderer(...).render_batch(T_world_cams (B, 4, 4), K) -> list[RGBD]
+
+Per frame: select views (:mod:`select`), then for each selected view in order — warp it in L layers
+with a z-buffer per layer (:mod:`warp`), fill cracks in every layer with the switching median
+(:mod:`crack_filter`), composite the layers front to back plus one crack pass over the layer seams,
+and merge it into the target image on the pixels still missing (holes, big ones dilated against
+ghost contours; :mod:`composite`). The adaptive loop stops once the largest hole is below
+``stop_hole_frac`` of the image. Pixels no view covers are filled last (:mod:`fill`) and stay
+``valid=False``.
+
+State kept per scene (built once, never per frame):
+- camera centres, optical axes and FOVs of all views (for selection), at construction;
+- per view, lazily: world points sorted by layer + colors (:class:`warp.ViewPoints`, ~15 bytes per
+  valid pixel, 4.6 MB for a full 640x480 view) in an LRU cache bounded by ``cache_mb``; the small
+  sub-sampled overlap grids (~1200 points per view) in an unbounded dict.
+Frames are read from the scene's FrameSource only when a view is first needed.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
-from presim.capture.scene import Scene
-from presim.geometry import Intrinsics, invert, unproject_depth
+from presim.capture.scene import Scene, SceneError
+from presim.geometry import Intrinsics, check_rigid, invert, unproject_depth
+from presim.synthesis import kernels_reference as ref
+from presim.synthesis.composite import analyse_holes, composite_layers, merge_view
+from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
+from presim.synthesis.fill import FILL_METHODS, fill_holes
 from presim.synthesis.rgbd import RGBD
+from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
+from presim.synthesis.warp import ViewPoints, prepare_view, warp_layers
 
-__all__ = ["RenderConfig", "Renderer"]
+__all__ = ["BACKENDS", "RenderConfig", "Renderer"]
+
+BACKENDS = ("numba", "reference", "torch")
+STAGES = ("select", "load", "warp", "crack", "composite", "holes", "fill")
 
 
 @dataclass(frozen=True)
 class RenderConfig:
-    max_views: int = 3
-    """Number of nearest captured views splatted."""
-    fill_holes: bool = True
-    """Fill pixels no view covers (they stay False in ``RGBD.valid``)."""
+    """Knobs of the synthesis pipeline. Defaults are the full thesis pipeline."""
+
+    num_layers: int = 4
+    """L of layered warping (thesis: 4 is the quality/speed trade-off); 1 = plain DIBR z-buffer."""
+    selection: str = "adaptive"
+    """``"adaptive"`` (thesis: distance -> angle vs FOV -> overlap), ``"distance"`` (nearest centres
+    only) or ``"angle"`` (smallest viewing-direction angle only)."""
+    fixed_views: int = 0
+    """> 0: warp exactly this many selected views (no adaptive loop), e.g. 1, 2, 3 as Table 3.5."""
+    max_candidates: int = 10
+    """Size of the local group (top-k by camera-centre distance, eq. 3.5)."""
+    crack_filter: str = "switching_median"
+    """``"switching_median"`` (eq. 3.9), ``"median"`` (plain) or ``"none"``."""
+    hole_dilation_px: int = 2
+    """Big holes are dilated by this radius before the next view fills them (ghost contours)."""
     use_refined_depth: bool = True
-    """Use ``presim refine`` output when the scene has it."""
+    """Use ``scene.depth_refined`` (``presim refine``) when present, else the raw depth."""
+    fill_holes: bool = True
+    """Fill pixels no view covers (they stay False in ``RGBD.valid``); False leaves them 0."""
+    backend: str = "numba"
+    """``"numba"`` (fast CPU), ``"reference"`` (slow numpy, for tests) or ``"torch"`` (CUDA if
+    present, else CPU)."""
+    max_views: int = 6
+    """Upper bound on views warped per frame by the adaptive loop (a pose outside the capture has
+    holes no view can fill; this bounds the frame time)."""
+    stop_hole_frac: float = 0.0005
+    """The adaptive loop stops when the largest connected hole is at most this fraction of the
+    image (0.05 %: 154 px at 640x480)."""
+    big_hole_px: int = 16
+    """Holes of at least this many pixels count as big and are dilated by ``hole_dilation_px``."""
+    crack_kernel_px: int = 3
+    """N of the N x N (switching) median window."""
+    view_order: str = "overlap"
+    """Warp order of the selected views: ``"overlap"`` (largest first) or ``"distance"``."""
+    overlap_stride_px: int = 16
+    """Sampling interval of the grid projected for the overlap test."""
+    fill_method: str = "auto"
+    """Final hole filling: ``"auto"``, ``"telea"`` or ``"pushpull"`` (see presim.synthesis.fill)."""
+    cache_mb: float = 1024.0
+    """Bound of the per-view point cache (LRU), MiB."""
+    near_m: float = 0.01
+    """Points closer than this to the target camera are dropped."""
+    torch_device: str | None = None
+    """Torch device (``None``: CUDA when available, else CPU)."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.num_layers >= 1, f"num_layers must be >= 1, got {self.num_layers}"),
+            (self.selection in SELECTION_MODES, f"selection must be one of {SELECTION_MODES}"),
+            (self.fixed_views >= 0, "fixed_views must be >= 0"),
+            (self.max_candidates >= 1, "max_candidates must be >= 1"),
+            (self.crack_filter in CRACK_FILTERS, f"crack_filter must be one of {CRACK_FILTERS}"),
+            (self.hole_dilation_px >= 0, "hole_dilation_px must be >= 0"),
+            (self.backend in BACKENDS, f"backend must be one of {BACKENDS}"),
+            (self.max_views >= 1, "max_views must be >= 1"),
+            (self.crack_kernel_px >= 1 and self.crack_kernel_px % 2 == 1, "crack_kernel_px must be odd"),
+            (self.view_order in VIEW_ORDERS, f"view_order must be one of {VIEW_ORDERS}"),
+            (self.overlap_stride_px >= 1, "overlap_stride_px must be >= 1"),
+            (self.fill_method in FILL_METHODS, f"fill_method must be one of {FILL_METHODS}"),
+            (self.cache_mb > 0, "cache_mb must be > 0"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"RenderConfig: {msg}")
+
+
+@dataclass
+class RenderStats:
+    """What the last :meth:`Renderer.render` did (for benchmarks and evaluation)."""
+
+    views: list[int] = field(default_factory=list)
+    """Scene frame indices warped, in order."""
+    selection: Selection | None = None
+    hole_frac_per_view: list[float] = field(default_factory=list)
+    """Hole fraction after each merged view."""
+    ms: dict[str, float] = field(default_factory=dict)
+    """Milliseconds per stage (keys: STAGES)."""
 
 
 class Renderer:
+    """Renders RGB-D images of a scene at arbitrary poses and intrinsics from its captured views."""
+
     def __init__(self, scene: Scene, config: RenderConfig = RenderConfig()):
         self.scene = scene
         self.config = config
-        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        T = scene.T_world_cam
+        self._centres = T[:, :3, 3].copy()
+        self._dirs = T[:, :3, 2] / np.linalg.norm(T[:, :3, 2], axis=1, keepdims=True)
+        self._hfov_deg = np.array([K.hfov_deg for K in scene.intrinsics])
+        self._use_refined = bool(config.use_refined_depth and scene.depth_refined is not None)
+        self._views: OrderedDict[int, object] = OrderedDict()
+        self._views_bytes = 0
+        self._grids: dict[int, np.ndarray] = {}
+        self.last = RenderStats()
+        self._device = None
+        if config.backend == "torch":
+            from presim.synthesis import torch_backend
 
-    def _points(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
-        if idx not in self._cache:
-            f = self.scene.frame(idx, refined=self.config.use_refined_depth)
-            pts, mask = unproject_depth(f.K, f.depth_m, f.T_world_cam)
-            self._cache[idx] = (pts, f.color[mask])
-        return self._cache[idx]
+            self._tb = torch_backend
+            self._device = torch_backend.torch.device(config.torch_device) if config.torch_device \
+                else torch_backend.default_device()
+
+    # ---- per-view data (lazy, cached) ----------------------------------------------------------
+    def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
+        color, depth = self.scene.frames.load(idx)
+        if self._use_refined:
+            depth = np.asarray(self.scene.depth_refined[idx])
+        K = self.scene.intrinsics[idx]
+        if depth.shape != (K.height, K.width) or depth.dtype != np.float32:
+            raise SceneError(f"frame {self.scene.frame_ids[idx]}: depth must be float32 "
+                             f"{K.height}x{K.width}, got {depth.dtype} {depth.shape}")
+        return color, depth
+
+    def _grid_from_depth(self, idx: int, depth: np.ndarray) -> np.ndarray:
+        pts, _ = unproject_depth(self.scene.intrinsics[idx], depth, self.scene.T_world_cam[idx],
+                                 stride=self.config.overlap_stride_px)
+        return pts
+
+    def grid_points(self, idx: int) -> np.ndarray:
+        """(m, 3) float32 world points of view ``idx``'s sub-sampled valid depth (overlap test)."""
+        g = self._grids.get(idx)
+        if g is None:
+            _, depth = self._load_frame(idx)
+            g = self._grids[idx] = self._grid_from_depth(idx, depth)
+        return g
+
+    def view_points(self, idx: int) -> ViewPoints:
+        """The prepared points of view ``idx`` (numpy), built on first use."""
+        v = self._view(idx)
+        return v if isinstance(v, ViewPoints) else self._prepare(idx)
+
+    def _prepare(self, idx: int) -> ViewPoints:
+        color, depth = self._load_frame(idx)
+        if idx not in self._grids:
+            self._grids[idx] = self._grid_from_depth(idx, depth)
+        return prepare_view(color, depth, self.scene.intrinsics[idx], self.scene.T_world_cam[idx],
+                            self.config.num_layers)
+
+    def _view(self, idx: int):
+        v = self._views.get(idx)
+        if v is not None:
+            self._views.move_to_end(idx)
+            return v
+        v = self._prepare(idx)
+        if self.config.backend == "torch":
+            v = self._tb.to_device(v, self._device)
+        self._views[idx] = v
+        self._views_bytes += v.nbytes
+        limit = self.config.cache_mb * 2**20
+        while self._views_bytes > limit and len(self._views) > 1:
+            _, old = self._views.popitem(last=False)
+            self._views_bytes -= old.nbytes
+        return v
+
+    @property
+    def cache_bytes(self) -> int:
+        """Bytes held by the per-view point cache."""
+        return self._views_bytes
+
+    # ---- one view -> one composited image ------------------------------------------------------
+    def _view_image(self, view, T_cam_world: np.ndarray, K: Intrinsics, ms: dict) -> tuple[np.ndarray, np.ndarray]:
+        cfg = self.config
+        t0 = time.perf_counter()
+        if cfg.backend == "numba":
+            lay = warp_layers(view, T_cam_world, K, cfg.near_m)
+            t1 = time.perf_counter()
+            d, c = crack_filter(lay.depth_m, lay.color, cfg.crack_filter, cfg.crack_kernel_px)
+            t2 = time.perf_counter()
+            d, c = composite_layers(d, c)
+            if cfg.num_layers > 1:  # cracks left along the seams between layers
+                d, c = crack_filter(d, c, cfg.crack_filter, cfg.crack_kernel_px)
+        elif cfg.backend == "torch":
+            tb = self._tb
+            d, c = tb.warp_layers_torch(view, T_cam_world, K, cfg.near_m)
+            if d.is_cuda:
+                tb.torch.cuda.synchronize()
+            t1 = time.perf_counter()
+            d, c = tb.crack_filter_torch(d, c, cfg.crack_filter, cfg.crack_kernel_px)
+            if d.is_cuda:
+                tb.torch.cuda.synchronize()
+            t2 = time.perf_counter()
+            d, c = tb.composite_layers_torch(d, c)
+            if cfg.num_layers > 1:
+                d, c = tb.crack_filter_torch(d[None], c[None], cfg.crack_filter, cfg.crack_kernel_px)
+                d, c = d[0], c[0]
+            d, c = d.cpu().numpy(), c.cpu().numpy()
+        else:
+            lay_d, lay_c = ref.warp_layers_ref(view.xyz_world, view.rgb, view.layer, view.num_layers,
+                                               T_cam_world, K, cfg.near_m)
+            t1 = time.perf_counter()
+            filt = {"switching_median": ref.switching_median_ref, "median": ref.plain_median_ref}.get(cfg.crack_filter)
+            if filt is not None:
+                pairs = [filt(lay_d[i], lay_c[i], cfg.crack_kernel_px) for i in range(view.num_layers)]
+                lay_d = np.stack([p[0] for p in pairs])
+                lay_c = np.stack([p[1] for p in pairs])
+            t2 = time.perf_counter()
+            d, c = ref.composite_layers_ref(lay_d, lay_c)
+            if cfg.num_layers > 1 and filt is not None:
+                d, c = filt(d, c, cfg.crack_kernel_px)
+        t3 = time.perf_counter()
+        ms["warp"] += (t1 - t0) * 1e3
+        ms["crack"] += (t2 - t1) * 1e3
+        ms["composite"] += (t3 - t2) * 1e3
+        return d, c
+
+    # ---- public API ----------------------------------------------------------------------------
+    def select(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection:
+        """The ordered candidate views for a target camera (before the adaptive loop)."""
+        cfg = self.config
+        return select_views(T_world_cam, K, self._centres, self._dirs, self._hfov_deg, self.grid_points,
+                            cfg.selection, cfg.max_candidates, cfg.view_order)
 
     def render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
-        T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
-        d = np.linalg.norm(self.scene.camera_centres - T_world_cam[:3, 3], axis=1)
-        views = np.argsort(d)[: self.config.max_views]
+        """Synthesize color + depth at camera pose ``T_world_cam`` (4x4) with intrinsics ``K``."""
+        if not isinstance(K, Intrinsics):
+            raise ValueError(f"K must be presim.geometry.Intrinsics, got {type(K).__name__}")
+        T_world_cam = check_rigid(T_world_cam, "target pose T_world_cam")
+        cfg = self.config
         H, W = K.height, K.width
-        zbuf = np.full(H * W, np.inf, np.float32)
-        color = np.zeros((H * W, 3), np.uint8)
-        src = np.full(H * W, -1, np.int32)
+        ms = {s: 0.0 for s in STAGES}
+        t0 = time.perf_counter()
+        sel = self.select(T_world_cam, K)
+        ms["select"] = (time.perf_counter() - t0) * 1e3
+        views = sel.view_idx
+        adaptive = cfg.fixed_views == 0
+        views = views[:cfg.max_views] if adaptive else views[:cfg.fixed_views]
         T_cam_world = invert(T_world_cam)
-        for v in views:
-            pts, rgb = self._points(int(v))
-            p = pts @ T_cam_world[:3, :3].T.astype(np.float32) + T_cam_world[:3, 3].astype(np.float32)
-            z = p[:, 2]
-            ok = z > 1e-3
-            u = np.round(K.fx * p[ok, 0] / z[ok] + K.cx).astype(np.int64)
-            w = np.round(K.fy * p[ok, 1] / z[ok] + K.cy).astype(np.int64)
-            zz, cc = z[ok], rgb[ok]
-            inb = (u >= 0) & (u < W) & (w >= 0) & (w < H)
-            lin, zz, cc = w[inb] * W + u[inb], zz[inb], cc[inb]
-            order = np.lexsort((zz, lin))
-            lin, zz, cc = lin[order], zz[order], cc[order]
-            first = np.ones(len(lin), bool)
-            first[1:] = lin[1:] != lin[:-1]
-            lin, zz, cc = lin[first], zz[first], cc[first]
-            closer = zz < zbuf[lin]
-            zbuf[lin[closer]] = zz[closer]
-            color[lin[closer]] = cc[closer]
-            src[lin[closer]] = v
-        valid = np.isfinite(zbuf).reshape(H, W)
-        depth = np.where(valid.ravel(), zbuf, 0).astype(np.float32).reshape(H, W)
-        color = color.reshape(H, W, 3)
-        hole = float(1.0 - valid.mean())
-        if self.config.fill_holes and hole > 0:
-            holes = (~valid).astype(np.uint8)
-            color = cv2.inpaint(color, holes, 3, cv2.INPAINT_TELEA)
-            depth = cv2.inpaint(depth, holes, 3, cv2.INPAINT_NS)
-        return RGBD(color, depth, valid, src.reshape(H, W), K, T_world_cam, hole)
+        acc_d = np.zeros((H, W), np.float32)
+        acc_c = np.zeros((H, W, 3), np.uint8)
+        acc_src = np.full((H, W), -1, np.int32)
+        stats = RenderStats(selection=sel)
+        stop_px = cfg.stop_hole_frac * H * W
+        replace = None
+        for j, vi in enumerate(views):
+            vi = int(vi)
+            t = time.perf_counter()
+            view = self._view(vi)
+            ms["load"] += (time.perf_counter() - t) * 1e3
+            d, c = self._view_image(view, T_cam_world, K, ms)
+            t = time.perf_counter()
+            if replace is None:
+                acc_d, acc_c = d, c
+                acc_src[d > 0] = vi
+            else:
+                merge_view(acc_d, acc_c, acc_src, replace, d, c, vi)
+            stats.views.append(vi)
+            last = j == len(views) - 1
+            hs = analyse_holes(acc_d > 0, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last)
+            stats.hole_frac_per_view.append(hs.hole_frac)
+            replace = hs.replace
+            ms["holes"] += (time.perf_counter() - t) * 1e3
+            if adaptive and hs.largest_hole_px <= stop_px:
+                break
+        valid = acc_d > 0
+        hole_frac = float(1.0 - valid.mean())
+        t = time.perf_counter()
+        if not len(stats.views):
+            acc_c = np.zeros((H, W, 3), np.uint8)
+        if cfg.fill_holes and hole_frac > 0:
+            acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method)
+        ms["fill"] = (time.perf_counter() - t) * 1e3
+        stats.ms = ms
+        self.last = stats
+        return RGBD(acc_c, acc_d, valid, acc_src, K, T_world_cam, hole_frac)
 
     def render_batch(self, T_world_cams: np.ndarray, K: Intrinsics) -> list[RGBD]:
-        return [self.render(T, K) for T in np.asarray(T_world_cams)]
+        """Render B poses (B, 4, 4) with the same intrinsics (per-view data is shared)."""
+        T = np.asarray(T_world_cams, dtype=np.float64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise ValueError(f"T_world_cams must be (B, 4, 4), got {T.shape}")
+        return [self.render(t, K) for t in T]

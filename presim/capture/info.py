@@ -1,0 +1,108 @@
+"""Summary of a scene (``presim info``): sizes, intrinsics, depth coverage, extent, trajectory, floor."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from presim.capture.scene import Scene
+
+__all__ = ["scene_info", "format_info"]
+
+
+def scene_info(scene: Scene, max_sample_frames: int = 50) -> dict:
+    """JSON-ready summary of ``scene``.
+
+    Depth coverage (mean fraction of valid depth pixels) is measured on at most
+    ``max_sample_frames`` evenly spaced frames, so a 1000-frame scene stays quick.
+    """
+    n = len(scene)
+    fx = np.array([K.fx for K in scene.intrinsics])
+    fy = np.array([K.fy for K in scene.intrinsics])
+    K0 = scene.intrinsics[0]
+    sample = np.unique(np.linspace(0, n - 1, min(n, max_sample_frames)).round().astype(int))
+    cov, dmin, dmax = [], np.inf, 0.0
+    for i in sample:
+        d = scene.depth(int(i), refined=False)
+        v = d > 0
+        cov.append(float(v.mean()))
+        if v.any():
+            dmin, dmax = min(dmin, float(d[v].min())), max(dmax, float(d[v].max()))
+    pts = scene.points
+    extent = None
+    if pts is not None and len(pts):
+        lo, hi = pts.xyz.min(axis=0), pts.xyz.max(axis=0)
+        extent = {"min_m": lo.round(4).tolist(), "max_m": hi.round(4).tolist(), "size_m": (hi - lo).round(4).tolist()}
+    stamps = scene.stamps_s
+    return {
+        "path": None if scene.path is None else str(scene.path),
+        "source": scene.meta.source,
+        "source_format": scene.meta.source_format,
+        "importer_version": scene.meta.importer_version,
+        "created_utc": scene.meta.created_utc,
+        "num_frames": n,
+        "resolution_wh": [scene.width, scene.height],
+        "intrinsics": {
+            "shared": bool(len({K for K in scene.intrinsics}) == 1),
+            "fx": [float(fx.min()), float(fx.max())], "fy": [float(fy.min()), float(fy.max())],
+            "cx": K0.cx, "cy": K0.cy, "hfov_deg": round(K0.hfov_deg, 2), "vfov_deg": round(K0.vfov_deg, 2),
+        },
+        "duration_s": float(stamps.max() - stamps.min()) if n > 1 else 0.0,
+        "depth_coverage": {"mean_valid_frac": float(np.mean(cov)), "min_valid_frac": float(np.min(cov)),
+                           "sampled_frames": int(len(sample)),
+                           "range_m": [dmin, dmax] if dmax > 0 else None},
+        "points": 0 if pts is None else len(pts),
+        "extent": extent,
+        "trajectory_length_m": scene.trajectory_length_m(),
+        "floor": None if scene.floor is None else {
+            "normal": list(scene.floor.normal), "offset_m": scene.floor.offset,
+            "inlier_frac": scene.floor.inlier_frac},
+        "gravity_world": np.asarray(scene.gravity_world, dtype=float).round(6).tolist(),
+        "transforms": [t.name for t in scene.meta.transforms],
+        "objects": [{"obj_id": o.obj_id, "name": o.name, "position_m": np.asarray(o.T_world_obj)[:3, 3].round(4).tolist(),
+                     "model": o.model_path} for o in scene.objects],
+        "refined_depth": scene.has_refined_depth,
+        "notes": list(scene.meta.notes),
+    }
+
+
+def format_info(info: dict) -> str:
+    """Human-readable text of :func:`scene_info`."""
+    i = info
+    intr = i["intrinsics"]
+    fx = intr["fx"]
+    fx_s = f"{fx[0]:.2f}" if fx[0] == fx[1] else f"{fx[0]:.2f}-{fx[1]:.2f}"
+    cov = i["depth_coverage"]
+    lines = [
+        f"scene       {i['path'] or '(not saved)'}",
+        f"source      {i['source']} ({i['source_format']}, importer v{i['importer_version']})",
+        f"frames      {i['num_frames']} over {i['duration_s']:.2f} s",
+        f"resolution  {i['resolution_wh'][0]}x{i['resolution_wh'][1]}",
+        f"intrinsics  fx {fx_s} fy {intr['fy'][0]:.2f} cx {intr['cx']:.2f} cy {intr['cy']:.2f} "
+        f"(hfov {intr['hfov_deg']:.1f} deg, {'shared' if intr['shared'] else 'per frame'})",
+        f"depth       {cov['mean_valid_frac']:.1%} valid on average (min {cov['min_valid_frac']:.1%}, "
+        f"{cov['sampled_frames']} frames sampled)"
+        + (f", range {cov['range_m'][0]:.2f}-{cov['range_m'][1]:.2f} m" if cov["range_m"] else ""),
+    ]
+    if i["extent"]:
+        e = i["extent"]
+        lines.append(f"extent      {e['size_m'][0]:.2f} x {e['size_m'][1]:.2f} x {e['size_m'][2]:.2f} m "
+                     f"({i['points']} points; min {e['min_m']}, max {e['max_m']})")
+    else:
+        lines.append("extent      (no point cloud)")
+    lines.append(f"trajectory  {i['trajectory_length_m']:.2f} m")
+    if i["floor"]:
+        f = i["floor"]
+        lines.append(f"floor       normal {np.round(f['normal'], 4).tolist()} offset {f['offset_m']:.4f} m "
+                     f"({f['inlier_frac']:.0%} of points)")
+    else:
+        lines.append("floor       none")
+    lines.append(f"gravity     {i['gravity_world']}")
+    if i["transforms"]:
+        lines.append(f"transforms  {', '.join(i['transforms'])}")
+    lines.append(f"objects     {len(i['objects'])}" + "".join(
+        f"\n  {o['obj_id']:>4} {o['name']} at {o['position_m']}" + ("" if o["model"] else " (no model)")
+        for o in i["objects"]))
+    lines.append(f"refined     {'yes' if i['refined_depth'] else 'no'}")
+    for n in i["notes"]:
+        lines.append(f"note        {n}")
+    return "\n".join(lines)

@@ -1,0 +1,776 @@
+"""The built-in sample scene: a procedural, textured room captured along a hand-held trajectory.
+
+:func:`build_sample_scene` builds, deterministically from a seed, a ~5 x 4 m room (floor, four walls
+with a door to a short corridor, ceiling, a rug, a table, a bookshelf, a sideboard, a poster, a dark TV,
+cardboard boxes and a bin on the floor) and 3-5 textured objects standing on the table (box, can,
+non-convex bracket, ball, irregular rock; 5-25 cm). It ray casts every pixel of every frame with
+Open3D's ``RaycastingScene``: color = procedural albedo(material, hit point) x Lambertian shading
+of fixed point lights with hard shadows -- nothing depends on the viewing direction, so a pixel's color
+is a property of the surface point alone and reprojection with exact depth and poses is near-exact.
+
+The saved scene's ``depth.npy`` is a *realistically corrupted* copy of the exact depth
+(:func:`corrupt_depth`: noise growing with z^2, holes on dark / grazing / out-of-range surfaces and
+behind depth edges, a few pixels of color/depth misregistration); the exact depth and the rest of the
+ground truth are in ``DST/ground_truth/`` (see docs/sample-scene.md)::
+
+    ground_truth/
+      depth_clean.npy   float32 (N, H, W) exact z-depth, metres (0 = no surface)
+      object_id.npy     uint8   (N, H, W) obj_id of the visible object, 0 = background
+      room.ply          the whole scene (room + furniture + objects) in world metres, per-vertex colors
+      parts.json        every part: name, kind, obj_id, world AABB, triangle range in room.ply
+      sample.json       seed + SampleSceneConfig + lights: enough to re-render any view exactly
+
+Example:
+    >>> from presim.capture.sample_scene import build_sample_scene, render_ground_truth
+    >>> dst = build_sample_scene("out/sample", seed=0)                     # doctest: +SKIP
+    >>> from presim.capture.store import load_scene
+    >>> scene = load_scene(dst)                                            # doctest: +SKIP
+    >>> color, depth_m, obj = render_ground_truth(dst, scene.T_world_cam[0], scene.intrinsics[0])  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from presim.capture.procedural import (
+    Material, Mesh, NoiseField, albedo, box_mesh, cylinder_mesh, ellipsoid_mesh, merge_meshes,
+    rock_mesh, srgb_encode, write_ply,
+)
+from presim.capture.scene import (
+    ArrayFrameSource, FloorPlane, Scene, SceneError, SceneMeta, SceneObject,
+)
+from presim.geometry import Intrinsics, compose, invert, look_at, make_pose, rotation_z
+from presim.io_utils import atomic_dir, atomic_write_json, progress
+
+__all__ = [
+    "SampleSceneConfig", "SamplePart", "SampleGroundTruth", "RenderedView",
+    "build_sample_scene", "load_sample_ground_truth", "clean_scene", "render_ground_truth",
+    "render_view", "corrupt_depth", "capture_trajectory", "sample_layout",
+]
+
+SAMPLE_VERSION = 1
+GT_DIR = "ground_truth"
+
+
+@dataclass(frozen=True)
+class SampleSceneConfig:
+    """How the sample scene is built, captured and corrupted. All fields have working defaults."""
+
+    width: int = 640
+    """Image width, pixels."""
+    height: int = 480
+    """Image height, pixels."""
+    num_frames: int = 60
+    """Frames along the capture trajectory (its shape does not change; more frames = denser)."""
+    hfov_deg: float = 62.0
+    """Horizontal field of view (Kinect-like); square pixels, principal point at the image centre."""
+    frame_rate_hz: float = 5.0
+    """Time stamps are ``frame_idx / frame_rate_hz`` seconds."""
+    num_objects: int = 5
+    """Objects on the table, 3..5, taken in this order: box, can, bracket (non-convex), ball, rock."""
+    door: bool = True
+    """A door-sized gap in the north wall leading into a short closed corridor."""
+    ceiling: bool = True
+    """Close the room with a ceiling (otherwise upward rays see nothing: depth 0, black)."""
+    shadows: bool = True
+    """Hard shadows of the main light (one shadow ray per lit pixel)."""
+    # ---- depth corruption (see corrupt_depth) ----
+    noise_sigma0_m: float = 0.0005
+    """Depth noise standard deviation at z = 0, metres."""
+    noise_k_per_m: float = 0.0015
+    """Depth noise grows as ``sigma(z) = noise_sigma0_m + noise_k_per_m * z**2`` (structured-light)."""
+    min_range_m: float = 0.3
+    """No depth closer than this (sensor minimum range)."""
+    max_range_m: float = 4.0
+    """No depth beyond this (sensor maximum range)."""
+    dark_albedo: float = 0.05
+    """Surfaces with albedo luminance below this return no depth (with ``dark_dropout`` probability)."""
+    dark_dropout: float = 0.9
+    """Probability that a dark pixel has no depth."""
+    grazing_deg: float = 78.0
+    """Incidence angle (ray vs. surface normal) around which depth drops out (ramp +-6 degrees)."""
+    edge_shadow_px: int = 3
+    """Width of the hole left on the far side of depth edges (projector shadow / mixed pixels)."""
+    edge_dilate_px: int = 1
+    """Foreground depth grows this many pixels over the background at depth edges."""
+    shift_px: tuple[int, int] = (2, 1)
+    """Color/depth misregistration: depth is shifted by (du, dv) pixels relative to the color."""
+    speckle_dropout: float = 0.003
+    """Fraction of random isolated missing pixels."""
+
+
+@dataclass(frozen=True)
+class SamplePart:
+    """One part of the sample room (a wall, the table, an obstacle, an object, ...)."""
+
+    name: str
+    kind: str
+    """floor | wall | ceiling | decor | furniture | obstacle | object."""
+    obj_id: int
+    """1..K for table objects, 0 otherwise."""
+    aabb_min: tuple[float, float, float]
+    """World-frame axis-aligned bounding box, metres."""
+    aabb_max: tuple[float, float, float]
+    tri_start: int
+    """Triangles ``[tri_start, tri_end)`` of ``room.ply`` belong to this part."""
+    tri_end: int
+
+
+@dataclass(frozen=True)
+class SampleGroundTruth:
+    """Ground truth of a built sample scene (arrays memory-mapped)."""
+
+    path: Path
+    seed: int
+    config: SampleSceneConfig
+    depth_clean_m: np.ndarray
+    """float32 (N, H, W) exact z-depth, metres, 0 where no surface."""
+    object_id: np.ndarray
+    """uint8 (N, H, W) obj_id per pixel, 0 = not an object."""
+    room_mesh_path: Path
+    """PLY of the whole scene (world frame, metres, per-vertex colors)."""
+    parts: tuple[SamplePart, ...]
+    table_top_z_m: float
+    """Height of the table top (objects stand on it)."""
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """A ray-cast view. Arrays are (H, W)."""
+
+    color: np.ndarray
+    """uint8 (H, W, 3) sRGB."""
+    depth_m: np.ndarray
+    """float32 exact z-depth, 0 = no surface."""
+    object_id: np.ndarray
+    """int32 obj_id, 0 = background."""
+    albedo_lum: np.ndarray
+    """float32 linear albedo luminance of the hit surface (0 where no surface)."""
+    cos_incidence: np.ndarray
+    """float32 |cos| of the angle between ray and surface normal (0 where no surface)."""
+
+
+# ---- layout -------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _Part:
+    name: str
+    kind: str
+    mesh: Mesh                  # in the part frame
+    T_world_part: np.ndarray
+    material: Material
+    obj_id: int = 0
+
+
+@dataclass
+class _Layout:
+    parts: list[_Part]
+    table_top_z_m: float
+    table_centre_xy: np.ndarray
+    objects_centre: np.ndarray
+    lights: list[dict] = field(default_factory=list)
+    ambient: float = 0.3
+
+
+def _hsv(h: float, s: float, v: float) -> tuple[float, float, float]:
+    i = int(h * 6) % 6
+    f = h * 6 - np.floor(h * 6)
+    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
+    return [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
+
+
+def sample_layout(seed: int, config: SampleSceneConfig = SampleSceneConfig()) -> _Layout:
+    """The room for ``seed``: parts with meshes, world poses and materials (pure, deterministic)."""
+    rng = np.random.default_rng([seed, 1])
+    I = np.eye(4)
+    parts: list[_Part] = []
+
+    def add(name, kind, mesh, mat, T=I, obj_id=0):
+        parts.append(_Part(name, kind, mesh, np.asarray(T, dtype=np.float64), mat, obj_id))
+
+    X, Y, H, t = 2.5, 2.0, 2.6, 0.1  # interior half-sizes, height, wall thickness
+    door_x = (1.2, 2.1)
+    corr_y = 3.4
+    ext_y = corr_y + t if config.door else Y + t
+    wall_hue = rng.uniform(0, 1)
+    plaster = Material("plaster", _hsv(wall_hue, 0.12, 0.75), _hsv(wall_hue + 0.05, 0.2, 0.6), 0.4, 1.0)
+    plaster2 = Material("plaster", _hsv(wall_hue + 0.5, 0.25, 0.7), _hsv(wall_hue + 0.45, 0.3, 0.55), 0.3, 2.0)
+    brick = Material("brick", _hsv(0.03 + 0.03 * rng.uniform(), 0.65, 0.55), (0.7, 0.68, 0.62), 0.22, 3.0)
+    floor_mat = Material("planks", _hsv(0.08, 0.55, 0.55), _hsv(0.07, 0.6, 0.3), 0.14, 4.0)
+    add("floor", "floor", box_mesh([-X - t, -Y - t, -0.05], [X + t, ext_y, 0.0]), floor_mat)
+    if config.ceiling:
+        add("ceiling", "ceiling", box_mesh([-X - t, -Y - t, H], [X + t, ext_y, H + 0.05]),
+            Material("plaster", (0.8, 0.8, 0.78), (0.7, 0.7, 0.68), 0.5, 5.0))
+    add("wall_south", "wall", box_mesh([-X - t, -Y - t, 0], [X + t, -Y, H]), brick)
+    add("wall_west", "wall", box_mesh([-X - t, -Y - t, 0], [-X, Y + t, H]), plaster)
+    add("wall_east", "wall", box_mesh([X, -Y - t, 0], [X + t, Y + t, H]), plaster)
+    if config.door:
+        add("wall_north_a", "wall", box_mesh([-X - t, Y, 0], [door_x[0], Y + t, H]), plaster2)
+        add("wall_north_b", "wall", box_mesh([door_x[1], Y, 0], [X + t, Y + t, H]), plaster2)
+        add("wall_north_lintel", "wall", box_mesh([door_x[0], Y, 2.05], [door_x[1], Y + t, H]), plaster2)
+        cx0, cx1 = door_x[0] - 0.05, door_x[1] + 0.05
+        add("corridor_west", "wall", box_mesh([cx0 - t, Y + t, 0], [cx0, ext_y, H]), plaster)
+        add("corridor_east", "wall", box_mesh([cx1, Y + t, 0], [cx1 + t, ext_y, H]), plaster)
+        add("corridor_end", "wall", box_mesh([cx0 - t, corr_y, 0], [cx1 + t, ext_y, H]), brick)
+    else:
+        add("wall_north", "wall", box_mesh([-X - t, Y, 0], [X + t, Y + t, H]), plaster2)
+
+    # Decor on the walls.
+    add("poster", "decor", box_mesh([X - 0.012, -0.7, 1.0], [X, 0.4, 1.75]),
+        Material("poster", (0.9, 0.85, 0.8), scale_m=0.35, salt=6.0 + rng.uniform(0, 50)))
+    add("tv", "decor", box_mesh([-X, -0.55, 0.95], [-X + 0.05, 0.55, 1.6]),
+        Material("dark", (0.025, 0.025, 0.03), scale_m=0.3, salt=7.0))
+
+    # Table (jittered), rug under it.
+    tc = np.array([0.3, -0.25]) + rng.uniform(-0.15, 0.15, 2)
+    top_z = 0.75
+    tl, tw, th = 1.2, 0.8, 0.04
+    wood = Material("wood", _hsv(0.07, 0.55, 0.6), _hsv(0.06, 0.65, 0.35), 0.08, 8.0)
+    add("rug", "decor", box_mesh([tc[0] - 1.0, tc[1] - 0.7, 0.0], [tc[0] + 1.0, tc[1] + 0.7, 0.008]),
+        Material("checker", _hsv(rng.uniform(), 0.5, 0.5), (0.75, 0.72, 0.65), 0.12, 9.0))
+    add("table_top", "furniture", box_mesh([tc[0] - tl / 2, tc[1] - tw / 2, top_z - th],
+                                           [tc[0] + tl / 2, tc[1] + tw / 2, top_z]), wood)
+    leg = Material("painted", (0.08, 0.08, 0.09), scale_m=0.05, salt=10.0)
+    for i, (sx, sy) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
+        x = tc[0] + sx * (tl / 2 - 0.06)
+        y = tc[1] + sy * (tw / 2 - 0.06)
+        add(f"table_leg_{i}", "furniture", box_mesh([x - 0.025, y - 0.025, 0.0], [x + 0.025, y + 0.025, top_z - th]), leg)
+
+    # Bookshelf against the north wall (open front: non-convex furniture).
+    sx0, sx1, sy0, sy1, sh = -2.1, -1.2, Y - 0.35, Y, 1.8
+    shelf_wood = Material("wood", _hsv(0.09, 0.35, 0.75), _hsv(0.08, 0.45, 0.5), 0.06, 11.0)
+    panels = [box_mesh([sx0, sy0, 0], [sx0 + 0.02, sy1, sh]), box_mesh([sx1 - 0.02, sy0, 0], [sx1, sy1, sh]),
+              box_mesh([sx0, sy1 - 0.01, 0], [sx1, sy1, sh])]
+    for z in (0.0, 0.45, 0.9, 1.35, sh - 0.02):
+        panels.append(box_mesh([sx0 + 0.02, sy0, z], [sx1 - 0.02, sy1 - 0.01, z + 0.02]))
+    add("shelf", "furniture", merge_meshes(panels), shelf_wood)
+    books = []
+    for z in (0.02, 0.47, 0.92, 1.37):
+        x = sx0 + 0.03
+        while x < sx1 - 0.12:
+            w = rng.uniform(0.025, 0.05)
+            hb = rng.uniform(0.2, 0.32)
+            books.append(box_mesh([x, sy0 + 0.06, z], [x + w, sy1 - 0.03, z + hb]))
+            x += w + 0.003
+        x_gap = rng.uniform(0.0, 0.05)  # noqa: F841 (keeps the rng stream independent of layout edits)
+    add("books", "furniture", merge_meshes(books), Material("books", (0.5, 0.5, 0.5), scale_m=0.035, salt=12.0))
+
+    # Sideboard against the east wall.
+    add("sideboard", "furniture", box_mesh([X - 0.45, -1.85, 0.0], [X, -0.85, 0.8]),
+        Material("painted", _hsv(rng.uniform(), 0.45, 0.55), scale_m=0.2, salt=13.0))
+
+    # Obstacles on the floor: cardboard boxes and a bin, near walls and corners.
+    card = Material("cardboard", (0.55, 0.38, 0.2), (0.45, 0.3, 0.15), 0.1, 14.0)
+    for i, (bx, by, size) in enumerate(((-2.05, -1.55, 0.45), (-1.45, -1.7, 0.32), (1.1, 1.55, 0.38))):
+        bx += rng.uniform(-0.05, 0.05)
+        by += rng.uniform(-0.05, 0.05)
+        hgt = size * rng.uniform(0.7, 1.0)
+        yaw = rng.uniform(-0.4, 0.4)
+        T = make_pose(rotation_z(yaw), [bx, by, 0.0])
+        add(f"box_{i}", "obstacle", box_mesh([-size / 2, -size / 2.4, 0], [size / 2, size / 2.4, hgt]), card, T)
+    add("bin", "obstacle", cylinder_mesh(0.16, 0.42, 40),
+        Material("bands", (0.2, 0.35, 0.25), (0.15, 0.25, 0.2), 0.25, 15.0),
+        make_pose(np.eye(3), [-2.1, 0.9 + rng.uniform(-0.1, 0.1), 0.0]))
+
+    # Objects on the table.
+    specs = _object_specs(rng)[: config.num_objects]
+    placed: list[tuple[np.ndarray, float]] = []
+    for obj_id, (name, mesh, mat, r_bound) in enumerate(specs, start=1):
+        for _ in range(1000):
+            xy = tc + rng.uniform([-tl / 2 + 0.15, -tw / 2 + 0.12], [tl / 2 - 0.15, tw / 2 - 0.12])
+            if all(np.linalg.norm(xy - q) > r_bound + rq + 0.03 for q, rq in placed):
+                break
+        placed.append((xy, r_bound))
+        T = make_pose(rotation_z(rng.uniform(-np.pi, np.pi)), [xy[0], xy[1], top_z])
+        add(name, "object", mesh, mat, T, obj_id)
+
+    objects_centre = np.array([*np.mean([q for q, _ in placed], axis=0), top_z + 0.08])
+    lights = [
+        {"pos": [0.0, 0.0, 2.4], "intensity": 1.7, "shadow": True},
+        {"pos": [-1.8, 1.2, 2.35], "intensity": 0.5, "shadow": False},
+        {"pos": [1.8, -1.5, 2.35], "intensity": 0.4, "shadow": False},
+    ]
+    return _Layout(parts, top_z, tc, objects_centre, lights, ambient=0.28)
+
+
+def _object_specs(rng: np.random.Generator) -> list[tuple[str, Mesh, Material, float]]:
+    """(name, mesh in object frame with the bottom on z = 0, material, bounding radius in xy)."""
+    hues = (rng.uniform() + np.arange(5) / 5.0 + rng.uniform(-0.05, 0.05, 5)) % 1.0
+    box = box_mesh([-0.08, -0.03, 0.0], [0.08, 0.03, 0.22])
+    can = cylinder_mesh(0.034, 0.115, 48)
+    # Non-convex "U" bracket: a base with two uprights (non-overlapping boxes).
+    bracket = merge_meshes([box_mesh([-0.09, -0.03, 0.0], [0.09, 0.03, 0.03]),
+                            box_mesh([-0.09, -0.03, 0.03], [-0.06, 0.03, 0.11]),
+                            box_mesh([0.06, -0.03, 0.03], [0.09, 0.03, 0.11])])
+    ball = ellipsoid_mesh([0.055, 0.055, 0.052], 3)
+    rock = rock_mesh(0.06, rng, 3)
+    return [
+        ("cereal_box", box, Material("label", _hsv(hues[0], 0.8, 0.75), _hsv(hues[0] + 0.1, 0.6, 0.35), 0.09, 20.0),
+         float(np.hypot(0.08, 0.03))),
+        ("soup_can", can, Material("bands", _hsv(hues[1], 0.8, 0.7), _hsv(hues[1] + 0.5, 0.5, 0.8), 0.04, 21.0), 0.034),
+        ("bracket", bracket, Material("checker", _hsv(hues[2], 0.85, 0.75), (0.85, 0.85, 0.82), 0.02, 22.0),
+         float(np.hypot(0.09, 0.03))),
+        ("ball", ball, Material("beachball", _hsv(hues[3], 0.85, 0.8), _hsv(hues[3] + 0.33, 0.8, 0.7), 0.05, 23.0), 0.055),
+        ("rock", rock, Material("stone", _hsv(hues[4], 0.3, 0.45), _hsv(hues[4], 0.2, 0.25), 0.03, 24.0),
+         float(np.linalg.norm(rock.vertices[:, :2], axis=1).max())),
+    ]
+
+
+# ---- the ray-casting model ----------------------------------------------------------------------
+
+class _Model:
+    """World-frame triangle soup + per-triangle part index, an Open3D RaycastingScene and shading."""
+
+    def __init__(self, layout: _Layout, seed: int, shadows: bool):
+        import open3d as o3d
+
+        self.layout = layout
+        self.shadows = shadows
+        self.noise = NoiseField(seed)
+        verts, tris, norms, tri_part, ranges = [], [], [], [], []
+        off = ntri = 0
+        for k, p in enumerate(layout.parts):
+            m = p.mesh.transformed(p.T_world_part)
+            verts.append(m.vertices)
+            norms.append(m.normals)
+            tris.append(m.triangles + off)
+            tri_part.append(np.full(len(m.triangles), k, np.int32))
+            ranges.append((ntri, ntri + len(m.triangles)))
+            off += len(m.vertices)
+            ntri += len(m.triangles)
+        self.vertices = np.concatenate(verts).astype(np.float32)
+        self.triangles = np.concatenate(tris).astype(np.uint32)
+        self.vertex_normals = np.concatenate(norms).astype(np.float32)
+        self.tri_part = np.concatenate(tri_part)
+        self.part_ranges = ranges
+        self.part_obj_id = np.array([p.obj_id for p in layout.parts], np.int32)
+        self.T_part_world = np.stack([invert(p.T_world_part) for p in layout.parts])
+        self.rc = o3d.t.geometry.RaycastingScene()
+        self.rc.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
+        self._o3d = o3d
+
+    def render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RenderedView:
+        o3c = self._o3d.core
+        h, w = K.height, K.width
+        d_cam = _pixel_rays(K)
+        R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        d_world = _rotate(d_cam, R)
+        rays = np.empty((h * w, 6), np.float32)
+        rays[:, :3] = c
+        rays[:, 3:] = d_world
+        ans = self.rc.cast_rays(o3c.Tensor(rays))
+        t_hit = ans["t_hit"].numpy()
+        hit_idx = np.nonzero(np.isfinite(t_hit))[0]
+        prim = ans["primitive_ids"].numpy()[hit_idx].astype(np.int64)
+        # Visit hits grouped by part: contiguous slices instead of one boolean mask per part.
+        part = self.tri_part[prim]
+        order = np.argsort(part, kind="stable")
+        hit_idx, prim, part = hit_idx[order], prim[order], part[order]
+        bary = ans["primitive_uvs"].numpy()[hit_idx].astype(np.float64)
+        t = t_hit[hit_idx].astype(np.float64)
+        depth = np.zeros(h * w, np.float32)
+        depth[hit_idx] = t_hit[hit_idx]  # rays have camera-frame z = 1: t_hit is the z-depth
+
+        dw = d_world[hit_idx]
+        p_world = dw * t[:, None] + c
+        tri = self.triangles[prim]
+        vn = self.vertex_normals
+        b1, b2 = bary[:, :1], bary[:, 1:]
+        n = (1.0 - b1 - b2) * vn[tri[:, 0]] + b1 * vn[tri[:, 1]] + b2 * vn[tri[:, 2]]
+        n /= _norm(n)[:, None]
+
+        alb = np.empty((len(prim), 3))
+        bounds = np.searchsorted(part, np.arange(len(self.layout.parts) + 1))
+        for k in range(len(self.layout.parts)):
+            lo, hi = bounds[k], bounds[k + 1]
+            if hi == lo:
+                continue
+            Tpw = self.T_part_world[k]
+            p_loc = _rotate(p_world[lo:hi], Tpw[:3, :3]) + Tpw[:3, 3]
+            n_loc = _rotate(n[lo:hi], Tpw[:3, :3])
+            alb[lo:hi] = albedo(self.layout.parts[k].material, p_loc, n_loc, self.noise)
+
+        irr = self._irradiance(p_world, n)
+        color = np.zeros((h * w, 3), np.uint8)
+        color[hit_idx] = srgb_encode(alb * irr[:, None])
+        obj = np.zeros(h * w, np.int32)
+        obj[hit_idx] = self.part_obj_id[part]
+        lum = np.zeros(h * w, np.float32)
+        lum[hit_idx] = alb @ np.array([0.2126, 0.7152, 0.0722])
+        cos_inc = np.zeros(h * w, np.float32)
+        cos_inc[hit_idx] = np.abs(np.einsum("ij,ij->i", dw, n)) / _norm(dw)
+        return RenderedView(color.reshape(h, w, 3), depth.reshape(h, w), obj.reshape(h, w),
+                            lum.reshape(h, w), cos_inc.reshape(h, w))
+
+    def _irradiance(self, p: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """Lambertian irradiance (relative units) of fixed point lights + ambient; view-independent."""
+        o3c = self._o3d.core
+        E = np.full(len(p), self.layout.ambient)
+        for light in self.layout.lights:
+            L = np.asarray(light["pos"], dtype=np.float64)
+            to_l = L - p
+            dist = _norm(to_l)
+            cos = np.einsum("ij,ij->i", n, to_l) / dist
+            contrib = light["intensity"] * np.clip(cos, 0, None) / (1.0 + (dist / 2.0) ** 2)
+            if light["shadow"] and self.shadows:
+                lit = np.nonzero(contrib > 0)[0]
+                # Offset along the normal so a surface does not shadow itself.
+                o = p[lit] + n[lit] * 2e-3
+                rays = np.concatenate([o, L - o], 1).astype(np.float32)
+                occ = self.rc.test_occlusions(o3c.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+                contrib[lit[occ]] = 0.0
+            E += contrib
+        return E
+
+
+def _rotate(p: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``p @ R.T`` for (M, 3) points, written out (much faster than a BLAS call with a 3-wide matrix)."""
+    return p[:, 0:1] * R[:, 0] + p[:, 1:2] * R[:, 1] + p[:, 2:3] * R[:, 2]
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.einsum("ij,ij->i", a, a))
+
+
+@functools.lru_cache(maxsize=8)
+def _pixel_rays(K: Intrinsics) -> np.ndarray:
+    """(H*W, 3) float64 camera-frame ray directions with z = 1 through the pixel centres (read-only)."""
+    u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
+    d = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], -1).reshape(-1, 3)
+    d.setflags(write=False)
+    return d
+
+
+@functools.lru_cache(maxsize=4)
+def _model(seed: int, config: SampleSceneConfig) -> _Model:
+    return _Model(sample_layout(seed, config), seed, config.shadows)
+
+
+def render_view(seed: int, config: SampleSceneConfig, T_world_cam: np.ndarray, K: Intrinsics) -> RenderedView:
+    """Ray cast the sample room of ``seed`` at ``T_world_cam`` (4x4, OpenCV camera-to-world)."""
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"T_world_cam must be a finite 4x4 matrix, got shape {T.shape}")
+    return _model(int(seed), config).render(T, K)
+
+
+# ---- trajectory ---------------------------------------------------------------------------------
+
+def capture_trajectory(layout: _Layout, num_frames: int, seed: int) -> np.ndarray:
+    """(N, 4, 4) T_world_cam of a hand-held walk: a loop around the room looking at the walls, turning
+    to look at the table, then a spiral in for close views of the objects. Equal steps along the path."""
+    if num_frames < 2:
+        raise ValueError(f"num_frames must be >= 2, got {num_frames}")
+    rng = np.random.default_rng([seed, 2])
+    s = np.linspace(0.0, 1.0, 4001)
+    theta0 = rng.uniform(0, 2 * np.pi)
+    theta = theta0 + 2 * np.pi * 1.25 * s
+    w = np.clip((s - 0.55) / 0.3, 0, 1)
+    w = w * w * (3 - 2 * w)
+    room_c = np.array([0.0, 0.0])
+    tc = layout.objects_centre[:2]
+    centre = (1 - w)[:, None] * room_c + w[:, None] * tc
+    rx = (1 - w) * 1.45 + w * 0.8
+    ry = (1 - w) * 1.05 + w * 0.8
+    xy = centre + np.stack([rx * np.cos(theta), ry * np.sin(theta)], 1)
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    z = (1 - w) * 1.4 + w * 1.15 + 0.03 * np.sin(2 * np.pi * 3 * s + ph[0])
+    pos = np.concatenate([xy, z[:, None]], 1)
+    # Equal arc-length steps.
+    seg = np.linalg.norm(np.diff(pos, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    targets = np.linspace(0, arc[-1], num_frames)
+    idx = np.searchsorted(arc, targets).clip(0, len(s) - 1)
+    s_f, theta_f, pos_f = s[idx], theta[idx], pos[idx]
+
+    # Look direction: yaw from "outward + a bit forward" (walls) to "at the objects" (a = 1),
+    # turning through the walking direction so the rotation is continuous.
+    a = 0.2 + 0.8 * np.clip((s_f - 0.35) / 0.4, 0, 1) ** 1.0
+    to_obj = layout.objects_centre[None, :] - pos_f
+    yaw_obj = np.arctan2(to_obj[:, 1], to_obj[:, 0])
+    d = np.mod(yaw_obj - theta_f, 2 * np.pi)
+    yaw = theta_f + a * d
+    pitch_out = np.arctan2(1.0 - pos_f[:, 2], 2.0)
+    pitch_in = np.arctan2(to_obj[:, 2], np.linalg.norm(to_obj[:, :2], axis=1))
+    pitch = (1 - a) * pitch_out + a * pitch_in
+    pitch += np.radians(2.0) * np.sin(2 * np.pi * 2 * s_f + ph[1])
+    roll = np.radians(2.0) * np.sin(2 * np.pi * 2.5 * s_f + ph[2])
+    out = np.empty((num_frames, 4, 4))
+    for i in range(num_frames):
+        f = np.array([np.cos(pitch[i]) * np.cos(yaw[i]), np.cos(pitch[i]) * np.sin(yaw[i]), np.sin(pitch[i])])
+        T = look_at(pos_f[i], pos_f[i] + f)
+        out[i] = compose(T, make_pose(rotation_z(roll[i]), np.zeros(3)))
+    return out
+
+
+# ---- depth corruption ---------------------------------------------------------------------------
+
+def corrupt_depth(depth_m: np.ndarray, albedo_lum: np.ndarray, cos_incidence: np.ndarray,
+                  config: SampleSceneConfig, rng: np.random.Generator) -> np.ndarray:
+    """A realistic sensor reading of the exact depth ``depth_m`` (float32 (H, W), 0 = none).
+
+    In this order: foreground dilation at depth edges (``edge_dilate_px``), holes on the far side of
+    depth edges (``edge_shadow_px``), on dark surfaces (``dark_albedo``/``dark_dropout``), at grazing
+    incidence (``grazing_deg``), outside ``[min_range_m, max_range_m]`` and random speckles; Gaussian
+    noise with ``sigma = noise_sigma0_m + noise_k_per_m * z^2``; finally the whole map is shifted by
+    ``shift_px`` relative to the color (registration error), vacated borders are 0.
+    """
+    import cv2
+
+    d = np.asarray(depth_m, dtype=np.float32)
+    if d.ndim != 2 or albedo_lum.shape != d.shape or cos_incidence.shape != d.shape:
+        raise ValueError(f"depth, albedo and incidence must be (H, W) of one shape, got "
+                         f"{d.shape}, {albedo_lum.shape}, {cos_incidence.shape}")
+    valid = d > 0
+    big = np.where(valid, d, np.float32(1e3))
+    kernel = np.ones((3, 3), np.uint8)
+    dmin = cv2.erode(big, kernel)
+    # A depth edge: a 3x3 neighbour is closer by more than 4 % of the depth (or 5 cm).
+    far_side = valid & (big - dmin > np.maximum(0.04 * big, 0.05))
+    out = d.copy()
+    if config.edge_dilate_px > 0:
+        k = np.ones((2 * config.edge_dilate_px + 1,) * 2, np.uint8)
+        grown = cv2.erode(big, k)
+        band = cv2.dilate(far_side.astype(np.uint8), k).astype(bool) & valid
+        take = band & (grown < big - np.maximum(0.04 * big, 0.05))
+        out[take] = grown[take]
+    drop = np.zeros(d.shape, bool)
+    if config.edge_shadow_px > 0:
+        # The IR projector sits beside the camera: background just beside a foreground edge is unlit.
+        k = np.ones((1, 2 * config.edge_shadow_px + 1), np.uint8)
+        shadow = cv2.dilate(far_side.astype(np.uint8), k).astype(bool) & (out >= d - 1e-6) & (d - dmin > 0.05)
+        drop |= shadow & (rng.random(d.shape) < 0.8)
+    drop |= (albedo_lum < config.dark_albedo) & (rng.random(d.shape) < config.dark_dropout)
+    ang = np.degrees(np.arccos(np.clip(cos_incidence, 0, 1)))
+    p_graze = np.clip((ang - (config.grazing_deg - 6.0)) / 12.0, 0, 1)
+    drop |= rng.random(d.shape) < p_graze
+    drop |= rng.random(d.shape) < config.speckle_dropout
+    noise = rng.standard_normal(d.shape).astype(np.float32)
+    out = out + noise * (config.noise_sigma0_m + config.noise_k_per_m * out * out)
+    drop |= (out < config.min_range_m) | (out > config.max_range_m)
+    out[drop | ~(out > 0)] = 0.0
+    du, dv = config.shift_px
+    shifted = np.zeros_like(out)
+    h, w = out.shape
+    shifted[max(dv, 0):h + min(dv, 0), max(du, 0):w + min(du, 0)] = \
+        out[max(-dv, 0):h + min(-dv, 0), max(-du, 0):w + min(-du, 0)]
+    return shifted.astype(np.float32)
+
+
+# ---- build / load -------------------------------------------------------------------------------
+
+def _intrinsics(config: SampleSceneConfig) -> Intrinsics:
+    return Intrinsics.from_fov(config.width, config.height, config.hfov_deg)
+
+
+def _check_config(config: SampleSceneConfig) -> None:
+    if not 3 <= config.num_objects <= 5:
+        raise ValueError(f"num_objects must be 3..5, got {config.num_objects}")
+    if config.width < 16 or config.height < 16:
+        raise ValueError(f"image size must be at least 16x16, got {config.width}x{config.height}")
+    if config.num_frames < 2:
+        raise ValueError(f"num_frames must be >= 2, got {config.num_frames}")
+
+
+def _config_to_dict(config: SampleSceneConfig) -> dict:
+    d = dataclasses.asdict(config)
+    d["shift_px"] = list(config.shift_px)
+    return d
+
+
+def _config_from_dict(d: dict, where: Path) -> SampleSceneConfig:
+    names = {f.name for f in dataclasses.fields(SampleSceneConfig)}
+    unknown = set(d) - names
+    if unknown:
+        raise SceneError(f"{where}: unknown sample-scene config fields {sorted(unknown)}")
+    d = dict(d)
+    if "shift_px" in d:
+        d["shift_px"] = tuple(int(x) for x in d["shift_px"])
+    return SampleSceneConfig(**d)
+
+
+def build_sample_scene(dst: str | Path, seed: int = 0, config: SampleSceneConfig = SampleSceneConfig(),
+                       overwrite: bool = False) -> Path:
+    """Build the sample scene for ``seed`` into the folder ``dst`` (atomically) and return ``dst``.
+
+    The folder is a saved scene (:func:`presim.capture.store.load_scene`) whose depth is the corrupted
+    sensor depth, plus ``dst/ground_truth/`` (exact depth, object masks, room mesh, parts, config).
+    """
+    from presim.capture.store import fuse_point_cloud, save_scene
+
+    _check_config(config)
+    dst = Path(dst)
+    if dst.exists() and not overwrite:
+        raise FileExistsError(f"{dst}: already exists (pass overwrite to replace it)")
+    model = _model(int(seed), config)
+    layout = model.layout
+    K = _intrinsics(config)
+    T_world_cams = capture_trajectory(layout, config.num_frames, seed)
+    n, h, w = config.num_frames, config.height, config.width
+    color = np.empty((n, h, w, 3), np.uint8)
+    depth_clean = np.empty((n, h, w), np.float32)
+    depth_raw = np.empty((n, h, w), np.float32)
+    obj_id = np.empty((n, h, w), np.uint8)
+    for i in progress(range(n), desc="rendering sample scene", unit="frame"):
+        view = model.render(T_world_cams[i], K)
+        color[i] = view.color
+        depth_clean[i] = view.depth_m
+        obj_id[i] = view.object_id
+        depth_raw[i] = corrupt_depth(view.depth_m, view.albedo_lum, view.cos_incidence, config,
+                                     np.random.default_rng([seed, 3, i]))
+
+    frame_ids = [f"frame-{i:06d}" for i in range(n)]
+    stamps = np.arange(n) / config.frame_rate_hz
+    clean = Scene(frame_ids, stamps, T_world_cams, [K] * n, ArrayFrameSource(color, depth_clean),
+                  SceneMeta("", "sample"))
+    # The point cloud is fused from the exact depth (the scene's ground-truth geometry).
+    points = fuse_point_cloud(clean, voxel_m=0.01, stride=4)
+    on_floor = float(np.mean(np.abs(points.xyz[:, 2]) < 0.01)) if len(points) else 0.0
+
+    with atomic_dir(dst, overwrite=overwrite) as tmp:
+        models = tmp / "_models"
+        models.mkdir()
+        objects = []
+        for k, p in enumerate(layout.parts):
+            if p.obj_id == 0:
+                continue
+            path = models / f"{p.name}.ply"
+            _write_part_ply(path, p.mesh, p.material, model.noise)
+            objects.append(SceneObject(p.obj_id, p.name, p.T_world_part.copy(), str(path),
+                                       symmetric=p.name in ("soup_can", "ball")))
+        meta = SceneMeta(
+            source=f"sample-scene seed={seed}", source_format="sample", importer_version=str(SAMPLE_VERSION),
+            notes=("procedural room rendered by ray casting (presim.capture.sample_scene)",
+                   "depth.npy is corrupted like a real sensor; exact depth in ground_truth/depth_clean.npy",
+                   "point cloud fused from the exact depth"),
+        )
+        scene = Scene(frame_ids, stamps, T_world_cams, [K] * n, ArrayFrameSource(color, depth_raw), meta,
+                      points=points, floor=FloorPlane((0.0, 0.0, 1.0), 0.0, on_floor),
+                      gravity_world=np.array([0.0, 0.0, -1.0]), objects=objects)
+        inner = save_scene(scene, tmp / "scene")
+        for entry in inner.iterdir():
+            os.replace(entry, tmp / entry.name)
+        inner.rmdir()
+        shutil.rmtree(models)
+
+        gt = tmp / GT_DIR
+        gt.mkdir()
+        np.save(gt / "depth_clean.npy", depth_clean)
+        np.save(gt / "object_id.npy", obj_id)
+        _write_room_ply(gt / "room.ply", model)
+        parts = []
+        for k, p in enumerate(layout.parts):
+            a, b = model.part_ranges[k]
+            v = model.vertices[model.triangles[a:b].reshape(-1)]
+            parts.append({"name": p.name, "kind": p.kind, "obj_id": p.obj_id,
+                          "aabb_min": v.min(0).astype(float).round(6).tolist(),
+                          "aabb_max": v.max(0).astype(float).round(6).tolist(),
+                          "tri_start": int(a), "tri_end": int(b)})
+        atomic_write_json(gt / "parts.json", {"parts": parts}, indent=1)
+        atomic_write_json(gt / "sample.json", {
+            "format": "presim-sample-scene", "version": SAMPLE_VERSION, "seed": int(seed),
+            "config": _config_to_dict(config), "table_top_z_m": layout.table_top_z_m,
+            "lights": layout.lights, "ambient": layout.ambient,
+        })
+    return dst
+
+
+def _write_part_ply(path: Path, mesh: Mesh, mat: Material, noise: NoiseField) -> None:
+    rgb = srgb_encode(albedo(mat, mesh.vertices, mesh.normals, noise))
+    write_ply(path, mesh.vertices, mesh.triangles, colors=rgb, normals=mesh.normals)
+
+
+def _write_room_ply(path: Path, model: _Model) -> None:
+    """Whole scene in world metres; vertex colors = albedo at the vertices (flat parts keep one
+    color per corner, so the PLY is a coarse preview of the texture, not the texture itself)."""
+    rgb = np.zeros((len(model.vertices), 3), np.uint8)
+    v_part = np.zeros(len(model.vertices), np.int64)
+    v_part[model.triangles.reshape(-1)] = np.repeat(model.tri_part, 3)
+    for k, p in enumerate(model.layout.parts):
+        sel = v_part == k
+        Tpw = model.T_part_world[k]
+        pl = model.vertices[sel].astype(np.float64) @ Tpw[:3, :3].T + Tpw[:3, 3]
+        nl = model.vertex_normals[sel].astype(np.float64) @ Tpw[:3, :3].T
+        rgb[sel] = srgb_encode(albedo(p.material, pl, nl, model.noise))
+    write_ply(path, model.vertices, model.triangles, colors=rgb, normals=model.vertex_normals)
+
+
+@functools.lru_cache(maxsize=16)
+def _read_sample_json(path_str: str, mtime_ns: int) -> tuple[int, SampleSceneConfig, float]:
+    p = Path(path_str)
+    try:
+        d = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise SceneError(f"{p}: corrupt JSON ({e})") from e
+    if d.get("format") != "presim-sample-scene":
+        raise SceneError(f"{p}: not a sample-scene description")
+    if d.get("version") != SAMPLE_VERSION:
+        raise SceneError(f"{p}: sample-scene version {d.get('version')} is not supported (this PreSim "
+                         f"reads version {SAMPLE_VERSION}); rebuild it with `presim sample-scene`")
+    return int(d["seed"]), _config_from_dict(d["config"], p), float(d["table_top_z_m"])
+
+
+def _sample_info(dst: Path) -> tuple[int, SampleSceneConfig, float]:
+    p = Path(dst) / GT_DIR / "sample.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: not found; {dst} is not a sample scene built by `presim sample-scene`")
+    return _read_sample_json(str(p.resolve()), p.stat().st_mtime_ns)
+
+
+def load_sample_ground_truth(dst: str | Path) -> SampleGroundTruth:
+    """Ground truth of the sample scene at ``dst`` (exact depth and object masks memory-mapped)."""
+    dst = Path(dst)
+    seed, config, top_z = _sample_info(dst)
+    gt = dst / GT_DIR
+    for name in ("depth_clean.npy", "object_id.npy", "room.ply", "parts.json"):
+        if not (gt / name).is_file():
+            raise FileNotFoundError(f"{gt / name}: missing from the sample scene's ground truth")
+    depth = np.load(gt / "depth_clean.npy", mmap_mode="r")
+    obj = np.load(gt / "object_id.npy", mmap_mode="r")
+    shape = (config.num_frames, config.height, config.width)
+    if depth.shape != shape or depth.dtype != np.float32:
+        raise SceneError(f"{gt / 'depth_clean.npy'}: expected float32 {shape}, got {depth.dtype} {depth.shape}")
+    if obj.shape != shape:
+        raise SceneError(f"{gt / 'object_id.npy'}: expected {shape}, got {obj.shape}")
+    parts = tuple(SamplePart(p["name"], p["kind"], int(p["obj_id"]), tuple(p["aabb_min"]), tuple(p["aabb_max"]),
+                             int(p["tri_start"]), int(p["tri_end"]))
+                  for p in json.loads((gt / "parts.json").read_text())["parts"])
+    return SampleGroundTruth(dst, seed, config, depth, obj, gt / "room.ply", parts, top_z)
+
+
+def clean_scene(dst: str | Path):
+    """The sample scene at ``dst`` with its frames reading the exact depth instead of the sensor depth."""
+    from presim.capture.store import load_scene
+
+    scene = load_scene(dst)
+    gt = load_sample_ground_truth(dst)
+    color = scene.frames.color  # memmap of color.npy
+    return dataclasses.replace(scene, frames=ArrayFrameSource(color, gt.depth_clean_m))
+
+
+def render_ground_truth(dst: str | Path, T_world_cam: np.ndarray, K: Intrinsics
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ray cast the true geometry of the sample scene at ``dst`` at any pose.
+
+    Args:
+        dst: a folder written by :func:`build_sample_scene`.
+        T_world_cam: 4x4 OpenCV camera-to-world pose.
+        K: intrinsics (any resolution).
+
+    Returns:
+        ``(color uint8 (H,W,3), depth_m float32 (H,W) exact z-depth with 0 = nothing,
+        object_id int32 (H,W) with 0 = background)`` -- the same shading as the captured frames, so at
+        a capture pose this equals the stored color and clean depth exactly. The ray-casting scene
+        is built once per process per (seed, config).
+    """
+    seed, config, _ = _sample_info(Path(dst))
+    view = render_view(seed, config, T_world_cam, K)
+    return view.color, view.depth_m, view.object_id

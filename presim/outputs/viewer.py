@@ -1,0 +1,301 @@
+"""Global 3D visualizer with rerun (thesis Fig. 4.16): scene cloud, input camera frusta, the live
+robot and its camera, the whole trajectory and the RGB-D images on the ``sim_time`` timeline.
+
+Entity paths mirror the frame tree (``map`` is rerun's ``world``)::
+
+    world                                   RIGHT_HAND_Z_UP (gravity -z)
+    world/scene                             Points3D, static
+    world/inputs/view_0000                  Transform3D (T_world_cam) + Pinhole, static
+    world/trajectory/base, .../camera       LineStrips3D (whole path so far)
+    world/robot/base_link                   Transform3D (exact T_world_base) + Boxes3D body
+    world/robot/base_link/<link>/...        Transform3D T_parent_child along the URDF chain
+    .../camera_optical_frame                Pinhole (OpenCV RDF)
+    .../camera_optical_frame/color          Image (RGB)
+    .../camera_optical_frame/depth          DepthImage (meter = 1.0: values are metres)
+
+Modes (all bind 127.0.0.1 only; we start the ``rerun`` binary ourselves because the SDK's
+``serve_grpc`` / ``serve_web_viewer`` / ``spawn`` bind 0.0.0.0 in 0.41):
+
+- ``native``: the native viewer (``rerun --bind 127.0.0.1 --port P``), detached so it stays open.
+- ``web``: ``rerun --serve-web --bind 127.0.0.1`` (gRPC proxy + web viewer); stopped at close.
+- ``rrd``: only an ``.rrd`` file (also written alongside in the other modes when ``rrd_path`` given).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.parse
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from presim.outputs.frames import BASE_FRAME, build_frame_tree
+from presim.sim.types import SimInfo, StepResult
+
+__all__ = ["ViewerConfig", "RerunViewer", "web_viewer_url", "free_port", "rerun_executable",
+           "wait_for_port"]
+
+MODES = ("native", "web", "rrd")
+
+
+@dataclass(frozen=True)
+class ViewerConfig:
+    """rerun viewer settings."""
+
+    host: str = "127.0.0.1"
+    """Address the viewer's servers bind to. Loopback unless you mean to share it."""
+    grpc_port: int = 0
+    """gRPC proxy port; 0 = a free port."""
+    web_port: int = 0
+    """Web viewer HTTP port (web mode); 0 = a free port."""
+    max_scene_points: int = 200_000
+    """Scene cloud is randomly subsampled to this many points (keeps the viewer responsive)."""
+    image_every_n_steps: int = 1
+    """Log camera images every n-th reading (images dominate the .rrd size)."""
+    trajectory_every_n_steps: int = 5
+    """Re-log the growing trajectory line every n steps (and at close)."""
+    jpeg_quality: int | None = None
+    """Compress color images with JPEG at this quality (None = raw RGB)."""
+    extra_viewer_args: tuple[str, ...] = ()
+    """Extra ``rerun`` arguments (e.g. ``--headless`` in tests)."""
+    input_image_plane_m: float = 0.15
+    """Drawn depth of the input-view frusta, metres."""
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def wait_for_port(host: str, port: int, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection((host, port), timeout=0.5):
+                return
+        except OSError:
+            time.sleep(0.1)
+    raise TimeoutError(f"nothing listens on {host}:{port} after {timeout_s:.0f} s")
+
+
+def rerun_executable() -> list[str]:
+    """Command that starts the ``rerun`` binary shipped with rerun-sdk (same version as the SDK)."""
+    return [sys.executable, "-m", "rerun"]
+
+
+def web_viewer_url(host: str, web_port: int, grpc_port: int) -> str:
+    proxy = f"rerun+http://{host}:{grpc_port}/proxy"
+    return f"http://{host}:{web_port}/?url={urllib.parse.quote(proxy, safe='')}"
+
+
+def _viewer_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("RERUN_ANALYTICS", "0")  # no usage reports from a simulator run
+    return env
+
+
+class RerunViewer:
+    """A synchronous :class:`~presim.sim.types.Sink` logging to rerun (wrap it in ``QueuedSink``)."""
+
+    def __init__(self, mode: str, rrd_path: str | os.PathLike | None = None,
+                 config: ViewerConfig = ViewerConfig()):
+        if mode not in MODES:
+            raise ValueError(f"unknown viewer mode {mode!r}; choose one of {', '.join(MODES)}")
+        if mode == "rrd" and rrd_path is None:
+            raise ValueError("viewer mode 'rrd' needs an .rrd path")
+        self.mode = mode
+        self.rrd_path = Path(rrd_path) if rrd_path is not None else None
+        if self.rrd_path is not None and self.rrd_path.suffix != ".rrd":
+            raise ValueError(f"{self.rrd_path}: a rerun recording must end in .rrd")
+        self.config = config
+        self.process: subprocess.Popen | None = None
+        self.url: str | None = None
+        self.grpc_url: str | None = None
+        self.rec = None
+        self._base_xy: list[np.ndarray] = []
+        self._cam_xyz: list[np.ndarray] = []
+        self._steps = 0
+        self._readings: dict[str, int] = {}
+        self._static_logged: set[str] = set()
+
+    # -- connection ----------------------------------------------------------------------------
+    def _start_viewer(self) -> None:
+        import rerun as rr
+
+        cfg = self.config
+        grpc_port = cfg.grpc_port or free_port(cfg.host)
+        cmd = rerun_executable() + ["--bind", cfg.host, "--port", str(grpc_port)]
+        if self.mode == "web":
+            web_port = cfg.web_port or free_port(cfg.host)
+            cmd += ["--serve-web", "--web-viewer-port", str(web_port)]
+            self.url = web_viewer_url(cfg.host, web_port, grpc_port)
+        cmd += list(cfg.extra_viewer_args)
+        self.process = subprocess.Popen(
+            cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            env=_viewer_env(), start_new_session=(self.mode == "native"))
+        try:
+            wait_for_port(cfg.host, grpc_port)
+            if self.mode == "web":
+                wait_for_port(cfg.host, web_port)
+        except TimeoutError as e:
+            self._stop_viewer()
+            raise RuntimeError(f"rerun viewer did not start ({' '.join(cmd)}): {e}") from e
+        self.grpc_url = f"rerun+http://{cfg.host}:{grpc_port}/proxy"
+        sinks = [rr.GrpcSink(self.grpc_url)]
+        if self.rrd_path is not None:
+            sinks.append(rr.FileSink(str(self.rrd_path)))
+        self.rec.set_sinks(*sinks)
+        if self.mode == "web":
+            print(f"presim: web viewer at {self.url}", file=sys.stderr)
+
+    def _stop_viewer(self) -> None:
+        p, self.process = self.process, None
+        if p is None or self.mode == "native":  # the native window outlives the run, like rr.spawn
+            return
+        p.terminate()
+        try:
+            p.wait(5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+    # -- Sink ----------------------------------------------------------------------------------
+    def open(self, info: SimInfo) -> None:
+        import rerun as rr
+
+        self.rec = rr.RecordingStream("presim", recording_id=str(uuid.uuid4()))
+        if self.mode == "rrd":
+            self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.save(str(self.rrd_path))
+        else:
+            if self.rrd_path is not None:
+                self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
+            self._start_viewer()
+        self._tree = build_frame_tree(info)
+        self._log_static(info)
+
+    def _log_static(self, info: SimInfo) -> None:
+        import rerun as rr
+
+        rec, cfg = self.rec, self.config
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        pts, rgb = np.asarray(info.points_xyz, np.float32), np.asarray(info.points_rgb, np.uint8)
+        if len(pts) > cfg.max_scene_points:
+            keep = np.random.default_rng(0).choice(len(pts), cfg.max_scene_points, replace=False)
+            pts, rgb = pts[np.sort(keep)], rgb[np.sort(keep)]
+        if len(pts):
+            rec.log("world/scene", rr.Points3D(pts, colors=rgb, radii=0.01), static=True)
+        for i, (T, K) in enumerate(zip(info.input_T_world_cam, info.input_intrinsics)):
+            path = f"world/inputs/view_{i:04d}"
+            T = np.asarray(T, dtype=np.float64)
+            rec.log(path, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
+            rec.log(path, rr.Pinhole(image_from_camera=K.K, resolution=[K.width, K.height],
+                                     camera_xyz=rr.ViewCoordinates.RDF,
+                                     image_plane_distance=cfg.input_image_plane_m,
+                                     color=[120, 160, 255]), static=True)
+        self._entity = self._entity_paths(info)
+
+    def _entity_paths(self, info: SimInfo) -> dict[str, str]:
+        """Link name -> entity path under world/robot, following the URDF parent chain."""
+        parents = dict(info.link_parents)
+        out: dict[str, str] = {BASE_FRAME: f"world/robot/{BASE_FRAME}"}
+
+        def path(link: str, depth: int = 0) -> str:
+            if link in out:
+                return out[link]
+            parent = parents.get(link)
+            if parent is None or depth > 64:
+                out[link] = f"{out[BASE_FRAME]}/{link}"
+            else:
+                out[link] = f"{path(parent, depth + 1)}/{link}"
+            return out[link]
+
+        for link in list(parents) + list(parents.values()):
+            path(link)
+        return out
+
+    def _link_path(self, link: str) -> str:
+        if link not in self._entity:  # a camera frame outside the URDF: hang it off base_link
+            self._entity[link] = f"{self._entity[BASE_FRAME]}/{link}"
+        return self._entity[link]
+
+    def on_step(self, r: StepResult) -> None:
+        import rerun as rr
+
+        rec, cfg = self.rec, self.config
+        rec.set_time("sim_time", duration=float(r.sim_time_s))
+        rec.set_time("step", sequence=int(r.step_idx))
+        T = np.asarray(r.T_world_base, dtype=np.float64)
+        base = self._entity[BASE_FRAME]
+        rec.log(base, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        if "body" not in self._static_logged:
+            self._static_logged.add("body")
+            rec.log(f"{base}/body", rr.Boxes3D(centers=[[0, 0, 0.15]], half_sizes=[[0.25, 0.25, 0.15]],
+                                               colors=[[200, 120, 40]], labels=["robot"]), static=True)
+            rec.log(f"{base}/heading", rr.Arrows3D(origins=[[0, 0, 0.31]], vectors=[[0.4, 0, 0]],
+                                                  colors=[[255, 60, 60]]), static=True)
+        dynamic, static = self._tree.edges(r)
+        # map->odom->base_link are replaced by the exact base pose.
+        for e, is_static in [(e, False) for e in dynamic[2:]] + [(e, True) for e in static]:
+            p = self._link_path(e.child)
+            Tpc = e.T_parent_child
+            if is_static and p in self._static_logged:
+                continue
+            rec.log(p, rr.Transform3D(translation=Tpc[:3, 3], mat3x3=Tpc[:3, :3]), static=is_static)
+            if is_static:
+                self._static_logged.add(p)
+        for cam in r.cameras:
+            p = self._link_path(cam.frame_id)
+            n = self._readings.get(cam.sensor_name, 0)
+            self._readings[cam.sensor_name] = n + 1
+            K = cam.K
+            if f"pinhole:{p}" not in self._static_logged:
+                self._static_logged.add(f"pinhole:{p}")
+                rec.log(p, rr.Pinhole(image_from_camera=K.K, resolution=[K.width, K.height],
+                                      camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.4,
+                                      color=[255, 200, 0]), static=True)
+            self._cam_xyz.append(np.asarray(cam.T_world_cam, dtype=np.float64)[:3, 3])
+            if n % cfg.image_every_n_steps == 0:
+                img = rr.Image(np.ascontiguousarray(cam.color))
+                if cfg.jpeg_quality is not None:
+                    img = img.compress(jpeg_quality=cfg.jpeg_quality)
+                rec.log(f"{p}/color", img)
+                rec.log(f"{p}/depth", rr.DepthImage(np.asarray(cam.depth_m, dtype=np.float32), meter=1.0))
+        self._base_xy.append(T[:3, 3].copy())
+        self._steps += 1
+        if self._steps % cfg.trajectory_every_n_steps == 0 or self._steps == 1:
+            self._log_trajectory()
+
+    def _log_trajectory(self) -> None:
+        import rerun as rr
+
+        if len(self._base_xy) >= 1:
+            self.rec.log("world/trajectory/base",
+                         rr.LineStrips3D([np.asarray(self._base_xy)], colors=[[255, 80, 80]], radii=0.01))
+        if len(self._cam_xyz) >= 1:
+            self.rec.log("world/trajectory/camera",
+                         rr.LineStrips3D([np.asarray(self._cam_xyz)], colors=[[255, 200, 0]], radii=0.006))
+
+    def flush(self, timeout_s: float = 30.0) -> None:
+        if self.rec is not None:
+            self.rec.flush(timeout_sec=timeout_s)
+
+    def close(self) -> None:
+        if self.rec is None:
+            return
+        rec = self.rec
+        try:
+            if self._steps % self.config.trajectory_every_n_steps != 0:
+                self._log_trajectory()
+            rec.flush(timeout_sec=30.0)
+        finally:
+            rec.disconnect()  # drops the sinks: the .rrd gets its footer and is closed
+            self.rec = None
+            self._stop_viewer()

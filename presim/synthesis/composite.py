@@ -1,0 +1,248 @@
+"""Compositing of layers and views, and the hole analysis that drives the adaptive loop (§3.4.4).
+
+- :func:`composite_layers`: front to back over the layers of one view (a pixel takes the nearest
+  layer, in the source view's depth order, that has a value). Because every layer was crack-filled
+  on its own first, a crack in a foreground layer is filled with foreground, never with background
+  seen through it — the point of layered warping.
+- :func:`merge_view`: write a view's image into the accumulated target image only on pixels the
+  accumulator marks as replaceable (its holes, grown by the hole dilation); earlier (better ranked)
+  views are never overwritten elsewhere.
+- :func:`analyse_holes`: connected components of the empty pixels (8-connected, OpenCV). The area of
+  the largest component decides whether another view is warped; components of at least
+  ``big_hole_px`` pixels are dilated by ``hole_dilation_px`` so the next view also replaces the rim
+  of a big hole, where ghost contours (misaligned color/depth edges) live.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba as nb
+import numpy as np
+
+__all__ = ["HoleStats", "composite_layers", "filtered_composite_masked", "merge_view", "analyse_holes"]
+
+
+@nb.njit(parallel=True, cache=True)
+def _composite_kernel(d, c, dout, cout):  # pragma: no cover
+    L, H, W = d.shape
+    for v in nb.prange(H):
+        for u in range(W):
+            dout[v, u] = 0.0
+            cout[v, u, 0] = 0
+            cout[v, u, 1] = 0
+            cout[v, u, 2] = 0
+            for l in range(L):
+                if d[l, v, u] > 0:
+                    dout[v, u] = d[l, v, u]
+                    cout[v, u, 0] = c[l, v, u, 0]
+                    cout[v, u, 1] = c[l, v, u, 1]
+                    cout[v, u, 2] = c[l, v, u, 2]
+                    break
+
+
+def composite_layers(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Front-to-back composite of layers (numba).
+
+    Args:
+        depth_m: float32 (L, H, W), 0 = empty; color: uint8 (L, H, W, 3).
+    Returns:
+        ``(depth_m (H, W) float32, color (H, W, 3) uint8)``.
+    """
+    L, H, W = depth_m.shape
+    if L == 1:
+        return depth_m[0].copy(), color[0].copy()
+    dout = np.empty((H, W), np.float32)
+    cout = np.empty((H, W, 3), np.uint8)
+    _composite_kernel(depth_m, color, dout, cout)
+    return dout, cout
+
+
+@nb.njit(parallel=True, cache=True)
+def _merge_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id):  # pragma: no cover
+    H, W = acc_d.shape
+    for v in nb.prange(H):
+        for u in range(W):
+            if replace[v, u] and d[v, u] > 0:
+                acc_d[v, u] = d[v, u]
+                acc_c[v, u, 0] = c[v, u, 0]
+                acc_c[v, u, 1] = c[v, u, 1]
+                acc_c[v, u, 2] = c[v, u, 2]
+                acc_src[v, u] = view_id
+
+
+def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
+               replace: np.ndarray, depth_m: np.ndarray, color: np.ndarray, view_id: int) -> None:
+    """In place: where ``replace`` (bool (H, W)) and the view has a value, take the view's pixel.
+
+    Args:
+        acc_depth_m / acc_color / acc_source: the accumulated target image (float32 (H, W),
+            uint8 (H, W, 3), int32 (H, W) scene frame index, -1 = none), updated in place.
+        depth_m / color: the view's composited image.
+        view_id: scene frame index written to ``acc_source``.
+    """
+    _merge_kernel(acc_depth_m, acc_color, acc_source, replace, depth_m, color, np.int32(view_id))
+
+
+@dataclass(frozen=True)
+class HoleStats:
+    """Holes (empty pixels) of an image after some views were merged."""
+
+    hole_frac: float
+    """Fraction of empty pixels."""
+    largest_hole_px: int
+    """Area of the largest 8-connected hole, pixels (0 when there is none)."""
+    replace: np.ndarray | None
+    """bool (H, W): pixels the next view may write (the holes, big ones dilated); None if not asked."""
+
+
+def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
+                  want_replace: bool = True) -> HoleStats:
+    """Hole statistics of a coverage mask, and the mask of pixels the next view may replace.
+
+    Args:
+        valid: bool (H, W), True where the accumulated image has a value.
+        big_hole_px: holes of at least this many pixels are "big" and get dilated.
+        hole_dilation_px: dilation radius of big holes (0 = no dilation).
+        want_replace: also build the replace mask (skipped when no further view will be warped).
+    """
+    holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
+    n_hole = int(holes.sum())
+    H, W = valid.shape
+    if n_hole == 0:
+        return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    largest = int(areas.max()) if len(areas) else 0
+    replace = None
+    if want_replace:
+        replace = holes.astype(bool)
+        if hole_dilation_px > 0:
+            big_lut = np.zeros(n, np.uint8)
+            big_lut[1:] = areas >= big_hole_px
+            if big_lut.any():
+                big = big_lut[labels]
+                k = 2 * hole_dilation_px + 1
+                grown = cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+                replace |= grown.astype(bool)
+    return HoleStats(n_hole / float(H * W), largest, replace)
+
+
+@nb.njit(cache=True)
+def _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, out_c):  # pragma: no cover
+    """Switching-median value of layer l at (v, u): depth (0 if it stays empty); color in out_c."""
+    L, H, W = d.shape
+    if d[l, v, u] > 0:
+        out_c[0] = c[l, v, u, 0]
+        out_c[1] = c[l, v, u, 1]
+        out_c[2] = c[l, v, u, 2]
+        return d[l, v, u]
+    n = 0
+    for y in range(max(v - r, 0), min(v + r + 1, H)):
+        for x in range(max(u - r, 0), min(u + r + 1, W)):
+            dd = d[l, y, x]
+            if dd > 0:
+                bd[n] = dd
+                b0[n] = c[l, y, x, 0]
+                b1[n] = c[l, y, x, 1]
+                b2[n] = c[l, y, x, 2]
+                n += 1
+    if 2 * n <= n_win:
+        return np.float32(0.0)
+    k = (n - 1) // 2
+    _isort(bd, n)
+    _isort(b0, n)
+    _isort(b1, n)
+    _isort(b2, n)
+    out_c[0] = b0[k]
+    out_c[1] = b1[k]
+    out_c[2] = b2[k]
+    return bd[k]
+
+
+@nb.njit(cache=True, inline="always")
+def _isort(a, n):  # pragma: no cover
+    for i in range(1, n):
+        key = a[i]
+        j = i - 1
+        while j >= 0 and a[j] > key:
+            a[j + 1] = a[j]
+            j -= 1
+        a[j + 1] = key
+
+
+@nb.njit(parallel=True, cache=True)
+def _masked_layers_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
+    L, H, W = d.shape
+    n_win = (2 * r + 1) * (2 * r + 1)
+    for v in nb.prange(H):
+        bd = np.empty(n_win, np.float32)
+        b0 = np.empty(n_win, np.uint8)
+        b1 = np.empty(n_win, np.uint8)
+        b2 = np.empty(n_win, np.uint8)
+        px = np.zeros(3, np.uint8)
+        for u in range(W):
+            if not mask[v, u]:
+                continue
+            for l in range(L):
+                z = _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, px)
+                if z > 0:
+                    dout[v, u] = z
+                    cout[v, u, 0] = px[0]
+                    cout[v, u, 1] = px[1]
+                    cout[v, u, 2] = px[2]
+                    break
+
+
+@nb.njit(parallel=True, cache=True)
+def _masked_single_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
+    H, W = d.shape
+    n_win = (2 * r + 1) * (2 * r + 1)
+    d3 = d.reshape((1, H, W))
+    c3 = c.reshape((1, H, W, 3))
+    for v in nb.prange(H):
+        bd = np.empty(n_win, np.float32)
+        b0 = np.empty(n_win, np.uint8)
+        b1 = np.empty(n_win, np.uint8)
+        b2 = np.empty(n_win, np.uint8)
+        px = np.zeros(3, np.uint8)
+        for u in range(W):
+            if mask[v, u]:
+                z = _layer_value_at(d3, c3, 0, v, u, r, n_win, bd, b0, b1, b2, px)
+                dout[v, u] = z
+                cout[v, u, 0] = px[0] if z > 0 else 0
+                cout[v, u, 1] = px[1] if z > 0 else 0
+                cout[v, u, 2] = px[2] if z > 0 else 0
+
+
+def filtered_composite_masked(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray,
+                              kernel_px: int = 3, seam_pass: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Switching-median + front-to-back composite (+ seam pass) evaluated only where it is needed.
+
+    Equals ``crack_filter`` per layer -> :func:`composite_layers` -> ``crack_filter`` (seam pass) on
+    every pixel of ``replace``; other pixels are left 0. Used for the views after the first, which
+    only write into the (usually small) replaceable region. The composite is evaluated on
+    ``replace`` grown by the kernel radius, which is all the seam pass reads.
+
+    Args:
+        depth_m: float32 (L, H, W) warped layers; color: uint8 (L, H, W, 3).
+        replace: bool (H, W) pixels whose final value is wanted.
+    Returns:
+        ``(depth_m (H, W), color (H, W, 3))``, exact on ``replace``.
+    """
+    L, H, W = depth_m.shape
+    r = kernel_px // 2
+    need = replace
+    if seam_pass and r > 0:
+        k = 2 * r + 1
+        need = cv2.dilate(replace.view(np.uint8), np.ones((k, k), np.uint8)).view(bool)
+    comp_d = np.zeros((H, W), np.float32)
+    comp_c = np.zeros((H, W, 3), np.uint8)
+    _masked_layers_kernel(depth_m, color, need, r, comp_d, comp_c)
+    if not seam_pass:
+        return comp_d, comp_c
+    out_d = np.zeros((H, W), np.float32)
+    out_c = np.zeros((H, W, 3), np.uint8)
+    _masked_single_kernel(comp_d, comp_c, replace, r, out_d, out_c)
+    return out_d, out_c

@@ -1,0 +1,296 @@
+"""Leave-one-out evaluation of view synthesis (thesis §3.5) with the thesis ablations and a TSDF-mesh
+baseline.
+
+Protocol: the *capture* is every ``stride``-th frame of the scene (by position); the *targets* are the
+capture frames whose position in the capture is a positive multiple of ``target_every``. Each target
+is rendered from the other capture frames (``Scene.subset`` without it) at its own pose and
+intrinsics and compared with the real image. Every method gets the same final hole filling.
+
+The refined depth of the capture frames is computed once, with only capture frames as references,
+and cached (``<cache_dir>/refined_<hash>.npy``; the target's color is thus one of the references
+when its neighbours' depth is refined; the depth of the target itself is never used to render it).
+
+Metrics per method (means over targets):
+- ``psnr_db``: PSNR of the delivered (filled) color image vs the real image.
+- ``psnr_black_db``: PSNR with pixels no view covered set to black (no filling).
+- ``psnr_covered_db``: PSNR over synthesized (covered) pixels only.
+- ``ssim``: SSIM (scikit-image, RGB, data range 255) of the delivered image.
+- ``hole_frac``: fraction of pixels no view covered, before filling.
+- ``depth_absrel``: mean |d - d_real| / d_real over covered pixels where the real depth is valid.
+- ``ms_per_frame``: wall time of one steady-state render (after a warm-up render of the same pose),
+  filling included; per-scene preparation (renderer construction, TSDF fusion) excluded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from presim.capture.scene import Scene
+from presim.depth.filters import guided_filter_depth, median_filter_depth
+from presim.depth.refine import RefineConfig
+from presim.depth.scene_refine import refine_frames_to_file, refine_one_frame
+from presim.io_utils import progress
+from presim.synthesis.rgbd import RGBD
+
+__all__ = ["METHODS", "DEFAULT_METHODS", "EvalConfig", "EvalResult", "eval_views", "format_table",
+           "capture_and_targets", "image_metrics"]
+
+# Method name -> (RenderConfig overrides, depth variant). Depth variant: "refined" (the scene's
+# refinement), "raw" (sensor depth), "guided" / "median" (filters of the raw depth used in place of
+# the refinement), or "tsdf" (the mesh baseline, no Renderer).
+METHODS: dict[str, tuple[dict, str]] = {
+    "full": ({}, "refined"),
+    "DIBR": ({"num_layers": 1}, "raw"),
+    "DIBR_DR": ({"num_layers": 1}, "refined"),
+    "LDIBR": ({}, "raw"),
+    "LDIBR_DR": ({}, "refined"),
+    "sel_distance": ({"selection": "distance"}, "refined"),
+    "sel_angle": ({"selection": "angle"}, "refined"),
+    "fixed_1": ({"fixed_views": 1}, "refined"),
+    "fixed_2": ({"fixed_views": 2}, "refined"),
+    "fixed_3": ({"fixed_views": 3}, "refined"),
+    "median_plain": ({"crack_filter": "median"}, "refined"),
+    "depth_guided": ({}, "guided"),
+    "depth_median": ({}, "median"),
+    **{f"layers_{k}": ({"num_layers": k}, "refined") for k in range(1, 9)},
+    "tsdf_mesh": ({}, "tsdf"),
+}
+DEFAULT_METHODS = tuple(METHODS)
+METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel", "ms_per_frame")
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Protocol of ``presim eval-views``."""
+
+    stride: int = 1
+    """Capture = every ``stride``-th frame of the scene."""
+    target_every: int = 5
+    """Targets = capture frames at capture positions that are positive multiples of this."""
+    methods: tuple[str, ...] = DEFAULT_METHODS
+    """Methods to evaluate (keys of :data:`METHODS`)."""
+    max_targets: int | None = None
+    """Evaluate at most this many targets (evenly spread over the eligible ones)."""
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """Refinement used for the capture frames."""
+    refine_workers: int = 1
+    """Processes for the (cached) refinement of the capture frames."""
+    tsdf_voxel_m: float | None = None
+    """TSDF voxel size; None = 1/250 of the capture's median depth range, clamped to [4 mm, 2 cm]."""
+    warmup: bool = True
+    """Render each target once before the timed render (steady-state timing)."""
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    """Per-method mean metrics plus per-target values."""
+
+    methods: dict[str, dict[str, float]]
+    per_target: dict[str, list[dict[str, float]]]
+    target_ids: list[str]
+    skipped: dict[str, str]
+    refine_s: float
+
+    def to_json(self) -> dict:
+        return {"methods": self.methods, "skipped": self.skipped, "targets": self.target_ids,
+                "per_target": self.per_target, "refine_s": self.refine_s}
+
+
+def capture_and_targets(num_frames: int, stride: int, target_every: int) -> tuple[list[int], list[int]]:
+    """(capture frame positions in the scene, target positions *within the capture*)."""
+    if stride < 1 or target_every < 1:
+        raise ValueError(f"stride and target_every must be >= 1, got {stride}, {target_every}")
+    capture = list(range(0, num_frames, stride))
+    targets = [k for k in range(len(capture)) if k > 0 and k % target_every == 0]
+    return capture, targets
+
+
+def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    a = a.astype(np.float64)
+    b = b.astype(np.float64)
+    if mask is not None:
+        if not mask.any():
+            return float("nan")
+        a, b = a[mask], b[mask]
+    mse = float(np.mean((a - b) ** 2))
+    return 100.0 if mse <= 1e-12 else float(10.0 * np.log10(255.0 ** 2 / mse))
+
+
+def image_metrics(out: RGBD, real_color: np.ndarray, real_depth_m: np.ndarray,
+                  unfilled_color: np.ndarray | None = None) -> dict[str, float]:
+    """Metrics of one rendered target (see module docstring); ``ms_per_frame`` is added by the caller."""
+    from skimage.metrics import structural_similarity
+
+    valid = np.asarray(out.valid, dtype=bool)
+    black = (unfilled_color if unfilled_color is not None else out.color).copy()
+    black[~valid] = 0
+    m = valid & (real_depth_m > 0) & (out.depth_m > 0)
+    absrel = float(np.mean(np.abs(out.depth_m[m] - real_depth_m[m]) / real_depth_m[m])) if m.any() else float("nan")
+    return {
+        "psnr_db": _psnr(out.color, real_color),
+        "psnr_black_db": _psnr(black, real_color),
+        "psnr_covered_db": _psnr(out.color, real_color, valid),
+        "ssim": float(structural_similarity(out.color, real_color, channel_axis=2, data_range=255)),
+        "hole_frac": float(out.hole_frac_before_fill),
+        "depth_absrel": absrel,
+    }
+
+
+def _render_config(overrides: dict, use_refined: bool):
+    from presim.synthesis.renderer import RenderConfig
+
+    names = {f.name for f in dataclasses.fields(RenderConfig)}
+    missing = [k for k in overrides if k not in names]
+    if missing:
+        return None, f"RenderConfig has no field(s) {missing}"
+    kw = dict(overrides)
+    if "use_refined_depth" in names:
+        kw["use_refined_depth"] = use_refined
+    if "fill_holes" in names:
+        kw["fill_holes"] = True
+    return RenderConfig(**kw), ""
+
+
+def _fill(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The renderer's final hole filling (same for every method)."""
+    from presim.synthesis.fill import fill_holes
+
+    return fill_holes(color, depth_m, valid)
+
+
+def _refined_capture_depth(scene: Scene, capture: list[int], cfg: EvalConfig,
+                           cache_dir: Path | None) -> np.ndarray:
+    if cache_dir is None and scene.path is not None:
+        cache_dir = Path(scene.path) / "eval_cache"
+    if cache_dir is None:
+        sub = scene.subset(capture)
+        pool = list(range(len(capture)))
+        return np.stack([refine_one_frame(sub, k, pool, cfg.refine) for k in
+                         progress(range(len(capture)), desc="refine capture", unit="frame")])
+    key = json.dumps({"refine": dataclasses.asdict(cfg.refine), "capture": capture,
+                      "frames": list(scene.frame_ids), "src": str(scene.path)}, sort_keys=True)
+    out = Path(cache_dir) / f"refined_{hashlib.sha256(key.encode()).hexdigest()[:16]}.npy"
+    if not out.is_file():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        refine_frames_to_file(scene, out, indices=capture, ref_pool=capture, config=cfg.refine,
+                              workers=cfg.refine_workers if scene.path is not None else 1,
+                              desc="refine capture")
+    arr = np.load(out, mmap_mode="r")
+    if arr.shape != (len(capture), scene.height, scene.width):
+        raise ValueError(f"{out}: cached refinement has shape {arr.shape}, expected "
+                         f"{(len(capture), scene.height, scene.width)}; delete it")
+    return arr
+
+
+def _spread(items: list[int], n: int | None) -> list[int]:
+    if n is None or n >= len(items):
+        return items
+    pos = np.linspace(0, len(items) - 1, max(n, 1)).round().astype(int)
+    return [items[p] for p in sorted(set(pos.tolist()))]
+
+
+def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str | Path | None = None,
+               log: Callable[[str], None] | None = None) -> EvalResult:
+    """Run the leave-one-out evaluation (see module docstring) and return per-method metrics."""
+    from presim.synthesis.renderer import Renderer
+    from presim.synthesis.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
+
+    unknown = [m for m in config.methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(METHODS)}")
+    capture, targets = capture_and_targets(len(scene), config.stride, config.target_every)
+    targets = _spread(targets, config.max_targets)
+    if not targets:
+        raise ValueError(f"no targets: {len(capture)} capture frames (stride {config.stride}) and "
+                         f"target_every {config.target_every} leave no capture position > 0 that is a multiple")
+    variants = {METHODS[m][1] for m in config.methods}
+    cap = scene.subset(capture)  # positions 0..M-1, depth_refined re-indexed lazily
+    t0 = time.perf_counter()
+    depth_sets: dict[str, np.ndarray | None] = {"raw": None}
+    if variants & {"refined"}:
+        depth_sets["refined"] = _refined_capture_depth(scene, capture, config,
+                                                       None if cache_dir is None else Path(cache_dir))
+    refine_s = time.perf_counter() - t0
+    if "guided" in variants or "median" in variants:
+        raws = [cap.frame(k) for k in range(len(cap))]
+        if "guided" in variants:
+            depth_sets["guided"] = np.stack([guided_filter_depth(f.color, f.depth_m) for f in raws])
+        if "median" in variants:
+            depth_sets["median"] = np.stack([median_filter_depth(f.depth_m) for f in raws])
+        del raws
+    if "tsdf" in variants:
+        deps = np.stack([cap.depth(k, refined=False) for k in range(0, len(cap), max(1, len(cap) // 10))])
+        med = float(np.median(deps[deps > 0])) if (deps > 0).any() else 1.0
+        voxel = config.tsdf_voxel_m or float(np.clip(med / 250.0, 0.004, 0.02))
+
+    per: dict[str, list[dict[str, float]]] = {m: [] for m in config.methods}
+    skipped: dict[str, str] = {}
+    for k in progress(targets, desc="targets", unit="view"):
+        others = [j for j in range(len(cap)) if j != k]
+        f = cap.frame(k)
+        for name in config.methods:
+            if name in skipped:
+                continue
+            overrides, variant = METHODS[name]
+            if variant == "tsdf":
+                mesh = fuse_tsdf_mesh(cap, others, TSDFConfig(voxel_m=voxel))
+                caster = MeshRaycaster(mesh)
+                if config.warmup:
+                    caster.render(f.T_world_cam, f.K)
+                t1 = time.perf_counter()
+                color, depth, valid = caster.render(f.T_world_cam, f.K)
+                fc, fd = _fill(color, depth, valid)
+                ms = (time.perf_counter() - t1) * 1e3
+                out = RGBD(fc, fd, valid, np.full(valid.shape, -1, np.int32), f.K, f.T_world_cam,
+                           float(1.0 - valid.mean()))
+                unfilled = color
+            else:
+                rc, why = _render_config(overrides, use_refined=variant != "raw")
+                if rc is None:
+                    skipped[name] = why
+                    warnings.warn(f"eval-views: method {name} skipped: {why}", stacklevel=2)
+                    continue
+                sub = cap if depth_sets.get(variant) is None else dataclasses.replace(cap, depth_refined=depth_sets[variant])
+                loo = sub.subset(others)
+                r = Renderer(loo, rc)
+                if config.warmup:
+                    r.render(f.T_world_cam, f.K)
+                t1 = time.perf_counter()
+                out = r.render(f.T_world_cam, f.K)
+                ms = (time.perf_counter() - t1) * 1e3
+                unfilled = None
+            met = image_metrics(out, f.color, f.depth_m, unfilled)
+            met["ms_per_frame"] = ms
+            per[name].append(met)
+        if log is not None:
+            log(f"target {cap.frame_ids[k]}: " + ", ".join(
+                f"{n} {per[n][-1]['psnr_db']:.2f}" for n in config.methods if n not in skipped and per[n]))
+    methods = {}
+    for name in config.methods:
+        if name in skipped or not per[name]:
+            continue
+        methods[name] = {m: float(np.nanmean([p[m] for p in per[name]])) if any(np.isfinite(p[m]) for p in per[name])
+                         else float("nan") for m in METRICS}
+    return EvalResult(methods, {n: v for n, v in per.items() if v}, [cap.frame_ids[k] for k in targets],
+                      skipped, refine_s)
+
+
+def format_table(result: EvalResult) -> str:
+    """Markdown table of the per-method means."""
+    lines = ["| method | PSNR dB | PSNR black dB | PSNR covered dB | SSIM | hole % | depth AbsRel | ms/frame |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, m in result.methods.items():
+        lines.append(f"| {name} | {m['psnr_db']:.2f} | {m['psnr_black_db']:.2f} | {m['psnr_covered_db']:.2f} | "
+                     f"{m['ssim']:.4f} | {100 * m['hole_frac']:.3f} | {m['depth_absrel']:.4f} | {m['ms_per_frame']:.1f} |")
+    for name, why in result.skipped.items():
+        lines.append(f"| {name} | skipped: {why} | | | | | | |")
+    return "\n".join(lines)

@@ -1,0 +1,186 @@
+"""Slow, obviously correct numpy reference of the synthesis kernels, and the naive baseline.
+
+Every fast path (numba in :mod:`presim.synthesis.warp` / :mod:`presim.synthesis.crack_filter` /
+:mod:`presim.synthesis.composite`, torch in :mod:`presim.synthesis.torch_backend`) is tested against
+these functions (tests/test_synthesis_kernels.py). They use :mod:`presim.geometry` for every
+projection, float64 arithmetic and plain loops where a loop is the clearest statement.
+
+Conventions shared by all backends (the reference *defines* them):
+
+- A warped point lands on the pixel nearest to its projection: ``ui = floor(u + 0.5)``.
+- Points with camera z <= ``near_m`` are dropped.
+- Within one layer the z-buffer keeps the smallest z; on an exact tie, the point that comes first in
+  the view's point order (the lower index) wins.
+- Empty pixels have depth 0 and color 0.
+- Switching median (thesis eq. 3.9): an empty pixel is filled when more than half of the N x N
+  window (the pixel itself included, out-of-image positions counting as empty) is non-empty; its
+  depth and each color channel become the lower median of the non-empty neighbours' values.
+- Plain median: every pixel becomes the median of its whole N x N window, empty (0) values and
+  zero padding included, per channel (the traditional filter, which also moves edges).
+- Layers are composited front to back: a pixel takes the first layer (lowest layer index = nearest
+  in the source view) that has a value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from presim.geometry import Intrinsics, project, transform_points
+
+__all__ = [
+    "assign_layers_ref",
+    "warp_layers_ref",
+    "switching_median_ref",
+    "plain_median_ref",
+    "composite_layers_ref",
+    "naive_zbuffer_ref",
+]
+
+
+def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> np.ndarray:
+    """Layer index per valid depth value: ``num_layers`` equal slices of [min, max] of the values.
+
+    Args:
+        depth_m: (n,) float depth values, all > 0.
+    Returns:
+        (n,) int64 layer indices in [0, num_layers); layer 0 holds the nearest depths.
+    """
+    d = np.asarray(depth_m, dtype=np.float64)
+    if d.size == 0:
+        return np.zeros(0, np.int64)
+    lo, hi = d.min(), d.max()
+    if hi <= lo:
+        return np.zeros(d.shape, np.int64)
+    out = np.empty(d.shape, np.int64)
+    for i, di in enumerate(d):
+        out[i] = min(int((di - lo) / (hi - lo) * num_layers), num_layers - 1)
+    return out
+
+
+def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, num_layers: int,
+                    T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Forward-warp world points into ``num_layers`` z-buffered images of the target camera.
+
+    Args:
+        xyz_world: (n, 3) points in the world frame, metres.
+        rgb: (n, 3) uint8 colors.
+        layer: (n,) int layer index of each point.
+        T_cam_world: 4x4 world-to-target-camera transform.
+        K: target intrinsics.
+    Returns:
+        ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty.
+    """
+    H, W = K.height, K.width
+    depth = np.zeros((num_layers, H, W), np.float32)
+    color = np.zeros((num_layers, H, W, 3), np.uint8)
+    p_cam = transform_points(T_cam_world, np.asarray(xyz_world, np.float64))
+    uv, z = project(K, p_cam)
+    for i in range(len(z)):
+        if not (z[i] > near_m) or not np.all(np.isfinite(uv[i])):
+            continue
+        ui, vi = int(np.floor(uv[i, 0] + 0.5)), int(np.floor(uv[i, 1] + 0.5))
+        if not (0 <= ui < W and 0 <= vi < H):
+            continue
+        cur = depth[layer[i], vi, ui]
+        if cur == 0 or np.float32(z[i]) < cur:
+            depth[layer[i], vi, ui] = z[i]
+            color[layer[i], vi, ui] = rgb[i]
+    return depth, color
+
+
+def switching_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Switching median (eq. 3.9) of one image: depth (H, W), color (H, W, 3). Returns new arrays."""
+    H, W = depth_m.shape
+    r = kernel_px // 2
+    out_d, out_c = depth_m.copy(), color.copy()
+    for v in range(H):
+        for u in range(W):
+            if depth_m[v, u] > 0:
+                continue
+            vals_d, vals_c = [], []
+            for dv in range(-r, r + 1):
+                for du in range(-r, r + 1):
+                    y, x = v + dv, u + du
+                    if 0 <= y < H and 0 <= x < W and depth_m[y, x] > 0:
+                        vals_d.append(depth_m[y, x])
+                        vals_c.append(color[y, x])
+            n = len(vals_d)
+            if 2 * n > kernel_px * kernel_px:
+                k = (n - 1) // 2  # lower median
+                out_d[v, u] = np.sort(np.asarray(vals_d, np.float32))[k]
+                out_c[v, u] = np.sort(np.asarray(vals_c, np.uint8), axis=0)[k]
+    return out_d, out_c
+
+
+def plain_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Traditional median of every pixel over its N x N window (zero padded, empties included)."""
+    H, W = depth_m.shape
+    r = kernel_px // 2
+    pd = np.pad(depth_m, r)
+    pc = np.pad(color, ((r, r), (r, r), (0, 0)))
+    out_d = np.zeros_like(depth_m)
+    out_c = np.zeros_like(color)
+    mid = (kernel_px * kernel_px - 1) // 2
+    for v in range(H):
+        for u in range(W):
+            out_d[v, u] = np.sort(pd[v:v + kernel_px, u:u + kernel_px].ravel())[mid]
+            if out_d[v, u] > 0:
+                out_c[v, u] = np.sort(pc[v:v + kernel_px, u:u + kernel_px].reshape(-1, 3), axis=0)[mid]
+    return out_d, out_c
+
+
+def composite_layers_ref(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Front-to-back composite of (L, H, W) / (L, H, W, 3) layers -> (H, W), (H, W, 3)."""
+    L, H, W = depth_m.shape
+    out_d = np.zeros((H, W), np.float32)
+    out_c = np.zeros((H, W, 3), np.uint8)
+    for v in range(H):
+        for u in range(W):
+            for layer in range(L):
+                if depth_m[layer, v, u] > 0:
+                    out_d[v, u] = depth_m[layer, v, u]
+                    out_c[v, u] = color[layer, v, u]
+                    break
+    return out_d, out_c
+
+
+def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.ndarray]],
+                      T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """The naive baseline: vectorized numpy z-buffer splat of whole frames, no layers, no filters.
+
+    Each call unprojects every view from its depth map again (nothing cached), transforms, projects,
+    and resolves visibility with a lexsort — what a straightforward numpy DIBR does per frame.
+
+    Args:
+        views: list of ``(color (h,w,3) uint8, depth_m (h,w) float32, K_view, T_world_view)``.
+    Returns:
+        ``(color (H, W, 3) uint8, depth_m (H, W) float32)``.
+    """
+    from presim.geometry import compose, invert, unproject_depth
+
+    H, W = K.height, K.width
+    zbuf = np.full(H * W, np.inf, np.float32)
+    out = np.zeros((H * W, 3), np.uint8)
+    T_cam_world = invert(T_world_cam)
+    for color_v, depth_v, K_v, T_world_v in views:
+        pts, mask = unproject_depth(K_v, depth_v, compose(T_cam_world, T_world_v))
+        uv, z = project(K, pts)
+        ok = z > 1e-3
+        u = np.floor(uv[ok, 0] + 0.5).astype(np.int64)
+        v = np.floor(uv[ok, 1] + 0.5).astype(np.int64)
+        zz, cc = z[ok].astype(np.float32), color_v[mask][ok]
+        inb = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        lin, zz, cc = v[inb] * W + u[inb], zz[inb], cc[inb]
+        order = np.lexsort((zz, lin))
+        lin, zz, cc = lin[order], zz[order], cc[order]
+        first = np.ones(len(lin), bool)
+        first[1:] = lin[1:] != lin[:-1]
+        lin, zz, cc = lin[first], zz[first], cc[first]
+        closer = zz < zbuf[lin]
+        zbuf[lin[closer]] = zz[closer]
+        out[lin[closer]] = cc[closer]
+    depth = np.where(np.isfinite(zbuf), zbuf, 0).astype(np.float32)
+    return out.reshape(H, W, 3), depth.reshape(H, W)

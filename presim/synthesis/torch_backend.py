@@ -1,0 +1,149 @@
+"""Torch path of the synthesis kernels: runs on CUDA when available, else on CPU.
+
+Same definitions as :mod:`presim.synthesis.kernels_reference` (tested against it on CPU):
+
+- z-buffer: one ``scatter_reduce(..., "amin")`` of the depths over the flat (layer, pixel) keys, then
+  a second ``amin`` scatter of point indices among the points whose depth equals the winner, which
+  reproduces the reference's "lowest index wins a tie" exactly;
+- switching median: only the empty pixels with a majority of non-empty neighbours are gathered
+  (flat indices into a zero-padded copy) and sorted, so memory stays proportional to the cracks;
+- composite: first non-empty layer via ``argmax`` of the occupancy (first maximum is returned).
+
+Per-view tensors are built once (:func:`to_device`) and cached by the Renderer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from presim.geometry import Intrinsics
+from presim.synthesis.warp import ViewPoints
+
+__all__ = ["default_device", "TorchView", "to_device", "warp_layers_torch", "crack_filter_torch",
+           "composite_layers_torch"]
+
+
+def default_device() -> torch.device:
+    """CUDA when present, else CPU."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+@dataclass(frozen=True)
+class TorchView:
+    """A :class:`ViewPoints` on a torch device."""
+
+    xyz_world: torch.Tensor
+    """float32 (n, 3)."""
+    rgb: torch.Tensor
+    """uint8 (n, 3)."""
+    layer: torch.Tensor
+    """int64 (n,)."""
+    num_layers: int
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.xyz_world.numel() * 4 + self.rgb.numel() + self.layer.numel() * 8)
+
+
+def to_device(view: ViewPoints, device: torch.device | str | None = None) -> TorchView:
+    device = torch.device(device) if device is not None else default_device()
+    return TorchView(torch.from_numpy(view.xyz_world).to(device), torch.from_numpy(view.rgb).to(device),
+                     torch.from_numpy(view.layer).to(device), view.num_layers)
+
+
+def warp_layers_torch(view: TorchView, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Layered z-buffer warp. Returns ``(depth (L, H, W) float32, color (L, H, W, 3) uint8)``."""
+    dev = view.xyz_world.device
+    L, H, W = view.num_layers, K.height, K.width
+    M = torch.as_tensor(np.asarray(T_cam_world, np.float64)[:3, :4], dtype=torch.float32, device=dev)
+    x, y, z = view.xyz_world[:, 0], view.xyz_world[:, 1], view.xyz_world[:, 2]
+    zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
+    xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
+    yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
+    ok = zc > near_m
+    zs = torch.where(ok, zc, torch.ones_like(zc))
+    uf = K.fx * xc / zs + K.cx + 0.5
+    vf = K.fy * yc / zs + K.cy + 0.5
+    ok &= (uf >= 0) & (uf < W) & (vf >= 0) & (vf < H)
+    idx = torch.nonzero(ok).squeeze(1)
+    key = view.layer[idx] * (H * W) + vf[idx].long() * W + uf[idx].long()
+    zk = zc[idx]
+    zbuf = torch.full((L * H * W,), float("inf"), dtype=torch.float32, device=dev)
+    zbuf.scatter_reduce_(0, key, zk, reduce="amin")
+    win = zk == zbuf[key]
+    n = view.xyz_world.shape[0]
+    ibuf = torch.full((L * H * W,), n, dtype=torch.int64, device=dev)
+    ibuf.scatter_reduce_(0, key[win], idx[win], reduce="amin")
+    has = ibuf < n
+    color = torch.zeros((L * H * W, 3), dtype=torch.uint8, device=dev)
+    color[has] = view.rgb[ibuf[has]]
+    depth = torch.where(has, zbuf, torch.zeros_like(zbuf))
+    return depth.view(L, H, W), color.view(L, H, W, 3)
+
+
+def _neighbour_offsets(r: int, Wp: int, device) -> torch.Tensor:
+    dy, dx = torch.meshgrid(torch.arange(-r, r + 1, device=device), torch.arange(-r, r + 1, device=device),
+                            indexing="ij")
+    return (dy * Wp + dx).reshape(-1)
+
+
+def crack_filter_torch(depth_m: torch.Tensor, color: torch.Tensor, mode: str = "switching_median",
+                       kernel_px: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Switching / plain median of (L, H, W) depth and (L, H, W, 3) color stacks (see reference)."""
+    if mode == "none":
+        return depth_m, color
+    if mode not in ("switching_median", "median"):
+        raise ValueError(f"unknown crack filter {mode!r}")
+    L, H, W = depth_m.shape
+    r = kernel_px // 2
+    n_win = kernel_px * kernel_px
+    dp = torch.nn.functional.pad(depth_m, (r, r, r, r))  # zero padding = empty outside the image
+    cp = torch.nn.functional.pad(color.permute(0, 3, 1, 2), (r, r, r, r)).permute(0, 2, 3, 1)
+    Hp, Wp = H + 2 * r, W + 2 * r
+    off = _neighbour_offsets(r, Wp, depth_m.device)
+    dflat, cflat = dp.reshape(-1), cp.reshape(-1, 3)
+    if mode == "median":
+        ll, vv, uu = torch.meshgrid(torch.arange(L, device=depth_m.device), torch.arange(H, device=depth_m.device),
+                                    torch.arange(W, device=depth_m.device), indexing="ij")
+        centre = (ll * (Hp * Wp) + (vv + r) * Wp + (uu + r)).reshape(-1)
+        nb_idx = centre[:, None] + off[None, :]
+        mid = (n_win - 1) // 2
+        d_med = dflat[nb_idx].sort(dim=1).values[:, mid]
+        c_med = cflat[nb_idx].sort(dim=1).values[:, mid]  # (P, 3) per channel
+        c_med = torch.where((d_med > 0)[:, None], c_med, torch.zeros_like(c_med))
+        return d_med.view(L, H, W), c_med.view(L, H, W, 3)
+    empty = depth_m == 0
+    cand = torch.nonzero(empty.reshape(-1)).squeeze(1)
+    ll = cand // (H * W)
+    rem = cand % (H * W)
+    centre = ll * (Hp * Wp) + (rem // W + r) * Wp + (rem % W + r)
+    nb_idx = centre[:, None] + off[None, :]
+    nd = dflat[nb_idx]
+    nz = nd > 0
+    cnt = nz.sum(1)
+    sel = 2 * cnt > n_win
+    nb_idx, nd, nz, cnt, cand = nb_idx[sel], nd[sel], nz[sel], cnt[sel], cand[sel]
+    k = ((cnt - 1) // 2)[:, None]
+    d_med = torch.where(nz, nd, torch.full_like(nd, float("inf"))).sort(dim=1).values.gather(1, k)[:, 0]
+    nc = cflat[nb_idx].to(torch.int16)  # (P, n_win, 3); 256 marks empty so it sorts last
+    nc = torch.where(nz[..., None], nc, torch.full_like(nc, 256))
+    c_med = nc.sort(dim=1).values.gather(1, k[:, :, None].expand(-1, 1, 3))[:, 0].to(torch.uint8)
+    dout = depth_m.reshape(-1).clone()
+    cout = color.reshape(-1, 3).clone()
+    dout[cand] = d_med
+    cout[cand] = c_med
+    return dout.view(L, H, W), cout.view(L, H, W, 3)
+
+
+def composite_layers_torch(depth_m: torch.Tensor, color: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Front-to-back composite of (L, H, W) layers -> (H, W) depth, (H, W, 3) color."""
+    occ = depth_m > 0
+    first = occ.to(torch.uint8).argmax(0, keepdim=True)  # first maximum = nearest non-empty layer
+    d = depth_m.gather(0, first)[0]
+    c = color.gather(0, first[..., None].expand(-1, -1, -1, 3))[0]
+    anyv = occ.any(0)
+    return torch.where(anyv, d, torch.zeros_like(d)), torch.where(anyv[..., None], c, torch.zeros_like(c))
