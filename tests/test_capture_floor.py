@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_capture_writers import require_data, synth_frames, write_kinfu  # noqa: E402
 
 from presim.capture.floor import (  # noqa: E402
-    FloorConfig, align_scene_to_floor, estimate_floor, gravity_from_cameras, rotation_between,
+    FloorConfig, estimate_floor, gravity_from_cameras, rotation_between,
 )
 from presim.capture.importers import import_capture  # noqa: E402
 from presim.geometry import look_at, make_pose, transform_points  # noqa: E402
@@ -107,12 +107,15 @@ def test_tabletop_without_floor_keeps_frame():
 
 
 def test_given_gravity_overrides_cameras():
-    """Cameras rolled 90 deg (camera up = world +x) would suggest the wrong gravity; the given one
-    finds the floor."""
+    """Cameras all tipped 90 deg about world x (as if mounted sideways) suggest a horizontal gravity;
+    the given gravity still finds the floor."""
     rng = np.random.default_rng(3)
     xyz, cams = _room(rng)
-    roll = make_pose(np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]]), [0, 0, 0])
-    rolled = np.einsum("nij,jk->nik", cams, roll)
+    tip = make_pose(np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0.0]]), [0, 0, 0])
+    rolled = np.einsum("ij,njk->nik", tip, cams)
+    rolled[:, :3, 3] = cams[:, :3, 3]
+    g_cam = estimate_floor(xyz, rolled).gravity_world
+    assert abs(g_cam[2]) < 0.2  # the camera-based guess is horizontal, i.e. wrong
     assert estimate_floor(xyz, rolled).floor is None or \
         abs(estimate_floor(xyz, rolled).floor.normal[2]) < 0.9
     res = estimate_floor(xyz, rolled, gravity=np.array([0, 0, -9.81]))

@@ -149,3 +149,22 @@ def test_bad_input_names_file(tmp_path, problem):
         save_scene(s, tmp_path / "out")
     assert str(culprit) in str(ei.value), str(ei.value)
     assert not (tmp_path / "out").exists() and not (tmp_path / "out.partial").exists()
+
+
+def test_frames_are_read_lazily(tmp_path):
+    """Import reads no pixels: a color file removed after import only fails when that frame is read,
+    and the error names it."""
+    src = write_kinfu(tmp_path / "cap", synth_frames(n=3))
+    s = kinfu.read(src)
+    (src / "frame-000002.color.png").unlink()
+    s.frame(0)
+    with pytest.raises(SceneError, match="frame-000002.color.png: file not found"):
+        s.frame(2)
+
+
+def test_recording_folder_uses_its_capture_subfolder(tmp_path):
+    """`presim drive --record DIR` writes DIR/recording.mcap and DIR/capture/ (kinfu layout)."""
+    write_kinfu(tmp_path / "rec" / "capture", synth_frames(n=2))
+    (tmp_path / "rec" / "recording.mcap").write_bytes(b"")
+    s = import_capture(tmp_path / "rec", align_floor=False)
+    assert len(s) == 2 and s.meta.source.endswith("capture")

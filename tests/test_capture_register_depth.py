@@ -110,3 +110,32 @@ def test_real_apc_raw_depth_matches_toolbox_registration():
         wrong = register_depth(raw_m, dc.K, raw.intrinsics[0], invert(dc.T_color_depth))
         both_w = (d_tool > 0) & (wrong > 0)
         assert np.median(np.abs(d_tool - wrong)[both_w]) > 2 * np.median(diff)
+
+
+def test_folder_capture_with_separate_depth_camera(tmp_path, monkeypatch):
+    """A kinfu folder whose depth images come from their own camera (depth-intrinsics.txt +
+    depth-to-color.txt) is registered at import: a plane at 2 m stays at 2 m - t_z in color."""
+    monkeypatch.setenv("PRESIM_NO_PROGRESS", "1")
+    from test_capture_writers import synth_frames, write_kinfu
+
+    from presim.capture.importers import import_capture
+    from presim.capture.scene import SceneError
+    from presim.io_utils import write_png
+
+    f = synth_frames(n=2)  # color 40x30
+    src = write_kinfu(tmp_path / "cap", f)
+    Kd = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
+    for i in range(2):
+        write_png(src / f"frame-{i:06d}.depth.png", np.full((24, 32), 2000, np.uint16))
+    np.savetxt(src / "depth-intrinsics.txt", Kd.K)
+    T = make_pose(np.eye(3), [0.025, 0.0, 0.01])
+    np.savetxt(src / "depth-to-color.txt", T)
+    s = import_capture(src, align_floor=False)
+    d = s.frame(1).depth_m
+    assert d.shape == (30, 40)
+    np.testing.assert_array_equal(d, register_depth(np.full((24, 32), 2.0, np.float32), Kd, f.K, T))
+    np.testing.assert_allclose(d[d > 0], 2.01, rtol=1e-6)
+    assert any("registered" in n for n in s.meta.notes)
+    (src / "depth-to-color.txt").unlink()
+    with pytest.raises(SceneError, match="depth-to-color.txt: not found"):
+        import_capture(src, align_floor=False)

@@ -9,14 +9,13 @@ import signal
 import subprocess
 import sys
 import textwrap
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from presim.geometry import compose, invert, make_pose, quat_xyzw_to_R
+from presim.geometry import compose, make_pose, quat_xyzw_to_R
 from presim.outputs.folder_recorder import FolderRecorder, depth_to_mm_u16
 from presim.outputs.mcap_recorder import McapConfig, McapRecorder
 from presim.outputs.queue import BoundedWorker, QueuedSink
@@ -91,10 +90,12 @@ def test_mcap_reads_back_with_rosbags(tmp_path):
     expected = {"/tf": n, "/tf_static": 1, "/odom": n, "/joint_states": n, "/map_cloud": 1,
                 "/head_camera/color/image_raw": n_cam, "/head_camera/color/camera_info": n_cam,
                 "/head_camera/depth/image_raw": n_cam, "/head_camera/depth/camera_info": n_cam,
-                "/path": 5}  # every 5 steps (4) + the rest at close (1)
+                "/path": 5,  # every 5 steps (4) + the rest at close (1)
+                "/robot_description": 1}
     assert {k: len(v) for k, v in msgs.items()} == expected
     assert types["/tf"] == "tf2_msgs/msg/TFMessage" and types["/map_cloud"] == "sensor_msgs/msg/PointCloud2"
-    for latched in ("/tf_static", "/map_cloud"):  # ros2 bag play re-sends them to late subscribers
+    assert msgs["/robot_description"][0][1].data == info.urdf_xml
+    for latched in ("/tf_static", "/map_cloud", "/robot_description"):  # ros2 bag play re-sends them to late subscribers
         assert qos[latched][0].durability.name == "TRANSIENT_LOCAL"
     for topic, items in msgs.items():
         stamps = [t for t, _ in items]

@@ -14,7 +14,7 @@ from presim.capture.procedural import NoiseField, box_mesh, cylinder_mesh, ellip
 from presim.capture.reprojection import reprojection_mae  # noqa: E402
 from presim.capture.sample_scene import (  # noqa: E402
     SampleSceneConfig, build_sample_scene, clean_scene, corrupt_depth, load_sample_ground_truth,
-    render_ground_truth,
+    render_ground_truth, render_object_silhouettes,
 )
 from presim.capture.store import load_scene, model_abspath  # noqa: E402
 from presim.geometry import (  # noqa: E402
@@ -143,6 +143,15 @@ def test_object_masks_and_table_poses(small):
         _, depth, obj = render_ground_truth(small, look_at(eye, centre), K)
         assert (obj == o.obj_id).sum() > 50, o.name
         assert np.all(depth[obj == o.obj_id] > 0)
+    # Full silhouettes (objects alone) contain the visible masks and agree on depth there.
+    f = load_scene(small).frame(23)
+    _, depth, obj = render_ground_truth(small, f.T_world_cam, f.K)
+    ids, masks, depths = render_object_silhouettes(small, f.T_world_cam, f.K)
+    assert list(ids) == [1, 2, 3, 4, 5]
+    for k, oid in enumerate(ids):
+        vis = obj == oid
+        assert np.all(masks[k][vis]) and masks[k].sum() >= vis.sum()
+        np.testing.assert_allclose(depths[k][vis], depth[vis], atol=1e-6)
     # Objects seen in the capture have non-empty masks in the stored ground truth too.
     seen = set(np.unique(np.asarray(gt.object_id))) - {0}
     assert seen == {1, 2, 3, 4, 5}
@@ -221,6 +230,8 @@ def test_bad_input(tmp_path, small):
     assert not (tmp_path / "x").exists() and not (tmp_path / "x.partial").exists()
     with pytest.raises(FileNotFoundError, match="sample.json"):
         render_ground_truth(tmp_path, np.eye(4), Intrinsics.from_fov(16, 16, 60))
+    with pytest.raises(ValueError, match="T_world_cam"):
+        render_ground_truth(small, np.diag([2.0, 1.0, 1.0, 1.0]), Intrinsics.from_fov(16, 16, 60))
 
 
 def test_cli(tmp_path):
@@ -233,3 +244,16 @@ def test_cli(tmp_path):
     assert len(scene) == 3 and scene.width == 64 and len(scene.objects) == 3
     assert main(["sample-scene", str(dst), "--frames", "3", "--width", "64", "--height", "48"]) == 1
     assert main(["sample-scene", str(dst), "--frames", "3", "--width", "64", "--height", "48", "--overwrite"]) == 0
+
+
+def test_variants_without_door_and_ceiling(tmp_path):
+    cfg = SampleSceneConfig(width=48, height=36, num_frames=3, door=False, ceiling=False, num_objects=4,
+                            shadows=False)
+    dst = build_sample_scene(tmp_path / "v", seed=5, config=cfg)
+    gt = load_sample_ground_truth(dst)
+    names = {p.name for p in gt.parts}
+    assert "wall_north" in names and "ceiling" not in names and "corridor_end" not in names
+    assert len(load_scene(dst).objects) == 4
+    # Straight up there is nothing without a ceiling.
+    _, depth, _ = render_ground_truth(dst, look_at([0, 0, 1.2], [0.01, 0, 3.0]), Intrinsics.from_fov(8, 8, 30))
+    assert np.all(depth == 0)

@@ -129,3 +129,31 @@ def test_naive_baseline_matches_single_layer_warp():
     dr, cr = ref.warp_layers_ref(vp.xyz_world, vp.rgb, vp.layer, 1, T_cam_world, K_SMALL, 1e-3)
     assert _frac_diff(db > 0, dr[0] > 0) < 0.005
     assert _frac_diff(cb, cr[0]) < 0.005
+
+
+def test_masked_composite_equals_dense_on_mask():
+    from presim.synthesis.composite import filtered_composite_masked
+
+    vp, T_cam_world = _room_view(L=4)
+    lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
+    d, c = crack_filter(lay.depth_m, lay.color, "switching_median", 3)
+    d, c = composite_layers(d, c)
+    d, c = crack_filter(d, c, "switching_median", 3)
+    rng = np.random.default_rng(3)
+    mask = rng.random(d.shape) < 0.2
+    md, mc = filtered_composite_masked(lay.depth_m, lay.color, mask, 3, seam_pass=True)
+    np.testing.assert_array_equal(md[mask], d[mask])
+    np.testing.assert_array_equal(mc[mask], c[mask])
+
+
+@pytest.mark.parametrize("L", [1, 4])
+def test_fused_filter_composite_equals_filter_then_composite(L):
+    from presim.synthesis.composite import filtered_composite
+
+    vp, T_cam_world = _room_view(L=L)
+    lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
+    d, c = crack_filter(lay.depth_m, lay.color, "switching_median", 3)
+    d, c = composite_layers(d, c)
+    fd, fc = filtered_composite(lay.depth_m, lay.color, 3)
+    np.testing.assert_array_equal(fd, d)
+    np.testing.assert_array_equal(fc, c)

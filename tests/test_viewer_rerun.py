@@ -121,7 +121,8 @@ def test_web_viewer_binds_loopback_and_renders_scene(tmp_path):
         assert _listening_ips(viewer.process.pid) == {"127.0.0.1"}
         assert viewer.url.startswith("http://127.0.0.1:")
         for r in synthetic_steps(5, width=32, height=24):
-            viewer.on_step(r)
+            # No camera images: the colored pixels must come from the 3D scene view.
+            viewer.on_step(dataclasses.replace(r, cameras=()))
         viewer.flush()
         img = screenshot(viewer.url, lambda im: saturated_fraction(im) > 0.03, timeout_s=90)
         save_png(tmp_path / "web_viewer.png", img)
@@ -134,3 +135,23 @@ def test_web_viewer_binds_loopback_and_renders_scene(tmp_path):
     from rerun.chunk import RrdReader
 
     assert "/world/scene" in _rows(RrdReader(tmp_path / "web.rrd").stream().to_chunks())
+
+
+def test_native_mode_streams_on_loopback_and_saves_rrd(tmp_path):
+    """Native viewer started headless (no display here): bound to 127.0.0.1, data also in the .rrd."""
+    import psutil
+    from rerun.chunk import RrdReader
+
+    v = RerunViewer("native", tmp_path / "n.rrd", ViewerConfig(extra_viewer_args=("--headless",)))
+    v.open(synthetic_info())
+    pid = v.process.pid
+    try:
+        assert _listening_ips(pid) == {"127.0.0.1"}
+        for r in synthetic_steps(3, width=16, height=12):
+            v.on_step(r)
+        v.close()
+        assert "/world/robot/base_link" in _rows(RrdReader(tmp_path / "n.rrd").stream().to_chunks())
+    finally:
+        p = psutil.Process(pid)  # native viewers outlive the run on purpose; this one is ours to stop
+        p.terminate()
+        p.wait(10)

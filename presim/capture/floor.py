@@ -1,7 +1,8 @@
 """Floor plane and gravity of a captured scene.
 
-How: gravity comes from a given vector or from the cameras (people and robots hold cameras roughly
-upright, so the mean of the cameras' up axes, -y of ``T_world_cam``, points against gravity). Then a
+How: gravity comes from a given vector or from the cameras (people and robots hold cameras with
+little roll: the cameras' x axes are near horizontal and their up axes, -y of ``T_world_cam``, point
+roughly against gravity; see :func:`gravity_from_cameras`). Then a
 sequential RANSAC finds up to ``max_planes`` large planes in the scene's point cloud whose normals are
 within ``max_tilt_deg`` of that up direction; the floor is the *lowest* of them whose inlier patch
 covers at least ``min_area_m2`` and lies below the cameras. When found, the world is rotated (smallest
@@ -15,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from presim.capture.scene import FloorPlane, Scene
 from presim.geometry import make_pose
@@ -34,7 +36,9 @@ class FloorConfig:
     only approximate (cameras pitch down while scanning), hence generous."""
     iterations: int = 300
     """RANSAC hypotheses per plane."""
-    max_planes: int = 4
+    sample_radius_m: float = 0.3
+    """The 2nd and 3rd point of a hypothesis are drawn within this distance of the 1st."""
+    max_planes: int = 6
     """Planes extracted one after another (their inliers removed) before picking the lowest."""
     min_inlier_frac: float = 0.05
     """A candidate plane holds at least this fraction of the point cloud."""
@@ -43,7 +47,7 @@ class FloorConfig:
     (a shelf bottom, a box, a small table top) are not a floor."""
     min_camera_height_m: float = 0.1
     """The cameras' median height above a floor candidate must be at least this."""
-    max_points: int = 200_000
+    max_points: int = 100_000
     """Points sub-sampled from the cloud for RANSAC (speed)."""
     seed: int = 0
 
@@ -63,22 +67,37 @@ class FloorResult:
 
 
 def gravity_from_cameras(T_world_cam: np.ndarray) -> tuple[np.ndarray, float]:
-    """Gravity from the cameras' up axes.
+    """Gravity from the camera axes.
+
+    People and robots keep cameras nearly roll-free while pitch varies a lot (scanning a table, looking
+    down into a bin). So the cameras' x axes (image right) are close to horizontal: gravity is the
+    direction most perpendicular to all of them (smallest eigenvector of ``sum x x^T``), signed by the
+    mean up axis (-y). When the x axes do not span the horizontal plane (all cameras face one way),
+    the mean up axis made perpendicular to the mean x axis is used instead.
 
     Args:
         T_world_cam: (N, 4, 4) camera-to-world poses (OpenCV cameras: y down).
 
     Returns:
         ``(gravity_world unit (3,), consistency)`` where consistency in [0, 1] is the length of the
-        mean up vector (1 = all cameras equally upright; near 0 = no information).
+        mean up vector (1 = all cameras equally oriented; near 0 = little information).
     """
     T = np.asarray(T_world_cam, dtype=np.float64).reshape(-1, 4, 4)
     up = -T[:, :3, 1]  # camera -y axis in the world
+    xs = T[:, :3, 0]
     m = up.mean(axis=0)
-    n = float(np.linalg.norm(m))
-    if n < 1e-9:
+    cons = float(np.linalg.norm(m))
+    if cons < 1e-9:
         return np.array([0.0, 0.0, -1.0]), 0.0
-    return -m / n, n
+    w, V = np.linalg.eigh(xs.T @ xs / len(xs))
+    if w[1] > 0.05:  # x axes spread over a plane: its normal is the vertical
+        g = V[:, 0]
+        g = g if g @ m < 0 else -g
+    else:
+        xm = xs.mean(axis=0)
+        xm /= np.linalg.norm(xm)
+        g = -(m - (m @ xm) * xm)
+    return g / np.linalg.norm(g), cons
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -153,12 +172,21 @@ def estimate_floor(xyz: np.ndarray, T_world_cam: np.ndarray, gravity: np.ndarray
         if len(remaining) < max(3, config.min_inlier_frac * total):
             break
         best_count, best = 0, None
-        tri = rng.integers(0, len(remaining), size=(config.iterations, 3))
-        for i0, i1, i2 in tri:
-            a, b, c = remaining[i0], remaining[i1], remaining[i2]
+        # Local sampling: the 2nd and 3rd points come from within sample_radius_m of the 1st, so a
+        # plane holding 10 % of a cluttered room is hit in ~8 % of the hypotheses instead of 0.1 %.
+        tree = cKDTree(remaining)
+        seeds = rng.integers(0, len(remaining), size=config.iterations)
+        for i0 in seeds:
+            a = remaining[i0]
+            near = tree.query_ball_point(a, config.sample_radius_m)
+            if len(near) < 3:
+                continue
+            i1, i2 = rng.choice(len(near), 2, replace=False)
+            b, c = remaining[near[i1]], remaining[near[i2]]
             n = np.cross(b - a, c - a)
             nn = np.linalg.norm(n)
-            if nn < 1e-12:
+            # A sliver triangle has an unreliable normal.
+            if nn < 0.1 * config.sample_radius_m ** 2:
                 continue
             n /= nn
             if abs(n @ up) < cos_tilt:
@@ -171,6 +199,10 @@ def estimate_floor(xyz: np.ndarray, T_world_cam: np.ndarray, gravity: np.ndarray
         n, d = best
         inl = np.abs(remaining @ n + d) < config.dist_thresh_m
         n, d = _fit_plane(remaining[inl])  # least-squares refit on the inliers
+        # Second refit on a tighter band: clutter standing on the plane stops pulling it.
+        tight = np.abs(remaining @ n + d) < 0.5 * config.dist_thresh_m
+        if tight.sum() >= 3:
+            n, d = _fit_plane(remaining[tight])
         inl = np.abs(remaining @ n + d) < config.dist_thresh_m
         if n @ up < 0:
             n, d = -n, -d

@@ -31,7 +31,8 @@ def scene_info(scene: Scene, max_sample_frames: int = 50) -> dict:
     extent = None
     if pts is not None and len(pts):
         lo, hi = pts.xyz.min(axis=0), pts.xyz.max(axis=0)
-        extent = {"min_m": lo.round(4).tolist(), "max_m": hi.round(4).tolist(), "size_m": (hi - lo).round(4).tolist()}
+        extent = {"min_m": [round(float(x), 4) for x in lo], "max_m": [round(float(x), 4) for x in hi],
+                  "size_m": [round(float(x), 4) for x in hi - lo]}
     stamps = scene.stamps_s
     return {
         "path": None if scene.path is None else str(scene.path),
@@ -58,7 +59,8 @@ def scene_info(scene: Scene, max_sample_frames: int = 50) -> dict:
             "inlier_frac": scene.floor.inlier_frac},
         "gravity_world": np.asarray(scene.gravity_world, dtype=float).round(6).tolist(),
         "transforms": [t.name for t in scene.meta.transforms],
-        "objects": [{"obj_id": o.obj_id, "name": o.name, "position_m": np.asarray(o.T_world_obj)[:3, 3].round(4).tolist(),
+        "objects": [{"obj_id": int(o.obj_id), "name": o.name,
+                     "position_m": [round(float(x), 4) for x in np.asarray(o.T_world_obj)[:3, 3]],
                      "model": o.model_path} for o in scene.objects],
         "refined_depth": scene.has_refined_depth,
         "notes": list(scene.meta.notes),
@@ -85,8 +87,10 @@ def format_info(info: dict) -> str:
     ]
     if i["extent"]:
         e = i["extent"]
+        lo = ", ".join(f"{x:.2f}" for x in e["min_m"])
+        hi = ", ".join(f"{x:.2f}" for x in e["max_m"])
         lines.append(f"extent      {e['size_m'][0]:.2f} x {e['size_m'][1]:.2f} x {e['size_m'][2]:.2f} m "
-                     f"({i['points']} points; min {e['min_m']}, max {e['max_m']})")
+                     f"({i['points']} points; from ({lo}) to ({hi}))")
     else:
         lines.append("extent      (no point cloud)")
     lines.append(f"trajectory  {i['trajectory_length_m']:.2f} m")

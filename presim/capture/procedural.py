@@ -176,7 +176,7 @@ class NoiseField:
     ``scale_m / 2**(octaves-1)``.
     """
 
-    G = 32
+    G = 32  # a power of two (the fast path wraps with a bit mask)
 
     def __init__(self, seed: int):
         self.lattice = np.random.default_rng([seed, 7919]).random((self.G,) * 3).astype(np.float32)
@@ -214,7 +214,7 @@ class NoiseField:
             return _fbm_numba(p, self.lattice, float(scale_m), int(octaves), float(salt))
         if backend != "reference":
             raise ValueError(f"unknown noise backend {backend!r} (numba | reference)")
-        q = p / scale_m
+        q = p * (1.0 / scale_m)
         total, amp, norm = np.zeros(len(q)), 1.0, 0.0
         for k in range(octaves):
             # Offsets between octaves hide the lattice alignment.
@@ -226,15 +226,17 @@ class NoiseField:
 
 
 @numba.njit(inline="always")
-def _lattice_coord(x, G):
+def _lattice_coord(x, mask):
     fl = np.floor(x)
     fr = x - fl
-    return np.int64(fl) % G, fr * fr * (3.0 - 2.0 * fr)
+    # Bitwise and == floor modulo for a power-of-two lattice (also for negative cells).
+    return np.int64(fl) & mask, fr * fr * (3.0 - 2.0 * fr)
 
 
 @numba.njit(parallel=True, cache=True)
 def _fbm_numba(p, lattice, scale_m, octaves, salt):
-    G = lattice.shape[0]
+    mask = lattice.shape[0] - 1
+    inv_scale = 1.0 / scale_m
     out = np.empty(p.shape[0])
     for m in numba.prange(p.shape[0]):
         total = 0.0
@@ -242,10 +244,10 @@ def _fbm_numba(p, lattice, scale_m, octaves, salt):
         norm = 0.0
         f = 1.0
         for k in range(octaves):
-            ix, wx = _lattice_coord(p[m, 0] / scale_m * f + (13.7 * (k + 1) + salt), G)
-            iy, wy = _lattice_coord(p[m, 1] / scale_m * f + (5.3 * (k + 1) + salt), G)
-            iz, wz = _lattice_coord(p[m, 2] / scale_m * f + (29.1 * (k + 1) + salt), G)
-            jx, jy, jz = (ix + 1) % G, (iy + 1) % G, (iz + 1) % G
+            ix, wx = _lattice_coord(p[m, 0] * inv_scale * f + (13.7 * (k + 1) + salt), mask)
+            iy, wy = _lattice_coord(p[m, 1] * inv_scale * f + (5.3 * (k + 1) + salt), mask)
+            iz, wz = _lattice_coord(p[m, 2] * inv_scale * f + (29.1 * (k + 1) + salt), mask)
+            jx, jy, jz = (ix + 1) & mask, (iy + 1) & mask, (iz + 1) & mask
             c00 = lattice[ix, iy, iz] * (1.0 - wz) + lattice[ix, iy, jz] * wz
             c01 = lattice[ix, jy, iz] * (1.0 - wz) + lattice[ix, jy, jz] * wz
             c10 = lattice[jx, iy, iz] * (1.0 - wz) + lattice[jx, iy, jz] * wz
@@ -266,8 +268,8 @@ class Material:
     """A procedural, Lambertian material (albedo in linear RGB, 0..1)."""
 
     kind: str
-    """Pattern: plaster, planks, wood, brick, checker, cardboard, painted, label, bands, beachball,
-    stone, poster, books, dark."""
+    """Pattern: plaster, planks, wood, brick, wallpaper, checker, cardboard, painted, label, bands,
+    beachball, stone, poster, books, dark."""
     color_a: tuple[float, float, float]
     """Main albedo (linear RGB)."""
     color_b: tuple[float, float, float] = (0.5, 0.5, 0.5)
@@ -336,16 +338,19 @@ def albedo(mat: Material, p: np.ndarray, n: np.ndarray, noise: NoiseField) -> np
         gap = np.minimum(_smooth_edge(fb - 0.03, 0.03) * _smooth_edge(0.97 - fb, 0.03),
                          _smooth_edge(fa - 0.005, 0.006) * _smooth_edge(0.995 - fa, 0.006))
         tint = _hash01(row, col, 2)
-        grain = 0.5 + 0.5 * np.sin(2 * np.pi * (fb * 3.0 + 2.5 * noise.fbm(np.stack([a * 0.15, b, b * 0 + row], 1), 0.15, 3, mat.salt)))
+        # Grain follows the plank (stretched noise along it), offset per plank row.
+        q = np.stack([a * 0.15, b, row], 1)
+        grain = 0.5 + 0.5 * np.sin(2 * np.pi * (fb * 3.0 + 2.5 * noise.fbm(q, 0.15, 3, mat.salt)))
         base = _mix(A, B, 0.25 + 0.5 * tint)
         out = base * (0.8 + 0.25 * grain)[:, None]
         out = out * (0.35 + 0.65 * gap)[:, None]
     elif k == "wood":
         # Rings around the local x axis, distorted by noise; grain along x.
-        r = np.hypot(p[:, 1], p[:, 2] + 0.3) / s + 1.5 * noise.fbm(p * [0.2, 1, 1], s, 3, mat.salt)
-        ring = 0.5 + 0.5 * np.sin(2 * np.pi * r * 4.0)
-        out = _mix(A, B, 0.7 * ring)
-        out *= (0.85 + 0.3 * noise.fbm(p * [0.1, 1, 1], s / 4, 2, mat.salt + 1))[:, None]
+        # (the log's axis lies 0.3 m below the board, so boards show long, gently curving grain)
+        r = np.hypot(p[:, 1], p[:, 2] + 0.3) / s + 0.6 * noise.fbm(p * [0.15, 1, 1], s, 3, mat.salt)
+        ring = 0.5 + 0.5 * np.sin(2 * np.pi * r * 3.0)
+        out = _mix(A, B, 0.6 * ring * ring)
+        out *= (0.85 + 0.3 * noise.fbm(p * [0.08, 1, 1], s / 3, 2, mat.salt + 1))[:, None]
     elif k == "brick":
         a, b = _planar_coords(p, n)
         h = 0.5 * s  # course height (brick + mortar)
@@ -360,6 +365,16 @@ def albedo(mat: Material, p: np.ndarray, n: np.ndarray, noise: NoiseField) -> np
         brick = _mix(A, np.asarray(A) * 0.6, tint) * (0.85 + 0.3 * noise.fbm(p, 0.05, 3, mat.salt))[:, None]
         mortar = np.asarray(B) * (0.9 + 0.2 * noise.fbm(p, 0.03, 2, mat.salt + 2))[:, None]
         out = mortar * (1 - inner)[:, None] + brick * inner[:, None]
+    elif k == "wallpaper":
+        # Vertical stripes with a repeating diamond motif, slightly worn.
+        a, b = _planar_coords(p, n)
+        stripe = _smooth_edge(np.abs(((a / s) % 1.0) - 0.5) - 0.25, 0.03)
+        da = np.abs(((a / s + 0.5) % 1.0) - 0.5) * s
+        db = np.abs(((b / (1.5 * s)) % 1.0) - 0.5) * 1.5 * s
+        diamond = _smooth_edge(0.25 * s - (da + db / 1.5), 0.004)
+        out = _mix(A, B, 0.55 * stripe)
+        out = _mix_rows(out, np.asarray(B) * 0.7, 0.8 * diamond)
+        out *= (0.9 + 0.15 * noise.fbm(p, 0.3, 3, mat.salt))[:, None]
     elif k == "checker":
         f = np.sin(np.pi * p[:, 0] / s) * np.sin(np.pi * p[:, 1] / s) * np.sin(np.pi * p[:, 2] / s + 0.5)
         t = np.clip(0.5 + 4.0 * f, 0, 1)
@@ -439,11 +454,21 @@ def _mix_rows(out: np.ndarray, c: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out * (1.0 - t)[:, None] + np.asarray(c)[None, :] * t[:, None]
 
 
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> sRGB uint8 (the standard transfer curve, rounded)."""
-    x = np.clip(linear, 0.0, 1.0)
+def _srgb_lut() -> np.ndarray:
+    x = np.arange(_SRGB_STEPS + 1) / _SRGB_STEPS
     y = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.rint(y * 255.0).astype(np.uint8)
+
+
+_SRGB_STEPS = 1 << 16
+_SRGB_LUT = _srgb_lut()
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> sRGB uint8 (the standard transfer curve; a 65537-entry table, exact to the
+    8-bit rounding except within 1e-5 of a rounding boundary)."""
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return _SRGB_LUT[np.rint(x * _SRGB_STEPS).astype(np.int64)]
 
 
 # ---- PLY ----------------------------------------------------------------------------------------

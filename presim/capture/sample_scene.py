@@ -38,21 +38,23 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from presim.capture.procedural import (
-    Material, Mesh, NoiseField, albedo, box_mesh, cylinder_mesh, ellipsoid_mesh, merge_meshes,
-    rock_mesh, srgb_encode, write_ply,
+    _SRGB_LUT, _SRGB_STEPS, Material, Mesh, NoiseField, albedo, box_mesh, cylinder_mesh, ellipsoid_mesh,
+    merge_meshes, rock_mesh, srgb_encode, write_ply,
 )
 from presim.capture.scene import (
     ArrayFrameSource, FloorPlane, Scene, SceneError, SceneMeta, SceneObject,
 )
-from presim.geometry import Intrinsics, compose, invert, look_at, make_pose, rotation_z
+from presim.geometry import Intrinsics, check_rigid, compose, invert, look_at, make_pose, rotation_z
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
 __all__ = [
     "SampleSceneConfig", "SamplePart", "SampleGroundTruth", "RenderedView",
     "build_sample_scene", "load_sample_ground_truth", "clean_scene", "render_ground_truth",
+    "render_object_silhouettes",
     "render_view", "corrupt_depth", "capture_trajectory", "sample_layout",
 ]
 
@@ -98,7 +100,7 @@ class SampleSceneConfig:
     grazing_deg: float = 78.0
     """Incidence angle (ray vs. surface normal) around which depth drops out (ramp +-6 degrees)."""
     edge_shadow_px: int = 3
-    """Width of the hole left on the far side of depth edges (projector shadow / mixed pixels)."""
+    """Width of the hole on the background left of a nearer surface (projector shadow), pixels."""
     edge_dilate_px: int = 1
     """Foreground depth grows this many pixels over the background at depth edges."""
     shift_px: tuple[int, int] = (2, 1)
@@ -202,7 +204,7 @@ def sample_layout(seed: int, config: SampleSceneConfig = SampleSceneConfig()) ->
     ext_y = corr_y + t if config.door else Y + t
     wall_hue = rng.uniform(0, 1)
     plaster = Material("plaster", _hsv(wall_hue, 0.12, 0.75), _hsv(wall_hue + 0.05, 0.2, 0.6), 0.4, 1.0)
-    plaster2 = Material("plaster", _hsv(wall_hue + 0.5, 0.25, 0.7), _hsv(wall_hue + 0.45, 0.3, 0.55), 0.3, 2.0)
+    plaster2 = Material("wallpaper", _hsv(wall_hue + 0.5, 0.2, 0.75), _hsv(wall_hue + 0.45, 0.45, 0.5), 0.16, 2.0)
     brick = Material("brick", _hsv(0.03 + 0.03 * rng.uniform(), 0.65, 0.55), (0.7, 0.68, 0.62), 0.22, 3.0)
     floor_mat = Material("planks", _hsv(0.08, 0.55, 0.55), _hsv(0.07, 0.6, 0.3), 0.14, 4.0)
     add("floor", "floor", box_mesh([-X - t, -Y - t, -0.05], [X + t, ext_y, 0.0]), floor_mat)
@@ -242,7 +244,8 @@ def sample_layout(seed: int, config: SampleSceneConfig = SampleSceneConfig()) ->
     for i, (sx, sy) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
         x = tc[0] + sx * (tl / 2 - 0.06)
         y = tc[1] + sy * (tw / 2 - 0.06)
-        add(f"table_leg_{i}", "furniture", box_mesh([x - 0.025, y - 0.025, 0.0], [x + 0.025, y + 0.025, top_z - th]), leg)
+        add(f"table_leg_{i}", "furniture",
+            box_mesh([x - 0.025, y - 0.025, 0.0], [x + 0.025, y + 0.025, top_z - th]), leg)
 
     # Bookshelf against the north wall (open front: non-convex furniture).
     sx0, sx1, sy0, sy1, sh = -2.1, -1.2, Y - 0.35, Y, 1.8
@@ -260,7 +263,6 @@ def sample_layout(seed: int, config: SampleSceneConfig = SampleSceneConfig()) ->
             hb = rng.uniform(0.2, 0.32)
             books.append(box_mesh([x, sy0 + 0.06, z], [x + w, sy1 - 0.03, z + hb]))
             x += w + 0.003
-        x_gap = rng.uniform(0.0, 0.05)  # noqa: F841 (keeps the rng stream independent of layout edits)
     add("books", "furniture", merge_meshes(books), Material("books", (0.5, 0.5, 0.5), scale_m=0.035, salt=12.0))
 
     # Sideboard against the east wall.
@@ -318,7 +320,8 @@ def _object_specs(rng: np.random.Generator) -> list[tuple[str, Mesh, Material, f
         ("soup_can", can, Material("bands", _hsv(hues[1], 0.8, 0.7), _hsv(hues[1] + 0.5, 0.5, 0.8), 0.04, 21.0), 0.034),
         ("bracket", bracket, Material("checker", _hsv(hues[2], 0.85, 0.75), (0.85, 0.85, 0.82), 0.02, 22.0),
          float(np.hypot(0.09, 0.03))),
-        ("ball", ball, Material("beachball", _hsv(hues[3], 0.85, 0.8), _hsv(hues[3] + 0.33, 0.8, 0.7), 0.05, 23.0), 0.055),
+        ("ball", ball,
+         Material("beachball", _hsv(hues[3], 0.85, 0.8), _hsv(hues[3] + 0.33, 0.8, 0.7), 0.05, 23.0), 0.055),
         ("rock", rock, Material("stone", _hsv(hues[4], 0.3, 0.45), _hsv(hues[4], 0.2, 0.25), 0.03, 24.0),
          float(np.linalg.norm(rock.vertices[:, :2], axis=1).max())),
     ]
@@ -353,6 +356,12 @@ class _Model:
         self.part_ranges = ranges
         self.part_obj_id = np.array([p.obj_id for p in layout.parts], np.int32)
         self.T_part_world = np.stack([invert(p.T_world_part) for p in layout.parts])
+        self.light_array = np.array([[*l["pos"], l["intensity"], float(l["shadow"])] for l in layout.lights])
+        shadowed = [k for k, l in enumerate(layout.lights) if l["shadow"]]
+        if len(shadowed) > 1:
+            raise ValueError("only one light may cast shadows")
+        self.shadow_light = shadowed[0] if shadowed else -1
+        self._object_rcs = None  # per-object scenes, built on first use
         self.rc = o3d.t.geometry.RaycastingScene()
         self.rc.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
         self._o3d = o3d
@@ -361,83 +370,153 @@ class _Model:
         o3c = self._o3d.core
         h, w = K.height, K.width
         d_cam = _pixel_rays(K)
-        R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
-        d_world = _rotate(d_cam, R)
-        rays = np.empty((h * w, 6), np.float32)
-        rays[:, :3] = c
-        rays[:, 3:] = d_world
-        ans = self.rc.cast_rays(o3c.Tensor(rays))
+        R = np.ascontiguousarray(T_world_cam[:3, :3], dtype=np.float64)
+        c = np.ascontiguousarray(T_world_cam[:3, 3], dtype=np.float64)
+        ans = self.rc.cast_rays(o3c.Tensor(_make_rays(d_cam, R, c)))
         t_hit = ans["t_hit"].numpy()
+        prim_all = ans["primitive_ids"].numpy()
         hit_idx = np.nonzero(np.isfinite(t_hit))[0]
-        prim = ans["primitive_ids"].numpy()[hit_idx].astype(np.int64)
         # Visit hits grouped by part: contiguous slices instead of one boolean mask per part.
-        part = self.tri_part[prim]
+        part = self.tri_part[prim_all[hit_idx]]
         order = np.argsort(part, kind="stable")
-        hit_idx, prim, part = hit_idx[order], prim[order], part[order]
-        bary = ans["primitive_uvs"].numpy()[hit_idx].astype(np.float64)
-        t = t_hit[hit_idx].astype(np.float64)
-        depth = np.zeros(h * w, np.float32)
-        depth[hit_idx] = t_hit[hit_idx]  # rays have camera-frame z = 1: t_hit is the z-depth
+        hit_idx, part = hit_idx[order], part[order]
 
-        dw = d_world[hit_idx]
-        p_world = dw * t[:, None] + c
-        tri = self.triangles[prim]
-        vn = self.vertex_normals
-        b1, b2 = bary[:, :1], bary[:, 1:]
-        n = (1.0 - b1 - b2) * vn[tri[:, 0]] + b1 * vn[tri[:, 1]] + b2 * vn[tri[:, 2]]
-        n /= _norm(n)[:, None]
-
-        alb = np.empty((len(prim), 3))
+        p_world, n, p_loc, n_loc, E, main = _surface_kernel(
+            hit_idx, d_cam, R, c, t_hit, prim_all, ans["primitive_uvs"].numpy(), self.triangles,
+            self.vertex_normals, part, self.T_part_world, self.light_array, float(self.layout.ambient))
+        alb = np.empty((len(hit_idx), 3))
         bounds = np.searchsorted(part, np.arange(len(self.layout.parts) + 1))
         for k in range(len(self.layout.parts)):
             lo, hi = bounds[k], bounds[k + 1]
-            if hi == lo:
-                continue
-            Tpw = self.T_part_world[k]
-            p_loc = _rotate(p_world[lo:hi], Tpw[:3, :3]) + Tpw[:3, 3]
-            n_loc = _rotate(n[lo:hi], Tpw[:3, :3])
-            alb[lo:hi] = albedo(self.layout.parts[k].material, p_loc, n_loc, self.noise)
+            if hi > lo:
+                alb[lo:hi] = albedo(self.layout.parts[k].material, p_loc[lo:hi], n_loc[lo:hi], self.noise)
 
-        irr = self._irradiance(p_world, n)
-        color = np.zeros((h * w, 3), np.uint8)
-        color[hit_idx] = srgb_encode(alb * irr[:, None])
-        obj = np.zeros(h * w, np.int32)
-        obj[hit_idx] = self.part_obj_id[part]
-        lum = np.zeros(h * w, np.float32)
-        lum[hit_idx] = alb @ np.array([0.2126, 0.7152, 0.0722])
-        cos_inc = np.zeros(h * w, np.float32)
-        cos_inc[hit_idx] = np.abs(np.einsum("ij,ij->i", dw, n)) / _norm(dw)
+        if self.shadows and self.shadow_light >= 0:
+            lit = np.nonzero(main > 0)[0]
+            L = np.asarray(self.layout.lights[self.shadow_light]["pos"], dtype=np.float64)
+            # Offset along the normal so a surface does not shadow itself.
+            o = p_world[lit] + n[lit] * 2e-3
+            rays = np.empty((len(lit), 6), np.float32)
+            rays[:, :3] = o
+            rays[:, 3:] = L - o
+            occ = self.rc.test_occlusions(o3c.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
+            E[lit[occ]] -= main[lit[occ]]
+        color, depth, obj, lum, cos_inc = _compose_kernel(
+            h * w, hit_idx, alb, E, t_hit, d_cam, R, n, part, self.part_obj_id, _SRGB_LUT, _SRGB_STEPS)
         return RenderedView(color.reshape(h, w, 3), depth.reshape(h, w), obj.reshape(h, w),
                             lum.reshape(h, w), cos_inc.reshape(h, w))
 
-    def _irradiance(self, p: np.ndarray, n: np.ndarray) -> np.ndarray:
-        """Lambertian irradiance (relative units) of fixed point lights + ambient; view-independent."""
+
+    def object_silhouettes(self, T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each object ray cast alone: ``(obj_ids (K,), masks bool (K, H, W), depth_m float32 (K, H, W))``."""
         o3c = self._o3d.core
-        E = np.full(len(p), self.layout.ambient)
-        for light in self.layout.lights:
-            L = np.asarray(light["pos"], dtype=np.float64)
-            to_l = L - p
-            dist = _norm(to_l)
-            cos = np.einsum("ij,ij->i", n, to_l) / dist
-            contrib = light["intensity"] * np.clip(cos, 0, None) / (1.0 + (dist / 2.0) ** 2)
-            if light["shadow"] and self.shadows:
-                lit = np.nonzero(contrib > 0)[0]
-                # Offset along the normal so a surface does not shadow itself.
-                o = p[lit] + n[lit] * 2e-3
-                rays = np.concatenate([o, L - o], 1).astype(np.float32)
-                occ = self.rc.test_occlusions(o3c.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
-                contrib[lit[occ]] = 0.0
-            E += contrib
-        return E
+        if self._object_rcs is None:
+            self._object_rcs = []
+            for k, p in enumerate(self.layout.parts):
+                if p.obj_id:
+                    a, b = self.part_ranges[k]
+                    tris = self.triangles[a:b]
+                    used, inv = np.unique(tris.reshape(-1), return_inverse=True)
+                    rc = self._o3d.t.geometry.RaycastingScene()
+                    rc.add_triangles(o3c.Tensor(self.vertices[used]),
+                                     o3c.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
+                    self._object_rcs.append((p.obj_id, rc))
+        R = np.ascontiguousarray(T_world_cam[:3, :3], dtype=np.float64)
+        c = np.ascontiguousarray(T_world_cam[:3, 3], dtype=np.float64)
+        rays = o3c.Tensor(_make_rays(_pixel_rays(K), R, c))
+        ids, masks, depths = [], [], []
+        for obj_id, rc in self._object_rcs:
+            t = rc.cast_rays(rays)["t_hit"].numpy().reshape(K.height, K.width)
+            hit = np.isfinite(t)
+            ids.append(obj_id)
+            masks.append(hit)
+            depths.append(np.where(hit, t, 0.0).astype(np.float32))
+        return np.array(ids, np.int32), np.stack(masks), np.stack(depths)
 
 
-def _rotate(p: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """``p @ R.T`` for (M, 3) points, written out (much faster than a BLAS call with a 3-wide matrix)."""
-    return p[:, 0:1] * R[:, 0] + p[:, 1:2] * R[:, 1] + p[:, 2:3] * R[:, 2]
+@numba.njit(parallel=True, cache=True)
+def _make_rays(d_cam, R, c):
+    """(M, 6) float32 rays [origin, R @ d_cam] for Open3D."""
+    m = d_cam.shape[0]
+    rays = np.empty((m, 6), np.float32)
+    for i in numba.prange(m):
+        for a in range(3):
+            rays[i, a] = c[a]
+            rays[i, 3 + a] = R[a, 0] * d_cam[i, 0] + R[a, 1] * d_cam[i, 1] + R[a, 2] * d_cam[i, 2]
+    return rays
 
 
-def _norm(a: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.einsum("ij,ij->i", a, a))
+@numba.njit(parallel=True, cache=True)
+def _compose_kernel(num_pixels, hit_idx, alb, E, t_hit, d_cam, R, n, part, part_obj_id, lut, steps):
+    """Scatter the shaded hits into full images: sRGB color, exact depth, object id, albedo
+    luminance and |cos| of incidence (0 / black where a ray hits nothing)."""
+    color = np.zeros((num_pixels, 3), np.uint8)
+    depth = np.zeros(num_pixels, np.float32)
+    obj = np.zeros(num_pixels, np.int32)
+    lum = np.zeros(num_pixels, np.float32)
+    cos_inc = np.zeros(num_pixels, np.float32)
+    for j in numba.prange(hit_idx.shape[0]):
+        i = hit_idx[j]
+        for a in range(3):
+            x = min(max(alb[j, a] * E[j], 0.0), 1.0)
+            color[i, a] = lut[np.int64(np.rint(x * steps))]
+        depth[i] = t_hit[i]  # rays have camera-frame z = 1: t_hit is the z-depth
+        obj[i] = part_obj_id[part[j]]
+        lum[i] = 0.2126 * alb[j, 0] + 0.7152 * alb[j, 1] + 0.0722 * alb[j, 2]
+        dx = R[0, 0] * d_cam[i, 0] + R[0, 1] * d_cam[i, 1] + R[0, 2] * d_cam[i, 2]
+        dy = R[1, 0] * d_cam[i, 0] + R[1, 1] * d_cam[i, 1] + R[1, 2] * d_cam[i, 2]
+        dz = R[2, 0] * d_cam[i, 0] + R[2, 1] * d_cam[i, 1] + R[2, 2] * d_cam[i, 2]
+        cos_inc[i] = abs(dx * n[j, 0] + dy * n[j, 1] + dz * n[j, 2]) / np.sqrt(dx * dx + dy * dy + dz * dz)
+    return color, depth, obj, lum, cos_inc
+
+
+@numba.njit(parallel=True, cache=True)
+def _surface_kernel(hit_idx, d_cam, R, c, t_hit, prim, bary, triangles, vertex_normals, part, T_part_world,
+                    lights, ambient):
+    """Per hit pixel ``hit_idx[j]``: world point, interpolated unit normal, both in the part's frame,
+    Lambertian irradiance of all lights + ambient (unshadowed) and the shadow-casting light's share.
+    ``lights`` rows are (x, y, z, intensity, casts_shadow)."""
+    m = hit_idx.shape[0]
+    p_world = np.empty((m, 3))
+    n_out = np.empty((m, 3))
+    p_loc = np.empty((m, 3))
+    n_loc = np.empty((m, 3))
+    E = np.empty(m)
+    main = np.zeros(m)
+    for j in numba.prange(m):
+        i = hit_idx[j]
+        t = np.float64(t_hit[i])
+        px = c[0] + (R[0, 0] * d_cam[i, 0] + R[0, 1] * d_cam[i, 1] + R[0, 2] * d_cam[i, 2]) * t
+        py = c[1] + (R[1, 0] * d_cam[i, 0] + R[1, 1] * d_cam[i, 1] + R[1, 2] * d_cam[i, 2]) * t
+        pz = c[2] + (R[2, 0] * d_cam[i, 0] + R[2, 1] * d_cam[i, 1] + R[2, 2] * d_cam[i, 2]) * t
+        b1 = np.float64(bary[i, 0])
+        b2 = np.float64(bary[i, 1])
+        b0 = 1.0 - b1 - b2
+        tri = prim[i]
+        v0, v1, v2 = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
+        nx = b0 * vertex_normals[v0, 0] + b1 * vertex_normals[v1, 0] + b2 * vertex_normals[v2, 0]
+        ny = b0 * vertex_normals[v0, 1] + b1 * vertex_normals[v1, 1] + b2 * vertex_normals[v2, 1]
+        nz = b0 * vertex_normals[v0, 2] + b1 * vertex_normals[v1, 2] + b2 * vertex_normals[v2, 2]
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+        nx, ny, nz = nx / nn, ny / nn, nz / nn
+        p_world[j, 0], p_world[j, 1], p_world[j, 2] = px, py, pz
+        n_out[j, 0], n_out[j, 1], n_out[j, 2] = nx, ny, nz
+        T = T_part_world[part[j]]
+        for a in range(3):
+            p_loc[j, a] = T[a, 0] * px + T[a, 1] * py + T[a, 2] * pz + T[a, 3]
+            n_loc[j, a] = T[a, 0] * nx + T[a, 1] * ny + T[a, 2] * nz
+        e = ambient
+        for k in range(lights.shape[0]):
+            lx, ly, lz = lights[k, 0] - px, lights[k, 1] - py, lights[k, 2] - pz
+            dist = np.sqrt(lx * lx + ly * ly + lz * lz)
+            cs = (nx * lx + ny * ly + nz * lz) / dist
+            if cs > 0.0:
+                contrib = lights[k, 3] * cs / (1.0 + (dist / 2.0) ** 2)
+                e += contrib
+                if lights[k, 4] > 0.0:
+                    main[j] = contrib
+        E[j] = e
+    return p_world, n_out, p_loc, n_loc, E, main
 
 
 @functools.lru_cache(maxsize=8)
@@ -456,9 +535,11 @@ def _model(seed: int, config: SampleSceneConfig) -> _Model:
 
 def render_view(seed: int, config: SampleSceneConfig, T_world_cam: np.ndarray, K: Intrinsics) -> RenderedView:
     """Ray cast the sample room of ``seed`` at ``T_world_cam`` (4x4, OpenCV camera-to-world)."""
+    if not isinstance(K, Intrinsics):
+        raise TypeError(f"K must be presim.geometry.Intrinsics, got {type(K).__name__}")
     T = np.asarray(T_world_cam, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"T_world_cam must be a finite 4x4 matrix, got shape {T.shape}")
+    # Validate only: the pose is used as given, so a capture pose re-renders bit for bit.
+    check_rigid(T, "T_world_cam")
     return _model(int(seed), config).render(T, K)
 
 
@@ -472,7 +553,7 @@ def capture_trajectory(layout: _Layout, num_frames: int, seed: int) -> np.ndarra
     rng = np.random.default_rng([seed, 2])
     s = np.linspace(0.0, 1.0, 4001)
     theta0 = rng.uniform(0, 2 * np.pi)
-    theta = theta0 + 2 * np.pi * 1.25 * s
+    theta = theta0 + 2 * np.pi * 1.05 * s
     w = np.clip((s - 0.55) / 0.3, 0, 1)
     w = w * w * (3 - 2 * w)
     room_c = np.array([0.0, 0.0])
@@ -493,7 +574,8 @@ def capture_trajectory(layout: _Layout, num_frames: int, seed: int) -> np.ndarra
 
     # Look direction: yaw from "outward + a bit forward" (walls) to "at the objects" (a = 1),
     # turning through the walking direction so the rotation is continuous.
-    a = 0.2 + 0.8 * np.clip((s_f - 0.35) / 0.4, 0, 1) ** 1.0
+    ramp = np.clip((s_f - 0.3) / 0.5, 0, 1)
+    a = 0.4 + 0.6 * ramp * ramp * (3 - 2 * ramp)
     to_obj = layout.objects_centre[None, :] - pos_f
     yaw_obj = np.arctan2(to_obj[:, 1], to_obj[:, 0])
     d = np.mod(yaw_obj - theta_f, 2 * np.pi)
@@ -517,10 +599,11 @@ def corrupt_depth(depth_m: np.ndarray, albedo_lum: np.ndarray, cos_incidence: np
                   config: SampleSceneConfig, rng: np.random.Generator) -> np.ndarray:
     """A realistic sensor reading of the exact depth ``depth_m`` (float32 (H, W), 0 = none).
 
-    In this order: foreground dilation at depth edges (``edge_dilate_px``), holes on the far side of
-    depth edges (``edge_shadow_px``), on dark surfaces (``dark_albedo``/``dark_dropout``), at grazing
-    incidence (``grazing_deg``), outside ``[min_range_m, max_range_m]`` and random speckles; Gaussian
-    noise with ``sigma = noise_sigma0_m + noise_k_per_m * z^2``; finally the whole map is shifted by
+    In this order: foreground dilation at depth edges (``edge_dilate_px``), holes left of nearer
+    surfaces (projector shadow, ``edge_shadow_px``), on dark surfaces (``dark_albedo``,
+    ``dark_dropout``), at grazing incidence (``grazing_deg``) and random speckles; Gaussian noise with
+    ``sigma = noise_sigma0_m + noise_k_per_m * z^2``; no depth outside ``[min_range_m, max_range_m]``;
+    finally the whole map is shifted by
     ``shift_px`` relative to the color (registration error), vacated borders are 0.
     """
     import cv2
@@ -544,9 +627,12 @@ def corrupt_depth(depth_m: np.ndarray, albedo_lum: np.ndarray, cos_incidence: np
         out[take] = grown[take]
     drop = np.zeros(d.shape, bool)
     if config.edge_shadow_px > 0:
-        # The IR projector sits beside the camera: background just beside a foreground edge is unlit.
-        k = np.ones((1, 2 * config.edge_shadow_px + 1), np.uint8)
-        shadow = cv2.dilate(far_side.astype(np.uint8), k).astype(bool) & (out >= d - 1e-6) & (d - dmin > 0.05)
+        # The IR projector sits to the right of the camera: background up to edge_shadow_px pixels to
+        # the LEFT of a nearer surface is not lit by the pattern (one-sided holes, like a Kinect).
+        W = config.edge_shadow_px
+        right_min = cv2.erode(big, np.ones((1, W + 1), np.uint8), anchor=(0, 0),
+                              borderType=cv2.BORDER_CONSTANT, borderValue=1e3)
+        shadow = valid & (d - right_min > np.maximum(0.04 * d, 0.05))
         drop |= shadow & (rng.random(d.shape) < 0.8)
     drop |= (albedo_lum < config.dark_albedo) & (rng.random(d.shape) < config.dark_dropout)
     ang = np.degrees(np.arccos(np.clip(cos_incidence, 0, 1)))
@@ -632,7 +718,7 @@ def build_sample_scene(dst: str | Path, seed: int = 0, config: SampleSceneConfig
     clean = Scene(frame_ids, stamps, T_world_cams, [K] * n, ArrayFrameSource(color, depth_clean),
                   SceneMeta("", "sample"))
     # The point cloud is fused from the exact depth (the scene's ground-truth geometry).
-    points = fuse_point_cloud(clean, voxel_m=0.01, stride=4)
+    points = fuse_point_cloud(clean, voxel_m=0.01, stride=6)
     on_floor = float(np.mean(np.abs(points.xyz[:, 2]) < 0.01)) if len(points) else 0.0
 
     with atomic_dir(dst, overwrite=overwrite) as tmp:
@@ -754,6 +840,23 @@ def clean_scene(dst: str | Path):
     gt = load_sample_ground_truth(dst)
     color = scene.frames.color  # memmap of color.npy
     return dataclasses.replace(scene, frames=ArrayFrameSource(color, gt.depth_clean_m))
+
+
+def render_object_silhouettes(dst: str | Path, T_world_cam: np.ndarray, K: Intrinsics
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each table object of the sample scene at ``dst`` ray cast ALONE (no occluders) at any pose.
+
+    Returns ``(obj_ids int32 (K,), masks bool (K, H, W), depth_m float32 (K, H, W))``: the full
+    silhouettes and depths (BOP ``mask``, as opposed to the visible ``mask_visib`` that
+    :func:`render_ground_truth`'s object ids give), with ``depth_m`` equal to the scene depth wherever
+    the object is visible.
+    """
+    seed, config, _ = _sample_info(Path(dst))
+    if not isinstance(K, Intrinsics):
+        raise TypeError(f"K must be presim.geometry.Intrinsics, got {type(K).__name__}")
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    check_rigid(T, "T_world_cam")
+    return _model(int(seed), config).object_silhouettes(T, K)
 
 
 def render_ground_truth(dst: str | Path, T_world_cam: np.ndarray, K: Intrinsics

@@ -1,5 +1,169 @@
-"""Sub-commands (being built)."""
+"""``presim ros`` (the simulator as a ROS 1 node) and ``presim view`` (open an .rrd recording)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+LAUNCH_DIR = Path(__file__).resolve().parents[1] / "outputs" / "launch"
 
 
 def register(sub) -> None:
-    pass
+    p = sub.add_parser(
+        "ros", help="run the simulator as a ROS 1 node (images, tf, odom, /clock; /cmd_vel in)",
+        description="Run SCENE with a robot as a ROS 1 node: publishes color/depth/camera_info, tf, odom, "
+                    "path, joint_states and /clock (sim time), latches the scene cloud on /map_cloud, "
+                    "takes /cmd_vel and /joint_command, serves /presim/reset and /presim/teleport. "
+                    "Starts a roscore on ROS_MASTER_URI (default http://127.0.0.1:11311) when none runs. "
+                    "Topics and frames: docs/ros.md.")
+    p.add_argument("scene", type=Path, help="saved scene folder")
+    p.add_argument("--robot", default=None,
+                   help="URDF file, 'default' (presim_bot) or 'free' (camera rig); default: by scene")
+    p.add_argument("--rate-hz", type=float, default=10.0,
+                   help="step and camera rate: sim dt = 1/rate, one RGB-D frame per step (default 10)")
+    p.add_argument("--width", type=int, default=640, help="camera image width")
+    p.add_argument("--height", type=int, default=480, help="camera image height")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start pose (and of /presim/reset)")
+    p.add_argument("--real-time-factor", type=float, default=1.0,
+                   help="sim seconds per wall second (0 = as fast as possible)")
+    p.add_argument("--host", default="127.0.0.1", help="ROS_IP / ROS_HOSTNAME of the node (default loopback)")
+    p.add_argument("--master-port", type=int, default=None,
+                   help="port of the ROS master when ROS_MASTER_URI is unset (default 11311)")
+    p.add_argument("--no-roscore", action="store_true", help="never start a roscore (fail if none runs)")
+    p.add_argument("--max-steps", type=int, default=0, help="stop after this many steps (0 = until Ctrl-C)")
+    p.add_argument("--record", type=Path, default=None, help="also record (MCAP + capture folder) here")
+    p.add_argument("--rrd", type=Path, default=None, help="also save the rerun viewer stream here")
+    p.add_argument("--launch", action="store_true",
+                   help="run through roslaunch (presim.launch: roscore + scene + robot + controllers)")
+    p.set_defaults(func=run_ros)
+
+    v = sub.add_parser("view", help="open a recorded .rrd in the rerun viewer (native, or web on 127.0.0.1)")
+    v.add_argument("rrd", type=Path, help=".rrd file written by --viewer / --rrd")
+    v.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead")
+    v.add_argument("--port", type=int, default=0, help="web viewer port (0 = free port)")
+    v.set_defaults(func=run_view)
+
+
+def _setup_ros_env(args) -> str:
+    """Loopback defaults for ROS_MASTER_URI / ROS_IP (rospy binds 127.0.0.1 when ROS_IP is loopback)."""
+    port = args.master_port or 11311
+    if args.master_port is not None or "ROS_MASTER_URI" not in os.environ:
+        os.environ["ROS_MASTER_URI"] = f"http://{args.host}:{port}"
+    os.environ.setdefault("ROS_IP", args.host)
+    os.environ.setdefault("ROS_HOSTNAME", os.environ["ROS_IP"])
+    return os.environ["ROS_MASTER_URI"]
+
+
+def _load_scene(path: Path):
+    from presim.capture.store import is_scene_dir, load_scene
+
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: scene folder not found")
+    if not is_scene_dir(path):
+        raise ValueError(f"{path}: not a saved scene folder (import a capture first: presim import SRC DST)")
+    return load_scene(path)
+
+
+def _build_robot(name: str | None, scene):
+    from presim.sim.robot import DEFAULT_ROBOT_URDF, free_camera_rig, load_robot
+
+    if name is None:
+        name = "default" if scene.floor is not None else "free"
+    if name == "free":
+        return free_camera_rig()
+    urdf = DEFAULT_ROBOT_URDF if name == "default" else Path(name)
+    if not urdf.is_file():
+        raise FileNotFoundError(f"{urdf}: URDF not found")
+    return load_robot(urdf)
+
+
+def _run_launch(args) -> int:
+    import shutil
+
+    exe = shutil.which("roslaunch")
+    if exe is None:
+        raise FileNotFoundError("roslaunch not found: install Debian's ros-core")
+    env = dict(os.environ)
+    # Our launch folder is a minimal ROS package (package.xml + presim_node) so roslaunch finds the node.
+    env["ROS_PACKAGE_PATH"] = os.pathsep.join(p for p in (str(LAUNCH_DIR), env.get("ROS_PACKAGE_PATH", "")) if p)
+    env["PRESIM_PYTHON"] = sys.executable
+    port = env["ROS_MASTER_URI"].rsplit(":", 1)[-1].strip("/")
+    cmd = [exe, "--port", port, str(LAUNCH_DIR / "presim.launch"), f"scene:={args.scene.resolve()}",
+           f"robot:={args.robot or 'auto'}", f"rate_hz:={args.rate_hz}", f"width:={args.width}",
+           f"height:={args.height}", f"seed:={args.seed}"]
+    print("presim ros: " + " ".join(cmd), file=sys.stderr)
+    p = subprocess.Popen(cmd, env=env)
+    try:
+        return p.wait()
+    except KeyboardInterrupt:
+        p.send_signal(signal.SIGINT)
+        return p.wait()
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def run_ros(args: argparse.Namespace) -> int:
+    uri = _setup_ros_env(args)
+    if args.rate_hz <= 0:
+        raise ValueError(f"--rate-hz must be positive, got {args.rate_hz}")
+    if args.launch:
+        return _run_launch(args)
+    from presim.outputs.ros_bridge import (RosBridge, RosBridgeConfig, import_rospy, master_alive,
+                                           start_roscore, stop_process_group)
+    from presim.outputs.sinks import build_sinks
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+
+    import_rospy()
+    scene = _load_scene(args.scene)
+    robot = _build_robot(None if args.robot in (None, "auto") else args.robot, scene)
+    cam = CameraSpec(width=args.width, height=args.height, rate_hz=args.rate_hz)
+    sim = Simulator(scene, robot, SimConfig(dt_s=1.0 / args.rate_hz, cameras=(cam,)))
+    extra = tuple(build_sinks(args.record, None, args.rrd)) if (args.record or args.rrd) else ()
+    core = None
+    if not master_alive(uri):
+        if args.no_roscore:
+            raise ValueError(f"no ROS master at {uri} (start roscore, or drop --no-roscore)")
+        port = int(uri.rsplit(":", 1)[-1].strip("/"))
+        print(f"presim ros: starting roscore on {uri}", file=sys.stderr)
+        core = start_roscore(port, dict(os.environ))
+    # SIGTERM (rosnode kill, roslaunch shutdown) ends the loop like Ctrl-C, so files are closed.
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+    bridge = RosBridge(sim, RosBridgeConfig(seed=args.seed, real_time_factor=args.real_time_factor,
+                                            max_steps=args.max_steps), extra_sinks=extra)
+    print(f"presim ros: node /presim on {uri}; scene {sim.scene_name}, robot {robot.urdf_path.name}, "
+          f"{args.width}x{args.height} at {args.rate_hz:g} Hz", file=sys.stderr)
+    try:
+        bridge.run()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        stop_process_group(core)
+    print(f"presim ros: stopped after {bridge.steps} steps", file=sys.stderr)
+    return 0
+
+
+def run_view(args: argparse.Namespace) -> int:
+    from presim.outputs.viewer import free_port, rerun_executable, wait_for_port, web_viewer_url
+
+    if not args.rrd.is_file():
+        raise FileNotFoundError(f"{args.rrd}: .rrd file not found")
+    if not args.web:
+        return subprocess.call(rerun_executable() + ["--bind", "127.0.0.1", str(args.rrd)])
+    web, grpc = args.port or free_port(), free_port()
+    p = subprocess.Popen(rerun_executable() + ["--serve-web", "--bind", "127.0.0.1", "--port", str(grpc),
+                                               "--web-viewer-port", str(web), str(args.rrd)])
+    try:
+        wait_for_port("127.0.0.1", web)
+        print(f"presim view: {web_viewer_url('127.0.0.1', web, grpc)}  (Ctrl-C to stop)", file=sys.stderr)
+        return p.wait()
+    except KeyboardInterrupt:
+        p.terminate()
+        p.wait()
+        return 0

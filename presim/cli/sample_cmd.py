@@ -8,11 +8,13 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("sample-scene", help="build the built-in textured sample room (RGB-D frames, exact ground truth)",
+    p = sub.add_parser("sample-scene",
+                       help="build the built-in textured sample room (RGB-D frames, exact ground truth)",
                        description="Build the procedural sample room: RGB-D frames with realistically corrupted "
                                    "depth, exact depth/poses/object masks in DST/ground_truth/ (docs/sample-scene.md).")
     p.add_argument("dst", type=Path, help="output scene folder")
-    p.add_argument("--seed", type=int, default=0, help="random seed (layout jitter, colors, objects, trajectory, noise)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="random seed (layout jitter, colors, objects, trajectory, noise)")
     p.add_argument("--frames", type=int, default=None, help="number of frames (default 60)")
     p.add_argument("--width", type=int, default=None, help="image width in pixels (default 640)")
     p.add_argument("--height", type=int, default=None, help="image height in pixels (default 480)")

@@ -117,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
     from presim.sensors.noise import DepthNoiseConfig
     from presim.sensors.odometry import OdometryConfig
     from presim.sim.controllers import KeyboardTeleop, TrajectoryReplay, load_waypoints
-    from presim.sim.routes import KeyboardDriver, ReplayDriver, WaypointDriver, free_camera_route, ground_route
+    from presim.sim.routes import (KeyboardDriver, ReplayDriver, RouteDriver, WaypointDriver, free_camera_route,
+                                   ground_route)
     from presim.sim.simulator import SimConfig, Simulator
 
     if args.steps <= 0:
@@ -147,13 +148,14 @@ def run(args: argparse.Namespace) -> int:
         sim.add_sink(s)
     rng = np.random.default_rng(args.seed)
     start = driver.start_pose(sim) if driver is not None else None
-    result = sim.reset(args.seed, start=start)
+    joints = driver.start_joints(sim) if driver is not None else None
+    result = sim.reset(args.seed, start=start, joint_positions=joints)
     if driver is None:  # built-in route drawn from the seed
         if sim.is_free:
             driver = ReplayDriver(free_camera_route(sim, rng, args.steps))
             result = sim.reset(args.seed, start=driver.start_pose(sim))
         else:
-            driver = WaypointDriver(ground_route(sim, rng), robot.drive)
+            driver = RouteDriver(ground_route(sim, rng), sim)
     setup_s = time.perf_counter() - t_setup
     realtime = args.realtime or args.controller == "keyboard"
     steps = contacts = outside = images = 0

@@ -672,9 +672,18 @@ class BopDataset:
             w, h = self.camera().K.width, self.camera().K.height
         except FileNotFoundError:
             import cv2
-            img = cv2.imread(str(self.image_path(scene_id, im_id)), cv2.IMREAD_UNCHANGED)
+            for kind in ("rgb", "gray", "depth"):  # no camera.json: size from any image of the view
+                try:
+                    path = self.image_path(scene_id, im_id, kind)
+                    break
+                except FileNotFoundError:
+                    continue
+            else:
+                raise FileNotFoundError(f"{self.root / 'camera.json'}: not found and image {im_id} of scene "
+                                        f"{scene_id} has no rgb/gray/depth file to take the size from") from None
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if img is None:
-                raise ValueError(f"{self.image_path(scene_id, im_id)}: unreadable image") from None
+                raise ValueError(f"{path}: unreadable image") from None
             h, w = img.shape[:2]
         return cams[im_id].intrinsics(w, h)
 

@@ -31,11 +31,11 @@ import numpy as np
 from presim.datasets.annotate import InstanceAnnotation
 from presim.datasets.objects import ObjectModel, models_info, write_model_ply_mm
 from presim.geometry import Intrinsics, invert
-from presim.io_utils import atomic_write_bytes, atomic_write_json
+from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 __all__ = ["encode_depth_png", "encode_frame", "scene_camera_entry", "camera_json", "write_models",
            "write_scene_json", "write_frame_files", "coco_rle", "coco_scene", "scene_dir",
-           "json_dumps_stable", "DEFAULT_DEPTH_SCALE"]
+           "json_dumps_stable", "bop_json_text", "DEFAULT_DEPTH_SCALE"]
 
 DEFAULT_DEPTH_SCALE = 0.1
 """depth_mm = png value * depth_scale: 0.1 mm steps, up to 6.55 m (BOP's PBR datasets use 0.1)."""
@@ -150,6 +150,12 @@ def coco_scene(records: Sequence[dict], masks_visib: Mapping[tuple[int, int], di
             "images": images, "annotations": anns, "categories": cats}
 
 
+def bop_json_text(d: Mapping[str, object]) -> str:
+    """JSON in bop_toolkit's layout: one key per line, each value on one line (compact, diffable)."""
+    lines = [f"  {json.dumps(str(k))}: {json.dumps(v)}" for k, v in d.items()]
+    return "{\n" + ",\n".join(lines) + "\n}\n"
+
+
 def write_scene_json(sdir: Path, records: Sequence[dict], coco: dict | None = None) -> None:
     """Write scene_camera / scene_gt / scene_gt_info (and COCO) JSON from per-frame records, each
     atomically; scene_gt_info.json last (it marks the scene's annotations complete)."""
@@ -157,11 +163,11 @@ def write_scene_json(sdir: Path, records: Sequence[dict], coco: dict | None = No
     cams = {str(r["im_id"]): r["scene_camera"] for r in records}
     gts = {str(r["im_id"]): r["scene_gt"] for r in records}
     infos = {str(r["im_id"]): r["scene_gt_info"] for r in records}
-    atomic_write_json(sdir / "scene_camera.json", cams)
-    atomic_write_json(sdir / "scene_gt.json", gts)
+    atomic_write_text(sdir / "scene_camera.json", bop_json_text(cams))
+    atomic_write_text(sdir / "scene_gt.json", bop_json_text(gts))
     if coco is not None:
         atomic_write_json(sdir / "scene_gt_coco.json", coco, indent=None)
-    atomic_write_json(sdir / "scene_gt_info.json", infos)
+    atomic_write_text(sdir / "scene_gt_info.json", bop_json_text(infos))
 
 
 def write_frame_files(sdir: Path, files: Mapping[str, bytes]) -> None:

@@ -2,7 +2,8 @@
 
 - :func:`guided_filter_depth`: the guided filter [HST12] with the color image (gray) as guide. Missing
   depth is handled by normalised filtering: ``GF(D * M) / GF(M)`` (the filter is linear in its input),
-  which also fills holes where at least ``min_support`` of the window had depth.
+  which also fills holes where at least ``min_support`` of the window had depth (measured pixels
+  always keep a filtered depth).
 - :func:`median_filter_depth`: a plain ``k x k`` median of the valid depths of each window [ACD+09]
   (invalid pixels ignored; a missing pixel is filled when more than half the window is valid).
 """
@@ -25,7 +26,7 @@ class GuidedFilterConfig:
     eps: float = 1e-3
     """Regularisation epsilon (guide intensities in [0, 1])."""
     min_support: float = 0.5
-    """A pixel gets a depth only where the filtered validity mask is at least this."""
+    """A missing pixel gets a depth only where the filtered validity mask is at least this."""
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,8 @@ def guided_filter_depth(color: np.ndarray, depth_m: np.ndarray,
     num = _guided(I, depth_m.astype(np.float64) * M, config.radius_px, config.eps)
     den = _guided(I, M, config.radius_px, config.eps)
     out = np.zeros(depth_m.shape, np.float32)
-    ok = den >= config.min_support
+    # Measured pixels always keep a (filtered) depth; missing ones are filled only with support.
+    ok = (den >= config.min_support) | ((M > 0) & (den > 1e-3))
     out[ok] = (num[ok] / den[ok]).astype(np.float32)
     out[out < 0] = 0
     return out

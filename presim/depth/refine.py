@@ -9,7 +9,8 @@ For one target frame and up to ten reference frames:
      per-channel mean; gradients of the gray image). Only *front-most* correspondences count: when the
      reference's own depth says the projected point lies behind its surface (occluded there), that
      reference is skipped. Each reference's cost is truncated at ``truncation`` (robust to exposure
-     changes and mismatches) and the costs are averaged. A pixel no reference sees costs ``truncation``.
+     changes and mismatches) and the costs are averaged. A depth no reference sees front-most costs
+     ``unseen_cost`` (neutral, not maximal: see :class:`RefineConfig`).
    - ``C_patch`` (eq. 3.3-3.4): the thesis' ``diff`` (eq. 3.4) of ``p`` to each neighbour ``q`` of an
      ``n x n`` patch is used as an adaptive support weight ``w = exp(-diff / gamma)``, as PatchMatch
      stereo [BRR11] does, and the term is the weighted mean disagreement of ``d`` with the neighbours'
@@ -62,7 +63,11 @@ class RefineConfig:
     patch_size: int = 3
     """n of the n x n propagation / patch-cost window (thesis: 3)."""
     truncation: float = 0.3
-    """Per-reference cost truncation (colors in [0, 1]); also the cost of a pixel no reference sees."""
+    """Per-reference cost truncation (colors in [0, 1])."""
+    unseen_cost: float = 0.1
+    """C_pixel of a depth no reference sees front-most (all occluded or outside). Not the maximum:
+    the strip a foreground edge hides from every other view is correct but unverifiable, and a
+    maximal cost there lets foreground depths (which do project onto something) take it over."""
     occlusion_rel_tol: float = 0.03
     """A projected point deeper than ``ref_depth * (1 + tol)`` is occluded in that reference (not
     front-most) and the reference is skipped."""
@@ -178,7 +183,7 @@ def _check_inputs(color, depth_m, K: Intrinsics, T_world_cam, ref_views) -> None
 
 @nb.njit(cache=True, fastmath=False)
 def _pixel_cost_nb(u, v, d, fx, fy, cx, cy, img_t, grad_t, R_rt, t_rt, kr, img_r, grad_r, dep_r,
-                   lam, trunc, occ_tol):
+                   lam, trunc, occ_tol, unseen):
     x = (u - cx) / fx * d
     y = (v - cy) / fy * d
     acc = 0.0
@@ -207,7 +212,7 @@ def _pixel_cost_nb(u, v, d, fx, fy, cx, cy, img_t, grad_t, R_rt, t_rt, kr, img_r
         acc += c
         n += 1
     if n == 0:
-        return trunc
+        return unseen
     return acc / n
 
 
@@ -273,9 +278,9 @@ def _patch_cost_nb(u, v, d, D, sup, h, rel_tol):
 
 @nb.njit(cache=True)
 def _cost_nb(u, v, d, D, fx, fy, cx, cy, img, grad, sup, R_rt, t_rt, kr, img_r, grad_r, dep_r, p):
-    # p: lam, trunc, occ_tol, patch_weight, gamma, rel_tol, h
+    # p: lam, trunc, occ_tol, patch_weight, gamma, rel_tol, h, unseen
     cp = _pixel_cost_nb(u, v, d, fx, fy, cx, cy, img, grad, R_rt, t_rt, kr, img_r, grad_r, dep_r,
-                        p[0], p[1], p[2])
+                        p[0], p[1], p[2], p[7])
     return cp + p[3] * _patch_cost_nb(u, v, d, D, sup, int(p[6]), p[5])
 
 
@@ -437,7 +442,7 @@ def _ref_pixel_cost(u, v, d, K: Intrinsics, img, grad, refs, cfg: RefineConfig) 
         cg = np.abs(grad[v, u] - grad_r[iv, iu]).sum() / 2.0
         costs.append(min(cfg.lam * cc + (1 - cfg.lam) * cg, cfg.truncation))
     if not costs:
-        return cfg.truncation
+        return cfg.unseen_cost
     acc = 0.0
     for c in costs:
         acc += c
@@ -594,7 +599,7 @@ def refine_depth(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
             img_r[i], grad_r[i] = prepare_image(np.asarray(r.color))
             dep_r[i] = np.asarray(r.depth_m, dtype=np.float64)
         p = np.array([cfg.lam, cfg.truncation, cfg.occlusion_rel_tol, cfg.patch_weight, cfg.support_gamma,
-                      cfg.depth_rel_tol, float(cfg.patch_size // 2)])
+                      cfg.depth_rel_tol, float(cfg.patch_size // 2), cfg.unseen_cost])
         q = np.array([cfg.fill_max_cost, cfg.fill_color_max, float(cfg.max_fill_hops), float(cfg.num_passes)])
         dif, sup = _support_nb(img, grad, cfg.patch_size // 2, cfg.lam, cfg.support_gamma)
         C = _initial_cost_nb(D, K.fx, K.fy, K.cx, K.cy, img, grad, sup, R_rt, t_rt, kr, img_r, grad_r, dep_r, p)

@@ -5,6 +5,7 @@ Written with ``mcap`` (container) + ``mcap_ros2`` (CDR encoding). Topics (frames
     /tf                               tf2_msgs/msg/TFMessage     map->odom, odom->base_link, moving joints
     /tf_static                        tf2_msgs/msg/TFMessage     fixed joints, once (transient_local)
     /map_cloud                        sensor_msgs/msg/PointCloud2 scene cloud in map, once (transient_local)
+    /robot_description                std_msgs/msg/String        the URDF, once (transient_local; Foxglove draws it)
     /odom                             nav_msgs/msg/Odometry      odom -> base_link (may drift)
     /path                             nav_msgs/msg/Path          ground-truth base path in map
     /joint_states                     sensor_msgs/msg/JointState
@@ -43,7 +44,7 @@ LATCHED_QOS = (
     "  liveliness_lease_duration:\n    sec: 2147483647\n    nsec: 4294967295\n"
     "  avoid_ros_namespace_conventions: false\n"
 )
-_LATCHED = {"/tf_static", "/map_cloud"}
+_LATCHED = {"/tf_static", "/map_cloud", "/robot_description"}
 
 
 def camera_topics(sensor_name: str) -> dict[str, str]:
@@ -112,6 +113,8 @@ class McapRecorder:
         self._writer.add_metadata("presim", {"scene": info.scene_name, "dt_s": repr(info.dt_s),
                                              "depth_encoding": "32FC1 metres, NaN = invalid"})
         atexit.register(self.close)
+        if info.urdf_xml:
+            self._write("/robot_description", "std_msgs/msg/String", {"data": info.urdf_xml}, 0.0)
         if self.config.write_cloud and len(info.points_xyz):
             self._write("/map_cloud", "sensor_msgs/msg/PointCloud2",
                         rm.ros2_point_cloud(info.points_xyz, info.points_rgb, 0.0, MAP_FRAME), 0.0)

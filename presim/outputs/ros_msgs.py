@@ -29,6 +29,7 @@ _SEP = "=" * 80 + "\n"
 # Leaf definitions (ROS 2 Humble, comments stripped; field order is the wire order).
 _DEFS: dict[str, str] = {
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
+    "std_msgs/String": "string data\n",
     "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
     "sensor_msgs/Image": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
                           "uint8 is_bigendian\nuint32 step\nuint8[] data\n"),
@@ -89,7 +90,7 @@ def msgdef(ros2_type: str) -> str:
 MSGDEFS = {t: msgdef(t) for t in (
     "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "tf2_msgs/msg/TFMessage",
     "nav_msgs/msg/Odometry", "nav_msgs/msg/Path", "sensor_msgs/msg/JointState",
-    "sensor_msgs/msg/PointCloud2")}
+    "sensor_msgs/msg/PointCloud2", "std_msgs/msg/String")}
 
 
 # ---- transport-neutral field values ---------------------------------------------------------------

@@ -24,6 +24,7 @@ Modes (all bind 127.0.0.1 only; we start the ``rerun`` binary ourselves because 
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -74,9 +75,13 @@ def free_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
-def wait_for_port(host: str, port: int, timeout_s: float = 20.0) -> None:
+def wait_for_port(host: str, port: int, timeout_s: float = 20.0, process: subprocess.Popen | None = None) -> None:
+    """Wait until something accepts connections on ``host:port`` (fail early if ``process`` exits)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
+        if process is not None and process.poll() is not None:
+            raise TimeoutError(f"the process exited with code {process.returncode} before listening on "
+                               f"{host}:{port}")
         try:
             with socket.create_connection((host, port), timeout=0.5):
                 return
@@ -86,7 +91,17 @@ def wait_for_port(host: str, port: int, timeout_s: float = 20.0) -> None:
 
 
 def rerun_executable() -> list[str]:
-    """Command that starts the ``rerun`` binary shipped with rerun-sdk (same version as the SDK)."""
+    """Command that starts the ``rerun`` binary shipped with rerun-sdk (same version as the SDK).
+    The binary itself when found: ``python -m rerun`` runs it as a child, which a plain terminate
+    would leave behind."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).parent / "rerun"
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return [str(exe)]
+    except ImportError:
+        pass
     return [sys.executable, "-m", "rerun"]
 
 
@@ -139,14 +154,15 @@ class RerunViewer:
         cmd += list(cfg.extra_viewer_args)
         self.process = subprocess.Popen(
             cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            env=_viewer_env(), start_new_session=(self.mode == "native"))
+            env=_viewer_env(), start_new_session=True)
         try:
-            wait_for_port(cfg.host, grpc_port)
+            wait_for_port(cfg.host, grpc_port, process=self.process)
             if self.mode == "web":
-                wait_for_port(cfg.host, web_port)
+                wait_for_port(cfg.host, web_port, process=self.process)
         except TimeoutError as e:
-            self._stop_viewer()
-            raise RuntimeError(f"rerun viewer did not start ({' '.join(cmd)}): {e}") from e
+            self._stop_viewer(force=True)
+            hint = " (no display? try --viewer web or --viewer rrd)" if self.mode == "native" else ""
+            raise RuntimeError(f"rerun viewer did not start ({' '.join(cmd)}): {e}{hint}") from e
         self.grpc_url = f"rerun+http://{cfg.host}:{grpc_port}/proxy"
         sinks = [rr.GrpcSink(self.grpc_url)]
         if self.rrd_path is not None:
@@ -155,16 +171,21 @@ class RerunViewer:
         if self.mode == "web":
             print(f"presim: web viewer at {self.url}", file=sys.stderr)
 
-    def _stop_viewer(self) -> None:
+    def _stop_viewer(self, force: bool = False) -> None:
         p, self.process = self.process, None
-        if p is None or self.mode == "native":  # the native window outlives the run, like rr.spawn
+        if p is None or (self.mode == "native" and not force):  # the window outlives the run, like rr.spawn
             return
-        p.terminate()
-        try:
-            p.wait(5)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+        # Own process group (start_new_session): stop the server and anything it started.
+        for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            try:
+                os.killpg(p.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                p.wait(wait_s)
+                break
+            except subprocess.TimeoutExpired:
+                continue
 
     # -- Sink ----------------------------------------------------------------------------------
     def open(self, info: SimInfo) -> None:

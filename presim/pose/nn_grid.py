@@ -69,9 +69,11 @@ def _fill_candidates(centres, radius2, pts, starts, cand, cand_r):  # pragma: no
 
 
 @nb.njit(parallel=True, cache=True)
-def _adi_grid_kernel(A, query_pts, lo, cell, dims, starts, cand, cand_r, model_pts):  # pragma: no cover - numba
+def _adi_grid_kernel(A, G, Q, query_pts, lo, cell, dims, starts, cand, cand_r, model_pts):  # pragma: no cover - numba
     """For each pose e: sum of NN distances of points A[e] @ [x;1] inside the grid, and the
-    number of points that fell outside it."""
+    number of points that fell outside it. The neighbour is searched in the model frame; its
+    distance is then measured in the camera frame, |G[e] [x;1] - Q[e] [y;1]| (G: GT pose, Q:
+    estimate), so slightly non-orthonormal rotations give bop's value exactly."""
     n_e = A.shape[0]
     n = query_pts.shape[0]
     sums = np.zeros(n_e)
@@ -97,6 +99,7 @@ def _adi_grid_kernel(A, query_pts, lo, cell, dims, starts, cand, cand_r, model_p
             gz = qz - (lo[2] + (iz + 0.5) * cell)
             dq = np.sqrt(gx * gx + gy * gy + gz * gz)
             best = np.inf
+            jbest = -1
             for k in range(starts[c], starts[c + 1]):
                 # |p - q| >= |p - g| - |q - g|: once that lower bound passes the best, stop
                 # (candidates are sorted by |p - g|).
@@ -110,10 +113,37 @@ def _adi_grid_kernel(A, query_pts, lo, cell, dims, starts, cand, cand_r, model_p
                 d2 = dx * dx + dy * dy + dz * dz
                 if d2 < best:
                     best = d2
-            s += np.sqrt(best)
+                    jbest = j
+            px = G[e, 0, 0] * x + G[e, 0, 1] * y + G[e, 0, 2] * z + G[e, 0, 3]
+            py = G[e, 1, 0] * x + G[e, 1, 1] * y + G[e, 1, 2] * z + G[e, 1, 3]
+            pz = G[e, 2, 0] * x + G[e, 2, 1] * y + G[e, 2, 2] * z + G[e, 2, 3]
+            mx, my, mz = model_pts[jbest, 0], model_pts[jbest, 1], model_pts[jbest, 2]
+            dx = px - (Q[e, 0, 0] * mx + Q[e, 0, 1] * my + Q[e, 0, 2] * mz + Q[e, 0, 3])
+            dy = py - (Q[e, 1, 0] * mx + Q[e, 1, 1] * my + Q[e, 1, 2] * mz + Q[e, 1, 3])
+            dz = pz - (Q[e, 2, 0] * mx + Q[e, 2, 1] * my + Q[e, 2, 2] * mz + Q[e, 2, 3])
+            s += np.sqrt(dx * dx + dy * dy + dz * dz)
         sums[e] = s
         n_out[e] = o
     return sums, n_out
+
+
+def _model_frame(R_est, t_est, R_gt, t_gt):
+    """A (E,3,4) maps a model point x to R_e^-1 (R_g x + t_g - t_e): the GT-posed point in the
+    estimate's model frame, where the searched set is the fixed model. G, Q (E,3,4): [R_g|t_g],
+    [R_e|t_e]. The inverse (not the transpose) keeps identical poses exact even when a file's
+    rotation is slightly non-orthonormal (LM-O's GT is up to 2e-3 off)."""
+    Rinv = np.linalg.inv(R_est)
+    A = np.empty((len(R_est), 3, 4))
+    A[:, :, :3] = Rinv @ R_gt
+    A[:, :, 3] = np.einsum("eij,ej->ei", Rinv, t_gt - t_est)
+    G = np.concatenate([R_gt, t_gt[:, :, None]], axis=2)
+    Q = np.concatenate([R_est, t_est[:, :, None]], axis=2)
+    return A, G, Q
+
+
+def _camera_dists(x, y, G, Q):
+    """|G [x;1] - Q [y;1]| for matched rows of x, y (n,3)."""
+    return np.linalg.norm(x @ G[:, :3].T + G[:, 3] - (y @ Q[:, :3].T + Q[:, 3]), axis=1)
 
 
 class NNGrid:
@@ -174,20 +204,16 @@ class NNGrid:
         q = self._query_order if query_pts is None else np.ascontiguousarray(query_pts, dtype=np.float64)
         if E == 0:
             return np.zeros(0)
-        # q_model_est = R_e^T (R_g x + t_g - t_e)
-        RetT = np.swapaxes(R_est, 1, 2)
-        A = np.empty((E, 3, 4))
-        A[:, :, :3] = RetT @ R_gt
-        A[:, :, 3] = np.einsum("eij,ej->ei", RetT, t_gt - t_est)
-        sums, n_out = _adi_grid_kernel(A, q, self.lo, self.cell, self.dims, self.starts, self.cand,
+        A, G, Q = _model_frame(R_est, t_est, R_gt, t_gt)
+        sums, n_out = _adi_grid_kernel(A, G, Q, q, self.lo, self.cell, self.dims, self.starts, self.cand,
                                        self.cand_r, self.pts)
         for e in np.nonzero(n_out)[0]:
             # Rare for plausible poses: points beyond the grid margin go to the KD-tree.
             qe = q @ A[e, :, :3].T + A[e, :, 3]
             f = (qe - self.lo) / self.cell
             outside = ~np.all((f >= 0) & (f < self.dims), axis=1)
-            d, _ = self.tree.query(qe[outside], k=1)
-            sums[e] += d.sum()
+            _, j = self.tree.query(qe[outside], k=1)
+            sums[e] += _camera_dists(q[outside], self.pts[j], G[e], Q[e]).sum()
         return sums / len(q)
 
 
@@ -208,12 +234,16 @@ def adi_batch_kdtree(pts, R_est, t_est, R_gt, t_gt, tree: cKDTree | None = None)
     t_gt = np.asarray(t_gt, dtype=np.float64).reshape(-1, 3)
     tree = cKDTree(pts) if tree is None else tree
     out = np.empty(len(R_est))
-    RetT = np.swapaxes(R_est, 1, 2)
-    A = RetT @ R_gt
-    b = np.einsum("eij,ej->ei", RetT, t_gt - t_est)
+    A, G, Q = _model_frame(R_est, t_est, R_gt, t_gt)
     step = max(1, 4_000_000 // len(pts))  # bound the query buffer to ~100 MB
     for s in range(0, len(R_est), step):
-        q = np.einsum("eij,nj->eni", A[s:s + step], pts) + b[s:s + step, None, :]
-        d, _ = tree.query(q.reshape(-1, 3), k=1, workers=-1)
-        out[s:s + step] = d.reshape(-1, len(pts)).mean(axis=1)
+        sl = slice(s, s + step)
+        q = np.matmul(pts, np.swapaxes(A[sl, :, :3], 1, 2)) + A[sl, None, :, 3]
+        _, j = tree.query(q.reshape(-1, 3), k=1, workers=-1)
+        j = j.reshape(-1, len(pts))
+        # Distance of the found neighbour measured in the camera frame (see _model_frame).
+        p_gt = np.matmul(pts, np.swapaxes(G[sl, :, :3], 1, 2)) + G[sl, None, :, 3]
+        p_est = np.matmul(pts[j], np.swapaxes(Q[sl, :, :3], 1, 2)) + Q[sl, None, :, 3]
+        d = p_gt - p_est
+        out[sl] = np.sqrt(np.einsum("eni,eni->en", d, d)).mean(axis=1)
     return out

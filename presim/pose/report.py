@@ -39,6 +39,7 @@ COLUMNS = [
     ("acc_adi_2cm", "ADD-S<2cm", "{:.3f}"),
     ("acc_add_s_2cm", "ADD(-S)<2cm", "{:.3f}"),
     ("acc_add_s_01d", "ADD(-S)<0.1d", "{:.3f}"),
+    ("acc_add_s_01d_est", "ADD(-S)<0.1d (estimated only)", "{:.3f}"),
     ("mean_proj_px", "mean reproj px", "{:.2f}"),
     ("median_re_deg", "median re deg", "{:.2f}"),
     ("median_te_m", "median te cm", "cm"),

@@ -95,14 +95,14 @@ def _parse_row(row: list[str], known_obj_ids, rot_tol: float) -> tuple[Estimate 
     return Estimate(scene_id, im_id, obj_id, score, R, t * MM_TO_M, time_s, 0), None, obj_id  # mm -> m
 
 
-def read_bop_results(path: str | Path, known_obj_ids=None, rot_tol: float = 1e-3,
+def read_bop_results(path: str | Path, known_obj_ids=None, rot_tol: float = 1e-2,
                      strict: bool = False) -> BopResults:
     """Read a BOP'19 results CSV.
 
     Args:
         path: the CSV file.
         known_obj_ids: object ids of the dataset; rows with other ids are rejected (None: no check).
-        rot_tol: max |R R^T - I| accepted (BOP files store float32 rotations: ~1e-7 off). Rotations
+        rot_tol: max |R R^T - I| accepted (LM-O's own GT rotations are up to 2e-3 off). Rotations
             are used as given, like bop_toolkit does.
         strict: raise ``ValueError`` on the first bad row instead of collecting rejections.
     """

@@ -100,8 +100,9 @@ class PointNavEnv(gym.Env):
             "goal": spaces.Box(np.array([0.0, -np.pi], np.float32), np.array([1e3, np.pi], np.float32), (2,), np.float32),
         })
         occ = self.sim.occupancy
-        free = occ.free_mask(0.05)
+        free = occ.free_mask(0.05, include_unknown=True)
         self._labels, _ = label(free, structure=np.ones((3, 3)))
+        self._labels[~occ.known] = 0  # goals only on known floor
         self._goal = np.zeros(2)
         self._last_rgb = np.zeros((height, width, 3), np.uint8)
         self._last_depth = np.zeros((height, width, 1), np.float32)

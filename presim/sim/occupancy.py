@@ -38,7 +38,10 @@ class OccupancyConfig:
     """Obstacle points needed to mark a cell occupied (rejects isolated depth outliers)."""
     padding_m: float = 1.0
     """Map margin around the scene points (unknown cells: driving there is allowed but reported)."""
-    view_known_radius_m: float = 0.5
+    known_dilate_m: float = 0.15
+    """Columns within this distance of a column holding scene points count as known too (closes the
+    gaps between the points of a sparse cloud)."""
+    view_known_radius_m: float = 1.0
     """Cells this close to where a captured camera stood count as known (the camera rarely sees the
     floor under itself)."""
 
@@ -91,9 +94,11 @@ class OccupancyMap:
         i, j = self.cell_of(x, y)
         return bool(self.known[i, j]) if self._inside(i, j) else False
 
-    def free_mask(self, clearance_m: float = 0.0) -> np.ndarray:
-        """bool (H, W): known cells where the base centre fits with ``clearance_m`` to spare."""
-        return self.known & (self.dist_m >= self.blocked_below_m + clearance_m)
+    def free_mask(self, clearance_m: float = 0.0, include_unknown: bool = False) -> np.ndarray:
+        """bool (H, W): cells where the base centre fits with ``clearance_m`` to spare; only known
+        cells unless ``include_unknown``."""
+        fits = self.dist_m >= self.blocked_below_m + clearance_m
+        return fits if include_unknown else fits & self.known
 
 
 def build_occupancy_map(points_xyz: np.ndarray, floor: FloorPlane, robot_height_m: float,
@@ -102,7 +107,7 @@ def build_occupancy_map(points_xyz: np.ndarray, floor: FloorPlane, robot_height_
     """Occupancy map of ``points_xyz`` (float (M, 3) world metres) for a base of ``radius_m`` and
     height ``robot_height_m`` standing on ``floor`` (normal ~ +z; the world floor is z = 0 after import).
 
-    Known cells: columns holding scene points, cells within ``view_known_radius_m`` of ``view_xy``
+    Known cells: columns holding scene points (dilated by ``known_dilate_m``), cells within ``view_known_radius_m`` of ``view_xy``
     ((N, 2) floor positions of the captured cameras) and every cell enclosed by those (hole filling:
     the inside of a room whose walls were captured is known)."""
     pts = np.asarray(points_xyz, dtype=np.float64)
@@ -119,6 +124,8 @@ def build_occupancy_map(points_xyz: np.ndarray, floor: FloorPlane, robot_height_
     i = np.floor((pts[:, 1] - lo[1]) / res).astype(np.int64)
     lin = i * W + j
     known = np.bincount(lin, minlength=H * W).reshape(H, W) > 0
+    if config.known_dilate_m > 0:
+        known = ndimage.distance_transform_edt(~known) * res <= config.known_dilate_m
     if view_xy is not None and len(view_xy):
         vj = np.floor((np.asarray(view_xy)[:, 0] - lo[0]) / res).astype(np.int64)
         vi = np.floor((np.asarray(view_xy)[:, 1] - lo[1]) / res).astype(np.int64)
@@ -195,10 +202,13 @@ def move_base(occ: OccupancyMap, x: float, y: float, x1: float, y1: float) -> tu
 
 
 def plan_path(occ: OccupancyMap, start_xy: tuple[float, float], goal_xy: tuple[float, float],
-              clearance_m: float = 0.05) -> np.ndarray | None:
-    """Shortest 8-connected path on the free cells (Dijkstra), simplified by line of sight.
-    Returns (K, 2) world waypoints ending at the goal's cell centre, or None if unreachable."""
-    free = occ.free_mask(clearance_m)
+              clearance_m: float = 0.05, unknown_cost: float = 4.0) -> np.ndarray | None:
+    """Shortest 8-connected path on the cells the base fits in (Dijkstra), simplified by line of
+    sight. Unknown cells may be crossed at ``unknown_cost`` times the length (the capture may not
+    have seen the floor there). Returns (K, 2) world waypoints ending at the goal's cell centre, or
+    None if unreachable."""
+    free = occ.free_mask(clearance_m, include_unknown=True)
+    weight = np.where(occ.known, 1.0, float(unknown_cost))
     H, W = free.shape
     s, g = occ.cell_of(*start_xy), occ.cell_of(*goal_xy)
     if not (0 <= g[0] < H and 0 <= g[1] < W and free[g]):
@@ -218,10 +228,12 @@ def plan_path(occ: OccupancyMap, start_xy: tuple[float, float], goal_xy: tuple[f
             continue
         for di, dj, w in moves:
             a, b = i + di, j + dj
-            if 0 <= a < H and 0 <= b < W and free[a, b] and c + w < cost[a, b]:
-                cost[a, b] = c + w
-                prev[a, b] = i * W + j
-                heapq.heappush(heap, (c + w, a, b))
+            if 0 <= a < H and 0 <= b < W and free[a, b]:
+                cw = c + w * weight[a, b]
+                if cw < cost[a, b]:
+                    cost[a, b] = cw
+                    prev[a, b] = i * W + j
+                    heapq.heappush(heap, (cw, a, b))
     if not np.isfinite(cost[g]):
         return None
     cells = [g]

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -89,8 +88,10 @@ class Simulator:
         if scene.points is None or len(scene.points) == 0:
             from presim.capture.store import fuse_point_cloud
 
-            scene.points = fuse_point_cloud(scene)
-        self.points = scene.points
+            # In-memory scenes may come without a cloud: fuse one (the obstacles and the viewer need it).
+            self.points = fuse_point_cloud(scene)
+        else:
+            self.points = scene.points
         self.renderer = renderer if renderer is not None else Renderer(scene, config.render)
         self.occupancy: OccupancyMap | None = None
         if not self.is_free:
@@ -146,17 +147,40 @@ class Simulator:
     def camera_intrinsics(self) -> list[Intrinsics]:
         return [K for _, _, K in self._cams]
 
-    def T_base_cam(self, camera_idx: int = 0) -> np.ndarray:
-        """Current pose of camera ``camera_idx``'s optical frame in the base frame (with no camera
-        configured: the robot's camera link)."""
-        return self._T_base_cam(self.robot.fk(self.q), camera_idx)
+    def initial_joints(self, joint_positions: dict[str, float] | None = None) -> np.ndarray:
+        """(J,) joint vector ``reset`` would start from with these ``joint_positions``."""
+        q = self.robot.initial_joint_positions()
+        for name, value in (joint_positions or {}).items():
+            q[self.robot.joint_index(name)] = float(value)
+        return self.robot.clip_joints(q)
 
-    def reset(self, seed: int | None = None, start: np.ndarray | None = None) -> StepResult:
+    def predict_joints(self, joint_targets: dict[str, float] | None = None) -> np.ndarray:
+        """(J,) joint positions after the next step with these extra ``joint_targets``."""
+        target = self.q_target.copy()
+        for name, value in (joint_targets or {}).items():
+            target[self.robot.joint_index(name)] = float(value)
+        if not len(self.q):
+            return self.q.copy()
+        return joint_position_step(self.q, target, self.robot.lower, self.robot.upper,
+                                   self.robot.velocity_limits, self.config.dt_s)[0]
+
+    def T_base_cam(self, camera_idx: int = 0, q: np.ndarray | None = None) -> np.ndarray:
+        """Pose of camera ``camera_idx``'s optical frame in the base frame at joint positions ``q``
+        (None = now); with no camera configured, the robot's camera link."""
+        return self._T_base_cam(self.robot.fk(self.q if q is None else q), camera_idx)
+
+    def reset(self, seed: int | None = None, start: np.ndarray | None = None,
+              joint_positions: dict[str, float] | None = None) -> StepResult:
         """Start an episode. ``seed`` fixes the random start pose, noise and drift (None = fresh
         entropy). ``start``: (3,) [x, y, yaw] for a mobile base or a 4x4 ``T_world_base`` (either
-        robot; a mobile base keeps its planar part); None = drawn from the seed near a captured view."""
+        robot; a mobile base keeps its planar part); None = drawn from the seed near a captured view.
+        ``joint_positions``: start joint positions (also the initial targets) instead of the robot's
+        ``initial_joint_positions``."""
         rng = np.random.default_rng(seed)
         self._reset_state(rng)
+        if joint_positions:
+            self.q = self.initial_joints(joint_positions)
+            self.q_target = self.q.copy()
         t0 = time.perf_counter()
         if start is None:
             T = self._random_start(self._start_rng)
@@ -292,10 +316,18 @@ class Simulator:
         xn, yn, contact = move_base(self.occupancy, x, y, x1, y1)
         self.x, self.y, self.yaw = xn, yn, float(wrap_angle(yaw1))
         self._T_world_base = _planar_pose(xn, yn, self.yaw, self._floor_z(xn, yn))
-        # The realized motion in the start-of-step base frame (differs from `applied` after contact).
+        # The realized motion as the constant twist whose arc ends where the base did (equals
+        # `applied` without contact), so odometry integrates exactly what happened.
         c, s = np.cos(yaw), np.sin(yaw)
-        realized = np.array([c * (xn - x) + s * (yn - y), -s * (xn - x) + c * (yn - y),
-                             0.0, 0.0, 0.0, wrap_angle(self.yaw - yaw)]) / dt
+        d = np.array([c * (xn - x) + s * (yn - y), -s * (xn - x) + c * (yn - y)])
+        wz = float(wrap_angle(self.yaw - yaw)) / dt
+        a = wz * dt
+        if abs(a) < 1e-9:
+            v = d / dt
+        else:
+            A = np.array([[np.sin(a), np.cos(a) - 1.0], [1.0 - np.cos(a), np.sin(a)]]) / wz
+            v = np.linalg.solve(A, d)
+        realized = np.array([v[0], v[1], 0.0, 0.0, 0.0, wz])
         return applied, realized, contact
 
     def _step_free(self, action: Action, dt: float) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -21,7 +21,8 @@ import cv2
 import numba as nb
 import numpy as np
 
-__all__ = ["HoleStats", "composite_layers", "filtered_composite_masked", "merge_view", "analyse_holes"]
+__all__ = ["HoleStats", "composite_layers", "filtered_composite", "filtered_composite_masked", "merge_view",
+           "analyse_holes"]
 
 
 @nb.njit(parallel=True, cache=True)
@@ -95,10 +96,12 @@ class HoleStats:
     """Area of the largest 8-connected hole, pixels (0 when there is none)."""
     replace: np.ndarray | None
     """bool (H, W): pixels the next view may write (the holes, big ones dilated); None if not asked."""
+    big: np.ndarray | None = None
+    """bool (H, W): pixels of holes of at least ``big_hole_px`` (None if not asked)."""
 
 
 def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
-                  want_replace: bool = True) -> HoleStats:
+                  want_replace: bool = True, stop_px: float = 0.0) -> HoleStats:
     """Hole statistics of a coverage mask, and the mask of pixels the next view may replace.
 
     Args:
@@ -106,27 +109,32 @@ def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: in
         big_hole_px: holes of at least this many pixels are "big" and get dilated.
         hole_dilation_px: dilation radius of big holes (0 = no dilation).
         want_replace: also build the replace mask (skipped when no further view will be warped).
+        stop_px: when all holes together have at most this many pixels the largest one does too:
+            the components are not computed (``largest_hole_px`` is then that upper bound and
+            ``replace`` / ``big`` are None) — the adaptive loop stops there anyway.
     """
     holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
     n_hole = int(holes.sum())
     H, W = valid.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
+    if n_hole <= stop_px:
+        return HoleStats(n_hole / float(H * W), n_hole, None, None)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=8)
     areas = stats[1:, cv2.CC_STAT_AREA]
     largest = int(areas.max()) if len(areas) else 0
-    replace = None
+    replace = big = None
     if want_replace:
         replace = holes.astype(bool)
-        if hole_dilation_px > 0:
-            big_lut = np.zeros(n, np.uint8)
-            big_lut[1:] = areas >= big_hole_px
-            if big_lut.any():
-                big = big_lut[labels]
-                k = 2 * hole_dilation_px + 1
-                grown = cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-                replace |= grown.astype(bool)
-    return HoleStats(n_hole / float(H * W), largest, replace)
+        big_lut = np.zeros(n, np.uint8)
+        big_lut[1:] = areas >= big_hole_px
+        big = big_lut[labels]
+        if hole_dilation_px > 0 and big_lut.any():
+            k = 2 * hole_dilation_px + 1
+            grown = cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+            replace |= grown.astype(bool)
+        big = big.view(bool)
+    return HoleStats(n_hole / float(H * W), largest, replace, big)
 
 
 @nb.njit(cache=True)
@@ -185,6 +193,10 @@ def _masked_layers_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
         for u in range(W):
             if not mask[v, u]:
                 continue
+            dout[v, u] = 0.0
+            cout[v, u, 0] = 0
+            cout[v, u, 1] = 0
+            cout[v, u, 2] = 0
             for l in range(L):
                 z = _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, px)
                 if z > 0:
@@ -221,7 +233,7 @@ def filtered_composite_masked(depth_m: np.ndarray, color: np.ndarray, replace: n
     """Switching-median + front-to-back composite (+ seam pass) evaluated only where it is needed.
 
     Equals ``crack_filter`` per layer -> :func:`composite_layers` -> ``crack_filter`` (seam pass) on
-    every pixel of ``replace``; other pixels are left 0. Used for the views after the first, which
+    every pixel of ``replace``; other pixels are UNDEFINED. Used for the views after the first, which
     only write into the (usually small) replaceable region. The composite is evaluated on
     ``replace`` grown by the kernel radius, which is all the seam pass reads.
 
@@ -237,12 +249,91 @@ def filtered_composite_masked(depth_m: np.ndarray, color: np.ndarray, replace: n
     if seam_pass and r > 0:
         k = 2 * r + 1
         need = cv2.dilate(replace.view(np.uint8), np.ones((k, k), np.uint8)).view(bool)
-    comp_d = np.zeros((H, W), np.float32)
-    comp_c = np.zeros((H, W, 3), np.uint8)
+    # Uninitialised outside the mask: every consumer reads masked pixels only (no zeroing cost).
+    comp_d = np.empty((H, W), np.float32)
+    comp_c = np.empty((H, W, 3), np.uint8)
     _masked_layers_kernel(depth_m, color, need, r, comp_d, comp_c)
     if not seam_pass:
         return comp_d, comp_c
-    out_d = np.zeros((H, W), np.float32)
-    out_c = np.zeros((H, W, 3), np.uint8)
+    out_d = np.empty((H, W), np.float32)
+    out_c = np.empty((H, W, 3), np.uint8)
     _masked_single_kernel(comp_d, comp_c, replace, r, out_d, out_c)
     return out_d, out_c
+
+
+@nb.njit(parallel=True, cache=True)
+def _fused_filter_composite_kernel(d, c, r, dout, cout):  # pragma: no cover
+    L, H, W = d.shape
+    n_win = (2 * r + 1) * (2 * r + 1)
+    for v in nb.prange(H):
+        y0 = max(v - r, 0)
+        y1 = min(v + r + 1, H)
+        colcnt = np.zeros((L, W + 2 * r), np.int32)  # per layer, padded by r on both sides
+        for l in range(L):
+            for y in range(y0, y1):
+                for u in range(W):
+                    colcnt[l, u + r] += np.int32(d[l, y, u] > 0)
+        cnt = np.zeros(L, np.int32)
+        for l in range(L):
+            for k in range(2 * r + 1):
+                cnt[l] += colcnt[l, k]
+        bd = np.empty(n_win, np.float32)
+        b0 = np.empty(n_win, np.uint8)
+        b1 = np.empty(n_win, np.uint8)
+        b2 = np.empty(n_win, np.uint8)
+        for u in range(W):
+            if u > 0:
+                for l in range(L):
+                    cnt[l] += colcnt[l, u + 2 * r] - colcnt[l, u - 1]
+            dout[v, u] = 0.0
+            cout[v, u, 0] = 0
+            cout[v, u, 1] = 0
+            cout[v, u, 2] = 0
+            for l in range(L):
+                z = d[l, v, u]
+                if z > 0:
+                    dout[v, u] = z
+                    cout[v, u, 0] = c[l, v, u, 0]
+                    cout[v, u, 1] = c[l, v, u, 1]
+                    cout[v, u, 2] = c[l, v, u, 2]
+                    break
+                if 2 * cnt[l] > n_win:
+                    n = 0
+                    for y in range(y0, y1):
+                        for x in range(max(u - r, 0), min(u + r + 1, W)):
+                            dd = d[l, y, x]
+                            if dd > 0:
+                                bd[n] = dd
+                                b0[n] = c[l, y, x, 0]
+                                b1[n] = c[l, y, x, 1]
+                                b2[n] = c[l, y, x, 2]
+                                n += 1
+                    k = (n - 1) // 2
+                    _isort(bd, n)
+                    _isort(b0, n)
+                    _isort(b1, n)
+                    _isort(b2, n)
+                    dout[v, u] = bd[k]
+                    cout[v, u, 0] = b0[k]
+                    cout[v, u, 1] = b1[k]
+                    cout[v, u, 2] = b2[k]
+                    break
+
+
+def filtered_composite(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Switching median of every layer fused with the front-to-back composite (numba).
+
+    Equals ``composite_layers(*crack_filter(depth_m, color, "switching_median", kernel_px))`` but
+    evaluates a layer's median only where no nearer layer already gave the pixel a value, and never
+    materializes the filtered layer stack (one pass, no copies).
+
+    Args:
+        depth_m: float32 (L, H, W) warped layers, 0 = empty; color: uint8 (L, H, W, 3).
+    Returns:
+        ``(depth_m (H, W), color (H, W, 3))``.
+    """
+    L, H, W = depth_m.shape
+    dout = np.empty((H, W), np.float32)
+    cout = np.empty((H, W, 3), np.uint8)
+    _fused_filter_composite_kernel(depth_m, color, kernel_px // 2, dout, cout)
+    return dout, cout

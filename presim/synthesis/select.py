@@ -7,9 +7,10 @@
 3. Drop views with zero overlap: a sub-sampled grid of the view's valid depth pixels (every
    ``overlap_stride_px``-th pixel, prepared once per view) is projected into the target; the overlap
    is the fraction of those points that land inside the target image in front of the camera.
-4. Order the survivors: by overlap, descending (default; ties by distance) or by distance. Which
-   view is warped first matters most — it is the only view that covers the whole image, later ones
-   only fill holes — and the larger overlap proved better on the real capture (docs/synthesis.md).
+4. Order the survivors: by distance (default) or by overlap, descending. Which view is warped
+   first matters most — it is the only view that covers the whole image, later ones only fill
+   holes — and the nearest view proved better than the largest overlap on the real capture
+   (leave-one-out PSNR, docs/synthesis.md).
 
 Ablations (thesis Table 3.4): ``mode="distance"`` keeps the ``max_candidates`` nearest views in
 distance order; ``mode="angle"`` the ``max_candidates`` views of smallest angle in angle order.
@@ -59,7 +60,7 @@ def view_overlap(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrins
 def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarray,
                  directions_world: np.ndarray, hfov_deg: np.ndarray,
                  grid_points: Callable[[int], np.ndarray], mode: str = "adaptive",
-                 max_candidates: int = 10, order: str = "overlap") -> Selection:
+                 max_candidates: int = 10, order: str = "distance") -> Selection:
     """Select and order the input views for a target camera.
 
     Args:
@@ -70,7 +71,7 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
             (only called for views that reach the overlap test).
         mode: ``"adaptive"`` (thesis), ``"distance"`` or ``"angle"``.
         max_candidates: size of the local group.
-        order: ``"overlap"`` or ``"distance"`` (thesis mode only).
+        order: ``"distance"`` or ``"overlap"`` (thesis mode only).
     """
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")

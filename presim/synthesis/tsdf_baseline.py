@@ -31,7 +31,7 @@ class TSDFConfig:
     """Depth beyond this is not integrated."""
     block_resolution: int = 16
     """Voxels per block side."""
-    block_count: int = 40000
+    block_count: int = 3000
     """Initial number of blocks of the hash map (it grows when needed)."""
     use_refined_depth: bool = False
     """Fuse the scene's refined depth instead of the raw depth (the baseline uses raw by default)."""

@@ -93,7 +93,9 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
     pts, mask = unproject_depth(K, depth_m, T_world_cam)
     d = np.asarray(depth_m)[mask]
     layer, rng = assign_layers(d, num_layers)
-    order = np.argsort(layer, kind="stable")
+    # Stable sort of small integer keys: numpy uses a radix sort for 8/16-bit ints (~10x faster).
+    key = layer.astype(np.uint8 if num_layers <= 255 else np.uint16)
+    order = np.argsort(key, kind="stable")
     counts = np.bincount(layer, minlength=num_layers)
     start = np.zeros(num_layers + 1, np.int64)
     start[1:] = np.cumsum(counts)
@@ -107,9 +109,11 @@ _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 @nb.njit(parallel=True, fastmath=_FASTMATH, cache=True)
 def _warp_layers_kernel(xyz, rgb, layer_start, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
-    # zbuf / cbuf arrive zeroed (0 = empty), so no initialisation or clean-up pass is needed.
     L, H, W = zbuf.shape
     for l in nb.prange(L):
+        # Clear this layer (buffers are reused across calls: cheaper than fresh zero pages).
+        zbuf[l] = 0.0
+        cbuf[l] = 0
         for i in range(layer_start[l], layer_start[l + 1]):
             x = xyz[i, 0]
             y = xyz[i, 1]
@@ -134,7 +138,8 @@ def _warp_layers_kernel(xyz, rgb, layer_start, M, fx, fy, cx, cy, near, zbuf, cb
                 cbuf[l, vi, ui, 2] = rgb[i, 2]
 
 
-def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3) -> LayeredImage:
+def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
+                out: LayeredImage | None = None) -> LayeredImage:
     """Warp a prepared view into the target camera, one z-buffered image per layer (numba).
 
     Args:
@@ -142,13 +147,15 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         T_cam_world: 4x4 world-to-target-camera transform (``invert(T_world_cam)``).
         K: target intrinsics (any size).
         near_m: points closer than this to the target camera are dropped.
+        out: buffers of shape (L, H, W) / (L, H, W, 3) to overwrite (the Renderer reuses them);
+            new ones are allocated when None or of another shape.
     Returns:
         LayeredImage with depth 0 / color 0 where a layer received no point.
     """
     L = view.num_layers
-    # np.zeros maps fresh zero pages lazily: cheaper than filling a reused buffer.
-    out = LayeredImage(np.zeros((L, K.height, K.width), np.float32),
-                       np.zeros((L, K.height, K.width, 3), np.uint8))
+    if out is None or out.depth_m.shape != (L, K.height, K.width):
+        out = LayeredImage(np.empty((L, K.height, K.width), np.float32),
+                           np.empty((L, K.height, K.width, 3), np.uint8))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, M, np.float32(K.fx),
                         np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m),

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from presim.capture.importers.common import (
-    FileFrameSource, Undistortion, checked_pose, decode_depth_png_scale, image_size_wh, require_file,
-    select_indices,
+    FileFrameSource, Undistortion, checked_pose, decode_depth_png_scale, image_size_wh, read_depth_camera,
+    require_file, select_indices,
 )
 from presim.capture.scene import PointCloud, Scene, SceneError, SceneMeta
 from presim.geometry import Intrinsics, invert, make_pose, quat_xyzw_to_R
@@ -270,9 +270,12 @@ def read(src: Path, every: int = 1, max_frames: int | None = None) -> Scene:
         undists.append(ud)
         colors.append(cpath)
         depths.append(find_depth(src, name))
-    source = FileFrameSource(colors, depths, Ks, _decode_depth, undistortion=undists)
+    depth_cam = read_depth_camera(src, depths[0])
+    source = FileFrameSource(colors, depths, Ks, _decode_depth, undistortion=undists, depth_camera=depth_cam)
     notes = [f"COLMAP {'binary' if binary else 'text'} model {mdir}; stamps = index / 30 s",
              "cx, cy shifted by -0.5 px (COLMAP pixel origin is the pixel corner)"]
+    if depth_cam is not None:
+        notes.append("depth registered into the color camera at read (depth-intrinsics.txt + depth-to-color.txt)")
     if any(u is not None for u in undists):
         notes.append("OPENCV distortion removed at read (color bilinear, depth nearest)")
     if points is not None:

@@ -145,15 +145,18 @@ class FileFrameSource:
         u = self.undistortions[idx]
         if u is not None:
             exp = (u.K_raw.height, u.K_raw.width)
-            for p, a in ((cpath, color), (dpath, depth)):
+            # A separate depth camera's images are not undistorted (its distortion is not modelled).
+            pairs = ((cpath, color),) if self.depth_camera is not None else ((cpath, color), (dpath, depth))
+            for p, a in pairs:
                 if a.shape[:2] != exp:
                     raise SceneError(f"{p}: resolution {a.shape[1]}x{a.shape[0]} != camera {exp[1]}x{exp[0]}")
             if id(u) not in self._maps:
                 self._maps[id(u)] = u.maps()
             m1, m2 = self._maps[id(u)]
             color = cv2.remap(color, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            # Nearest for depth: interpolating across a depth edge invents surfaces in mid-air.
-            depth = cv2.remap(depth, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+            if self.depth_camera is None:
+                # Nearest for depth: interpolating across a depth edge invents surfaces in mid-air.
+                depth = cv2.remap(depth, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
         if color.shape != (K.height, K.width, 3):
             raise SceneError(f"{cpath}: resolution {color.shape[1]}x{color.shape[0]} != intrinsics "
                              f"{K.width}x{K.height}")
@@ -232,3 +235,32 @@ def check_sizes(paths: Sequence[Path], size_wh: tuple[int, int], what: str) -> N
 def frame_id_of(path: Path, suffix: str) -> str:
     name = path.name
     return name[: -len(suffix)] if name.endswith(suffix) else path.stem
+
+
+DEPTH_INTRINSICS_FILE = "depth-intrinsics.txt"
+DEPTH_EXTRINSIC_FILE = "depth-to-color.txt"
+
+
+def read_depth_camera(folder: Path, first_depth: Path) -> DepthCamera | None:
+    """A separate (unregistered) depth camera of a folder capture, when the folder has
+    ``depth-intrinsics.txt`` (3x3 K of the depth images) and ``depth-to-color.txt`` (4x4
+    ``T_color_depth``, metres). Any folder format (kinfu, TUM, COLMAP, nerfstudio) accepts them; the
+    depth is then registered into the color camera frame by frame when read."""
+    ki, ke = folder / DEPTH_INTRINSICS_FILE, folder / DEPTH_EXTRINSIC_FILE
+    if not ki.is_file() and not ke.is_file():
+        return None
+    if not (ki.is_file() and ke.is_file()):
+        missing = ke if ki.is_file() else ki
+        raise SceneError(f"{missing}: not found (a separate depth camera needs both {DEPTH_INTRINSICS_FILE} "
+                         f"and {DEPTH_EXTRINSIC_FILE})")
+    K = read_matrix_txt(ki, (3, 3))
+    if first_depth.suffix.lower() == ".npy":
+        shape = np.load(first_depth, mmap_mode="r").shape
+        wh = (shape[1], shape[0])
+    else:
+        wh = image_size_wh(first_depth)
+    T = checked_pose(read_matrix_txt(ke, (4, 4)), str(ke))
+    try:
+        return DepthCamera(Intrinsics.from_K(K, *wh), T)
+    except ValueError as e:
+        raise SceneError(f"{ki}: {e}") from None

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from presim.capture.importers.common import (
-    FileFrameSource, check_sizes, checked_pose, decode_depth_png_scale, image_size_wh, read_matrix_txt,
-    require_file, select_indices,
+    FileFrameSource, check_sizes, checked_pose, decode_depth_png_scale, image_size_wh, read_depth_camera,
+    read_matrix_txt, require_file, select_indices,
 )
 from presim.capture.scene import Scene, SceneError, SceneMeta
 from presim.geometry import Intrinsics
@@ -108,9 +108,13 @@ def read(src: Path, every: int = 1, max_frames: int | None = None) -> Scene:
         colors.append(cpath)
         depths.append(dpath)
     check_sizes(colors, (w, h), "color")
-    check_sizes(depths, (w, h), "depth")
+    depth_cam = read_depth_camera(src, depths[0])
+    check_sizes(depths, depth_cam.K.size_wh if depth_cam else (w, h), "depth")
     # 65535 is the "no return / saturated" code of Kinect-style 16-bit depth.
-    source = FileFrameSource(colors, depths, K, decode_depth_png_scale(1e-3, invalid_codes=(0, 65535)))
+    source = FileFrameSource(colors, depths, K, decode_depth_png_scale(1e-3, invalid_codes=(0, 65535)),
+                             depth_camera=depth_cam)
     notes = () if stamp_map is not None else (f"stamps = frame number / {DEFAULT_RATE_HZ:g} Hz (no timestamps.txt)",)
+    if depth_cam is not None:
+        notes += ("depth registered into the color camera at read (depth-intrinsics.txt + depth-to-color.txt)",)
     return Scene(ids, np.asarray(stamps), np.stack(poses), [K] * len(ids), source,
                  SceneMeta(str(src.resolve()), NAME, VERSION, notes=notes))

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from presim.capture.importers.common import (
-    FileFrameSource, Undistortion, checked_pose, image_size_wh, require_file, select_indices,
+    FileFrameSource, Undistortion, checked_pose, image_size_wh, read_depth_camera, require_file, select_indices,
 )
 from presim.capture.scene import Scene, SceneError, SceneMeta
 from presim.geometry import T_CV_FROM_GL, Intrinsics, compose
@@ -129,10 +129,13 @@ def read(src: Path, every: int = 1, max_frames: int | None = None) -> Scene:
     def decode(raw: np.ndarray, path: Path) -> np.ndarray:
         return raw.astype(np.float32) * np.float32(scale)  # 0 stays 0; non-finite cleaned by the source
 
-    source = FileFrameSource(colors, depths, Ks, decode, undistortion=undists)
+    depth_cam = read_depth_camera(root, depths[0])
+    source = FileFrameSource(colors, depths, Ks, decode, undistortion=undists, depth_camera=depth_cam)
     # nerfstudio's optional per-frame "time" is normalised to [0, 1] (dynamic scenes), not seconds.
     stamps = np.array(sel, dtype=np.float64) / 30.0
     notes = (f"depth_unit_scale_factor {scale:g} m/unit", "OpenGL camera converted to OpenCV; cx, cy -0.5 px",
              "no timestamps in transforms.json: stamp = frame index / 30 s")
+    if depth_cam is not None:
+        notes += ("depth registered into the color camera at read (depth-intrinsics.txt + depth-to-color.txt)",)
     return Scene(ids, stamps, np.stack(poses), Ks, source,
                  SceneMeta(str(jpath.resolve()), NAME, VERSION, notes=notes))

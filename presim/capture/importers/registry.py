@@ -50,6 +50,8 @@ def detect_format(src: str | Path) -> str:
     for name in FORMATS:
         if importer(name).detect(src):
             return name
+    if (src / "scene.json").is_file():
+        raise ValueError(f"{src}: this is already a PreSim scene (scene.json); use it directly, e.g. `presim info {src}`")
     raise ValueError(
         f"{src}: no importer recognises this capture. Known formats: "
         "kinfu (frame-*.color.png + frame-*.pose.txt + camera-intrinsics.txt), "
@@ -84,6 +86,10 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
     src = Path(src)
     if not src.exists():
         raise FileNotFoundError(f"{src}: capture not found")
+    if fmt is None and src.is_dir() and not any(importer(n).detect(src) for n in FORMATS) \
+            and (src / "capture").is_dir():
+        # `presim drive --record DIR` writes its capture (kinfu layout) to DIR/capture.
+        src = src / "capture"
     name = detect_format(src) if fmt is None else importer(fmt).NAME
     scene = importer(name).read(src, every=every, max_frames=max_frames)
     if gravity is not None:

@@ -27,7 +27,7 @@ import numpy as np
 
 from presim.capture.importers.common import (
     FileFrameSource, Undistortion, check_sizes, checked_pose, decode_depth_png_scale, image_size_wh,
-    read_matrix_txt, require_file, select_indices,
+    read_depth_camera, read_matrix_txt, require_file, select_indices,
 )
 from presim.capture.scene import Scene, SceneError, SceneMeta
 from presim.geometry import Intrinsics, make_pose, quat_xyzw_to_R
@@ -185,7 +185,8 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, max_dt_s: flo
     w, h = image_size_wh(colors[0])
     K, undist, k_src = read_intrinsics(src, w, h)
     check_sizes(colors, (w, h), "color")
-    check_sizes(depths, (w, h), "depth")
+    depth_cam = read_depth_camera(src, depths[0])
+    check_sizes(depths, depth_cam.K.size_wh if depth_cam else (w, h), "depth")
     poses = np.stack([checked_pose(f[3], f"{gt_path} at stamp {f[0]:.6f}") for f in frames])
     ids = [f"{f[0]:.6f}" for f in frames]
     if len(set(ids)) != len(ids):
@@ -193,6 +194,9 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, max_dt_s: flo
     notes = [f"intrinsics: {k_src}", f"rgb/depth associated within {max_dt_s} s; ground truth interpolated"]
     if dropped:
         notes.append(f"{dropped} rgb frames dropped: outside ground truth range or mocap gap > {max_gt_gap_s} s")
-    source = FileFrameSource(colors, depths, K, decode_depth_png_scale(DEPTH_SCALE_M), undistortion=undist)
+    if depth_cam is not None:
+        notes.append("depth registered into the color camera at read (depth-intrinsics.txt + depth-to-color.txt)")
+    source = FileFrameSource(colors, depths, K, decode_depth_png_scale(DEPTH_SCALE_M), undistortion=undist,
+                             depth_camera=depth_cam)
     return Scene(ids, np.array([f[0] for f in frames]), poses, [K] * len(ids), source,
                  SceneMeta(str(src.resolve()), NAME, VERSION, notes=tuple(notes)))

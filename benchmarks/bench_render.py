@@ -1,0 +1,157 @@
+"""Steady-state rendering speed of the synthesis engine vs a naive numpy z-buffer, in one run.
+
+For each scene and output size: a trajectory of novel poses (midpoints between consecutive captured
+views, so every frame is a new pose near the capture) is rendered with the full pipeline
+(``RenderConfig()``, numba), after a warm-up that compiles/loads what is needed. For every frame the
+naive baseline (:func:`presim.synthesis.kernels_reference.naive_zbuffer_ref`: vectorized numpy
+unproject -> project -> lexsort z-buffer of whole frames, no layers, no filtering, no fill) splats
+the SAME views the pipeline used, so the ratio compares implementations, not view counts.
+Steady state = the second pass over the trajectory (every view it needs already prepared and
+cached); the first (cold) pass, which also reads and prepares views, is reported per frame too.
+
+Prints medians of wall ms/frame, frames/s, per-stage wall ms, views per frame, hole fraction, the
+ratio baseline/pipeline, the CPU time per frame (process time summed over threads: on a machine
+shared with other jobs it is the robust number; with NUMBA_NUM_THREADS=1 it equals the wall time
+of an unloaded core), and the peak RSS of the process (numba's allocations bypass tracemalloc).
+
+    .venv/bin/python benchmarks/bench_render.py                 # synthetic room + apc capture
+    .venv/bin/python benchmarks/bench_render.py --scene out/sample --frames 40
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from presim.capture.scene import ArrayFrameSource, Scene  # noqa: E402
+from presim.geometry import Intrinsics, make_pose  # noqa: E402
+from presim.synthesis import synthetic as S  # noqa: E402
+from presim.synthesis.kernels_reference import naive_zbuffer_ref  # noqa: E402
+from presim.synthesis.renderer import STAGES, RenderConfig, Renderer  # noqa: E402
+
+APC = ROOT.parent / "shared" / "data" / "apc_cardboard_bin_kinfu50"
+
+
+def in_memory(scene: Scene) -> Scene:
+    """The scene with all frames decoded into arrays (PNG decoding is not what we time)."""
+    cols, deps = zip(*(scene.frames.load(i) for i in range(len(scene))))
+    return dataclasses.replace(scene, frames=ArrayFrameSource(np.stack(cols), np.stack(deps)))
+
+
+def load_scenes(args) -> dict[str, Scene]:
+    scenes = {}
+    if args.scene:
+        from presim.capture.store import load_scene
+
+        scenes[Path(args.scene).name] = load_scene(args.scene)
+        return scenes
+    K = Intrinsics.from_fov(640, 480, 60.0)
+    scenes["synthetic-room"] = S.make_scene(S.room_rects(), S.orbit_poses(16, span_m=1.6), K)
+    if APC.is_dir():
+        from presim.capture.importers.kinfu import read
+
+        scenes["apc-kinfu50 (raw depth)"] = in_memory(read(APC))
+    else:
+        print(f"note: {APC} not found, apc capture skipped", file=sys.stderr)
+    return scenes
+
+
+def trajectory(scene: Scene, n: int) -> np.ndarray:
+    """``n`` novel poses: midpoints of consecutive captured views (cycled), rotation of the first."""
+    T = scene.T_world_cam
+    out = []
+    for k in range(n):
+        i = k % (len(T) - 1)
+        out.append(make_pose(T[i][:3, :3], (T[i][:3, 3] + T[i + 1][:3, 3]) / 2))
+    return np.stack(out)
+
+
+def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: RenderConfig) -> dict:
+    r = Renderer(scene, config)
+    # Cold pass: compiles (first case only) and prepares every view the trajectory needs.
+    t0 = time.perf_counter()
+    for T in poses:
+        r.render(T, K)
+    cold_ms = (time.perf_counter() - t0) * 1e3 / len(poses)
+    for T in poses[:warmup]:
+        r.render(T, K)
+    ms, cpu_ms, base_ms, views, holes = [], [], [], [], []
+    stages = {s: [] for s in STAGES + ("upsample",)}
+    frames, base_cpu = {}, []
+    for T in poses:
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = r.render(T, K)
+        ms.append((time.perf_counter() - t0) * 1e3)
+        cpu_ms.append((time.process_time() - c0) * 1e3)
+        for s in stages:
+            stages[s].append(r.last.ms.get(s, 0.0))
+        views.append(len(r.last.views))
+        holes.append(out.hole_frac_before_fill)
+        used = []
+        for v in r.last.views:
+            if v not in frames:
+                frames[v] = scene.frames.load(v)
+            used.append((*frames[v], scene.intrinsics[v], scene.T_world_cam[v]))
+        t0, c0 = time.perf_counter(), time.process_time()
+        naive_zbuffer_ref(used, T, K)
+        base_ms.append((time.perf_counter() - t0) * 1e3)
+        base_cpu.append((time.process_time() - c0) * 1e3)
+    med = float(np.median(ms))
+    return {
+        "ms_median": med, "fps_median": 1e3 / med, "ms_p90": float(np.percentile(ms, 90)),
+        "baseline_ms_median": float(np.median(base_ms)),
+        "speedup_vs_naive": float(np.median(base_ms) / med),
+        "cpu_ms_median": float(np.median(cpu_ms)), "baseline_cpu_ms_median": float(np.median(base_cpu)),
+        "cpu_speedup_vs_naive": float(np.median(base_cpu) / np.median(cpu_ms)),
+        "stages_ms_median": {s: round(float(np.median(v)), 2) for s, v in stages.items()},
+        "views_mean": float(np.mean(views)), "hole_frac_mean": float(np.mean(holes)),
+        "cache_mb": r.cache_bytes / 2**20, "frames": len(ms), "cold_pass_ms_per_frame": cold_ms,
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", help="saved scene folder (default: synthetic room + apc capture)")
+    ap.add_argument("--frames", type=int, default=30, help="measured frames per case")
+    ap.add_argument("--warmup", type=int, default=5)
+    ap.add_argument("--sizes", default="640x480,1280x720")
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args()
+    import numba
+
+    print(f"numba threads: {numba.get_num_threads()}")
+    results = {}
+    for name, scene in load_scenes(args).items():
+        hfov = scene.intrinsics[0].hfov_deg
+        poses = trajectory(scene, args.frames)
+        for size in args.sizes.split(","):
+            w, h = (int(x) for x in size.split("x"))
+            K = Intrinsics.from_fov(w, h, hfov)
+            res = bench(scene, K, poses, args.warmup, RenderConfig())
+            results[f"{name} {size}"] = res
+            st = " ".join(f"{k}={v:.1f}" for k, v in res["stages_ms_median"].items() if v > 0)
+            print(f"{name:26s} {size:9s} {res['ms_median']:7.1f} ms  {res['fps_median']:5.1f} fps  "
+                  f"naive {res['baseline_ms_median']:7.1f} ms  x{res['speedup_vs_naive']:.1f}  "
+                  f"views {res['views_mean']:.1f}  holes {res['hole_frac_mean']:.4f}  | {st}")
+            print(f"{'':26s} {'':9s} CPU {res['cpu_ms_median']:7.1f} ms/frame (all threads)  naive CPU "
+                  f"{res['baseline_cpu_ms_median']:7.1f} ms  x{res['cpu_speedup_vs_naive']:.1f}  "
+                  f"cold pass {res['cold_pass_ms_per_frame']:.0f} ms/frame  cache {res['cache_mb']:.0f} MB")
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak RSS: {peak_mb:.0f} MB")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"results": results, "peak_rss_mb": peak_mb}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
