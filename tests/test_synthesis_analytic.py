@@ -126,6 +126,22 @@ def test_view_selection_keeps_near_in_fov_overlapping_views():
     assert set(r_a.select(_pose(), K60).view_idx) == {0, 3}
 
 
+def test_selection_falls_back_to_far_views_when_the_near_ones_look_elsewhere():
+    """The nearest views all look away from the target; a far view that saw what the target sees
+    must still be used (a robot's camera gets an image wherever some view saw the scene)."""
+    rects = [S.Rect((-0.5, -0.5, 2.0), (1, 0, 0), (0, 1, 0), (200, 200, 50), 0.1),    # in front (+z)
+             S.Rect((-0.5, -0.5, -2.0), (1, 0, 0), (0, 1, 0), (50, 50, 200), 0.1)]    # behind (-z)
+    K60 = Intrinsics.from_fov(120, 90, 60.0)
+    poses = np.stack([_pose(x=0.02 * i, yaw_deg=180) for i in range(4)]    # near, looking at -z
+                     + [_pose(z=1.0)])                                     # far, looking at +z
+    scene = S.make_scene(rects, poses, K60)
+    r = Renderer(scene, RenderConfig(max_candidates=3))
+    sel = r.select(_pose(), K60)
+    assert list(sel.view_idx) == [4]
+    out = r.render(_pose(), K60)
+    assert out.valid.mean() > 0.2 and (out.source_view[out.valid] == 4).all()
+
+
 def test_adaptive_loop_adds_views_only_while_big_holes_remain():
     K2 = Intrinsics.from_fov(160, 120, 60.0)
     scene = S.make_scene(S.room_rects(), S.orbit_poses(6), K2)

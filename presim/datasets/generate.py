@@ -216,9 +216,14 @@ class FrameGenerator:
 _WORKER: FrameGenerator | None = None
 
 
-def _init_worker(job: GenJob) -> None:
+def _init_worker(job: GenJob, numba_threads: int) -> None:
     global _WORKER
     os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
+    import numba
+
+    # The renderer's kernels are numba-parallel: split the cores between the processes instead of
+    # letting every process start one thread per core (oversubscription halved throughput).
+    numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS, numba_threads)))
     _WORKER = FrameGenerator(job)
 
 
@@ -236,7 +241,8 @@ def _run_serial(job: GenJob, slots: Sequence[int]) -> Iterator[FrameOutput]:
 def _run_processes(job: GenJob, slots: Sequence[int], workers: int) -> Iterator[FrameOutput]:
     # spawn: numba/open3d/ray threads make fork unsafe; each process builds its Renderer once.
     ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(job,)) as pool:
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    with ctx.Pool(workers, initializer=_init_worker, initargs=(job, threads)) as pool:
         yield from pool.imap_unordered(_run_slot, slots, chunksize=1)
 
 

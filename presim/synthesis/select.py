@@ -7,7 +7,11 @@
 3. Drop views with zero overlap: a sub-sampled grid of the view's valid depth pixels (every
    ``overlap_stride_px``-th pixel, prepared once per view) is projected into the target; the overlap
    is the fraction of those points that land inside the target image in front of the camera.
-4. Order the survivors: by distance (default) or by overlap, descending. Which view is warped
+4. Fallback: when steps 1-3 leave no view (the target looks where none of the nearest views
+   looked), the ``max_candidates`` views of smallest viewing angle (any distance) that overlap the
+   target are used, largest overlap first, so a robot's camera still gets an image wherever some
+   view saw the scene.
+5. Order the survivors: by distance (default) or by overlap, descending. Which view is warped
    first matters most — it is the only view that covers the whole image, later ones only fill
    holes — and the nearest view proved better than the largest overlap on the real capture
    (leave-one-out PSNR, docs/synthesis.md).
@@ -96,6 +100,13 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
     ov = np.array([view_overlap(grid_points(int(i)), T_cam_world, K) for i in idx])
     keep = ov > 0.0
     idx, ov = idx[keep], ov[keep]
+    if len(idx) == 0:  # fallback (step 4): the views looking most like the target, any distance
+        idx = np.lexsort((dist, angle))[:k]
+        ov = np.array([view_overlap(grid_points(int(i)), T_cam_world, K) for i in idx])
+        o = np.argsort(-ov, kind="stable")
+        idx, ov = idx[o], ov[o]
+        keep = ov > 0.0
+        return Selection(idx[keep], dist[idx[keep]], angle[idx[keep]], ov[keep])
     if order == "overlap":
         # Stable sort on rounded overlap so near-equal overlaps keep the distance order.
         o = np.argsort(-np.round(ov, 2), kind="stable")
