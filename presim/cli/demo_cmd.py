@@ -17,7 +17,7 @@ from pathlib import Path
 def register(sub) -> None:
     p = sub.add_parser(
         "demo",
-        help="the main job on the built-in sample scene: build, refine, drive+record+view, BOP dataset",
+        help="the main job on the built-in sample scene: build, drive+record+view, BOP dataset, pose eval",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

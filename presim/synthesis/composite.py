@@ -21,6 +21,8 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.synthesis.crack_filter import gather_window, sort_window
+
 __all__ = ["HoleStats", "composite_layers", "filtered_composite", "filtered_composite_masked", "merge_view",
            "analyse_holes"]
 
@@ -146,38 +148,15 @@ def _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, out_c):  # pragma: 
         out_c[1] = c[l, v, u, 1]
         out_c[2] = c[l, v, u, 2]
         return d[l, v, u]
-    n = 0
-    for y in range(max(v - r, 0), min(v + r + 1, H)):
-        for x in range(max(u - r, 0), min(u + r + 1, W)):
-            dd = d[l, y, x]
-            if dd > 0:
-                bd[n] = dd
-                b0[n] = c[l, y, x, 0]
-                b1[n] = c[l, y, x, 1]
-                b2[n] = c[l, y, x, 2]
-                n += 1
+    n = gather_window(d, c, l, max(v - r, 0), min(v + r + 1, H), max(u - r, 0), min(u + r + 1, W),
+                      bd, b0, b1, b2)
     if 2 * n <= n_win:
         return np.float32(0.0)
-    k = (n - 1) // 2
-    _isort(bd, n)
-    _isort(b0, n)
-    _isort(b1, n)
-    _isort(b2, n)
+    k = sort_window(bd, b0, b1, b2, n)
     out_c[0] = b0[k]
     out_c[1] = b1[k]
     out_c[2] = b2[k]
     return bd[k]
-
-
-@nb.njit(cache=True, inline="always")
-def _isort(a, n):  # pragma: no cover
-    for i in range(1, n):
-        key = a[i]
-        j = i - 1
-        while j >= 0 and a[j] > key:
-            a[j + 1] = a[j]
-            j -= 1
-        a[j + 1] = key
 
 
 @nb.njit(parallel=True, cache=True)
@@ -298,21 +277,8 @@ def _fused_filter_composite_kernel(d, c, r, dout, cout):  # pragma: no cover
                     cout[v, u, 2] = c[l, v, u, 2]
                     break
                 if 2 * cnt[l] > n_win:
-                    n = 0
-                    for y in range(y0, y1):
-                        for x in range(max(u - r, 0), min(u + r + 1, W)):
-                            dd = d[l, y, x]
-                            if dd > 0:
-                                bd[n] = dd
-                                b0[n] = c[l, y, x, 0]
-                                b1[n] = c[l, y, x, 1]
-                                b2[n] = c[l, y, x, 2]
-                                n += 1
-                    k = (n - 1) // 2
-                    _isort(bd, n)
-                    _isort(b0, n)
-                    _isort(b1, n)
-                    _isort(b2, n)
+                    n = gather_window(d, c, l, y0, y1, max(u - r, 0), min(u + r + 1, W), bd, b0, b1, b2)
+                    k = sort_window(bd, b0, b1, b2, n)
                     dout[v, u] = bd[k]
                     cout[v, u, 0] = b0[k]
                     cout[v, u, 1] = b1[k]

@@ -32,6 +32,34 @@ def _insertion_sort(a, n):  # pragma: no cover
         a[j + 1] = key
 
 
+@nb.njit(cache=True, inline="always")
+def gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
+    """Copy the non-empty (depth > 0) pixels of layer ``l`` in rows [y0, y1) x cols [x0, x1) into
+    the buffers (depth, 3 color channels); returns their number."""
+    n = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            dd = d[l, y, x]
+            if dd > 0:
+                bd[n] = dd
+                b0[n] = c[l, y, x, 0]
+                b1[n] = c[l, y, x, 1]
+                b2[n] = c[l, y, x, 2]
+                n += 1
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
+    """Sort the first n entries of depth and of each color channel on their own (per-channel
+    median, as eq. 3.9); returns the lower median's index."""
+    _insertion_sort(bd, n)
+    _insertion_sort(b0, n)
+    _insertion_sort(b1, n)
+    _insertion_sort(b2, n)
+    return (n - 1) // 2
+
+
 @nb.njit(parallel=True, cache=True)
 def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
     # dout / cout arrive as copies of din / cin; only filled cracks are written.
@@ -60,21 +88,8 @@ def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
                 cnt += colcnt[u + 2 * r] - colcnt[u - 1]
             if 2 * cnt <= n_win or din[l, v, u] > 0:
                 continue
-            n = 0
-            for y in range(y0, y1):
-                for x in range(max(u - r, 0), min(u + r + 1, W)):
-                    dd = din[l, y, x]
-                    if dd > 0:
-                        bd[n] = dd
-                        b0[n] = cin[l, y, x, 0]
-                        b1[n] = cin[l, y, x, 1]
-                        b2[n] = cin[l, y, x, 2]
-                        n += 1
-            k = (n - 1) // 2
-            _insertion_sort(bd, n)
-            _insertion_sort(b0, n)
-            _insertion_sort(b1, n)
-            _insertion_sort(b2, n)
+            n = gather_window(din, cin, l, y0, y1, max(u - r, 0), min(u + r + 1, W), bd, b0, b1, b2)
+            k = sort_window(bd, b0, b1, b2, n)
             dout[l, v, u] = bd[k]
             cout[l, v, u, 0] = b0[k]
             cout[l, v, u, 1] = b1[k]
