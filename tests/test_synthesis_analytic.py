@@ -190,7 +190,8 @@ def test_any_resolution_intrinsics_and_batches():
     K_big = Intrinsics(300.0, 280.0, 150.0, 110.0, 333, 217)
     outs = r.render_batch(np.stack([_pose(), _pose(x=0.01)]), K_big)
     assert len(outs) == 2 and outs[0].color.shape == (217, 333, 3)
-    # 2.9x the capture's focal length: rendered at 1.3x internally, then upsampled (max_zoom).
+    # 2.9x the capture's focal length: rendered at the capture's sampling internally, then upsampled
+    # (max_zoom).
     assert outs[0].valid.mean() > 0.9 and outs[1].valid.mean() > 0.9  # the target sees ~3 % past the capture
     with pytest.raises(ValueError):
         r.render(np.eye(3), K)
