@@ -295,17 +295,22 @@ class Renderer:
         ms["composite"] += (t3 - t2) * 1e3
         return d, c
 
-    def _fill_count(self, idx: int, holes: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> int:
-        """How many points of view ``idx``'s sub-sampled grid project into ``holes`` pixels."""
+    def _grid_pixels(self, idx: int, T_cam_world: np.ndarray, K: Intrinsics) -> np.ndarray:
+        """Flat pixel indices (v * W + u) where view ``idx``'s sub-sampled grid lands in the target."""
         g = self.grid_points(idx)
         if len(g) == 0:
-            return 0
+            return np.zeros(0, np.int64)
         uv, z = project(K, transform_points(T_cam_world, g))
         ok = z > self.config.near_m
         u = np.floor(uv[ok, 0] + 0.5)
         v = np.floor(uv[ok, 1] + 0.5)
         inb = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
-        return int(holes[v[inb].astype(np.int64), u[inb].astype(np.int64)].sum())
+        return v[inb].astype(np.int64) * K.width + u[inb].astype(np.int64)
+
+    @staticmethod
+    def _fill_count(pixels: np.ndarray, holes: np.ndarray) -> int:
+        """How many of a view's grid pixels (from :meth:`_grid_pixels`) fall into ``holes``."""
+        return int(np.count_nonzero(holes.reshape(-1)[pixels]))
 
     # ---- public API ----------------------------------------------------------------------------
     def select(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection:
@@ -351,12 +356,16 @@ class Renderer:
         stats = RenderStats(selection=sel)
         stop_px = cfg.stop_hole_frac * H * W
         replace = big = None
+        grid_px: dict[int, np.ndarray] = {}
         while pending and len(stats.views) < n_target:
             if stats.views and adaptive:
                 # Next view by how many of its sampled grid points land in the big holes; none
                 # lands there -> no candidate can help, stop.
                 t = time.perf_counter()
-                counts = [self._fill_count(v, big, T_cam_world, K) for v in pending]
+                for v in pending:  # each candidate's grid is projected once per frame
+                    if v not in grid_px:
+                        grid_px[v] = self._grid_pixels(v, T_cam_world, K)
+                counts = [self._fill_count(grid_px[v], big) for v in pending]
                 ms["select"] += (time.perf_counter() - t) * 1e3
                 cmax = max(counts)
                 if cmax == 0:
