@@ -131,3 +131,20 @@ def test_fuse_point_cloud_voxel_dedup():
     one = fuse_point_cloud(s.subset([0]), voxel_m=0.01, stride=1)
     assert len(pc) == len(one) and len(one) > 0
     np.testing.assert_allclose(pc.xyz[:, 2], 2.0, atol=1e-6)
+
+
+def test_fuse_point_cloud_batches_keep_the_first_point_per_voxel():
+    """Batched dedup (any batch size) keeps exactly the points frame-by-frame dedup keeps: per
+    voxel the first one seen in frame order."""
+    s = _scene(n=5)
+    s.frames.depth_m[:] = 2.0
+    s.T_world_cam[:] = [make_pose(np.eye(3), [0.003 * i, 0.0, 0.0]) for i in range(5)]
+    ref = fuse_point_cloud(s, voxel_m=0.01, stride=1, batch_frames=1)
+    for bf in (2, 16):
+        got = fuse_point_cloud(s, voxel_m=0.01, stride=1, batch_frames=bf)
+        ka, kb = np.lexsort(ref.xyz.T), np.lexsort(got.xyz.T)
+        np.testing.assert_array_equal(ref.xyz[ka], got.xyz[kb])
+        np.testing.assert_array_equal(ref.rgb[ka], got.rgb[kb])
+    # Frames 1-4 overlap frame 0 shifted by < 1 voxel: each frame adds some new voxels, not all.
+    first = fuse_point_cloud(s.subset([0]), voxel_m=0.01, stride=1)
+    assert len(first) < len(ref) < 5 * len(first)

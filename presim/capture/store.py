@@ -40,28 +40,43 @@ def is_scene_dir(path: str | Path) -> bool:
 
 
 def fuse_point_cloud(scene: Scene, voxel_m: float = 0.01, stride: int = 4,
-                     max_points: int = 2_000_000, refined: bool = False) -> PointCloud:
+                     max_points: int = 2_000_000, refined: bool = False, batch_frames: int = 16) -> PointCloud:
     """Colored point cloud of the whole scene: every ``stride``-th pixel of every frame, unprojected
-    to the world and reduced to one point (first seen) per ``voxel_m`` voxel."""
-    keys_all: list[np.ndarray] = []
+    to the world and reduced to one point (first seen) per ``voxel_m`` voxel.
+
+    Frames are deduplicated in batches of ``batch_frames`` against the voxels seen so far, so memory
+    holds the fused cloud plus one batch of frames' points, whatever the number of frames."""
     xyz_all: list[np.ndarray] = []
     rgb_all: list[np.ndarray] = []
     seen: np.ndarray = np.empty(0, dtype=np.int64)
+    batch: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def flush() -> None:
+        nonlocal seen
+        if not batch:
+            return
+        key = np.concatenate([b[0] for b in batch])
+        pts = np.concatenate([b[1] for b in batch])
+        rgb = np.concatenate([b[2] for b in batch])
+        batch.clear()
+        key, first = np.unique(key, return_index=True)  # first occurrence in frame order
+        new = ~np.isin(key, seen, assume_unique=True)
+        xyz_all.append(pts[first[new]])
+        rgb_all.append(rgb[first[new]])
+        seen = np.union1d(seen, key[new])
+
     for i in progress(range(len(scene)), desc="point cloud", unit="frame"):
         f = scene.frame(i, refined=refined)
         pts, mask = unproject_depth(f.K, f.depth_m, f.T_world_cam, stride=stride)
         if len(pts) == 0:
             continue
-        rgb = f.color[::stride, ::stride][mask]
         q = np.floor(pts / voxel_m).astype(np.int64)
         # 21 bits per axis: +-10 km at 1 cm voxels.
         key = ((q[:, 0] + (1 << 20)) << 42) | ((q[:, 1] + (1 << 20)) << 21) | (q[:, 2] + (1 << 20))
-        key, first = np.unique(key, return_index=True)
-        new = ~np.isin(key, seen, assume_unique=True)
-        keys_all.append(key[new])
-        xyz_all.append(pts[first[new]])
-        rgb_all.append(rgb[first[new]])
-        seen = np.union1d(seen, key[new])
+        batch.append((key, pts, f.color[::stride, ::stride][mask]))
+        if len(batch) >= batch_frames:
+            flush()
+    flush()
     if not xyz_all:
         return PointCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))
     xyz = np.concatenate(xyz_all).astype(np.float32)
