@@ -35,6 +35,7 @@ import functools
 import json
 import os
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -705,13 +706,20 @@ def build_sample_scene(dst: str | Path, seed: int = 0, config: SampleSceneConfig
     depth_clean = np.empty((n, h, w), np.float32)
     depth_raw = np.empty((n, h, w), np.float32)
     obj_id = np.empty((n, h, w), np.uint8)
-    for i in progress(range(n), desc="rendering sample scene", unit="frame"):
+    def render_frame(i: int) -> int:
         view = model.render(T_world_cams[i], K)
         color[i] = view.color
         depth_clean[i] = view.depth_m
         obj_id[i] = view.object_id
         depth_raw[i] = corrupt_depth(view.depth_m, view.albedo_lum, view.cos_incidence, config,
                                      np.random.default_rng([seed, 3, i]))
+        return i
+
+    # Frames are independent (per-frame random streams), so two threads render them in any order
+    # with identical results; ray casting, numba kernels and most numpy work release the GIL.
+    with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
+        for _ in progress(pool.map(render_frame, range(n)), total=n, desc="rendering sample scene", unit="frame"):
+            pass
 
     frame_ids = [f"frame-{i:06d}" for i in range(n)]
     stamps = np.arange(n) / config.frame_rate_hz
