@@ -100,11 +100,19 @@ class Intrinsics:
         return float(np.degrees(2.0 * np.arctan2(self.height / 2.0, self.fy)))
 
     @classmethod
-    def from_K(cls, K: np.ndarray, width: int, height: int) -> "Intrinsics":
+    def from_K(cls, K: np.ndarray, width: int, height: int, source: str = "") -> "Intrinsics":
+        """From a 3x3 camera matrix of a ``width`` x ``height`` image. The principal point must lie
+        inside the image: one outside it means the matrix belongs to another resolution (``source``,
+        e.g. the intrinsics file, prefixes the error)."""
+        where = f"{source}: " if source else ""
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):
-            raise ValueError(f"K must be 3x3, got shape {K.shape}")
-        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
+            raise ValueError(f"{where}K must be 3x3, got shape {K.shape}")
+        cx, cy = K[0, 2], K[1, 2]
+        if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+            raise ValueError(f"{where}principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} "
+                             "image: intrinsics of another resolution?")
+        return cls(K[0, 0], K[1, 1], cx, cy, width, height)
 
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float) -> "Intrinsics":

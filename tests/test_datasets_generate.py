@@ -195,6 +195,51 @@ def test_objects_from_user_json(sample, tmp_path):
         resolve_objects(scene, str(tmp_path / "bad.json"))
 
 
+def test_symmetric_sample_objects_carry_continuous_symmetry(dataset):
+    """The sample scene's can (2) and ball (4) are solids of revolution about their z axis: the
+    generated models_info says so (BOP symmetries_continuous), so the evaluator scores ADD-S."""
+    info = json.loads((dataset / "models" / "models_info.json").read_text())
+    for oid in ("2", "4"):
+        assert info[oid]["symmetries_continuous"] == [{"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 0.0]}]
+    for oid in ("1", "3", "5"):
+        assert "symmetries_continuous" not in info[oid] and "symmetries_discrete" not in info[oid]
+    models = BopDataset(dataset, split="train").models_info()
+    assert {o for o, m in models.items() if m.is_symmetric} == {2, 4}
+
+
+@pytest.mark.parametrize("item, match", [
+    ({"obj_id": "abc", "model": "m.ply", "T_world_obj": np.eye(4).tolist()}, "obj_id must be an integer"),
+    ({"obj_id": 1, "model": "m.ply", "T_world_obj": np.eye(4).tolist(), "symmetries_discrete": [[1, 2, 3]]},
+     r"symmetries_discrete\[0\] must have 16 numbers"),
+    ({"obj_id": 1, "model": "m.ply", "T_world_obj": np.eye(4).tolist(), "symmetries_continuous": [{"axis": [0, 0]}]},
+     r"symmetries_continuous\[0\]"),
+    (1, "expected an object"),
+])
+def test_objects_json_errors_name_the_file_and_item(sample, tmp_path, item, match):
+    path = tmp_path / "objs.json"
+    path.write_text(json.dumps({"objects": [item]}))
+    with pytest.raises(ValueError, match=match) as e:
+        resolve_objects(load_scene(sample), str(path))
+    assert str(e.value).startswith(f"{path}: objects[0]")
+
+
+def test_gen_bop_fails_when_no_image_can_be_made(sample, tmp_path, capsys):
+    """An object placed far outside the capture (e.g. a pose in mm read as m) makes no image: the
+    command says why and exits non-zero instead of reporting an empty 'complete' dataset."""
+    from presim.cli import main
+
+    o = load_scene(sample).objects[0]
+    T = np.asarray(o.T_world_obj).copy()
+    T[:3, 3] *= 1000.0
+    (tmp_path / "far.json").write_text(json.dumps({"objects": [
+        {"obj_id": 1, "model": str(sample / o.model_path), "T_world_obj": T.tolist()}]}))
+    rc = main(["gen-bop", str(sample), "--objects", str(tmp_path / "far.json"), "--frames", "2",
+               "--width", "96", "--height", "72", "--out", str(tmp_path / "bop")])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "no captured view sees" in err and "no image could be made" in err
+
+
 @pytest.mark.slow
 def test_ray_local_gives_identical_annotations(sample, dataset, tmp_path):
     out = tmp_path / "bop_ray"

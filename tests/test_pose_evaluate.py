@@ -189,6 +189,13 @@ def test_symmetric_flag_switches_to_add_s(synth_bop, tmp_path):
     assert r0(plain).add_s > 0.02 and r0(sym).add_s == pytest.approx(0.0, abs=1e-9)
 
 
+def test_unknown_symmetric_id_is_an_error(synth_bop, tmp_path):
+    csv = tmp_path / "e.csv"
+    write_bop_results(csv, _gt_estimates(synth_bop)[:1])
+    with pytest.raises(ValueError, match=r"--symmetric: objects \[77\] are not in .*models_info.json"):
+        evaluate_files(synth_bop, csv, EvalConfig(vsd="off", symmetric_obj_ids=(77,)))
+
+
 def test_results_reader_rejects_and_counts(synth_bop, tmp_path):
     good = "1,0,1,0.5,1 0 0 0 1 0 0 0 1,0 0 600,0.1"
     lines = ["scene_id,im_id,obj_id,score,R,t,time", good,

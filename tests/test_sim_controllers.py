@@ -97,6 +97,12 @@ def test_tum_trajectory_replay_reproduces_poses(tmp_path):
     bad.write_text("0 1 2 3\n")
     with pytest.raises(ValueError, match="bad.txt:1: a TUM line has 8 numbers"):
         load_tum_trajectory(bad)
+    for line, match in (("0 1 2 3 0 0 0 1\nnan 1 2 3 0 0 0 1\n", "bad.txt:2: non-finite"),
+                        ("0 1 2 nan 0 0 0 1\n", "bad.txt:1: non-finite"),
+                        ("0 1 2 3 0 0 0 7\n", "bad.txt:1: quaternion norm 7")):
+        bad.write_text(line)
+        with pytest.raises(ValueError, match=match):
+            load_tum_trajectory(bad)
 
 
 def test_load_waypoints(tmp_path):
@@ -105,6 +111,9 @@ def test_load_waypoints(tmp_path):
     assert np.allclose(load_waypoints(p), [[1, 2], [3, 4]])
     p.write_text("1 a\n")
     with pytest.raises(ValueError, match="wp.txt:1"):
+        load_waypoints(p)
+    p.write_text("1 2\nnan 4\n")
+    with pytest.raises(ValueError, match="wp.txt:2: non-finite waypoint"):
         load_waypoints(p)
 
 

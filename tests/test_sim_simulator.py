@@ -282,3 +282,34 @@ def test_random_driving_never_enters_an_obstacle(toy):
         assert 0.25 - 1e-9 <= x <= 5.0 - 0.25 + 1e-9 and 0.25 - 1e-9 <= y <= 4.0 - 0.25 + 1e-9
         contacts += r.contact
     assert contacts > 0  # it did hit things
+
+
+def test_close_finishes_every_sink_even_when_one_fails(toy):
+    """A failing sink (e.g. disk full in the MCAP writer) must not leave the others unclosed
+    (unfinished files, a viewer process left running); the first error is raised after."""
+    closed = []
+
+    class Sink:
+        def __init__(self, name, fail):
+            self.name, self.fail = name, fail
+
+        def open(self, info):
+            pass
+
+        def on_step(self, result):
+            pass
+
+        def close(self):
+            closed.append(self.name)
+            if self.fail:
+                raise OSError(f"{self.name}: disk full")
+
+    sim = Simulator(toy, default_robot(), SimConfig(cameras=()))
+    for name, fail in (("a", False), ("b", True), ("c", False)):
+        sim.add_sink(Sink(name, fail))
+    sim.reset(0)
+    with pytest.raises(OSError, match="b: disk full"):
+        sim.close()
+    assert closed == ["a", "b", "c"]
+    sim.close()  # once only
+    assert closed == ["a", "b", "c"]

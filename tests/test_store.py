@@ -148,3 +148,17 @@ def test_fuse_point_cloud_batches_keep_the_first_point_per_voxel():
     # Frames 1-4 overlap frame 0 shifted by < 1 voxel: each frame adds some new voxels, not all.
     first = fuse_point_cloud(s.subset([0]), voxel_m=0.01, stride=1)
     assert len(first) < len(ref) < 5 * len(first)
+
+
+def test_damaged_scene_errors_name_the_file(tmp_path):
+    dst = save_scene(_scene(), tmp_path / "s")
+    data = (dst / "color.npy").read_bytes()
+    (dst / "color.npy").write_bytes(data[: len(data) // 2])  # truncated copy
+    with pytest.raises(SceneError, match=r"color\.npy: unreadable array"):
+        load_scene(dst)
+    (dst / "color.npy").write_bytes(data)
+    hdr = json.loads((dst / "scene.json").read_text())
+    del hdr["frames"]
+    (dst / "scene.json").write_text(json.dumps(hdr))
+    with pytest.raises(SceneError, match=r"scene\.json: missing or malformed field \(KeyError: 'frames'\)"):
+        load_scene(dst)

@@ -738,8 +738,9 @@ def build_sample_scene(dst: str | Path, seed: int = 0, config: SampleSceneConfig
                 continue
             path = models / f"{p.name}.ply"
             _write_part_ply(path, p.mesh, p.material, model.noise)
+            sym = p.name in ("soup_can", "ball")  # solids of revolution about their z axis
             objects.append(SceneObject(p.obj_id, p.name, p.T_world_part.copy(), str(path),
-                                       symmetric=p.name in ("soup_can", "ball")))
+                                       symmetric=sym, symmetry_axis=(0.0, 0.0, 1.0) if sym else None))
         meta = SceneMeta(
             source=f"sample-scene seed={seed}", source_format="sample", importer_version=str(SAMPLE_VERSION),
             notes=("procedural room rendered by ray casting (presim.capture.sample_scene)",

@@ -145,6 +145,9 @@ class SceneObject:
     saved scene's folder."""
     symmetric: bool = False
     """Whether ADD-S (not ADD) applies to this object."""
+    symmetry_axis: tuple[float, float, float] | None = None
+    """Axis (object frame, through the object origin) of a continuous rotational symmetry, when
+    known; written to BOP ``models_info.json`` as ``symmetries_continuous``."""
 
 
 @dataclass(frozen=True)

@@ -153,6 +153,7 @@ def save_scene(scene: Scene, dst: str | Path, overwrite: bool = False,
             objects_json.append({
                 "obj_id": int(obj.obj_id), "name": obj.name, "T_world_obj": np.asarray(obj.T_world_obj).tolist(),
                 "model_path": model_rel, "symmetric": bool(obj.symmetric),
+                **({"symmetry_axis": [float(a) for a in obj.symmetry_axis]} if obj.symmetry_axis else {}),
             })
 
         header = {
@@ -181,6 +182,16 @@ def _with_arrays(meta_scene: Scene, array_scene: Scene) -> Scene:
     return replace(meta_scene, frames=array_scene.frames, path=None)
 
 
+def _load_array(path: Path, mmap: bool = True) -> np.ndarray:
+    """``np.load`` whose errors name the file (truncated or corrupt arrays of a damaged scene)."""
+    if not path.is_file():
+        raise SceneError(f"{path}: missing (damaged scene folder?)")
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None)
+    except (ValueError, OSError, EOFError) as e:
+        raise SceneError(f"{path}: unreadable array ({e}); the scene folder is damaged") from None
+
+
 def load_scene(path: str | Path, _skip_points: bool = False) -> Scene:
     """Load a saved scene; pixel arrays are memory-mapped (read-only), nothing else is read eagerly."""
     path = Path(path)
@@ -189,8 +200,8 @@ def load_scene(path: str | Path, _skip_points: bool = False) -> Scene:
         if path.with_name(path.name + ".partial").exists():
             raise SceneError(f"{path}: scene is incomplete (an interrupted save left {path.name}.partial)")
         raise SceneError(f"{path}: not a PreSim scene (no scene.json); import a capture with `presim import`")
-    color = np.load(path / "color.npy", mmap_mode="r")
-    depth = np.load(path / "depth.npy", mmap_mode="r")
+    color = _load_array(path / "color.npy")
+    depth = _load_array(path / "depth.npy")
     if _skip_points:
         n = color.shape[0]
         K = Intrinsics(1.0, 1.0, 0.0, 0.0, color.shape[2], color.shape[1])
@@ -205,21 +216,29 @@ def load_scene(path: str | Path, _skip_points: bool = False) -> Scene:
     if hdr.get("version") != FORMAT_VERSION:
         raise SceneError(f"{hdr_path}: scene format version {hdr.get('version')} is not supported "
                          f"(this PreSim reads version {FORMAT_VERSION})")
+    try:
+        return _scene_from_header(path, hdr, color, depth)
+    except (KeyError, TypeError, IndexError) as e:
+        raise SceneError(f"{hdr_path}: missing or malformed field ({type(e).__name__}: {e})") from None
+
+
+def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarray) -> Scene:
     frames = hdr["frames"]
     n = len(frames)
     if color.shape != (n, hdr["height"], hdr["width"], 3) or depth.shape != color.shape[:3]:
         raise SceneError(f"{path}: arrays {color.shape}/{depth.shape} do not match scene.json ({n} frames)")
     refined = None
     if (path / "depth_refined.npy").is_file():
-        refined = np.load(path / "depth_refined.npy", mmap_mode="r")
+        refined = _load_array(path / "depth_refined.npy")
         if refined.shape != depth.shape:
             raise SceneError(f"{path / 'depth_refined.npy'}: shape {refined.shape} != depth {depth.shape}")
-    points = PointCloud(np.load(path / "points_xyz.npy"), np.load(path / "points_rgb.npy"))
+    points = PointCloud(_load_array(path / "points_xyz.npy", mmap=False), _load_array(path / "points_rgb.npy", mmap=False))
     fl = hdr.get("floor")
     floor = None if fl is None else FloorPlane(tuple(fl["normal"]), fl["offset"], fl.get("inlier_frac", 0.0))
     objects = [
         SceneObject(o["obj_id"], o["name"], np.asarray(o["T_world_obj"], dtype=np.float64),
-                    o.get("model_path"), o.get("symmetric", False))
+                    o.get("model_path"), o.get("symmetric", False),
+                    tuple(map(float, o["symmetry_axis"])) if o.get("symmetry_axis") else None)
         for o in hdr.get("objects", [])
     ]
     return Scene(

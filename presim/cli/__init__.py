@@ -45,7 +45,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except (FileNotFoundError, FileExistsError, ValueError) as e:
-        # Bad input: one clear line naming the file and the problem, no traceback.
+    except (OSError, ValueError) as e:
+        # Bad input (missing / unreadable / wrong kind of file, bad values): one clear line naming
+        # the file and the problem, no traceback.
         print(f"presim {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except ImportError as e:
+        # An optional dependency group is not installed (scripts/setup.sh installs all of them).
+        print(f"presim {args.command}: error: {e}; install the optional dependencies with "
+              "`pip install -e .[all]` (or run scripts/setup.sh)", file=sys.stderr)
         return 1

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    from presim.capture.importers.registry import FORMATS
+    from presim.capture.importers.registry import ALIASES, FORMATS
 
     p = sub.add_parser(
         "import", help="import an RGB-D capture folder (format auto-detected) into a PreSim scene",
@@ -17,7 +17,8 @@ def register(sub) -> None:
                     "BOP, YCB-Video), fuse its point cloud, align the floor (gravity -z, floor z = 0) and save it.")
     p.add_argument("src", type=Path, help="capture folder (or transforms.json)")
     p.add_argument("dst", type=Path, help="output scene folder")
-    p.add_argument("--format", dest="fmt", choices=sorted(FORMATS), default=None, help="force a format")
+    p.add_argument("--format", dest="fmt", choices=sorted(FORMATS) + sorted(ALIASES), default=None, metavar="F",
+                   help=f"force a format: {', '.join(sorted(FORMATS))} (aliases: {', '.join(sorted(ALIASES))})")
     p.add_argument("--every", type=int, default=1, metavar="N", help="keep every N-th frame (default 1)")
     p.add_argument("--max-frames", type=int, default=None, metavar="M", help="keep at most M frames")
     p.add_argument("--gravity", type=float, nargs=3, default=None, metavar=("GX", "GY", "GZ"),

@@ -72,6 +72,15 @@ def _gen_bop(args) -> int:
         print(f"stopped before the end: rerun the same command to continue {rep.scene_dir}", file=sys.stderr)
         return 0
     print(f"report: {report_path(args.out, config.split, config.scene_id)}", file=sys.stderr)
+    no_seed = rep.rejected.get("no_seed_view", 0)
+    if no_seed:
+        print(f"warning: {no_seed} image slot(s) targeted an object that no captured view sees (object outside "
+              "the captured area, or its pose/model in the wrong unit?)", file=sys.stderr)
+    if rep.frames_written == 0 and rep.frames_requested > 0:
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(rep.rejected.items())) or "none recorded"
+        print(f"presim gen-bop: error: no image could be made (rejections: {reasons}); "
+              "check --objects and the scene", file=sys.stderr)
+        return 1
     if args.validate:
         from presim.datasets.validate import validate_bop
 

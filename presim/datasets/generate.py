@@ -261,7 +261,8 @@ def _ray_init(address: str):
     if ray.is_initialized():
         return ray, False
     if address == "local":
-        # A private local instance on loopback only, no dashboard (nothing listens beyond 127.0.0.1).
+        # A private local instance with node IP 127.0.0.1 and no dashboard. Ray 2.60's GCS/raylet
+        # still listen on all interfaces (docs/datasets.md); process workers open no socket.
         ray.init(address="local", num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
                  log_to_driver=False, configure_logging=False)
     else:
@@ -357,7 +358,7 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
         objects: placed object models (:func:`presim.datasets.object_sources.resolve_objects`).
         config: what to generate.
         workers: local worker processes (1 = in this process); with ``ray_address``, Ray actors.
-        ray_address: ``"local"`` (a private Ray instance on 127.0.0.1) or a cluster address.
+        ray_address: ``"local"`` (a private Ray instance, node IP 127.0.0.1) or a cluster address.
         render_config: ``RenderConfig`` of the view synthesis (None = defaults).
         overwrite: replace a scene folder made by a different job.
         stop_after: make at most this many new frames, then return without finishing (time-sliced

@@ -19,7 +19,8 @@ Sources (``presim gen-bop --objects``):
 
   (``model`` relative to the JSON's folder; ``unit`` of the model file, ``m`` by default;
   ``T_world_obj`` in metres; optional ``symmetries_discrete``: BOP-style 16 numbers, translation in
-  the model's unit).
+  the model's unit; optional ``symmetries_continuous``: ``[{"axis": [x, y, z], "offset": [x, y, z]}]``,
+  offset in the model's unit).
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ def objects_from_scene(scene: Scene) -> list[PlacedObject]:
         p = model_abspath(scene, o)
         if p is None:
             raise SceneError(f"{scene.path}: object {o.obj_id} ({o.name}) has no model file")
-        m = load_model(p, o.obj_id, name=o.name, unit="m")
+        cont = [(o.symmetry_axis, (0.0, 0.0, 0.0))] if o.symmetry_axis else []
+        m = load_model(p, o.obj_id, name=o.name, unit="m", symmetries_continuous=cont)
         if o.symmetric:
             m = _with_flag(m)
         out.append(PlacedObject(m, check_rigid(o.T_world_obj, f"{scene.path}: T_world_obj of object {o.obj_id}")))
@@ -109,31 +111,54 @@ def objects_from_json(path: str | Path, scene: Scene | None = None) -> list[Plac
     out = []
     for k, it in enumerate(items):
         where = f"{path}: objects[{k}]"
-        for key in ("obj_id", "model", "T_world_obj"):
-            if key not in it:
-                raise ValueError(f"{where}: missing field '{key}'")
-        unit = it.get("unit", "m")
-        s = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}.get(unit)
-        if s is None:
-            raise ValueError(f"{where}: unknown unit {unit!r}")
-        syms = []
-        for v in it.get("symmetries_discrete", []):
-            T = np.asarray(v, dtype=np.float64).reshape(4, 4).copy()
-            T[:3, 3] *= s
-            syms.append(T)
-        model_path = Path(it["model"])
-        if not model_path.is_absolute():
-            model_path = path.parent / model_path
-        m = load_model(model_path, int(it["obj_id"]), name=str(it.get("name", "")), unit=unit,
-                       symmetries_discrete=syms)
-        if it.get("symmetric"):
-            m = _with_flag(m)
-        Tw = it["T_world_obj"]
-        if isinstance(Tw, dict):
-            Tw = make_pose(np.asarray(Tw["R"], dtype=np.float64).reshape(3, 3), np.asarray(Tw["t"], dtype=np.float64))
-        T = check_rigid(np.asarray(Tw, dtype=np.float64), f"{where}: T_world_obj")
-        out.append(PlacedObject(m, T))
+        try:
+            out.append(_object_from_json(it, where, path.parent))
+        except (ValueError, TypeError, KeyError) as e:
+            msg = str(e)
+            raise ValueError(msg if msg.startswith(where) else f"{where}: {msg}") from None
     return out
+
+
+def _object_from_json(it, where: str, folder: Path) -> PlacedObject:
+    if not isinstance(it, dict):
+        raise ValueError(f"{where}: expected an object (dict), got {type(it).__name__}")
+    for key in ("obj_id", "model", "T_world_obj"):
+        if key not in it:
+            raise ValueError(f"{where}: missing field '{key}'")
+    unit = it.get("unit", "m")
+    s = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}.get(unit)
+    if s is None:
+        raise ValueError(f"{where}: unknown unit {unit!r}")
+    try:
+        obj_id = int(it["obj_id"])
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: obj_id must be an integer, got {it['obj_id']!r}") from None
+    syms = []
+    for j, v in enumerate(it.get("symmetries_discrete", [])):
+        a = np.asarray(v, dtype=np.float64)
+        if a.size != 16:
+            raise ValueError(f"{where}: symmetries_discrete[{j}] must have 16 numbers (4x4), got {a.size}")
+        T = a.reshape(4, 4).copy()
+        T[:3, 3] *= s
+        syms.append(T)
+    cont = []
+    for j, c in enumerate(it.get("symmetries_continuous", [])):
+        axis = np.asarray(c.get("axis", ()) if isinstance(c, dict) else (), dtype=np.float64)
+        off = np.asarray(c.get("offset", (0, 0, 0)) if isinstance(c, dict) else (), dtype=np.float64)
+        if axis.shape != (3,) or off.shape != (3,) or not np.linalg.norm(axis) > 0:
+            raise ValueError(f"{where}: symmetries_continuous[{j}] must be {{'axis': [x, y, z], 'offset': [x, y, z]}}")
+        cont.append((tuple(axis / np.linalg.norm(axis)), tuple(off * s)))
+    model_path = Path(it["model"])
+    if not model_path.is_absolute():
+        model_path = folder / model_path
+    m = load_model(model_path, obj_id, name=str(it.get("name", "")), unit=unit,
+                   symmetries_discrete=syms, symmetries_continuous=cont)
+    if it.get("symmetric"):
+        m = _with_flag(m)
+    Tw = it["T_world_obj"]
+    if isinstance(Tw, dict):
+        Tw = make_pose(np.asarray(Tw["R"], dtype=np.float64).reshape(3, 3), np.asarray(Tw["t"], dtype=np.float64))
+    return PlacedObject(m, check_rigid(np.asarray(Tw, dtype=np.float64), f"{where}: T_world_obj"))
 
 
 def _find_models_dir(start: Path) -> Path:

@@ -240,7 +240,14 @@ def evaluate(ds: BopDataset, results: BopResults, cfg: EvalConfig = EvalConfig()
         raise ValueError(f"{ds.root}: no evaluation targets (check --scene-ids / --targets)")
     unknown = sorted({t.obj_id for t in targets} - set(obj_ids))
     if unknown:
-        raise ValueError(f"targets reference objects {unknown} missing from models_info.json")
+        default = ds.root / "test_targets_bop19.json"
+        src = cfg.targets_path or (default if default.is_file() else ds.root)
+        raise ValueError(f"{src}: targets reference objects {unknown} missing from "
+                         f"{ds.models_dir}/models_info.json")
+    unknown_sym = sorted(set(cfg.symmetric_obj_ids) - set(obj_ids))
+    if unknown_sym:
+        raise ValueError(f"--symmetric: objects {unknown_sym} are not in {ds.models_dir}/models_info.json "
+                         f"(known: {obj_ids})")
     sym_ids = set(cfg.symmetric_obj_ids) | {o for o, i in models_info.items() if i.is_symmetric}
 
     # Estimates by target key, score-descending (stable for equal scores: file order).

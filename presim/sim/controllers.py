@@ -176,6 +176,8 @@ def load_waypoints(path: str | Path) -> np.ndarray:
             raise ValueError(f"{path}:{n}: expected 'x y' numbers, got '{line}'") from None
         if len(vals) < 2:
             raise ValueError(f"{path}:{n}: expected 'x y', got '{line}'")
+        if not np.all(np.isfinite(vals[:2])):
+            raise ValueError(f"{path}:{n}: non-finite waypoint '{line}'")
         rows.append(vals[:2])
     if not rows:
         raise ValueError(f"{path}: no waypoints")
@@ -200,8 +202,13 @@ def load_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             raise ValueError(f"{path}:{n}: not a TUM line 'stamp x y z qx qy qz qw': '{line}'") from None
         if len(vals) != 8:
             raise ValueError(f"{path}:{n}: a TUM line has 8 numbers (stamp x y z qx qy qz qw), got {len(vals)}")
-        if np.linalg.norm(vals[4:]) < 1e-6:
+        if not np.all(np.isfinite(vals)):
+            raise ValueError(f"{path}:{n}: non-finite value in '{line}'")
+        qn = np.linalg.norm(vals[4:])
+        if qn < 1e-6:
             raise ValueError(f"{path}:{n}: zero quaternion")
+        if abs(qn - 1.0) > 0.01:
+            raise ValueError(f"{path}:{n}: quaternion norm {qn:.4g} is not 1 (corrupt line?)")
         stamps.append(vals[0])
         poses.append(pose_from_tum(vals[1:]))
     if not stamps:

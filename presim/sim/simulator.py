@@ -227,9 +227,15 @@ class Simulator:
     def close(self) -> None:
         """Close the sinks (once)."""
         if self._sinks_open:
-            for s in self.sinks:
-                s.close()
             self._sinks_open = False
+            errors = []
+            for s in self.sinks:  # every sink gets closed (files finished) even if one fails
+                try:
+                    s.close()
+                except Exception as e:  # noqa: BLE001 - re-raised below, after the other sinks
+                    errors.append(e)
+            if errors:
+                raise errors[0]
 
     def __enter__(self) -> "Simulator":
         return self

@@ -106,7 +106,7 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, raw_depth: bo
     depth_dir = src / "raw" if raw_depth else src
     depths = [require_file(depth_dir / f"{f}.depth.png", "depth image") for f in ids]
     w, h = image_size_wh(colors[0])
-    K = Intrinsics.from_K(K_color, w, h)
+    K = Intrinsics.from_K(K_color, w, h, source=f"{src} (cam.info.txt vs {colors[0].name})")
     check_sizes(colors, (w, h), "color")
     depth_cam = None
     if raw_depth:

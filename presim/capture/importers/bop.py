@@ -17,7 +17,9 @@ first object annotated in every frame (``T_world_cam = inv(T_cam_obj)``), noted 
 
 from __future__ import annotations
 
+import atexit
 import json
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -123,7 +125,12 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, models_dir: P
         if models_dir is None:
             cand = src.parent.parent / "models"
             models_dir = cand if cand.is_dir() else None
-        out_dir = Path(tempfile.mkdtemp(prefix="presim-bop-models-")) if models_dir is not None else None
+        out_dir = None
+        if models_dir is not None:
+            # Models converted to metres live here until the scene is saved (save_scene copies them);
+            # removed when the process exits.
+            out_dir = Path(tempfile.mkdtemp(prefix="presim-bop-models-"))
+            atexit.register(shutil.rmtree, out_dir, ignore_errors=True)
         seen: set[int] = set()
         for k, im in enumerate(im_ids):
             anns = gt.get(str(im), [])

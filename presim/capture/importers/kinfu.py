@@ -89,7 +89,7 @@ def read(src: Path, every: int = 1, max_frames: int | None = None) -> Scene:
     frames = [frames[i] for i in select_indices(len(frames), every, max_frames)]
     K_mat = read_intrinsics_K(src)
     w, h = image_size_wh(frames[0][2])
-    K = Intrinsics.from_K(K_mat, w, h)
+    K = Intrinsics.from_K(K_mat, w, h, source=f"{src} (intrinsics vs {frames[0][2].name})")
     stamps_file = src / "timestamps.txt"
     stamp_map = read_timestamps(stamps_file) if stamps_file.is_file() else None
 

@@ -30,13 +30,13 @@ FORMATS: dict[str, str] = {
     "bop": "presim.capture.importers.bop",
     "ycbv": "presim.capture.importers.ycbv",
 }
-_ALIASES = {"7scenes": "kinfu", "7-scenes": "kinfu", "kinectfusion": "kinfu", "apc": "apc_shelf",
+ALIASES = {"7scenes": "kinfu", "7-scenes": "kinfu", "kinectfusion": "kinfu", "apc": "apc_shelf",
             "ycb-video": "ycbv", "ycb_video": "ycbv", "nerf": "nerfstudio", "transforms": "nerfstudio"}
 
 
 def importer(fmt: str) -> ModuleType:
     """The importer module of format ``fmt`` (names in :data:`FORMATS` or a known alias)."""
-    name = _ALIASES.get(fmt.lower(), fmt.lower())
+    name = ALIASES.get(fmt.lower(), fmt.lower())
     if name not in FORMATS:
         raise ValueError(f"unknown capture format {fmt!r}; known formats: {', '.join(FORMATS)}")
     return importlib.import_module(FORMATS[name])

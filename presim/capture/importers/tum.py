@@ -122,7 +122,7 @@ def interpolate_pose(gt_stamps: np.ndarray, gt_vals: np.ndarray, t: float, max_g
 def read_intrinsics(src: Path, w: int, h: int) -> tuple[Intrinsics, Undistortion | None, str]:
     for name in ("camera-intrinsics.txt", "intrinsics.K.txt"):
         if (src / name).is_file():
-            return Intrinsics.from_K(read_matrix_txt(src / name, (3, 3)), w, h), None, name
+            return Intrinsics.from_K(read_matrix_txt(src / name, (3, 3)), w, h, source=str(src / name)), None, name
     calib = src / "calibration.txt"
     if calib.is_file():
         try:
