@@ -16,7 +16,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from presim.geometry import Intrinsics, check_rigid
+from presim.geometry import Intrinsics, check_rigid, project, unproject
 
 __all__ = ["register_depth", "register_depth_reference"]
 
@@ -30,13 +30,11 @@ def _corners(depth_m: np.ndarray, K_depth: Intrinsics, K_color: Intrinsics, T_co
     us_f, vs_f = us.astype(np.float64), vs.astype(np.float64)
     zc_all, uu, vv = [], [], []
     for du, dv in ((-0.5, -0.5), (0.5, 0.5), (0.0, 0.0)):
-        x = (us_f + du - K_depth.cx) / K_depth.fx * z
-        y = (vs_f + dv - K_depth.cy) / K_depth.fy * z
-        p = np.stack([x, y, z], axis=1) @ R.T + t
+        p = unproject(K_depth, np.stack([us_f + du, vs_f + dv], axis=1), z) @ R.T + t
         zc = p[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uu.append(K_color.fx * p[:, 0] / zc + K_color.cx)
-            vv.append(K_color.fy * p[:, 1] / zc + K_color.cy)
+        uv = project(K_color, p)[0]
+        uu.append(uv[:, 0])
+        vv.append(uv[:, 1])
         zc_all.append(zc)
     zc = zc_all[2]  # depth of the pixel centre
     umin, umax = np.minimum(uu[0], uu[1]), np.maximum(uu[0], uu[1])

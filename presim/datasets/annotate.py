@@ -32,7 +32,7 @@ import numba
 import numpy as np
 
 from presim.datasets.objects import ObjectModel
-from presim.geometry import Intrinsics, check_rigid, transform_points
+from presim.geometry import Intrinsics, check_rigid, project, transform_points
 
 __all__ = ["AnnotateConfig", "ModelRender", "InstanceAnnotation", "render_model_depth",
            "render_model_depth_reference", "annotate_instances", "bbox_from_mask", "ray_norm_image"]
@@ -233,8 +233,7 @@ def render_model_depth(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics,
     p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
     z = p[:, 2]
     ok = z > config.near_m
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([K.fx * p[:, 0] / z + K.cx, K.fy * p[:, 1] / z + K.cy], axis=-1) + config.pixel_offset_px
+    uv = project(K, p)[0] + config.pixel_offset_px
     crop = _canvas_crop(uv, ok, K, config.canvas_factor)
     if crop is None:
         return ModelRender(np.zeros((0, 0), np.float32), 0, 0)
@@ -264,8 +263,7 @@ def render_model_depth_reference(model: ObjectModel, T_cam_obj: np.ndarray, K: I
     p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
     z = p[:, 2]
     ok = z > config.near_m
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([K.fx * p[:, 0] / z + K.cx, K.fy * p[:, 1] / z + K.cy], axis=-1) + config.pixel_offset_px
+    uv = project(K, p)[0] + config.pixel_offset_px
     crop = _canvas_crop(uv, ok, K, config.canvas_factor)
     if crop is None:
         return ModelRender(np.zeros((0, 0), np.float32), 0, 0)

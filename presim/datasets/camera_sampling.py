@@ -20,7 +20,7 @@ import numpy as np
 
 from presim.capture.scene import Scene
 from presim.datasets.objects import ObjectModel
-from presim.geometry import Intrinsics, compose, invert, make_pose, rotation_angle_rad, transform_points
+from presim.geometry import Intrinsics, compose, invert, make_pose, project, rotation_angle_rad, transform_points
 
 __all__ = ["CameraSamplingConfig", "seed_views", "perturb_pose", "check_candidate", "frame_rng",
            "output_intrinsics"]
@@ -71,8 +71,7 @@ def seed_views(scene: Scene, model: ObjectModel, T_world_obj: np.ndarray,
         z = c_cam[2]
         if z <= r + 1e-3:
             continue
-        u = K.fx * c_cam[0] / z + K.cx
-        v = K.fy * c_cam[1] / z + K.cy
+        u, v = project(K, c_cam)[0]
         # Pixel radius of the sphere; allow (1 - fract) of it to stick out.
         rad_px = K.fx * r / z
         m = (2.0 * config.seed_min_in_view_fract - 1.0) * rad_px
