@@ -88,7 +88,8 @@ def test_simulator_drive_recorded_and_read_back(toy_scene, tmp_path):
 
 
 @pytest.mark.slow
-def test_presim_drive_ctrl_c_leaves_valid_recordings(toy_scene, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_presim_drive_ctrl_c_leaves_valid_recordings(toy_scene, tmp_path, sig):
     from rerun.chunk import RrdReader
 
     out = tmp_path / "rec"
@@ -102,7 +103,7 @@ def test_presim_drive_ctrl_c_leaves_valid_recordings(toy_scene, tmp_path):
             assert p.poll() is None, p.stdout.read().decode()
             assert time.monotonic() < deadline, "drive did not start recording"
             time.sleep(0.2)
-        p.send_signal(signal.SIGINT)
+        p.send_signal(sig)
         p.wait(60)
     finally:
         if p.poll() is None:
@@ -113,5 +114,6 @@ def test_presim_drive_ctrl_c_leaves_valid_recordings(toy_scene, tmp_path):
     msgs, _, _ = read_mcap_rosbags(out / "recording.mcap")
     assert len(msgs["/tf"]) >= 6
     assert (out / "capture" / "trajectory_tum.txt").is_file()
+    assert not (out / "drive.rrd.partial").exists() and p.returncode == 130, log
     chunks = RrdReader(out / "drive.rrd").stream().to_chunks()
     assert any(c.entity_path == "/world/scene" for c in chunks)

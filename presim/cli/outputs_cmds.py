@@ -104,10 +104,6 @@ def _run_launch(args) -> int:
         return p.wait()
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def run_ros(args: argparse.Namespace) -> int:
     uri = _setup_ros_env(args)
     if args.rate_hz <= 0:
@@ -133,8 +129,8 @@ def run_ros(args: argparse.Namespace) -> int:
         port = int(uri.rsplit(":", 1)[-1].strip("/"))
         print(f"presim ros: starting roscore on {uri}", file=sys.stderr)
         core = start_roscore(port, dict(os.environ))
-    # SIGTERM (rosnode kill, roslaunch shutdown) ends the loop like Ctrl-C, so files are closed.
-    signal.signal(signal.SIGTERM, _raise_interrupt)
+    # SIGTERM (rosnode kill, roslaunch shutdown) ends the loop like Ctrl-C (presim.cli.main), so
+    # files are closed.
     bridge = RosBridge(sim, RosBridgeConfig(seed=args.seed, real_time_factor=args.real_time_factor,
                                             max_steps=args.max_steps), extra_sinks=extra)
     print(f"presim ros: node /presim on {uri}; scene {sim.scene_name}, robot {robot.urdf_path.name}, "

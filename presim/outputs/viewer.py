@@ -129,6 +129,9 @@ class RerunViewer:
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
         if self.rrd_path is not None and self.rrd_path.suffix != ".rrd":
             raise ValueError(f"{self.rrd_path}: a rerun recording must end in .rrd")
+        # Written as <name>.rrd.partial, renamed when closed: a killed run leaves no .rrd that
+        # looks complete.
+        self._rrd_partial = self.rrd_path.with_name(self.rrd_path.name + ".partial") if self.rrd_path else None
         self.config = config
         self.process: subprocess.Popen | None = None
         self.url: str | None = None
@@ -166,7 +169,7 @@ class RerunViewer:
         self.grpc_url = f"rerun+http://{cfg.host}:{grpc_port}/proxy"
         sinks = [rr.GrpcSink(self.grpc_url)]
         if self.rrd_path is not None:
-            sinks.append(rr.FileSink(str(self.rrd_path)))
+            sinks.append(rr.FileSink(str(self._rrd_partial)))
         self.rec.set_sinks(*sinks)
         if self.mode == "web":
             print(f"presim: web viewer at {self.url}", file=sys.stderr)
@@ -194,7 +197,7 @@ class RerunViewer:
         self.rec = rr.RecordingStream("presim", recording_id=str(uuid.uuid4()))
         if self.mode == "rrd":
             self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(self.rrd_path))
+            self.rec.save(str(self._rrd_partial))
         else:
             if self.rrd_path is not None:
                 self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
@@ -320,3 +323,5 @@ class RerunViewer:
             rec.disconnect()  # drops the sinks: the .rrd gets its footer and is closed
             self.rec = None
             self._stop_viewer()
+            if self.rrd_path is not None and self._rrd_partial.exists():
+                os.replace(self._rrd_partial, self.rrd_path)  # complete: under its final name
