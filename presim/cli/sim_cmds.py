@@ -53,7 +53,8 @@ def register(sub) -> None:
     p.add_argument("--record", type=Path, default=None, help="record to this folder (MCAP + capture folder)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --record folder")
     p.add_argument("--viewer", nargs="?", const="native", default=None, choices=["native", "web", "rrd"],
-                   help="live 3D viewer (native window, web on 127.0.0.1, or rrd: file only)")
+                   help="live 3D viewer (native window, web on 127.0.0.1 while the drive runs, or rrd: file "
+                        "only); with --rrd, `presim view FILE.rrd [--web]` shows it again afterwards")
     p.add_argument("--rrd", type=Path, default=None, help="also save the viewer stream to this .rrd file")
     p.add_argument("--realtime", action="store_true", help="pace steps to wall time (always on for keyboard)")
     p.set_defaults(func=run)
