@@ -43,10 +43,11 @@ def test_drive_builtin_route_toy(toy_path, capsys):
     assert s["steps"] == 60 and s["images"] == 60 and s["distance"] > 0.3
 
 
-def test_drive_waypoints(toy_path, tmp_path, capsys):
+@pytest.mark.parametrize("how", [["--waypoints"], ["--controller", "waypoints"]], ids=["flag", "controller"])
+def test_drive_waypoints(toy_path, tmp_path, capsys, how):
     wp = tmp_path / "wp.txt"
     wp.write_text("2.0 1.0\n2.0 3.0\n")
-    assert main(["drive", str(toy_path), "--waypoints", str(wp), "--steps", "300", "--width", "16",
+    assert main(["drive", str(toy_path), *how, str(wp), "--steps", "300", "--width", "16",
                  "--height", "12", "--rate-hz", "1"]) == 0
     out = capsys.readouterr().out
     s = _summary(out)
@@ -66,6 +67,10 @@ def test_drive_errors(toy_path, tmp_path, capsys):
     bad.write_text("1 2 3\n")
     assert main(["drive", str(toy_path), "--trajectory", str(bad)]) == 1
     assert "t.txt:1" in capsys.readouterr().err
+    assert main(["drive", str(toy_path), "--controller", "trajectory", str(bad)]) == 1
+    assert "t.txt:1" in capsys.readouterr().err
+    assert main(["drive", str(toy_path), "--controller", "waypoints"]) == 1
+    assert "expected 'keyboard', 'route', 'waypoints FILE'" in capsys.readouterr().err
 
 
 @pytest.mark.slow

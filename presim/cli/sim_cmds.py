@@ -34,8 +34,9 @@ def register(sub) -> None:
     p.add_argument("--drive", choices=["diff", "holonomic"], default="diff",
                    help="base motion model (diff: vy is clipped to 0)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--controller", choices=["keyboard", "route"], default=None,
-                   help="keyboard: teleop in this terminal; route: built-in route (default)")
+    g.add_argument("--controller", nargs="+", default=None, metavar="KIND [FILE]",
+                   help="keyboard: teleop in this terminal; route: built-in route (default); "
+                        "waypoints FILE (same as --waypoints FILE); trajectory FILE (same as --trajectory FILE)")
     g.add_argument("--waypoints", type=Path, default=None, help="file of 'x y' world waypoints (mobile base)")
     g.add_argument("--trajectory", type=Path, default=None,
                    help="TUM trajectory of camera poses to replay (e.g. a recording's trajectory_tum.txt)")
@@ -113,6 +114,23 @@ def _build_sinks(args) -> list:
     return build_sinks(args.record, viewer, args.rrd)
 
 
+def _parse_controller(args: argparse.Namespace) -> None:
+    """``--controller KIND [FILE]`` -> ``args.controller`` in {None, keyboard, route} plus
+    ``args.waypoints`` / ``args.trajectory``."""
+    c = args.controller
+    if c is None:
+        return
+    kind, rest = c[0], c[1:]
+    if kind in ("keyboard", "route") and not rest:
+        args.controller = kind
+    elif kind in ("waypoints", "trajectory") and len(rest) == 1:
+        setattr(args, kind, Path(rest[0]))
+        args.controller = None
+    else:
+        raise ValueError(f"--controller {' '.join(c)}: expected 'keyboard', 'route', 'waypoints FILE' "
+                         "or 'trajectory FILE'")
+
+
 def run(args: argparse.Namespace) -> int:
     from presim.sensors.camera import CameraSpec
     from presim.sensors.noise import DepthNoiseConfig
@@ -124,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.steps <= 0:
         raise ValueError(f"--steps must be positive, got {args.steps}")
+    _parse_controller(args)
     scene = _load_scene(args.scene)
     robot = _build_robot(args, scene)
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz,
