@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from presim.formats.depth_png import depth_to_png_u16
 from presim.geometry import compose, make_pose, quat_xyzw_to_R
-from presim.outputs.folder_recorder import FolderRecorder, depth_to_mm_u16
+from presim.outputs.folder_recorder import FolderRecorder
 from presim.outputs.mcap_recorder import McapConfig, McapRecorder
 from presim.outputs.queue import BoundedWorker, QueuedSink
 from presim.outputs.ros_msgs import MSGDEFS
@@ -186,18 +187,13 @@ def test_capture_folder_round_trip_through_kinfu_importer(tmp_path):
         assert scene.stamps_s[i] == pytest.approx(cam.stamp_s, abs=1e-9)
         fr = scene.frame(i)
         np.testing.assert_array_equal(fr.color, cam.color)
-        np.testing.assert_allclose(fr.depth_m, depth_to_mm_u16(cam.depth_m) / 1000.0, atol=1e-6)
+        np.testing.assert_allclose(fr.depth_m, depth_to_png_u16(cam.depth_m)[0] / 1000.0, atol=1e-6)
         assert np.all(fr.depth_m[cam.depth_m == 0] == 0)
         np.testing.assert_allclose(np.abs(fr.depth_m - cam.depth_m)[cam.depth_m > 0], 0, atol=5e-4)
     np.testing.assert_allclose(scene.intrinsics[0].K, steps[0].cameras[0].K.K)
     tum = np.loadtxt(tmp_path / "capture" / "trajectory_tum.txt")
     assert tum.shape == (6, 8)
     np.testing.assert_allclose(tum[:, 1:4], [r.cameras[0].T_world_cam[:3, 3] for r in steps], atol=1e-8)
-
-
-def test_depth_mm_conversion_edges():
-    d = np.array([[0.0, 0.0004, 0.0006, 1.2345, 65.534, 65.6, np.nan, -1.0]], np.float32)
-    np.testing.assert_array_equal(depth_to_mm_u16(d), [[0, 0, 1, 1234, 65534, 0, 0, 0]])
 
 
 def test_build_sinks_refuses_to_overwrite(tmp_path):

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -29,7 +30,8 @@ from presim.capture.scene import (
 from presim.geometry import Intrinsics, unproject_depth
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir"]
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
+           "open_scene"]
 
 FORMAT_NAME = "presim-scene"
 FORMAT_VERSION = 1
@@ -263,3 +265,24 @@ def model_abspath(scene: Scene, obj: SceneObject) -> Path | None:
         return None
     p = Path(obj.model_path)
     return p if p.is_absolute() or scene.path is None else scene.path / p
+
+
+def open_scene(path: str | Path, allow_capture: bool = False,
+               on_import: Callable[[str], None] | None = None) -> Scene:
+    """The scene a user names on the command line: a saved scene folder, or with ``allow_capture``
+    a capture folder any importer reads (imported in memory, not saved; ``on_import`` gets a
+    one-line note first). Every refusal is a :class:`SceneError` naming the path: missing, an
+    interrupted save (``.partial``), not a saved scene, or what the loader / importer found.
+    """
+    path = Path(path)
+    if is_scene_dir(path) or path.with_name(path.name + ".partial").exists():
+        return load_scene(path)  # an interrupted save gets load_scene's own message
+    if not path.exists():
+        raise SceneError(f"{path}: scene folder not found")
+    if not allow_capture:
+        raise SceneError(f"{path}: not a saved scene (no scene.json); import a capture first: presim import SRC DST")
+    from presim.capture.importers.registry import import_capture  # importers sit above the store
+
+    if on_import is not None:
+        on_import(f"{path}: not a saved scene; importing it on the fly (save it with `presim import` to skip this)")
+    return import_capture(path)

@@ -58,29 +58,6 @@ def _setup_ros_env(args) -> str:
     return os.environ["ROS_MASTER_URI"]
 
 
-def _load_scene(path: Path):
-    from presim.capture.store import is_scene_dir, load_scene
-
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: scene folder not found")
-    if not is_scene_dir(path):
-        raise ValueError(f"{path}: not a saved scene folder (import a capture first: presim import SRC DST)")
-    return load_scene(path)
-
-
-def _build_robot(name: str | None, scene):
-    from presim.sim.robot import DEFAULT_ROBOT_URDF, free_camera_rig, load_robot
-
-    if name is None:
-        name = "default" if scene.floor is not None else "free"
-    if name == "free":
-        return free_camera_rig()
-    urdf = DEFAULT_ROBOT_URDF if name == "default" else Path(name)
-    if not urdf.is_file():
-        raise FileNotFoundError(f"{urdf}: URDF not found")
-    return load_robot(urdf)
-
-
 def _run_launch(args) -> int:
     import shutil
 
@@ -112,13 +89,15 @@ def run_ros(args: argparse.Namespace) -> int:
         return _run_launch(args)
     from presim.outputs.ros_bridge import (RosBridge, RosBridgeConfig, import_rospy, master_alive,
                                            start_roscore, stop_process_group)
+    from presim.capture.store import open_scene
     from presim.outputs.sinks import build_sinks
     from presim.sensors.camera import CameraSpec
+    from presim.sim.robot import robot_for_scene
     from presim.sim.simulator import SimConfig, Simulator
 
     import_rospy()
-    scene = _load_scene(args.scene)
-    robot = _build_robot(None if args.robot in (None, "auto") else args.robot, scene)
+    scene = open_scene(args.scene)
+    robot = robot_for_scene(None if args.robot in (None, "auto") else args.robot, scene.floor is not None)
     cam = CameraSpec(width=args.width, height=args.height, rate_hz=args.rate_hz)
     sim = Simulator(scene, robot, SimConfig(dt_s=1.0 / args.rate_hz, cameras=(cam,)))
     extra = tuple(build_sinks(args.record, None, args.rrd)) if (args.record or args.rrd) else ()

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["register", "read_tum_poses", "run_render"]
+__all__ = ["register"]
 
 
 def register(sub) -> None:
@@ -35,97 +34,14 @@ def register(sub) -> None:
     p.set_defaults(func=_main)
 
 
-def read_tum_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory: returns ``(stamps_s (B,), T_world_cam (B, 4, 4))``."""
-    from presim.geometry import pose_from_tum
-
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
-    stamps, poses = [], []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.replace(",", " ").split()
-        if len(parts) != 8:
-            raise ValueError(f"{path}:{n}: expected 'stamp x y z qx qy qz qw' (8 numbers), got {len(parts)}")
-        try:
-            vals = np.array([float(x) for x in parts])
-        except ValueError:
-            raise ValueError(f"{path}:{n}: not a number in {line!r}") from None
-        try:
-            poses.append(pose_from_tum(vals[1:]))
-        except ValueError as e:
-            raise ValueError(f"{path}:{n}: {e}") from None
-        stamps.append(vals[0])
-    if not poses:
-        raise ValueError(f"{path}: no poses")
-    return np.asarray(stamps), np.stack(poses)
-
-
-def _intrinsics(scene, args):
-    from presim.geometry import Intrinsics
-
-    K = scene.intrinsics[0]
-    if args.width or args.height:
-        w = args.width or round(K.width * args.height / K.height)
-        h = args.height or round(K.height * args.width / K.width)
-        K = K.scaled(w, h)
-    return Intrinsics(args.fx or K.fx, args.fy or K.fy, K.cx if args.cx is None else args.cx,
-                      K.cy if args.cy is None else args.cy, K.width, K.height)
-
-
-def run_render(scene, T_world_cams: np.ndarray, stamps_s: np.ndarray, K, out: Path, config) -> dict:
-    """Render every pose and write ``frame-XXXXXX.{color,depth,valid}.png`` (atomic) into ``out``.
-
-    Depth PNGs are uint16 millimetres (0 = unknown; filled pixels keep their filled depth, the valid
-    mask tells them apart). Also writes ``camera-intrinsics.txt``, ``trajectory_tum.txt`` and
-    ``render.json``. Returns the summary written to render.json.
-    """
-    import time
-
-    from presim.geometry import pose_to_tum
-    from presim.io_utils import atomic_write_json, atomic_write_text, progress, write_png
-    from presim.synthesis.renderer import Renderer
-
-    out.mkdir(parents=True, exist_ok=True)
-    r = Renderer(scene, config)
-    holes, views, ms = [], [], []
-    for i in progress(range(len(T_world_cams)), desc="render", unit="frame"):
-        t0 = time.perf_counter()
-        rgbd = r.render(T_world_cams[i], K)
-        ms.append((time.perf_counter() - t0) * 1e3)
-        name = f"frame-{i:06d}"
-        write_png(out / f"{name}.color.png", rgbd.color)
-        depth_mm = np.clip(np.round(rgbd.depth_m.astype(np.float64) * 1000.0), 0, 65535).astype(np.uint16)
-        write_png(out / f"{name}.depth.png", depth_mm)
-        write_png(out / f"{name}.valid.png", rgbd.valid)
-        holes.append(rgbd.hole_frac_before_fill)
-        views.append(len(r.last.views))
-    atomic_write_text(out / "camera-intrinsics.txt",
-                      "\n".join(" ".join(f"{x:.6f}" for x in row) for row in K.K) + "\n")
-    atomic_write_text(out / "trajectory_tum.txt", "".join(
-        f"{s:.6f} " + " ".join(f"{x:.9f}" for x in pose_to_tum(T)) + "\n" for s, T in zip(stamps_s, T_world_cams)))
-    summary = {
-        "scene": str(scene.path) if scene.path else None, "num_frames": len(T_world_cams),
-        "intrinsics": K.to_dict(), "config": dataclasses.asdict(config),
-        "hole_frac_before_fill": holes, "views_used": views,
-        "ms_per_frame_median": float(np.median(ms)),
-    }
-    atomic_write_json(out / "render.json", summary)
-    return summary
-
-
 def _main(args: argparse.Namespace) -> int:
-    from presim.capture.store import is_scene_dir, load_scene
+    from presim.capture.store import open_scene
+    from presim.formats.tum import read_tum
     from presim.geometry import pose_from_tum
+    from presim.synthesis.render_job import output_intrinsics, render_to_folder
     from presim.synthesis.renderer import RenderConfig
 
-    if not args.scene.exists():
-        raise FileNotFoundError(f"{args.scene}: scene folder not found")
-    if not is_scene_dir(args.scene):
-        raise FileNotFoundError(f"{args.scene}: not a saved scene (no scene.json); import it with `presim import`")
-    scene = load_scene(args.scene)
+    scene = open_scene(args.scene)
     if args.pose is not None:
         vals = args.pose.replace(",", " ").split()
         if len(vals) != 7:
@@ -133,7 +49,7 @@ def _main(args: argparse.Namespace) -> int:
         T = pose_from_tum(np.array([float(v) for v in vals]))[None]
         stamps = np.zeros(1)
     elif args.poses is not None:
-        stamps, T = read_tum_poses(args.poses)
+        stamps, T = read_tum(args.poses)
     else:
         if not 0 <= args.frame < len(scene):
             raise ValueError(f"--frame {args.frame}: the scene has frames 0..{len(scene) - 1}")
@@ -143,9 +59,11 @@ def _main(args: argparse.Namespace) -> int:
         raise ValueError(f"--layers must be >= 1, got {args.layers}")
     config = RenderConfig(num_layers=args.layers, fill_holes=not args.no_fill,
                           use_refined_depth=not args.raw_depth, backend=args.backend)
-    K = _intrinsics(scene, args)
-    s = run_render(scene, T, stamps, K, args.out, config)
+    K = output_intrinsics(scene.intrinsics[0], args.width, args.height, args.fx, args.fy, args.cx, args.cy)
+    s = render_to_folder(scene, T, stamps, K, args.out, config)
     print(f"wrote {s['num_frames']} frame(s) to {args.out} ({K.width}x{K.height}, "
           f"median {s['ms_per_frame_median']:.1f} ms/frame, mean hole fraction before fill "
           f"{np.mean(s['hole_frac_before_fill']):.4f})")
+    if s["depth_clipped_px"]:
+        print(f"  {s['depth_clipped_px']} depth pixels beyond 65.535 m written as 0 (invalid)")
     return 0

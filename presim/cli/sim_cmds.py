@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import inspect
-import shutil
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -61,41 +58,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _load_scene(path: Path):
-    from presim.capture.store import is_scene_dir, load_scene
-
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: scene folder not found")
-    if is_scene_dir(path):
-        return load_scene(path)
-    from presim.capture.importers.registry import import_capture
-
-    print(f"{path}: not a saved scene; importing it on the fly (save it with `presim import` to skip this)",
-          file=sys.stderr)
-    return import_capture(path)
-
-
-def _build_robot(args, scene):
-    from presim.sim.robot import DEFAULT_ROBOT_URDF, RobotConfig, free_camera_rig, load_robot
-
-    tilt = np.radians(args.tilt_deg)
-    name = args.robot
-    if name is None:
-        name = "default" if scene.floor is not None else "free"
-    if name == "free":
-        return free_camera_rig()
-    urdf = DEFAULT_ROBOT_URDF if name == "default" else Path(name)
-    cfg = RobotConfig(drive=args.drive)
-    if args.camera_link:
-        cfg = RobotConfig(drive=args.drive, camera_link=args.camera_link, camera_link_is_optical=not args.camera_link_body)
-    robot = load_robot(urdf, cfg)
-    if "head_tilt_joint" in robot.joint_names:
-        robot = load_robot(urdf, RobotConfig(
-            drive=cfg.drive, camera_link=cfg.camera_link, camera_link_is_optical=cfg.camera_link_is_optical,
-            initial_joint_positions=(("head_tilt_joint", tilt),)))
-    return robot
-
-
 def _build_sinks(args) -> list:
     if args.record is None and args.viewer is None and args.rrd is None:
         return []
@@ -104,14 +66,7 @@ def _build_sinks(args) -> list:
     except ImportError as e:
         raise ValueError(f"--record/--viewer/--rrd need presim.outputs.sinks, which is not available ({e})") from e
     viewer = args.viewer if args.viewer is not None else ("rrd" if args.rrd is not None else None)
-    params = inspect.signature(build_sinks).parameters
-    if "overwrite" in params:
-        return build_sinks(args.record, viewer, args.rrd, overwrite=args.overwrite)
-    if args.record is not None and args.record.exists():
-        if not args.overwrite:
-            raise FileExistsError(f"{args.record}: already exists (pass --overwrite to replace it)")
-        shutil.rmtree(args.record)
-    return build_sinks(args.record, viewer, args.rrd)
+    return build_sinks(args.record, viewer, args.rrd, overwrite=args.overwrite)
 
 
 def _parse_controller(args: argparse.Namespace) -> None:
@@ -131,88 +86,52 @@ def _parse_controller(args: argparse.Namespace) -> None:
                          "or 'trajectory FILE'")
 
 
+def _controller(args: argparse.Namespace):
+    from presim.sim.drive import ControllerSpec
+
+    if args.waypoints is not None:
+        return ControllerSpec("waypoints", args.waypoints)
+    if args.trajectory is not None:
+        return ControllerSpec("trajectory", args.trajectory)
+    if args.controller == "keyboard":
+        return ControllerSpec("keyboard", keyboard_stream=sys.stdin)
+    return ControllerSpec("route")
+
+
 def run(args: argparse.Namespace) -> int:
+    from presim.capture.store import open_scene
     from presim.sensors.camera import CameraSpec
     from presim.sensors.noise import DepthNoiseConfig
     from presim.sensors.odometry import OdometryConfig
-    from presim.sim.controllers import KeyboardTeleop, TrajectoryReplay, load_waypoints
-    from presim.sim.routes import (KeyboardDriver, ReplayDriver, RouteDriver, WaypointDriver, free_camera_route,
-                                   ground_route)
-    from presim.sim.simulator import SimConfig, Simulator
+    from presim.sim.controllers import KeyboardTeleop
+    from presim.sim.drive import DriveConfig, run_drive
+    from presim.sim.robot import robot_for_scene
+    from presim.sim.simulator import SimConfig
 
     if args.steps <= 0:
         raise ValueError(f"--steps must be positive, got {args.steps}")
     _parse_controller(args)
-    scene = _load_scene(args.scene)
-    robot = _build_robot(args, scene)
+    scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
+    robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
+                            camera_link_is_optical=not args.camera_link_body, head_tilt_rad=np.radians(args.tilt_deg))
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz,
                      noise=DepthNoiseConfig() if args.depth_noise else None)
-    config = SimConfig(dt_s=args.dt, cameras=(cam,), odometry=OdometryConfig(drift=args.odom_drift))
-    t_setup = time.perf_counter()
-    sim = Simulator(scene, robot, config)
-    if args.waypoints is not None:
-        if sim.is_free:
-            raise ValueError("--waypoints drive a mobile base; the free camera rig takes --trajectory")
-        driver = WaypointDriver(load_waypoints(args.waypoints), robot.drive)
-    elif args.trajectory is not None:
-        driver = ReplayDriver(TrajectoryReplay.from_file(args.trajectory))
-    elif args.controller == "keyboard":
+    sim_config = SimConfig(dt_s=args.dt, cameras=(cam,), odometry=OdometryConfig(drift=args.odom_drift))
+    controller = _controller(args)
+    keyboard = controller.kind == "keyboard"
+    if keyboard:
         if not sys.stdin.isatty():
             print("keyboard: stdin is not a terminal; reading keys from it anyway", file=sys.stderr)
-        driver = KeyboardDriver(KeyboardTeleop(sys.stdin))
         print(f"keyboard: {KeyboardTeleop.help}", file=sys.stderr)
-    else:
-        driver = None
-    sinks = _build_sinks(args)
-    for s in sinks:
-        sim.add_sink(s)
-    rng = np.random.default_rng(args.seed)
-    start = driver.start_pose(sim) if driver is not None else None
-    joints = driver.start_joints(sim) if driver is not None else None
-    result = sim.reset(args.seed, start=start, joint_positions=joints)
-    if driver is None:  # built-in route drawn from the seed
-        if sim.is_free:
-            driver = ReplayDriver(free_camera_route(sim, rng, args.steps))
-            result = sim.reset(args.seed, start=driver.start_pose(sim))
-        else:
-            driver = RouteDriver(ground_route(sim, rng), sim)
-    setup_s = time.perf_counter() - t_setup
-    realtime = args.realtime or args.controller == "keyboard"
-    steps = contacts = outside = images = 0
-    dist = 0.0
-    stage_ms: dict[str, float] = {}
-    prev = result.T_world_base[:3, 3].copy()
-    t0 = time.perf_counter()
-    try:
-        while steps < args.steps or args.controller == "keyboard":
-            if driver.done:
-                break
-            result = sim.step(driver.action(sim))
-            steps += 1
-            contacts += result.contact
-            outside += result.outside_captured_area
-            images += len(result.cameras)
-            p = result.T_world_base[:3, 3]
-            dist += float(np.linalg.norm(p - prev))
-            prev = p.copy()
-            for k, v in result.timings_ms.items():
-                stage_ms[k] = stage_ms.get(k, 0.0) + v
-            if realtime:
-                lag = t0 + steps * args.dt - time.perf_counter()
-                if lag > 0:
-                    time.sleep(lag)
-    finally:
-        driver.close()
-        sim.close()
-    wall = time.perf_counter() - t0
-    p = result.T_world_base[:3, 3]
-    print(f"drive: {sim.scene_name}  robot {robot.urdf_path.name} ({robot.drive})  seed {args.seed}")
-    print(f"  steps {steps}  sim time {sim.sim_time_s:.1f} s  distance {dist:.2f} m  contacts {contacts}  "
-          f"outside captured area {outside}  images {images}")
-    print(f"  final base pose x {p[0]:.2f} y {p[1]:.2f} z {p[2]:.2f} yaw {np.degrees(sim.yaw):.0f} deg")
-    rate = steps / wall if wall > 0 else float("inf")
-    per = "  ".join(f"{k} {v / max(steps, 1):.1f}" for k, v in stage_ms.items() if k != "total")
-    print(f"  {rate:.1f} steps/s ({wall:.1f} s wall, setup {setup_s:.1f} s); ms/step: {per}")
+    config = DriveConfig(steps=args.steps, seed=args.seed, realtime=args.realtime or keyboard, until_done=keyboard)
+    st = run_drive(scene, robot, sim_config, controller, config, make_sinks=lambda: _build_sinks(args))
+    p = st.T_world_base[:3, 3]
+    print(f"drive: {st.scene_name}  robot {robot.urdf_path.name} ({robot.drive})  seed {args.seed}")
+    print(f"  steps {st.steps}  sim time {st.sim_time_s:.1f} s  distance {st.distance_m:.2f} m  contacts {st.contacts}  "
+          f"outside captured area {st.outside_captured_area}  images {st.images}")
+    print(f"  final base pose x {p[0]:.2f} y {p[1]:.2f} z {p[2]:.2f} yaw {np.degrees(st.yaw_rad):.0f} deg")
+    per = "  ".join(f"{k} {v:.1f}" for k, v in st.stage_ms_per_step.items() if k != "total")
+    print(f"  {st.steps_per_s:.1f} steps/s ({st.wall_s:.1f} s wall, setup {st.setup_s:.1f} s); ms/step: {per}")
     if args.record is not None:
         print(f"  recorded to {args.record}")
     return 0

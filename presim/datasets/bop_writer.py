@@ -30,10 +30,11 @@ import numpy as np
 
 from presim.datasets.annotate import InstanceAnnotation
 from presim.datasets.objects import ObjectModel, models_info, write_model_ply_mm
+from presim.formats.depth_png import encode_depth_png
 from presim.geometry import Intrinsics, invert
 from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text
 
-__all__ = ["encode_depth_png", "encode_frame", "scene_camera_entry", "camera_json", "write_models",
+__all__ = ["encode_frame", "scene_camera_entry", "camera_json", "write_models",
            "write_scene_json", "write_frame_files", "coco_rle", "coco_scene", "scene_dir",
            "json_dumps_stable", "bop_json_text", "DEFAULT_DEPTH_SCALE"]
 
@@ -58,19 +59,6 @@ def scene_camera_entry(K: Intrinsics, T_world_cam: np.ndarray, depth_scale: floa
             "cam_R_w2c": [float(x) for x in T_cam_world[:3, :3].ravel()],
             "cam_t_w2c": [float(x) * 1000.0 for x in T_cam_world[:3, 3]],  # BOP border: m -> mm
             "depth_scale": float(depth_scale)}
-
-
-def encode_depth_png(depth_m: np.ndarray, depth_scale: float) -> tuple[bytes, int]:
-    """16-bit PNG of ``round(depth_mm / depth_scale)``; returns ``(bytes, n_clipped)`` where
-    ``n_clipped`` counts pixels beyond the 16-bit range (stored as 0 = invalid, never wrapped)."""
-    d = np.asarray(depth_m, dtype=np.float64)
-    q = np.round(d * 1000.0 / depth_scale)  # metres -> mm -> PNG units
-    over = q > 65535
-    q[over | ~np.isfinite(q) | (q < 0)] = 0
-    ok, buf = cv2.imencode(".png", q.astype(np.uint16))
-    if not ok:
-        raise OSError("depth PNG encoding failed")
-    return buf.tobytes(), int(np.count_nonzero(over))
 
 
 def _encode_png(img: np.ndarray) -> bytes:

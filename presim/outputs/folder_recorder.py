@@ -1,34 +1,31 @@
 """Record a drive as a plain capture folder in the KinectFusion / 7-Scenes layout.
 
-``presim import DIR/capture`` reads it back as a capture (round trip). Files::
-
-    frame-XXXXXX.color.png    uint8 RGB
-    frame-XXXXXX.depth.png    uint16 millimetres, 0 = invalid (depths above 65.534 m also 0)
-    frame-XXXXXX.pose.txt     4x4 T_world_cam (camera OPTICAL frame -> world), metres
-    camera-intrinsics.txt     3x3 K
-    timestamps.txt            lines "frame-XXXXXX <stamp_s>" (sim time)
-    trajectory_tum.txt        "stamp x y z qx qy qz qw" of T_world_cam (TUM format)
+``presim import DIR/capture`` reads it back as a capture (round trip). The files and their rules
+belong to :mod:`presim.formats.kinfu_folder` (the one capture-folder writer, also used by
+``presim render``): color / depth (uint16 mm, 0 = invalid; depths that do not fit 1..65535 mm are
+written 0 and counted) / pose PNG and text files per frame, ``camera-intrinsics.txt``,
+``timestamps.txt`` and ``trajectory_tum.txt``.
 
 The folder is built as ``<dir>.partial`` and renamed when the recorder closes, so an existing
-``capture/`` is always complete. One camera is recorded (the first one seen unless named).
+``capture/`` is always complete. One camera is recorded (the first one seen unless named). Depth
+pixels lost to the 16-bit range are counted in ``depth_clipped_px`` and logged as a warning at close.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
-import numpy as np
-
-from presim.geometry import pose_to_tum
-from presim.io_utils import atomic_write_bytes, atomic_write_text
+from presim.formats.kinfu_folder import KinfuFolderWriter
 from presim.sim.types import CameraObservation, SimInfo, StepResult
 
-__all__ = ["FolderConfig", "FolderRecorder", "depth_to_mm_u16"]
+__all__ = ["FolderConfig", "FolderRecorder"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -43,22 +40,6 @@ class FolderConfig:
     """Replace an existing folder (only when the new one is complete)."""
 
 
-def depth_to_mm_u16(depth_m: np.ndarray) -> np.ndarray:
-    """float32 metres (0 = invalid) -> uint16 millimetres (0 = invalid; unrepresentable -> 0)."""
-    d = np.asarray(depth_m, dtype=np.float32)
-    mm = np.rint(d * 1000.0)
-    mm[~np.isfinite(mm) | (mm <= 0) | (mm > 65534)] = 0
-    return mm.astype(np.uint16)
-
-
-def _png(image: np.ndarray, level: int) -> bytes:
-    img = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, int(level)])
-    if not ok:
-        raise OSError("PNG encoding failed")
-    return buf.tobytes()
-
-
 class FolderRecorder:
     """A synchronous :class:`~presim.sim.types.Sink` writing a KinectFusion-layout capture folder."""
 
@@ -68,11 +49,17 @@ class FolderRecorder:
         self.partial = self.dst.with_name(self.dst.name + ".partial")
         self._lock = threading.Lock()
         self._open = False
-        self._K = None
         self._sensor = config.sensor_name
-        self._stamps: list[str] = []
-        self._tum: list[str] = []
-        self.frames_written = 0
+        self._writer: KinfuFolderWriter | None = None
+
+    @property
+    def frames_written(self) -> int:
+        return 0 if self._writer is None else self._writer.frames_written
+
+    @property
+    def depth_clipped_px(self) -> int:
+        """Depth pixels beyond 65.535 m, written as 0 (presim.formats.depth_png)."""
+        return 0 if self._writer is None else self._writer.depth_clipped_px
 
     def open(self, info: SimInfo) -> None:
         if self.dst.exists() and not self.config.overwrite:
@@ -80,6 +67,7 @@ class FolderRecorder:
         if self.partial.exists():
             shutil.rmtree(self.partial)
         self.partial.mkdir(parents=True)
+        self._writer = KinfuFolderWriter(self.partial, png_compression=self.config.png_compression)
         self._open = True
 
     def on_step(self, result: StepResult) -> None:
@@ -93,34 +81,17 @@ class FolderRecorder:
                     self._write_frame(cam)
 
     def _write_frame(self, cam: CameraObservation) -> None:
-        K = cam.K.K
-        if self._K is None:
-            self._K = K
-            atomic_write_text(self.partial / "camera-intrinsics.txt",
-                              "\n".join(" ".join(f"{v:.10g}" for v in row) for row in K) + "\n")
-        elif not np.allclose(self._K, K):
-            raise ValueError(f"{self.dst}: camera {cam.sensor_name} changed intrinsics mid-recording; "
-                             "the capture layout holds one K")
-        name = f"frame-{self.frames_written:06d}"
-        lvl = self.config.png_compression
-        atomic_write_bytes(self.partial / f"{name}.color.png", _png(np.ascontiguousarray(cam.color), lvl))
-        atomic_write_bytes(self.partial / f"{name}.depth.png", _png(depth_to_mm_u16(cam.depth_m), lvl))
-        T = np.asarray(cam.T_world_cam, dtype=np.float64)
-        atomic_write_text(self.partial / f"{name}.pose.txt",
-                          "\n".join(" ".join(f"{v:.10f}" for v in row) for row in T) + "\n")
-        self._stamps.append(f"{name} {cam.stamp_s:.9f}")
-        self._tum.append(f"{cam.stamp_s:.9f} " + " ".join(f"{v:.9f}" for v in pose_to_tum(T)))
-        self.frames_written += 1
+        self._writer.write_frame(cam.color, cam.depth_m, cam.T_world_cam, cam.K, cam.stamp_s)
 
     def close(self) -> None:
         with self._lock:
             if not self._open:
                 return
             self._open = False
-            atomic_write_text(self.partial / "timestamps.txt", "".join(s + "\n" for s in self._stamps))
-            atomic_write_text(self.partial / "trajectory_tum.txt",
-                              "# stamp_s x y z qx qy qz qw (T_world_cam, camera optical frame)\n"
-                              + "".join(s + "\n" for s in self._tum))
+            self._writer.close()
+            if self.depth_clipped_px:
+                log.warning("%s: %d depth pixels beyond 65.535 m written as 0 (invalid)", self.dst,
+                            self.depth_clipped_px)
             if self.dst.exists():
                 shutil.rmtree(self.dst)
             os.replace(self.partial, self.dst)

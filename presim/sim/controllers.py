@@ -15,7 +15,8 @@ from typing import IO, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from presim.geometry import check_rigid, pose_from_tum
+from presim.formats.tum import read_tum
+from presim.geometry import check_rigid
 
 __all__ = [
     "Action",
@@ -25,7 +26,6 @@ __all__ = [
     "joint_position_step",
     "WaypointConfig",
     "WaypointFollower",
-    "load_tum_trajectory",
     "load_waypoints",
     "TrajectoryReplay",
     "KeyboardTeleop",
@@ -185,40 +185,6 @@ def load_waypoints(path: str | Path) -> np.ndarray:
 
 
 # ---- trajectory replay ---------------------------------------------------------------------------
-def load_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory (``stamp x y z qx qy qz qw`` per line, ``#`` comments).
-    Returns (stamps_s (N,), poses (N, 4, 4)); stamps must increase."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: trajectory file not found")
-    stamps, poses = [], []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        try:
-            vals = np.array([float(v) for v in line.replace(",", " ").split()])
-        except ValueError:
-            raise ValueError(f"{path}:{n}: not a TUM line 'stamp x y z qx qy qz qw': '{line}'") from None
-        if len(vals) != 8:
-            raise ValueError(f"{path}:{n}: a TUM line has 8 numbers (stamp x y z qx qy qz qw), got {len(vals)}")
-        if not np.all(np.isfinite(vals)):
-            raise ValueError(f"{path}:{n}: non-finite value in '{line}'")
-        qn = np.linalg.norm(vals[4:])
-        if qn < 1e-6:
-            raise ValueError(f"{path}:{n}: zero quaternion")
-        if abs(qn - 1.0) > 0.01:
-            raise ValueError(f"{path}:{n}: quaternion norm {qn:.4g} is not 1 (corrupt line?)")
-        stamps.append(vals[0])
-        poses.append(pose_from_tum(vals[1:]))
-    if not stamps:
-        raise ValueError(f"{path}: empty trajectory")
-    stamps_a = np.array(stamps)
-    if np.any(np.diff(stamps_a) <= 0):
-        raise ValueError(f"{path}: timestamps must strictly increase")
-    return stamps_a, np.stack(poses)
-
-
 class TrajectoryReplay:
     """Pose at sim time ``t``: the trajectory played from its first stamp (t = 0 -> first pose),
     interpolated linearly in position and by slerp in rotation; held at the last pose at the end."""
@@ -234,7 +200,8 @@ class TrajectoryReplay:
 
     @classmethod
     def from_file(cls, path: str | Path) -> "TrajectoryReplay":
-        return cls(*load_tum_trajectory(path))
+        """Replay of a TUM file, read strictly by :func:`presim.formats.tum.read_tum`."""
+        return cls(*read_tum(path))
 
     @property
     def duration_s(self) -> float:

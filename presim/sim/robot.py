@@ -14,7 +14,7 @@ Frames (REP-103): ``base_link`` x forward, y left, z up, origin on the floor und
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,7 @@ __all__ = [
     "load_robot",
     "default_robot",
     "free_camera_rig",
+    "robot_for_scene",
 ]
 
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
@@ -312,3 +313,25 @@ def default_robot(drive: str = "diff", initial_tilt_rad: float = 0.0) -> Robot:
 def free_camera_rig() -> Robot:
     """The shipped 6-DoF free-flying camera rig (no floor, no collisions)."""
     return load_robot(FREE_CAMERA_URDF, RobotConfig(drive="free"))
+
+
+def robot_for_scene(name: str | None, has_floor: bool, drive: str = "diff", camera_link: str | None = None,
+                    camera_link_is_optical: bool = True, head_tilt_rad: float | None = None) -> Robot:
+    """The robot a user names: ``'default'`` (presim_bot), ``'free'`` (the free camera rig) or a
+    URDF path; None picks presim_bot for a scene with a floor and the free rig for one without.
+
+    ``drive``, ``camera_link`` and ``camera_link_is_optical`` go to :class:`RobotConfig` (the free rig
+    ignores them); ``head_tilt_rad`` starts a robot that has a ``head_tilt_joint`` at that tilt
+    (positive looks down). Missing files raise FileNotFoundError, bad URDFs ValueError.
+    """
+    if name is None:
+        name = "default" if has_floor else "free"
+    if name == "free":
+        return free_camera_rig()
+    urdf = DEFAULT_ROBOT_URDF if name == "default" else Path(name)
+    cfg = RobotConfig(drive=drive, camera_link=camera_link or RobotConfig.camera_link,
+                      camera_link_is_optical=camera_link_is_optical if camera_link else True)
+    robot = load_robot(urdf, cfg)
+    if head_tilt_rad is not None and "head_tilt_joint" in robot.joint_names:
+        robot = load_robot(urdf, replace(cfg, initial_joint_positions=(("head_tilt_joint", float(head_tilt_rad)),)))
+    return robot
