@@ -271,8 +271,8 @@ def open_scene(path: str | Path, allow_capture: bool = False,
                on_import: Callable[[str], None] | None = None) -> Scene:
     """The scene a user names on the command line: a saved scene folder, or with ``allow_capture``
     a capture folder any importer reads (imported in memory, not saved; ``on_import`` gets a
-    one-line note first). Every refusal is a :class:`SceneError` naming the path: missing, an
-    interrupted save (``.partial``), not a saved scene, or what the loader / importer found.
+    one-line note first). Every refusal is a :class:`SceneError` (a ValueError) naming the path:
+    missing, an interrupted save (``.partial``), not a saved scene, or what the loader / importer found.
     """
     path = Path(path)
     if is_scene_dir(path) or path.with_name(path.name + ".partial").exists():
@@ -285,4 +285,9 @@ def open_scene(path: str | Path, allow_capture: bool = False,
 
     if on_import is not None:
         on_import(f"{path}: not a saved scene; importing it on the fly (save it with `presim import` to skip this)")
-    return import_capture(path)
+    try:
+        return import_capture(path)
+    except SceneError:
+        raise
+    except (OSError, ValueError) as e:  # the registry's "no importer recognises this", a missing file
+        raise SceneError(str(e)) from e
