@@ -89,13 +89,14 @@ def run_ros(args: argparse.Namespace) -> int:
         return _run_launch(args)
     from presim.outputs.ros_bridge import (RosBridge, RosBridgeConfig, import_rospy, master_alive,
                                            start_roscore, stop_process_group)
-    from presim.capture.store import open_scene
     from presim.outputs.sinks import build_sinks
     from presim.sensors.camera import CameraSpec
-    from presim.sim.robot import robot_for_scene
     from presim.sim.simulator import SimConfig, Simulator
 
     import_rospy()
+    from presim.capture.store import open_scene
+    from presim.sim.robot import robot_for_scene
+
     scene = open_scene(args.scene)
     robot = robot_for_scene(None if args.robot in (None, "auto") else args.robot, scene.floor is not None)
     cam = CameraSpec(width=args.width, height=args.height, rate_hz=args.rate_hz)
