@@ -18,8 +18,9 @@ import trimesh
 from presim.datasets.annotate import (
     AnnotateConfig, annotate_instances, bbox_from_mask, render_model_depth, render_model_depth_reference,
 )
-from presim.datasets.bop_reader import load_ply, read_models_info
+from presim.datasets.bop_reader import read_models_info
 from presim.datasets.objects import ObjectModel, load_model, models_info_entry, write_model_ply_mm
+from presim.formats.ply import read_ply
 from presim.geometry import Intrinsics, make_pose, quat_xyzw_to_R
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -95,8 +96,8 @@ def test_visibility_rules_and_counts():
     # Scene depth = the object's own surface (+5 mm noise): fully visible.
     scene = np.where(mask, full + 0.005, 2.0).astype(np.float32)
     (a,) = annotate_instances({1: model}, [(1, T)], K, scene)
-    assert a.px_count_visib == a.px_count_all == mask.sum() and a.visib_fract == 1.0
-    assert a.px_count_valid == mask.sum()
+    assert a.info.px_count_visib == a.info.px_count_all == mask.sum() and a.visib_fract == 1.0
+    assert a.info.px_count_valid == mask.sum()
     # Left half occluded by a surface 10 cm in front; holes (0) count as visible, not valid (BOP'19).
     scene2 = scene.copy()
     scene2[:, :80] = 0.4
@@ -105,14 +106,14 @@ def test_visibility_rules_and_counts():
     (b,) = annotate_instances({1: model}, [(1, T)], K, scene2, config=bop)
     assert not b.mask_visib[:, :80].any()
     assert b.mask_visib[:, 85:].sum() == mask[:, 85:].sum()
-    assert b.px_count_valid == mask[:, :85].sum()
-    assert np.isclose(b.visib_fract, b.px_count_visib / b.px_count_all)
+    assert b.info.px_count_valid == mask[:, :85].sum()
+    assert np.isclose(b.visib_fract, b.info.px_count_visib / b.info.px_count_all)
     # The scene's valid mask: invalid pixels behave like missing depth.
     (c,) = annotate_instances({1: model}, [(1, T)], K, scene2, scene_valid=np.zeros_like(mask), config=bop)
-    assert c.px_count_visib == c.px_count_all and c.px_count_valid == 0
+    assert c.info.px_count_visib == c.info.px_count_all and c.info.px_count_valid == 0
     # Nothing visible -> bbox_obj is -1 as bop_toolkit writes it.
     (d,) = annotate_instances({1: model}, [(1, T)], K, np.full_like(scene, 0.1), config=bop)
-    assert d.px_count_visib == 0 and d.bbox_obj == (-1, -1, -1, -1) and d.bbox_visib == (-1, -1, -1, -1)
+    assert d.info.px_count_visib == 0 and d.info.bbox_obj == (-1, -1, -1, -1) and d.info.bbox_visib == (-1, -1, -1, -1)
 
 
 def test_occlusion_opening_removes_slivers_keeps_real_occluders():
@@ -138,13 +139,13 @@ def test_object_occlusion_between_models_and_truncation():
     a_far, a_near = annotate_instances({1: big, 2: small}, [(1, T_far), (2, T_near)], K, None)
     assert a_near.visib_fract == 1.0
     assert not (a_far.mask_visib & a_near.mask).any()
-    assert a_far.px_count_visib == (a_far.mask & ~a_near.mask).sum()
+    assert a_far.info.px_count_visib == (a_far.mask & ~a_near.mask).sum()
     # Truncation: px_count_all counts the silhouette outside the image too (BOP's 3x canvas).
     T_edge = make_pose(np.eye(3), [0.2, 0, 0.5])
     (e,) = annotate_instances({1: big}, [(1, T_edge)], K, None)
-    assert e.mask.sum() < e.px_count_all
-    assert e.bbox_obj[0] + e.bbox_obj[2] > K.width - 1
-    assert e.px_count_visib == e.mask.sum()
+    assert e.mask.sum() < e.info.px_count_all
+    assert e.info.bbox_obj[0] + e.info.bbox_obj[2] > K.width - 1
+    assert e.info.px_count_visib == e.mask.sum()
 
 
 def test_point_cloud_model_is_closed_by_switching_median():
@@ -160,8 +161,8 @@ def test_point_cloud_model_is_closed_by_switching_median():
 def test_model_ply_roundtrip_mm_and_models_info(tmp_path):
     model = _mesh_model(7, "box")
     write_model_ply_mm(model, tmp_path / "obj_000007.ply")
-    ply = load_ply(tmp_path / "obj_000007.ply")
-    assert np.allclose(ply.pts, model.vertices_m * 1000, atol=1e-3)
+    ply = read_ply(tmp_path / "obj_000007.ply")
+    assert np.allclose(ply.vertices, model.vertices_m * 1000, atol=1e-3)
     assert np.array_equal(ply.faces, model.faces)
     info = models_info_entry(model)
     assert np.isclose(info["diameter"], 1000 * np.linalg.norm([0.1, 0.06, 0.04]), atol=1e-3)
@@ -203,7 +204,7 @@ def _lmo_bbox_ious(config: AnnotateConfig, every: int = 1) -> np.ndarray:
         for a, b in zip(annotate_instances(models, inst, Kim, None, config=config), info[im]):
             if b["px_count_visib"] == 0:
                 continue  # BOP writes bbox_obj = -1 when nothing is visible (no depth here to judge)
-            ious.append(_bbox_iou(a.bbox_obj, b["bbox_obj"]))
+            ious.append(_bbox_iou(a.info.bbox_obj, b["bbox_obj"]))
     return np.asarray(ious)
 
 
