@@ -158,6 +158,31 @@ def test_point_cloud_model_is_closed_by_switching_median():
     assert _iou(d, ref) > 0.85
 
 
+def _points_at_pixels(pix_depth: dict) -> np.ndarray:
+    """Object points (camera = object frame) that project onto the given pixel centres of K."""
+    return np.array([[(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z] for (u, v), z in pix_depth.items()])
+
+
+def test_point_cloud_hole_takes_the_lower_median_of_eq_3_9():
+    """A zero pixel with 6 of its 8 neighbours set takes the *lower* median of the 6 depths (thesis
+    eq. 3.9, as the renderer's crack filter). Before this change annotate used its own filter with
+    the upper median: 0.53 m here instead of 0.52 m."""
+    depths = {(49, 49): 0.50, (50, 49): 0.55, (51, 49): 0.51, (49, 51): 0.54, (50, 51): 0.52, (51, 51): 0.53}
+    model = ObjectModel(3, "pts", _points_at_pixels(depths))
+    one_pass = AnnotateConfig(point_fill_iters=1)
+    d = render_model_depth(model, np.eye(4), K, one_pass).in_image(K)
+    # sorted: 0.50 0.51 0.52 | 0.53 0.54 0.55 -> lower median 0.52 (index (6 - 1) // 2 = 2)
+    assert d[50, 50] == pytest.approx(0.52, abs=1e-6)
+    # (49, 50) and (51, 50) see only 4 set neighbours (not more than half of 8): stay empty.
+    assert d[50, 49] == 0 and d[50, 51] == 0
+    assert np.count_nonzero(d) == 7
+    # A second pass: (49, 50) now sees 5 set neighbours 0.50 0.55 0.54 0.52 0.52 -> median 0.52;
+    # (51, 50) sees 0.55 0.51 0.52 0.53 0.52 -> 0.52.
+    d2 = render_model_depth(model, np.eye(4), K, AnnotateConfig(point_fill_iters=2)).in_image(K)
+    assert d2[50, 49] == pytest.approx(0.52, abs=1e-6) and d2[50, 51] == pytest.approx(0.52, abs=1e-6)
+    assert np.count_nonzero(d2) == 9
+
+
 def test_model_ply_roundtrip_mm_and_models_info(tmp_path):
     model = _mesh_model(7, "box")
     write_model_ply_mm(model, tmp_path / "obj_000007.ply")

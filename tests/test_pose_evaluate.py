@@ -66,6 +66,13 @@ def _gt_poses():
     }
 
 
+def _add_of_180_about_z() -> float:
+    """ADD (m) of a pose rotated by 180 deg about the model's z axis: each point x moves by
+    ||R x - x|| = 2 * hypot(x, y); the mean over the models_eval points (the 9x9x9 box surface grid)."""
+    p = _box_surface_pts(BOX_MM) * 1e-3
+    return float(np.mean(2 * np.hypot(p[:, 0], p[:, 1])))
+
+
 @pytest.fixture(scope="module")
 def synth_bop(tmp_path_factory) -> Path:
     """A 4-image BOP dataset with depth PNGs rendered from the true meshes (so VSD is defined)."""
@@ -164,8 +171,13 @@ def test_known_errors_highest_score_counts_and_missing_fail(synth_bop, tmp_path)
     p1, p2 = rep.per_object[1], rep.per_object[2]
     assert p1["n_targets"] == 5 and p1["n_estimated"] == 4
     assert p1["acc_add_s_2cm"] == pytest.approx(3 / 5)     # images 1, 3, 3 right; 0 wrong; 2 missing
-    assert p2["acc_add_s_2cm"] == pytest.approx(1.0) and p2["acc_add_2cm"] < 1.0
+    # obj 2: images 0 and 1 rotated by 180 deg about z (ADD = 2 x mean distance to the z axis of the
+    # models_eval points, 67.9 mm > 2 cm: failures), image 2 exact -> ADD accuracy 1/3.
+    assert p2["n_targets"] == 3
+    assert p2["acc_add_s_2cm"] == pytest.approx(1.0) and p2["acc_add_2cm"] == pytest.approx(1 / 3)
     assert p2["acc_adi_2cm"] == pytest.approx(1.0)
+    rec2 = next(r for r in rep.records if r.obj_id == 2 and r.im_id == 0)
+    assert rec2.add == pytest.approx(_add_of_180_about_z(), rel=1e-9) and rec2.add_s == pytest.approx(0, abs=1e-9)
     rec = next(r for r in rep.records if r.obj_id == 1 and r.im_id == 0)
     assert rec.add == pytest.approx(0.05, rel=1e-6) and rec.te == pytest.approx(0.05, rel=1e-6)
     assert rec.score == 0.9
@@ -186,7 +198,8 @@ def test_symmetric_flag_switches_to_add_s(synth_bop, tmp_path):
     plain = evaluate_files(synth_bop, csv, EvalConfig(vsd="off"))
     sym = evaluate_files(synth_bop, csv, EvalConfig(vsd="off", symmetric_obj_ids=(1,)))
     r0 = lambda rep: next(r for r in rep.records if r.obj_id == 1 and r.im_id == 0)  # noqa: E731
-    assert r0(plain).add_s > 0.02 and r0(sym).add_s == pytest.approx(0.0, abs=1e-9)
+    assert r0(plain).add_s == pytest.approx(_add_of_180_about_z(), rel=1e-9)
+    assert r0(sym).add_s == pytest.approx(0.0, abs=1e-9)
 
 
 def test_unknown_symmetric_id_is_an_error(synth_bop, tmp_path):
