@@ -73,6 +73,18 @@ def _int_key(path: Path, key) -> int:
         raise ValueError(f"{path}: key {key!r} is not an integer id") from None
 
 
+def _keyed(path: Path, kind: str, lists: bool = False):
+    """``(id, entry)`` of a BOP file keyed by ``kind`` id (``lists``: each entry a list of rows)."""
+    d = load_json(path)
+    if not isinstance(d, dict):
+        raise ValueError(f"{path}: expected an object keyed by {kind} id")
+    for key, e in d.items():
+        id_ = _int_key(path, key)
+        if lists and not isinstance(e, list):
+            raise ValueError(f"{path}: {kind} {id_}: expected a list of instances")
+        yield id_, e
+
+
 def _floats(path: Path, where: str, value, n: int) -> np.ndarray:
     """``value`` as a float64 array of exactly ``n`` finite numbers, else a clear error."""
     try:
@@ -161,12 +173,8 @@ class SceneCamera:
 def read_scene_camera(path: str | Path) -> dict[int, SceneCamera]:
     """Read ``scene_camera.json`` -> ``{im_id: SceneCamera}`` (translations converted to metres)."""
     path = Path(path)
-    d = load_json(path)
-    if not isinstance(d, dict):
-        raise ValueError(f"{path}: expected an object keyed by image id")
     out: dict[int, SceneCamera] = {}
-    for key, e in d.items():
-        im_id = _int_key(path, key)
+    for im_id, e in _keyed(path, "image"):
         where = f"image {im_id}"
         K = _floats(path, f"{where} cam_K", _require(path, where, e, "cam_K"), 9).reshape(3, 3)
         T = None
@@ -212,14 +220,8 @@ class GtInstance:
 def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
     """Read ``scene_gt.json`` -> ``{im_id: [GtInstance, ...]}`` in file order (the gt index)."""
     path = Path(path)
-    d = load_json(path)
-    if not isinstance(d, dict):
-        raise ValueError(f"{path}: expected an object keyed by image id")
     out: dict[int, list[GtInstance]] = {}
-    for key, insts in d.items():
-        im_id = _int_key(path, key)
-        if not isinstance(insts, list):
-            raise ValueError(f"{path}: image {im_id}: expected a list of instances")
+    for im_id, insts in _keyed(path, "image", lists=True):
         lst = []
         for gt_idx, e in enumerate(insts):
             where = f"image {im_id} instance {gt_idx}"
@@ -260,14 +262,8 @@ class GtInfo:
 def read_scene_gt_info(path: str | Path) -> dict[int, list[GtInfo]]:
     """Read ``scene_gt_info.json`` -> ``{im_id: [GtInfo, ...]}``."""
     path = Path(path)
-    d = load_json(path)
-    if not isinstance(d, dict):
-        raise ValueError(f"{path}: expected an object keyed by image id")
     out: dict[int, list[GtInfo]] = {}
-    for key, insts in d.items():
-        im_id = _int_key(path, key)
-        if not isinstance(insts, list):
-            raise ValueError(f"{path}: image {im_id}: expected a list of instances")
+    for im_id, insts in _keyed(path, "image", lists=True):
         lst = []
         for gt_idx, e in enumerate(insts):
             where = f"image {im_id} instance {gt_idx}"
@@ -313,12 +309,8 @@ class ModelInfo:
 def read_models_info(path: str | Path) -> dict[int, ModelInfo]:
     """Read ``models_info.json`` -> ``{obj_id: ModelInfo}`` (mm converted to metres)."""
     path = Path(path)
-    d = load_json(path)
-    if not isinstance(d, dict):
-        raise ValueError(f"{path}: expected an object keyed by object id")
     out: dict[int, ModelInfo] = {}
-    for key, e in d.items():
-        obj_id = _int_key(path, key)
+    for obj_id, e in _keyed(path, "object"):
         where = f"object {obj_id}"
         diam = _floats(path, f"{where} diameter", _require(path, where, e, "diameter"), 1)[0]
         if diam <= 0:
