@@ -200,6 +200,14 @@ def _canvas_crop(uv: np.ndarray, ok: np.ndarray, K: Intrinsics, factor: int) -> 
     return u0, v0, u1 - u0 + 1, v1 - v0 + 1
 
 
+def _project_model(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics, config: AnnotateConfig):
+    """Model points in the camera frame (V, 3), their pixel coordinates (V, 2) and the canvas crop
+    ``(u0, v0, w, h)`` they cover (None: nothing in front of the camera)."""
+    p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
+    uv = project(K, p)[0] + config.pixel_offset_px
+    return p, uv, _canvas_crop(uv, p[:, 2] > config.near_m, K, config.canvas_factor)
+
+
 def render_model_depth(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics,
                        config: AnnotateConfig = AnnotateConfig()) -> ModelRender:
     """Render ``model`` alone at pose ``T_cam_obj`` (4x4, metres) with intrinsics ``K``.
@@ -211,13 +219,10 @@ def render_model_depth(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics,
         return render_model_depth_reference(model, T_cam_obj, K, config)
     if config.backend != "numba":
         raise ValueError(f"unknown annotation backend {config.backend!r} (use 'numba' or 'open3d')")
-    p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
-    z = p[:, 2]
-    ok = z > config.near_m
-    uv = project(K, p)[0] + config.pixel_offset_px
-    crop = _canvas_crop(uv, ok, K, config.canvas_factor)
+    p, uv, crop = _project_model(model, T_cam_obj, K, config)
     if crop is None:
         return ModelRender(np.zeros((0, 0), np.float32), 0, 0)
+    z = p[:, 2]
     u0, v0, w, h = crop
     out = np.zeros((h, w), np.float32)
     u = np.ascontiguousarray(uv[:, 0])
@@ -243,13 +248,10 @@ def render_model_depth_reference(model: ObjectModel, T_cam_obj: np.ndarray, K: I
 
     if model.faces is None:
         raise ValueError(f"model {model.obj_id}: the ray-cast reference needs a mesh, not a point cloud")
-    p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
-    z = p[:, 2]
-    ok = z > config.near_m
-    uv = project(K, p)[0] + config.pixel_offset_px
-    crop = _canvas_crop(uv, ok, K, config.canvas_factor)
+    p, uv, crop = _project_model(model, T_cam_obj, K, config)
     if crop is None:
         return ModelRender(np.zeros((0, 0), np.float32), 0, 0)
+    z = p[:, 2]
     u0, v0, w, h = crop
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(p.astype(np.float32)), o3d.core.Tensor(model.faces.astype(np.uint32)))
