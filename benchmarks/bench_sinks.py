@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from presim.outputs.folder_recorder import FolderRecorder  # noqa: E402
 from presim.outputs.mcap_recorder import McapRecorder  # noqa: E402
 from presim.outputs.queue import QueuedSink  # noqa: E402
-from presim.outputs.testing import synthetic_info, synthetic_steps  # noqa: E402
+from presim.testing.steps import synthetic_info, synthetic_steps  # noqa: E402
 from presim.outputs.viewer import RerunViewer  # noqa: E402
 
 
@@ -109,7 +109,7 @@ def sim_loop(makes, width, height, n_steps, repeats) -> tuple[float, float]:
     interleaved per repeat so machine-load drift hits both alike."""
     from presim.sensors.camera import CameraSpec
     from presim.sim.simulator import SimConfig, Simulator
-    from presim.sim.toy_scene import build_toy_room
+    from presim.testing.toy_scene import build_toy_room
 
     scene = build_toy_room()
     cfg = SimConfig(dt_s=0.1, cameras=(CameraSpec(width=width, height=height, rate_hz=10.0),))

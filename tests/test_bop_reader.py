@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import struct
 from pathlib import Path
 
@@ -16,22 +15,11 @@ from presim.datasets.bop_reader import (
 )
 from presim.formats.ply import read_ply
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-LMO = DATA / "lmo_scene000002"
-
-
-def _need_lmo():
-    if not LMO.is_dir():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{LMO} missing (required in CI)")
-        pytest.skip(f"{LMO} not available")
-
-
 # ---- real data ---------------------------------------------------------------------------------
 
-def test_lmo_dataset_listing_and_units():
-    _need_lmo()
-    ds = BopDataset(LMO)
+def test_lmo_dataset_listing_and_units(shared_data):
+    lmo = shared_data("lmo_scene000002")
+    ds = BopDataset(lmo)
     assert ds.scene_ids() == [2]
     assert len(ds.image_ids(2)) == 200
     assert ds.obj_ids() == [1, 5, 6, 8, 9, 10, 11, 12]
@@ -57,11 +45,11 @@ def test_lmo_dataset_listing_and_units():
     assert ds.read_rgb(2, 3).shape == (480, 640, 3)
 
 
-def test_lmo_models_match_trimesh_and_info():
-    _need_lmo()
+def test_lmo_models_match_trimesh_and_info(shared_data):
+    lmo = shared_data("lmo_scene000002")
     import trimesh
 
-    ds = BopDataset(LMO)
+    ds = BopDataset(lmo)
     for obj_id in (1, 10):
         for ev in (False, True):  # models/ is ASCII, models_eval/ is binary little-endian
             path = ds.model_path(obj_id, eval=ev)

@@ -21,7 +21,7 @@ from presim.outputs.mcap_recorder import McapConfig, McapRecorder
 from presim.outputs.queue import BoundedWorker, QueuedSink
 from presim.outputs.ros_msgs import MSGDEFS
 from presim.outputs.sinks import build_sinks
-from presim.outputs.testing import synthetic_info, synthetic_steps
+from presim.testing.steps import synthetic_info, synthetic_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -263,7 +263,7 @@ _SIGINT_SCRIPT = textwrap.dedent("""
     import sys, time
     from pathlib import Path
     from presim.outputs.sinks import build_sinks
-    from presim.outputs.testing import synthetic_info, synthetic_steps
+    from presim.testing.steps import synthetic_info, synthetic_steps
     out = Path(sys.argv[1])
     sinks = build_sinks(out, None, out / "view.rrd")
     for s in sinks:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import struct
 from pathlib import Path
 
@@ -17,8 +16,6 @@ from presim.datasets.bop_reader import BopDataset
 from presim.pose.evaluate import EvalConfig, evaluate, evaluate_files
 from presim.pose.results import Estimate, read_bop_results, write_bop_results
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-LMO = DATA / "lmo_scene000002"
 W, H = 320, 240
 K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
 BOX_MM = np.array([80.0, 50.0, 30.0])
@@ -283,20 +280,13 @@ def test_targets_default_without_targets_file(synth_bop, tmp_path):
 
 # ---- real LM-O -------------------------------------------------------------------------------
 
-def _need_lmo():
-    if not LMO.is_dir():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{LMO} missing (required in CI)")
-        pytest.skip(f"{LMO} not available")
-
-
-def test_lmo_gt_subset_scores_100_percent(tmp_path):
+def test_lmo_gt_subset_scores_100_percent(shared_data, tmp_path):
     """Fast: the first 120 BOP'19 targets with the GT-as-estimates file."""
-    _need_lmo()
-    targets = json.loads((LMO / "test_targets_bop19.json").read_text())[:120]
+    lmo = shared_data("lmo_scene000002")
+    targets = json.loads((lmo / "test_targets_bop19.json").read_text())[:120]
     tp = tmp_path / "targets.json"
     tp.write_text(json.dumps(targets))
-    rep = evaluate_files(LMO, LMO / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv",
+    rep = evaluate_files(lmo, lmo / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv",
                          EvalConfig(targets_path=tp))
     o = rep.overall
     assert o["n_targets"] == 120 and o["n_rejected_rows"] == 0
@@ -305,14 +295,14 @@ def test_lmo_gt_subset_scores_100_percent(tmp_path):
 
 
 @pytest.mark.slow
-def test_lmo_full_gt_and_third_party_estimates(tmp_path):
+def test_lmo_full_gt_and_third_party_estimates(shared_data, tmp_path):
     """All 1445 targets (~20-50 s on a loaded 2-core machine)."""
-    _need_lmo()
-    gt = evaluate_files(LMO, LMO / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv")
+    lmo = shared_data("lmo_scene000002")
+    gt = evaluate_files(lmo, lmo / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv")
     assert gt.overall["n_targets"] == 1445 and gt.overall["n_estimated"] == 1445
     for k in ("auc_add_s", "acc_add_s_2cm", "acc_add_s_01d", "ar_mssd", "ar_mspd"):
         assert gt.overall[k] == pytest.approx(1.0), k
-    est = evaluate_files(LMO, LMO / "third_party_estimates" /
+    est = evaluate_files(lmo, lmo / "third_party_estimates" /
                          "cnos-fastsammegapose_lmo-test_16ab01bd-f020-4194-9750-d42fc7f875d2.csv")
     o = est.overall
     assert o["n_estimated"] == 1205 and o["n_rejected_rows"] == 0

@@ -60,7 +60,7 @@ def test_command_inbox_times_out_and_bounds_requests():
 @pytest.fixture(scope="module")
 def toy_scene(tmp_path_factory):
     from presim.capture.store import save_scene
-    from presim.sim.toy_scene import build_toy_room
+    from presim.testing.toy_scene import build_toy_room
 
     dst = tmp_path_factory.mktemp("ros") / "toyroom"
     save_scene(build_toy_room(), dst)
