@@ -111,6 +111,8 @@ class ObjectReconConfig:
     """Radius of the normal estimation (hybrid with 30 neighbours)."""
     poisson_depth: int = 8
     """Octree depth of the Poisson reconstruction (2^8 cells over the object: ~1 mm for 25 cm)."""
+    poisson_trim_quantile: float = 0.02
+    """Poisson vertices with a sample density below this quantile are removed."""
     mesh_max_dev_m: float = 0.01
     """The mesh is kept when 99 % of its vertices are within this of the cloud (else the cloud is
     the model: Poisson invented surface where the data has a hole)."""
@@ -684,7 +686,8 @@ def _mesh(obj: ReconstructedObject, plane: SupportPlane | None, T_obj_world: np.
         # Bottom cap: the object's footprint on its plane (the plane hides the object's bottom from
         # every camera; the object stands on it), normals pointing down.
         n_obj = T_obj_world[:3, :3] @ plane.normal
-        d_obj = plane.offset - plane.normal @ (invert(T_obj_world)[:3, 3])
+        # n.(R p_obj + t) + d = 0  =>  (R^T n).p_obj + (n.t + d) = 0
+        d_obj = plane.offset + plane.normal @ invert(T_obj_world)[:3, 3]
         h = p @ n_obj + d_obj
         low = p[h < 3 * config.min_height_m]
         if len(low) >= 3:
@@ -698,9 +701,14 @@ def _mesh(obj: ReconstructedObject, plane: SupportPlane | None, T_obj_world: np.
     pc.colors = o3d.utility.Vector3dVector(c.astype(np.float64) / 255.0)
     try:
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=config.poisson_depth)
+            mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=config.poisson_depth)
     except RuntimeError:
         return
+    dens = np.asarray(dens)
+    obj.stats["poisson_watertight_untrimmed"] = bool(mesh.is_watertight())
+    # Poisson closes the surface far from the data where nothing was seen; vertices with a low
+    # sample density there are cut (the mesh then may have holes: watertight is checked after).
+    mesh.remove_vertices_by_mask(dens < np.quantile(dens, config.poisson_trim_quantile))
     mesh.remove_degenerate_triangles()
     mesh.remove_duplicated_vertices()
     mesh.remove_unreferenced_vertices()
@@ -711,13 +719,13 @@ def _mesh(obj: ReconstructedObject, plane: SupportPlane | None, T_obj_world: np.
     watertight = bool(mesh.is_watertight())
     obj.stats["poisson_watertight"] = watertight
     obj.stats["mesh_dev_p99_m"] = round(float(np.quantile(dev, 0.99)), 4)
-    if not watertight or np.quantile(dev, 0.99) > config.mesh_max_dev_m:
-        return
+    if np.quantile(dev, 0.99) > config.mesh_max_dev_m:
+        return  # not faithful to the data: the cloud stays the model
     obj.mesh_vertices = v.astype(np.float32)
     obj.mesh_faces = np.asarray(mesh.triangles).astype(np.int32)
     vc = np.asarray(mesh.vertex_colors)
     obj.mesh_colors = (np.clip(vc, 0, 1) * 255).round().astype(np.uint8) if len(vc) == len(v) else None
-    obj.watertight = True
+    obj.watertight = watertight
 
 
 def _fill_footprint(proj: np.ndarray, n: np.ndarray, spacing: float) -> np.ndarray:
@@ -767,16 +775,19 @@ def write_objects_into_scene(scene_path: str | Path, objects: Sequence[Reconstru
             base = f"obj_{o.obj_id:06d}"
             write_ply(staging / f"{base}_points.ply", o.points_m, np.zeros((0, 3), np.int32), colors=o.colors,
                       normals=o.normals)
-            if o.watertight and o.mesh_vertices is not None:
+            if o.mesh_vertices is not None:
                 write_ply(staging / f"{base}.ply", o.mesh_vertices, o.mesh_faces, colors=o.mesh_colors)
                 model = f"{rel_dir}/{base}.ply"
             else:
-                model = f"{rel_dir}/{base}_points.ply"
+                # Point models as 'x y z' text: what load_model reads for point clouds (the PLY
+                # beside it keeps colour and normals).
+                np.savetxt(staging / f"{base}.xyz", o.points_m, fmt="%.6f")
+                model = f"{rel_dir}/{base}.xyz"
             entries.append({
                 "obj_id": int(o.obj_id), "name": o.name, "T_world_obj": np.asarray(o.T_world_obj).tolist(),
                 "model_path": model, "symmetric": bool(o.symmetric),
                 "points_path": f"{rel_dir}/{base}_points.ply", "reconstructed": True,
-                "watertight": bool(o.watertight), "num_points": int(len(o.points_m)),
+                "has_mesh": o.mesh_vertices is not None, "watertight": bool(o.watertight), "num_points": int(len(o.points_m)),
                 "frames_seen": int(o.frames_seen),
             })
         os.replace(staging, final)
