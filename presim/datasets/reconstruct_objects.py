@@ -113,7 +113,7 @@ class ObjectReconConfig:
     """Octree depth of the Poisson reconstruction (2^8 cells over the object: ~1 mm for 25 cm)."""
     poisson_trim_quantile: float = 0.02
     """Poisson vertices with a sample density below this quantile are removed."""
-    mesh_max_dev_m: float = 0.01
+    mesh_max_dev_m: float = 0.015
     """The mesh is kept when 99 % of its vertices are within this of the cloud (else the cloud is
     the model: Poisson invented surface where the data has a hole)."""
     all_planes: bool = False
