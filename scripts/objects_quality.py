@@ -38,13 +38,10 @@ def main(scene_dir: str, bop_out: str) -> dict:
         tv = transform_points(t.T_world_obj, t.model.vertices_m)
         samples = sample_surface(tv, t.model.faces, 20000)
         views = visible_samples(samples, scene.T_world_cam, scene.intrinsics, gt.depth_clean_m)
+        import open3d as o3d
+
         pts_file = Path(scene_dir) / next(o for o in hdr["objects"] if o["obj_id"] == r.obj_id)["points_path"]
-        from presim.datasets.objects import load_model
-        rp = np.loadtxt(pts_file.with_suffix("").as_posix().replace("_points", "") + ".xyz") \
-            if pts_file.with_name(pts_file.name.replace("_points.ply", ".xyz")).is_file() else None
-        if rp is None:  # mesh model: evaluate the cloud written beside it
-            import open3d as o3d
-            rp = np.asarray(o3d.io.read_point_cloud(str(pts_file)).points)
+        rp = np.asarray(o3d.io.read_point_cloud(str(pts_file)).points)  # the cloud, also when a mesh is the model
         rw = transform_points(r.T_world_obj, rp)
         row = {"obj_id": r.obj_id, "true": t.model.name, "visible_frac_of_surface": round(float(np.mean(views > 0)), 3)}
         row.update(surface_metrics(rw, tv, t.model.faces, samples[views > 0]))

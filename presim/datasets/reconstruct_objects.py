@@ -45,7 +45,7 @@ from typing import Sequence
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
-from presim.geometry import compose, invert, make_pose, transform_points, unproject_depth
+from presim.geometry import invert, make_pose, transform_points, unproject_depth
 from presim.io_utils import atomic_write_json, progress
 
 __all__ = ["ObjectReconConfig", "SupportPlane", "ObjectBox", "ReconstructedObject", "ObjectReconError",
