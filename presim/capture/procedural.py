@@ -9,7 +9,6 @@ Everything here is a pure function of its inputs (and of a seed), vectorised wit
   Patterns are band-limited (smooth edges a few millimetres wide, noise octaves no finer than
   ``Material.scale_m / 8``) so that point-sampled renderings of the same surface seen from two
   cameras agree after reprojection (no aliasing flicker).
-- :func:`write_ply`: re-exported from :mod:`presim.formats.ply` (the one PLY writer).
 
 Textures are *solid* (functions of 3D position) or use a planar projection picked by the dominant
 axis of the local normal; no UV atlas is needed and nothing depends on the viewing direction.
@@ -22,11 +21,10 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from presim.formats.ply import write_ply  # noqa: F401 - re-exported (sample_scene uses it from here)
 
 __all__ = [
     "Mesh", "box_mesh", "cylinder_mesh", "ellipsoid_mesh", "rock_mesh", "merge_meshes",
-    "Material", "NoiseField", "albedo", "write_ply", "srgb_encode",
+    "Material", "NoiseField", "albedo", "srgb_encode",
 ]
 
 

@@ -16,6 +16,7 @@ _MODULES = [
     "presim.cli.render_cmd",      # render
     "presim.cli.sim_cmds",        # drive
     "presim.cli.outputs_cmds",    # ros
+    "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
     "presim.cli.demo_cmd",        # demo

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from presim.capture.procedural import Material, Mesh, NoiseField, albedo, srgb_encode, write_ply
+from presim.capture.procedural import Material, Mesh, NoiseField, albedo, srgb_encode
+from presim.formats.ply import write_ply
 from presim.capture.sample_scene.config import SampleSceneConfig
 from presim.capture.sample_scene.corrupt import corrupt_depth
 from presim.capture.sample_scene.layout import capture_trajectory
