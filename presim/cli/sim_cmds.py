@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
                                    ground_route)
     from presim.sim.simulator import SimConfig, Simulator
 
-    from presim.limits import check_intrinsics, check_positive, check_positive_int, check_render_memory
+    from presim.limits import check_intrinsics, check_positive, check_render_memory
 
     if args.steps <= 0:
         raise ValueError(f"--steps must be positive, got {args.steps}")
