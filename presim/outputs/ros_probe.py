@@ -132,14 +132,7 @@ def _fuzz(rospy, hz: float, seconds: float, seed: int) -> dict:
             return rng.choice(["nope", "", " ", "base_link", "head_pan_joint\x00", "ü" * 50, "/joint"])
         return "".join(chr(rng.randrange(32, 0x3000)) for _ in range(rng.randrange(0, 300)))
 
-    sent = {k: 0 for k in pubs}
-    t0 = time.monotonic()
-    n = 0
-    while True:
-        now = time.monotonic()
-        if now - t0 >= seconds:
-            break
-        kind = ("cmd_vel", "joint_command", "initialpose")[n % 3]
+    def make(kind: str):
         if kind == "cmd_vel":
             m = Twist()
             m.linear.x, m.linear.y, m.linear.z = num(), num(), num()
@@ -156,7 +149,18 @@ def _fuzz(rospy, hz: float, seconds: float, seed: int) -> dict:
             pp.position.x, pp.position.y, pp.position.z = num(), num(), num()
             o = pp.orientation
             o.x, o.y, o.z, o.w = num(), num(), num(), num()
-        pubs[kind].publish(m)
+        return m
+
+    # Messages are made before the timed loop (a pool per topic, cycled), so the send rate is the
+    # transport's, not the random generator's.
+    kinds = ("cmd_vel", "joint_command", "initialpose")
+    pool = {k: [make(k) for _ in range(400)] for k in kinds}
+    sent = {k: 0 for k in pubs}
+    t0 = time.monotonic()
+    n = 0
+    while time.monotonic() - t0 < seconds:
+        kind = kinds[n % 3]
+        pubs[kind].publish(pool[kind][(n // 3) % 400])
         sent[kind] += 1
         n += 1
         lag = t0 + n / hz - time.monotonic()
