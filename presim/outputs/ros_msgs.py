@@ -5,7 +5,7 @@ Two flavours share the same numbers:
 - ROS 2 (MCAP recordings): the official ROS 2 Humble ``.msg`` definitions (comments stripped) in
   the concatenated form ``ros2 bag record`` stores as an MCAP schema, and builders returning plain
   dicts that ``mcap_ros2``'s CDR encoder serialises.
-- ROS 1 (live bridge): :mod:`presim.outputs.ros_bridge` fills rospy message classes from the same
+- ROS 1 (live bridge): :mod:`presim.outputs.ros` (messages.py, publisher.py) fills rospy message classes from the same
   helpers (:func:`image_fields`, :func:`camera_info_fields`, :func:`pose_fields`, :func:`cloud_fields`).
 
 Encodings (documented in docs/ros.md): color ``rgb8``; depth ``32FC1`` metres registered to the color
