@@ -38,8 +38,8 @@ from presim.outputs.viewer import RerunViewer  # noqa: E402
 def _ros_setup(tmp: Path):
     """(make_sink, cleanup) or None when ROS 1 is not installed."""
     try:
-        from presim.outputs.ros_bridge import (RosPublisherSink, import_rospy, ros_env, start_roscore,
-                                               stop_process_group)
+        from presim.outputs.ros import (RosPublisherSink, import_rospy, ros_env, start_roscore,
+                                        stop_process_group)
         from presim.outputs.viewer import free_port
 
         rospy = import_rospy()

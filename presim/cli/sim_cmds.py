@@ -140,8 +140,17 @@ def run(args: argparse.Namespace) -> int:
                                    ground_route)
     from presim.sim.simulator import SimConfig, Simulator
 
+    from presim.limits import check_intrinsics, check_positive, check_render_memory
+
     if args.steps <= 0:
         raise ValueError(f"--steps must be positive, got {args.steps}")
+    check_intrinsics(args.width, args.height)
+    check_positive(args.dt, "--dt", allow_none=False)
+    check_positive(args.rate_hz, "--rate-hz", allow_none=False)
+    check_positive(args.hfov_deg, "--hfov-deg")
+    if args.hfov_deg is not None and args.hfov_deg >= 180:
+        raise ValueError(f"--hfov-deg: must be below 180, got {args.hfov_deg}")
+    check_render_memory(args.width, args.height, max_memory=args.max_memory, what="one camera frame")
     _parse_controller(args)
     scene = _load_scene(args.scene)
     robot = _build_robot(args, scene)
@@ -172,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
     result = sim.reset(args.seed, start=start, joint_positions=joints)
     if driver is None:  # built-in route drawn from the seed
         if sim.is_free:
-            driver = ReplayDriver(free_camera_route(sim, rng, args.steps))
+            driver = ReplayDriver(free_camera_route(sim, rng, args.steps), label="built-in route")
             result = sim.reset(args.seed, start=driver.start_pose(sim))
         else:
             driver = RouteDriver(ground_route(sim, rng), sim)
@@ -215,4 +224,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {rate:.1f} steps/s ({wall:.1f} s wall, setup {setup_s:.1f} s); ms/step: {per}")
     if args.record is not None:
         print(f"  recorded to {args.record}")
+    from presim.sim.routes import ended_early
+
+    why = ended_early(driver, steps, args.steps)
+    if why:
+        print(f"note: {why} (--steps {args.steps} not reached)", file=sys.stderr)
     return 0
