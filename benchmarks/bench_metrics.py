@@ -51,8 +51,9 @@ def main() -> None:
 
     rng = np.random.default_rng(args.seed)
     if LMO_MODEL.is_file():
-        from presim.datasets.bop_reader import load_model_m
-        pts_all = load_model_m(LMO_MODEL).pts
+        from presim.formats.bop import MM_TO_M
+        from presim.formats.ply import read_ply
+        pts_all = read_ply(LMO_MODEL).scaled(MM_TO_M).vertices
         src = f"LM-O driller models_eval ({len(pts_all)} pts)"
     else:
         pts_all = rng.normal(0, 0.05, (10000, 3)) * [2.0, 0.6, 1.6]

@@ -147,7 +147,7 @@ def figure(scene_dir: str, gt_path: str, out: str, frame: int, box: tuple[int, i
 def main() -> None:
     from presim.depth.filters import guided_filter_depth, median_filter_depth
     from presim.depth.refine import RefineConfig, RefView, refine_depth, select_reference_views
-    from presim.depth.synthetic import render_two_planes, two_plane_poses
+    from presim.testing.two_planes import render_two_planes, two_plane_poses
     from presim.geometry import Intrinsics
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

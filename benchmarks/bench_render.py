@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from presim.capture.scene import ArrayFrameSource, Scene  # noqa: E402
 from presim.geometry import Intrinsics, make_pose  # noqa: E402
-from presim.synthesis import synthetic as S  # noqa: E402
+from presim.testing import rect_scene as S  # noqa: E402
 from presim.synthesis.kernels_reference import naive_zbuffer_ref  # noqa: E402
 from presim.synthesis.renderer import STAGES, RenderConfig, Renderer  # noqa: E402
 

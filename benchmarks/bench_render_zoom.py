@@ -7,7 +7,7 @@ delivered color against the exact image at 15 novel poses (midpoints between cap
 
     .venv/bin/python benchmarks/bench_render_zoom.py [--sample SCENE_DIR] [--zooms 1.0 1.15 1.3]
 
-Scenes: the analytic synthetic room (exact images from :func:`presim.synthesis.synthetic.raycast`)
+Scenes: the analytic synthetic room (exact images from :func:`presim.testing.rect_scene.raycast`)
 and, with ``--sample``, a built-in sample scene folder (exact images from
 :func:`presim.capture.sample_scene.render_ground_truth`).
 """
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from presim.geometry import Intrinsics, make_pose  # noqa: E402
-from presim.synthesis import synthetic as S  # noqa: E402
+from presim.testing import rect_scene as S  # noqa: E402
 from presim.synthesis.renderer import RenderConfig, Renderer  # noqa: E402
 
 

@@ -70,15 +70,15 @@ def main() -> None:
             cpus.append(time.process_time() - c0)
         scene = load_scene(dst)
         # Baseline: the bare ray cast of the same frames (Open3D), same process.
-        from presim.capture.sample_scene import _model, _pixel_rays
+        from presim.capture.sample_scene.render import pixel_rays, scene_raycaster
 
-        model = _model(0, cfg)
+        model = scene_raycaster(0, cfg)
         import open3d as o3d
 
         K = scene.intrinsics[0]
         w0 = time.perf_counter()
         for T in scene.T_world_cam:
-            d = _pixel_rays(K) @ T[:3, :3].T
+            d = pixel_rays(K) @ T[:3, :3].T
             rays = np.concatenate([np.broadcast_to(T[:3, 3], d.shape), d], 1).astype(np.float32)
             model.rc.cast_rays(o3d.core.Tensor(rays))
         cast_s = time.perf_counter() - w0

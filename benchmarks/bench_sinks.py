@@ -31,15 +31,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from presim.outputs.folder_recorder import FolderRecorder  # noqa: E402
 from presim.outputs.mcap_recorder import McapRecorder  # noqa: E402
 from presim.outputs.queue import QueuedSink  # noqa: E402
-from presim.outputs.testing import synthetic_info, synthetic_steps  # noqa: E402
+from presim.testing.steps import synthetic_info, synthetic_steps  # noqa: E402
 from presim.outputs.viewer import RerunViewer  # noqa: E402
 
 
 def _ros_setup(tmp: Path):
     """(make_sink, cleanup) or None when ROS 1 is not installed."""
     try:
-        from presim.outputs.ros_bridge import (RosPublisherSink, import_rospy, ros_env, start_roscore,
-                                               stop_process_group)
+        from presim.outputs.ros import (RosPublisherSink, import_rospy, ros_env, start_roscore,
+                                        stop_process_group)
         from presim.outputs.viewer import free_port
 
         rospy = import_rospy()
@@ -109,7 +109,7 @@ def sim_loop(makes, width, height, n_steps, repeats) -> tuple[float, float]:
     interleaved per repeat so machine-load drift hits both alike."""
     from presim.sensors.camera import CameraSpec
     from presim.sim.simulator import SimConfig, Simulator
-    from presim.sim.toy_scene import build_toy_room
+    from presim.testing.toy_scene import build_toy_room
 
     scene = build_toy_room()
     cfg = SimConfig(dt_s=0.1, cameras=(CameraSpec(width=width, height=height, rate_hz=10.0),))

@@ -22,3 +22,53 @@ import warnings as _warnings
 # numba probes TBB first and warns when the system's TBB is too old, then uses OpenMP: not our
 # user's problem, so keep it off their screen.
 _warnings.filterwarnings("ignore", message="The TBB threading layer requires TBB version")
+
+# ---- Gymnasium environments -----------------------------------------------------------------
+# `import presim` makes `gym.make("PreSim-PointNav-v0", scene=...)` work without importing
+# gymnasium itself (1.2 s cold on this machine): when gymnasium is already imported the ids are
+# registered now, otherwise right after gymnasium's own import finishes (an import hook). The
+# registration only names the entry point; presim.sim.envs loads on gym.make.
+GYM_ENV_IDS = (("PreSim-PointNav-v0", False), ("PreSim-PointNavDiscrete-v0", True))
+
+
+def register_gym_envs() -> None:
+    """Register the PreSim environments with gymnasium (idempotent)."""
+    import gymnasium as gym
+
+    for env_id, discrete in GYM_ENV_IDS:
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point="presim.sim.envs:PointNavEnv", kwargs={"discrete": discrete})
+
+
+class _GymHook:
+    """Meta-path finder that registers the environments once ``gymnasium`` has been imported."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "gymnasium":
+            return None
+        import importlib.machinery
+
+        sys.meta_path.remove(self)  # find the real spec, once
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        if spec is None or spec.loader is None:
+            return spec
+        loader = spec.loader
+        exec_module = loader.exec_module
+
+        def exec_and_register(module):
+            exec_module(module)
+            try:
+                register_gym_envs()
+            except Exception:  # noqa: BLE001 - never break the user's gymnasium import
+                pass
+
+        loader.exec_module = exec_and_register
+        return spec
+
+
+import sys  # noqa: E402
+
+if "gymnasium" in sys.modules:
+    register_gym_envs()
+elif not any(isinstance(f, _GymHook) for f in sys.meta_path):
+    sys.meta_path.insert(0, _GymHook())

@@ -36,7 +36,7 @@ if command -v dpkg >/dev/null; then
   apt_install libusb-1.0-0 libgomp1
   if [ "$want_test_system" = 1 ]; then
     apt_install ros-core python3-rospy python3-std-msgs python3-sensor-msgs python3-geometry-msgs \
-      python3-nav-msgs python3-tf2-msgs python3-std-srvs python3-rosgraph-msgs \
+      python3-nav-msgs python3-tf2-msgs python3-std-srvs python3-rosgraph-msgs python3-diagnostic-msgs \
       chromium chromium-driver
   fi
 fi

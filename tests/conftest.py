@@ -3,15 +3,21 @@
 In CI (``CI=true``) a skipped test is a failure: every test must run there (real data from
 ``../shared/data``, ROS 1 and chromium are installed by ``scripts/setup.sh --test-system``).
 Locally, tests whose data or system packages are missing skip with a reason (shown by ``-ra``).
+Tests that read a real capture take the :func:`shared_data` fixture: ``shared_data("lmo_scene000002")``
+is the folder's path, and a missing folder fails in CI and skips locally.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+"""Real captures (``../shared/data`` relative to the repository root); read only, never copied."""
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -26,3 +32,22 @@ def pytest_runtest_makereport(item, call):
 
 def pytest_sessionstart(session):
     os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Callable[[str], Path]:
+    """``shared_data(name)`` -> Path of ``../shared/data/<name>``.
+
+    A missing folder fails the test in CI (``CI`` = 1/true/yes) and skips it with a reason elsewhere.
+    Session-scoped so that module-scoped fixtures can use it too.
+    """
+
+    def get(name: str) -> Path:
+        path = SHARED_DATA / name
+        if not path.is_dir():
+            if IN_CI:
+                pytest.fail(f"real data {path} missing (required in CI)")
+            pytest.skip(f"real data {path} not available")
+        return path
+
+    return get

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import struct
 from pathlib import Path
 
@@ -11,26 +10,16 @@ import numpy as np
 import pytest
 
 from presim.datasets.bop_reader import (
-    MM_TO_M, BopDataset, load_model_m, load_ply, read_camera_json, read_models_info, read_scene_camera,
-    read_scene_gt, read_scene_gt_info, read_test_targets,
+    MM_TO_M, BopDataset, read_camera_json, read_models_info, read_scene_camera, read_scene_gt,
+    read_scene_gt_info, read_test_targets,
 )
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-LMO = DATA / "lmo_scene000002"
-
-
-def _need_lmo():
-    if not LMO.is_dir():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{LMO} missing (required in CI)")
-        pytest.skip(f"{LMO} not available")
-
+from presim.formats.ply import read_ply
 
 # ---- real data ---------------------------------------------------------------------------------
 
-def test_lmo_dataset_listing_and_units():
-    _need_lmo()
-    ds = BopDataset(LMO)
+def test_lmo_dataset_listing_and_units(shared_data):
+    lmo = shared_data("lmo_scene000002")
+    ds = BopDataset(lmo)
     assert ds.scene_ids() == [2]
     assert len(ds.image_ids(2)) == 200
     assert ds.obj_ids() == [1, 5, 6, 8, 9, 10, 11, 12]
@@ -56,22 +45,22 @@ def test_lmo_dataset_listing_and_units():
     assert ds.read_rgb(2, 3).shape == (480, 640, 3)
 
 
-def test_lmo_models_match_trimesh_and_info():
-    _need_lmo()
+def test_lmo_models_match_trimesh_and_info(shared_data):
+    lmo = shared_data("lmo_scene000002")
     import trimesh
 
-    ds = BopDataset(LMO)
+    ds = BopDataset(lmo)
     for obj_id in (1, 10):
         for ev in (False, True):  # models/ is ASCII, models_eval/ is binary little-endian
             path = ds.model_path(obj_id, eval=ev)
-            ours = load_ply(path)
+            ours = read_ply(path)
             ref = trimesh.load(path, process=False)
-            np.testing.assert_allclose(ours.pts, ref.vertices, atol=1e-4)
+            np.testing.assert_allclose(ours.vertices, ref.vertices, atol=1e-4)
             np.testing.assert_array_equal(ours.faces, ref.faces)
-        m = ds.load_model(obj_id)  # metres
-        size = m.pts.max(0) - m.pts.min(0)
+        m = ds.model_mesh_m(obj_id)  # metres
+        size = m.vertices.max(0) - m.vertices.min(0)
         np.testing.assert_allclose(size, ds.models_info()[obj_id].size_m, atol=2e-4)
-    assert ds.load_model(1).colors is not None and ds.load_model(1).normals is not None
+    assert ds.model_mesh_m(1).colors is not None and ds.model_mesh_m(1).normals is not None
     assert ds.model_path(1, eval=True).parent.name == "models_eval"
 
 
@@ -98,36 +87,36 @@ def test_ply_formats_round_trip(tmp_path, fmt):
     faces = [[0, 1, 2], [0, 2, 3]]
     p = tmp_path / f"m_{fmt}.ply"
     _write_ply(p, pts, np.array(faces), fmt)
-    m = load_ply(p)
-    np.testing.assert_allclose(m.pts, pts)
+    m = read_ply(p)
+    np.testing.assert_allclose(m.vertices, pts)
     np.testing.assert_array_equal(m.faces, faces)
     assert m.colors.tolist()[0] == [10, 20, 30]
-    np.testing.assert_allclose(load_model_m(p).pts, pts * MM_TO_M)
+    np.testing.assert_allclose(m.scaled(MM_TO_M).vertices, pts * MM_TO_M)
 
 
 def test_ply_quads_are_fan_triangulated(tmp_path):
     pts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=np.float32)
     p = tmp_path / "quad.ply"
     _write_ply(p, pts, np.array([[0, 1, 2, 3]]), "binary_little_endian")
-    np.testing.assert_array_equal(load_ply(p).faces, [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(read_ply(p).faces, [[0, 1, 2], [0, 2, 3]])
 
 
 def test_ply_errors_name_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.ply"):
-        load_ply(tmp_path / "nope.ply")
+        read_ply(tmp_path / "nope.ply")
     bad = tmp_path / "bad.ply"
     bad.write_bytes(b"not a ply\n")
     with pytest.raises(ValueError, match="bad.ply.*not a PLY"):
-        load_ply(bad)
+        read_ply(bad)
     trunc = tmp_path / "trunc.ply"
     _write_ply(trunc, np.zeros((4, 3), np.float32), np.array([[0, 1, 2]]), "binary_little_endian")
     trunc.write_bytes(trunc.read_bytes()[:-20])
     with pytest.raises(ValueError, match="trunc.ply.*truncated"):
-        load_ply(trunc)
+        read_ply(trunc)
     oob = tmp_path / "oob.ply"
     _write_ply(oob, np.zeros((3, 3), np.float32), np.array([[0, 1, 7]]), "ascii")
     with pytest.raises(ValueError, match="out of range"):
-        load_ply(oob)
+        read_ply(oob)
 
 
 # ---- JSON readers ------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_capture_writers import require_data, synth_frames, write_kinfu, write_tum  # noqa: E402
+from test_capture_writers import synth_frames, write_kinfu, write_tum  # noqa: E402
 
 from presim.capture.info import format_info, scene_info  # noqa: E402
 from presim.capture.store import load_scene  # noqa: E402
@@ -66,8 +66,8 @@ def test_cli_bad_input_one_line_error(tmp_path, capsys):
     assert "capture not found" in capsys.readouterr().err
 
 
-def test_info_on_real_scene_with_objects(tmp_path, capsys):
-    src = require_data("ycbv_2frames")
+def test_info_on_real_scene_with_objects(shared_data, tmp_path, capsys):
+    src = shared_data("ycbv_2frames")
     assert main(["import", str(src), str(tmp_path / "y")]) == 0
     capsys.readouterr()
     info = scene_info(load_scene(tmp_path / "y"))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_capture_writers import require_data, synth_frames, write_kinfu  # noqa: E402
+from test_capture_writers import synth_frames, write_kinfu  # noqa: E402
 
 from presim.capture.floor import (  # noqa: E402
     FloorConfig, estimate_floor, gravity_from_cameras, rotation_between,
@@ -154,10 +154,10 @@ def test_align_scene_end_to_end(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["apc_cardboard_bin_kinfu50", "apc_shelf_scene0000", "ycbv_2frames"])
-def test_real_captures_have_no_floor(name):
+def test_real_captures_have_no_floor(shared_data, name):
     """None of the real captures shows a floor (a bin, a shelf bin, table-top frames): the world frame
     is kept, gravity comes from the cameras and the note says why."""
-    s = import_capture(require_data(name))
+    s = import_capture(shared_data(name))
     assert s.floor is None and s.meta.transforms == ()
     assert any(n.startswith("no floor found") for n in s.meta.notes)
     assert np.linalg.norm(s.gravity_world) == pytest.approx(1.0)

@@ -12,7 +12,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_capture_writers import (  # noqa: E402
-    BOP_T_WORLD_OBJ, require_data, synth_frames, tum_stamps, write_bop, write_colmap, write_kinfu,
+    BOP_T_WORLD_OBJ, synth_frames, tum_stamps, write_bop, write_colmap, write_kinfu,
     write_nerfstudio, write_tum,
 )
 
@@ -218,8 +218,8 @@ def test_bop_without_w2c_uses_object_as_world(tmp_path):
     np.testing.assert_allclose(s.objects[0].T_world_obj, np.eye(4), atol=1e-9)
 
 
-def test_bop_real_lmo_has_no_depth():
-    src = require_data("lmo_scene000002") / "test" / "000002"
+def test_bop_real_lmo_has_no_depth(shared_data):
+    src = shared_data("lmo_scene000002") / "test" / "000002"
     assert detect_format(src) == "bop"
     with pytest.raises(SceneError, match="depth: no depth folder"):
         import_capture(src)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_capture_writers import require_data, synth_frames, write_kinfu  # noqa: E402
+from test_capture_writers import synth_frames, write_kinfu  # noqa: E402
 
 from presim.capture.importers import detect_format, import_capture  # noqa: E402
 from presim.capture.importers import kinfu  # noqa: E402
@@ -25,8 +25,8 @@ def _quiet(monkeypatch):
     monkeypatch.setenv("PRESIM_NO_PROGRESS", "1")
 
 
-def test_real_kinfu50():
-    src = require_data("apc_cardboard_bin_kinfu50")
+def test_real_kinfu50(shared_data):
+    src = shared_data("apc_cardboard_bin_kinfu50")
     assert detect_format(src) == "kinfu"
     s = kinfu.read(src)
     assert len(s) == 50 and s.frame_ids[0] == "frame-000015" and s.frame_ids[-1] == "frame-000113"
@@ -42,10 +42,10 @@ def test_real_kinfu50():
     assert 0.4 < s.trajectory_length_m() < 0.6  # README: ~0.50 m
 
 
-def test_real_kinfu50_reprojection_far_below_no_motion():
+def test_real_kinfu50_reprojection_far_below_no_motion(shared_data):
     """README pairs; poses are camera-to-world: the warp error must be far below the identity one
     (README: 7.0 vs 25.0; this implementation measures ~7.5 vs ~24.9)."""
-    s = kinfu.read(require_data("apc_cardboard_bin_kinfu50"))
+    s = kinfu.read(shared_data("apc_cardboard_bin_kinfu50"))
     idx = {fid: i for i, fid in enumerate(s.frame_ids)}
     pairs = [(31, 29), (31, 35), (61, 59), (61, 65), (91, 89), (101, 105)]
     with_pose, no_motion, cov = [], [], []

@@ -3,14 +3,9 @@
 from __future__ import annotations
 
 import shutil
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
-from test_capture_writers import require_data  # noqa: E402
 
 from presim.capture.importers import apc_shelf, detect_format, import_capture, ycbv  # noqa: E402
 from presim.capture.reprojection import reprojection_mae  # noqa: E402
@@ -24,8 +19,8 @@ def _quiet(monkeypatch):
     monkeypatch.setenv("PRESIM_NO_PROGRESS", "1")
 
 
-def test_apc_shelf_real():
-    src = require_data("apc_shelf_scene0000")
+def test_apc_shelf_real(shared_data):
+    src = shared_data("apc_shelf_scene0000")
     assert detect_format(src) == "apc_shelf"
     s = apc_shelf.read(src)
     assert len(s) == 15 and s.frame_ids[0] == "frame-000000"
@@ -41,19 +36,19 @@ def test_apc_shelf_real():
     assert mae < 25 and base > 40, (mae, base)
 
 
-def test_apc_shelf_wrong_decode_would_fail():
+def test_apc_shelf_wrong_decode_would_fail(shared_data):
     """The bit rotation matters: a plain /10000 read gives depths of several metres."""
     from presim.io_utils import read_image
 
-    src = require_data("apc_shelf_scene0000")
+    src = shared_data("apc_shelf_scene0000")
     raw = read_image(src / "frame-000002.depth.png", kind="depth")
     naive = raw[raw > 0] / 10000.0
     good = apc_shelf.decode_apc_depth(raw, src)
     assert np.median(naive) > 2 * np.median(good[good > 0])
 
 
-def test_apc_shelf_lossless_and_corrupt_info(tmp_path):
-    src = require_data("apc_shelf_scene0000")
+def test_apc_shelf_lossless_and_corrupt_info(shared_data, tmp_path):
+    src = shared_data("apc_shelf_scene0000")
     s = import_capture(src, max_frames=3)
     back = load_scene(save_scene(s, tmp_path / "scene"))
     np.testing.assert_array_equal(back.T_world_cam, s.T_world_cam)
@@ -70,8 +65,8 @@ def test_apc_shelf_lossless_and_corrupt_info(tmp_path):
         import_capture(cap, align_floor=False)
 
 
-def test_ycbv_real():
-    src = require_data("ycbv_2frames")
+def test_ycbv_real(shared_data):
+    src = shared_data("ycbv_2frames")
     assert detect_format(src) == "ycbv"
     s = ycbv.read(src)
     assert s.frame_ids == ["000001", "000002"]
@@ -96,8 +91,8 @@ def test_ycbv_real():
         assert front.mean() > 0.3 and np.median(np.abs(dz[front])) < 0.01
 
 
-def test_ycbv_save_copies_point_models(tmp_path):
-    s = import_capture(require_data("ycbv_2frames"))
+def test_ycbv_save_copies_point_models(shared_data, tmp_path):
+    s = import_capture(shared_data("ycbv_2frames"))
     back = load_scene(save_scene(s, tmp_path / "scene"))
     assert len(back.objects) == 7
     m = back.objects[0].model_path
@@ -105,8 +100,8 @@ def test_ycbv_save_copies_point_models(tmp_path):
     np.testing.assert_array_equal(back.objects[3].T_world_obj, s.objects[3].T_world_obj)
 
 
-def test_ycbv_bad_meta(tmp_path):
-    src = require_data("ycbv_2frames")
+def test_ycbv_bad_meta(shared_data, tmp_path):
+    src = shared_data("ycbv_2frames")
     cap = tmp_path / "y"
     shutil.copytree(src / "models", cap / "models")
     (cap / "data").mkdir()

@@ -3,14 +3,10 @@ reference, and the real APC raw depth against the toolbox's registered depth."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
-from test_capture_writers import require_data  # noqa: E402
 
 from presim.capture.register_depth import register_depth, register_depth_reference  # noqa: E402
 from presim.geometry import Intrinsics, make_pose, rotation_z  # noqa: E402
@@ -87,7 +83,7 @@ def test_bad_inputs():
         register_depth(np.ones((24, 32), np.float32), K, K, T)
 
 
-def test_real_apc_raw_depth_matches_toolbox_registration():
+def test_real_apc_raw_depth_matches_toolbox_registration(shared_data):
     """Registering raw/ with depth K + extrinsic reproduces the toolbox's registered depth: ~4 mm
     median difference (the toolbox keeps the depth camera's z; the extrinsic has t_z = 4.3 mm), and
     the inverse extrinsic is clearly worse (checks the direction T_color_depth)."""
@@ -95,7 +91,7 @@ def test_real_apc_raw_depth_matches_toolbox_registration():
     from presim.geometry import invert
     from presim.io_utils import read_image
 
-    src = require_data("apc_shelf_scene0000")
+    src = shared_data("apc_shelf_scene0000")
     reg = apc_shelf.read(src)
     raw = apc_shelf.read(src, raw_depth=True)
     dc = raw.frames.depth_camera

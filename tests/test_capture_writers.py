@@ -4,28 +4,14 @@ plus checks of the writers themselves."""
 from __future__ import annotations
 
 import json
-import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from presim.geometry import T_CV_FROM_GL, Intrinsics, R_to_quat_xyzw, compose, invert, look_at, pose_to_tum
 from presim.io_utils import write_png
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def require_data(name: str) -> Path:
-    """Path of a real data set; fails in CI (CI=true) when missing, skips with a reason otherwise."""
-    p = DATA / name
-    if not p.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"real data {p} missing in CI")
-        pytest.skip(f"real data {p} not available")
-    return p
 
 
 @dataclass

@@ -16,7 +16,7 @@ from presim.sensors.camera import CameraSpec
 from presim.sim.drive import ControllerSpec, DriveConfig, run_drive
 from presim.sim.robot import robot_for_scene
 from presim.sim.simulator import SimConfig
-from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
 

@@ -84,20 +84,14 @@ def _fake_scene(frame_ids):
     return Scene(list(frame_ids), np.arange(n, dtype=float), T, [K] * n, frames, SceneMeta("fake", "test"))
 
 
-def test_objects_from_bop_scene_gt_placed_by_frame():
+def test_objects_from_bop_scene_gt_placed_by_frame(shared_data):
     import json
-    from pathlib import Path
 
     import pytest
 
     from presim.datasets.object_sources import resolve_objects
 
-    lmo = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lmo_scene000002"
-    if not lmo.exists():
-        import os
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{lmo} missing")
-        pytest.skip(f"{lmo} missing")
+    lmo = shared_data("lmo_scene000002")
     scene = _fake_scene(["000003", "000008", "000017"])
     objs = resolve_objects(scene, f"bop:{lmo / 'test' / '000002'}")
     gt = json.loads((lmo / "test/000002/scene_gt.json").read_text())
@@ -113,20 +107,13 @@ def test_objects_from_bop_scene_gt_placed_by_frame():
         resolve_objects(_fake_scene(["000004"]), f"bop:{lmo / 'test' / '000002'}")
 
 
-def test_objects_from_ycbv_meta():
-    import os
-    from pathlib import Path
-
+def test_objects_from_ycbv_meta(shared_data):
     import pytest
     import scipy.io
 
     from presim.datasets.object_sources import resolve_objects
 
-    ycb = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycbv_2frames"
-    if not ycb.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{ycb} missing")
-        pytest.skip(f"{ycb} missing")
+    ycb = shared_data("ycbv_2frames")
     scene = _fake_scene(["000001", "000002"])
     objs = resolve_objects(scene, f"ycbv:{ycb}")
     meta = scipy.io.loadmat(ycb / "data/000001-meta.mat")

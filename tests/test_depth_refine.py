@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from presim.depth.refine import RefineConfig, RefView, refine_depth, select_reference_views
-from presim.depth.synthetic import render_two_planes, two_plane_poses
+from presim.testing.two_planes import render_two_planes, two_plane_poses
 from presim.geometry import Intrinsics
 
 

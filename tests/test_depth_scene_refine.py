@@ -11,7 +11,7 @@ from presim.capture.store import load_scene, save_scene
 from presim.depth.filters import guided_filter_depth, median_filter_depth
 from presim.depth.refine import RefineConfig
 from presim.depth.scene_refine import refine_frames_to_file, refine_scene
-from presim.depth.synthetic import render_two_planes, two_plane_poses
+from presim.testing.two_planes import render_two_planes, two_plane_poses
 from presim.geometry import Intrinsics
 
 

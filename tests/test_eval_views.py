@@ -9,7 +9,7 @@ import pytest
 
 from presim.capture.scene import ArrayFrameSource, Scene, SceneMeta
 from presim.depth.refine import RefineConfig
-from presim.depth.synthetic import render_two_planes, two_plane_poses
+from presim.testing.two_planes import render_two_planes, two_plane_poses
 from presim.geometry import Intrinsics
 from presim.synthesis.eval_views import (
     METHODS, METRICS, EvalConfig, capture_and_targets, eval_views, format_table,

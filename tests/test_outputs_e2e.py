@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def toy_scene(tmp_path_factory):
     from presim.capture.store import save_scene
-    from presim.sim.toy_scene import build_toy_room
+    from presim.testing.toy_scene import build_toy_room
 
     dst = tmp_path_factory.mktemp("e2e") / "toyroom"
     save_scene(build_toy_room(), dst)

@@ -8,7 +8,7 @@ import numpy as np
 
 from presim.geometry import compose, invert, make_pose, rotation_z
 from presim.outputs.frames import build_frame_tree, urdf_fixed_children
-from presim.outputs.testing import synthetic_info, synthetic_steps
+from presim.testing.steps import synthetic_info, synthetic_steps
 
 
 def test_fixed_joints_are_static_and_chain_composes():

@@ -22,7 +22,7 @@ from presim.outputs.mcap_recorder import McapConfig, McapRecorder
 from presim.outputs.queue import BoundedWorker, QueuedSink
 from presim.outputs.ros_msgs import MSGDEFS
 from presim.outputs.sinks import build_sinks
-from presim.outputs.testing import synthetic_info, synthetic_steps
+from presim.testing.steps import synthetic_info, synthetic_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,8 +92,11 @@ def test_mcap_reads_back_with_rosbags(tmp_path):
                 "/head_camera/color/image_raw": n_cam, "/head_camera/color/camera_info": n_cam,
                 "/head_camera/depth/image_raw": n_cam, "/head_camera/depth/camera_info": n_cam,
                 "/path": 5,  # every 5 steps (4) + the rest at close (1)
-                "/robot_description": 1}
+                "/robot_description": 1, "/clock": n}
     assert {k: len(v) for k, v in msgs.items()} == expected
+    assert types["/clock"] == "rosgraph_msgs/msg/Clock"
+    clock_s = [m.clock.sec + m.clock.nanosec * 1e-9 for _, m in msgs["/clock"]]
+    assert clock_s == pytest.approx([float(s.sim_time_s) for s in steps], abs=1e-9)  # one per step, sim time
     assert types["/tf"] == "tf2_msgs/msg/TFMessage" and types["/map_cloud"] == "sensor_msgs/msg/PointCloud2"
     assert msgs["/robot_description"][0][1].data == info.urdf_xml
     for latched in ("/tf_static", "/map_cloud", "/robot_description"):  # ros2 bag play re-sends them to late subscribers
@@ -259,7 +262,7 @@ _SIGINT_SCRIPT = textwrap.dedent("""
     import sys, time
     from pathlib import Path
     from presim.outputs.sinks import build_sinks
-    from presim.outputs.testing import synthetic_info, synthetic_steps
+    from presim.testing.steps import synthetic_info, synthetic_steps
     out = Path(sys.argv[1])
     sinks = build_sinks(out, None, out / "view.rrd")
     for s in sinks:

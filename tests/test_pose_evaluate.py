@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import struct
 from pathlib import Path
 
@@ -17,8 +16,6 @@ from presim.datasets.bop_reader import BopDataset
 from presim.pose.evaluate import EvalConfig, evaluate, evaluate_files
 from presim.pose.results import Estimate, read_bop_results, write_bop_results
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-LMO = DATA / "lmo_scene000002"
 W, H = 320, 240
 K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
 BOX_MM = np.array([80.0, 50.0, 30.0])
@@ -64,6 +61,13 @@ def _gt_poses():
         2: [(1, rot(-30, 25, 90), [-70, 20, 640]), (2, rot(15, 15, 15), [70, -20, 610])],
         3: [(1, rot(0, 0, 0), [-80, 0, 700]), (1, rot(0, 0, 90), [80, 0, 700])],  # two instances of obj 1
     }
+
+
+def _add_of_180_about_z() -> float:
+    """ADD (m) of a pose rotated by 180 deg about the model's z axis: each point x moves by
+    ||R x - x|| = 2 * hypot(x, y); the mean over the models_eval points (the 9x9x9 box surface grid)."""
+    p = _box_surface_pts(BOX_MM) * 1e-3
+    return float(np.mean(2 * np.hypot(p[:, 0], p[:, 1])))
 
 
 @pytest.fixture(scope="module")
@@ -164,8 +168,13 @@ def test_known_errors_highest_score_counts_and_missing_fail(synth_bop, tmp_path)
     p1, p2 = rep.per_object[1], rep.per_object[2]
     assert p1["n_targets"] == 5 and p1["n_estimated"] == 4
     assert p1["acc_add_s_2cm"] == pytest.approx(3 / 5)     # images 1, 3, 3 right; 0 wrong; 2 missing
-    assert p2["acc_add_s_2cm"] == pytest.approx(1.0) and p2["acc_add_2cm"] < 1.0
+    # obj 2: images 0 and 1 rotated by 180 deg about z (ADD = 2 x mean distance to the z axis of the
+    # models_eval points, 67.9 mm > 2 cm: failures), image 2 exact -> ADD accuracy 1/3.
+    assert p2["n_targets"] == 3
+    assert p2["acc_add_s_2cm"] == pytest.approx(1.0) and p2["acc_add_2cm"] == pytest.approx(1 / 3)
     assert p2["acc_adi_2cm"] == pytest.approx(1.0)
+    rec2 = next(r for r in rep.records if r.obj_id == 2 and r.im_id == 0)
+    assert rec2.add == pytest.approx(_add_of_180_about_z(), rel=1e-9) and rec2.add_s == pytest.approx(0, abs=1e-9)
     rec = next(r for r in rep.records if r.obj_id == 1 and r.im_id == 0)
     assert rec.add == pytest.approx(0.05, rel=1e-6) and rec.te == pytest.approx(0.05, rel=1e-6)
     assert rec.score == 0.9
@@ -186,7 +195,8 @@ def test_symmetric_flag_switches_to_add_s(synth_bop, tmp_path):
     plain = evaluate_files(synth_bop, csv, EvalConfig(vsd="off"))
     sym = evaluate_files(synth_bop, csv, EvalConfig(vsd="off", symmetric_obj_ids=(1,)))
     r0 = lambda rep: next(r for r in rep.records if r.obj_id == 1 and r.im_id == 0)  # noqa: E731
-    assert r0(plain).add_s > 0.02 and r0(sym).add_s == pytest.approx(0.0, abs=1e-9)
+    assert r0(plain).add_s == pytest.approx(_add_of_180_about_z(), rel=1e-9)
+    assert r0(sym).add_s == pytest.approx(0.0, abs=1e-9)
 
 
 def test_unknown_symmetric_id_is_an_error(synth_bop, tmp_path):
@@ -270,20 +280,13 @@ def test_targets_default_without_targets_file(synth_bop, tmp_path):
 
 # ---- real LM-O -------------------------------------------------------------------------------
 
-def _need_lmo():
-    if not LMO.is_dir():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{LMO} missing (required in CI)")
-        pytest.skip(f"{LMO} not available")
-
-
-def test_lmo_gt_subset_scores_100_percent(tmp_path):
+def test_lmo_gt_subset_scores_100_percent(shared_data, tmp_path):
     """Fast: the first 120 BOP'19 targets with the GT-as-estimates file."""
-    _need_lmo()
-    targets = json.loads((LMO / "test_targets_bop19.json").read_text())[:120]
+    lmo = shared_data("lmo_scene000002")
+    targets = json.loads((lmo / "test_targets_bop19.json").read_text())[:120]
     tp = tmp_path / "targets.json"
     tp.write_text(json.dumps(targets))
-    rep = evaluate_files(LMO, LMO / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv",
+    rep = evaluate_files(lmo, lmo / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv",
                          EvalConfig(targets_path=tp))
     o = rep.overall
     assert o["n_targets"] == 120 and o["n_rejected_rows"] == 0
@@ -292,14 +295,14 @@ def test_lmo_gt_subset_scores_100_percent(tmp_path):
 
 
 @pytest.mark.slow
-def test_lmo_full_gt_and_third_party_estimates(tmp_path):
+def test_lmo_full_gt_and_third_party_estimates(shared_data, tmp_path):
     """All 1445 targets (~20-50 s on a loaded 2-core machine)."""
-    _need_lmo()
-    gt = evaluate_files(LMO, LMO / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv")
+    lmo = shared_data("lmo_scene000002")
+    gt = evaluate_files(lmo, lmo / "third_party_estimates" / "gt-pbrreal-rgb-mmodel_lmo-test_lmo.csv")
     assert gt.overall["n_targets"] == 1445 and gt.overall["n_estimated"] == 1445
     for k in ("auc_add_s", "acc_add_s_2cm", "acc_add_s_01d", "ar_mssd", "ar_mspd"):
         assert gt.overall[k] == pytest.approx(1.0), k
-    est = evaluate_files(LMO, LMO / "third_party_estimates" /
+    est = evaluate_files(lmo, lmo / "third_party_estimates" /
                          "cnos-fastsammegapose_lmo-test_16ab01bd-f020-4194-9750-d42fc7f875d2.csv")
     o = est.overall
     assert o["n_estimated"] == 1205 and o["n_rejected_rows"] == 0

@@ -10,7 +10,6 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from presim.datasets.bop_reader import ModelInfo
 from presim.pose import curves, metrics, metrics_torch as mt
 from presim.pose.nn_grid import NNGrid, NNGridConfig, adi_batch_kdtree
 
@@ -38,7 +37,7 @@ def _random_poses(n, rng, rot_noise=0.2, t_noise=0.03):
 def test_identity_pose_gives_zero_errors():
     pts = _box_points()
     R, t = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix(), np.array([0.01, -0.02, 0.7])
-    syms = metrics.symmetry_transformations(None)
+    syms = metrics.symmetry_transformations()
     assert metrics.add(R, t, R, t, pts) == 0.0
     assert metrics.adi(R, t, R, t, pts) == 0.0
     assert metrics.proj(R, t, R, t, K, pts) == 0.0
@@ -55,7 +54,7 @@ def test_pure_translation_gives_add_equal_to_distance():
     assert metrics.add(R, t + d, R, t, pts) == pytest.approx(0.013, rel=1e-12)
     assert metrics.te(t + d, t) == pytest.approx(0.013, rel=1e-12)
     assert metrics.adi(R, t + d, R, t, pts) <= 0.013 + 1e-12
-    assert metrics.mssd(R, t + d, R, t, pts, metrics.symmetry_transformations(None)) == pytest.approx(0.013)
+    assert metrics.mssd(R, t + d, R, t, pts, metrics.symmetry_transformations()) == pytest.approx(0.013)
 
 
 def test_translation_parallel_to_image_shifts_projection_by_fx_dx_over_z():
@@ -81,8 +80,7 @@ def test_symmetric_object_rotated_by_its_symmetry():
     assert metrics.adi(R_e, t_g, R_g, t_g, pts) == pytest.approx(0.0, abs=1e-12)
     assert metrics.add(R_e, t_g, R_g, t_g, pts) > 0.02
     assert metrics.add_s(R_e, t_g, R_g, t_g, pts, symmetric=True) == pytest.approx(0.0, abs=1e-12)
-    info = ModelInfo(0.12, np.zeros(3), np.zeros(3), symmetries_discrete=(np.block([[R_sym, np.zeros((3, 1))], [np.zeros((1, 3)), 1]]),))
-    syms = metrics.symmetry_transformations(info)
+    syms = metrics.symmetry_transformations([np.block([[R_sym, np.zeros((3, 1))], [np.zeros((1, 3)), 1]])])
     assert len(syms) == 2
     assert metrics.mssd(R_e, t_g, R_g, t_g, pts, syms) == pytest.approx(0.0, abs=1e-12)
     assert metrics.mspd(R_e, t_g, R_g, t_g, K, pts, syms) == pytest.approx(0.0, abs=1e-9)
@@ -90,8 +88,7 @@ def test_symmetric_object_rotated_by_its_symmetry():
 
 
 def test_continuous_symmetry_discretisation_as_bop():
-    info = ModelInfo(0.1, np.zeros(3), np.zeros(3), symmetries_continuous=((np.array([0, 0, 1.0]), np.array([0, 0, 0.01])),))
-    syms = metrics.symmetry_transformations(info, 0.01)
+    syms = metrics.symmetry_transformations((), [(np.array([0, 0, 1.0]), np.array([0, 0, 0.01]))], 0.01)
     assert len(syms) == math.ceil(math.pi / 0.01) == 315
     np.testing.assert_allclose(syms[0], np.eye(4), atol=1e-12)  # identity included (i = 0)
     for S in syms[::50]:
@@ -111,9 +108,7 @@ def test_torch_matches_numpy_reference():
     rng = np.random.default_rng(0)
     pts = _box_points(8)
     R_e, t_e, R_g, t_g = _random_poses(40, rng)
-    info = ModelInfo(0.12, np.zeros(3), np.zeros(3),
-                     symmetries_continuous=((np.array([0, 0, 1.0]), np.zeros(3)),))
-    syms = metrics.symmetry_transformations(info, 0.05)
+    syms = metrics.symmetry_transformations((), [(np.array([0, 0, 1.0]), np.zeros(3))], 0.05)
     b = mt.as_batch(R_e, t_e, R_g, t_g)
     P = torch.as_tensor(pts)
     got = {

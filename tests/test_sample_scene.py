@@ -64,10 +64,11 @@ def test_saved_scene_layout(small):
 
 
 def test_trajectory_steps_default_density():
-    from presim.capture.sample_scene import _model, capture_trajectory
+    from presim.capture.sample_scene import capture_trajectory
+    from presim.capture.sample_scene.render import scene_raycaster
 
     cfg = SampleSceneConfig()
-    T = capture_trajectory(_model(0, dataclasses.replace(SMALL, num_frames=60)).layout, cfg.num_frames, 0)
+    T = capture_trajectory(scene_raycaster(0, dataclasses.replace(SMALL, num_frames=60)).layout, cfg.num_frames, 0)
     step = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
     assert 0.03 < step.min() and step.max() < 0.16
 

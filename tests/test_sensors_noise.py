@@ -7,7 +7,10 @@ import pytest
 
 from presim.geometry import Intrinsics
 from presim.sensors.camera import CameraSpec
-from presim.sensors.noise import DepthNoiseConfig, apply_depth_noise, depth_noise_sigma_m
+from presim.sensors.noise import (
+    DepthNoiseConfig, QuadraticNoiseConfig, add_quadratic_noise, apply_depth_noise, depth_noise_sigma_m,
+    quadratic_noise_sigma_m,
+)
 from presim.sensors.odometry import OdometryConfig, WheelOdometry
 
 
@@ -45,6 +48,24 @@ def test_dropouts_and_range():
     assert 0.17 < frac < 0.23
     with pytest.raises(ValueError, match="float32"):
         apply_depth_noise(d.astype(np.float64), np.random.default_rng(1), cfg)
+
+
+def test_quadratic_law_known_answers_and_seeded_draws():
+    """The sample scene's law sigma0 + k z^2: 0.5 mm + 1.5 mm/m^2 * (2 m)^2 = 6.5 mm, 0.5 mm at z = 0,
+    and the sampled noise has that spread. No masking: depth 0 gets noise too (the caller masks)."""
+    cfg = QuadraticNoiseConfig()
+    sig = quadratic_noise_sigma_m(np.float32([0.0, 1.0, 2.0]), cfg)
+    assert sig.dtype == np.float32
+    np.testing.assert_allclose(sig, [0.0005, 0.002, 0.0065], rtol=1e-6)
+    d = np.full((200, 200), 2.0, np.float32)
+    out = add_quadratic_noise(d, np.random.default_rng(0), cfg)
+    assert out.dtype == np.float32 and out.shape == d.shape
+    assert float((out - 2.0).std()) == pytest.approx(0.0065, rel=0.05)
+    # The draw is N(0, 1) in float64 cast to float32, one per pixel, in pixel order.
+    z = np.random.default_rng(0).standard_normal(d.shape).astype(np.float32)
+    assert np.array_equal(out, d + z * quadratic_noise_sigma_m(d, cfg))
+    assert np.array_equal(out, add_quadratic_noise(d, np.random.default_rng(0), cfg))
+    assert float(np.abs(add_quadratic_noise(np.zeros((50, 50), np.float32), np.random.default_rng(1), cfg)).max()) > 0
 
 
 def test_odometry_exact_without_drift_and_seeded_drift():

@@ -11,18 +11,9 @@ import pytest
 
 from presim.capture.store import save_scene
 from presim.cli import main
-from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-APC = DATA / "apc_cardboard_bin_kinfu50"
-
-
-def need(path: Path) -> None:
-    if not path.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"test data missing: {path}")
-        pytest.skip(f"test data missing: {path}")
 
 
 @pytest.fixture(scope="module")
@@ -96,11 +87,11 @@ def test_scripted_drive_sample_scene_record_and_replay(tmp_path, capsys):
     assert traj2.shape == traj.shape and np.allclose(traj2, traj, atol=1e-6)
 
 
-def test_scripted_drive_free_camera_on_tabletop_capture(tmp_path, capsys):
-    need(APC)
+def test_scripted_drive_free_camera_on_tabletop_capture(shared_data, tmp_path, capsys):
+    apc = shared_data("apc_cardboard_bin_kinfu50")
     from presim.capture.importers.registry import import_capture
 
-    scene = save_scene(import_capture(APC, every=2), tmp_path / "apc")
+    scene = save_scene(import_capture(apc, every=2), tmp_path / "apc")
     rec = tmp_path / "rec"
     assert main(["drive", str(scene), "--steps", "12", "--width", "64", "--height", "48", "--seed", "3",
                  "--record", str(rec)]) == 0

@@ -13,7 +13,7 @@ from gymnasium.utils.env_checker import check_env
 import presim.sim.envs  # noqa: F401  (registers the envs)
 from presim.capture.store import save_scene
 from presim.sim.envs import PointNavConfig, PointNavEnv
-from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
 

@@ -17,19 +17,10 @@ from presim.sensors.odometry import OdometryConfig
 from presim.sim.controllers import Action, BaseLimits, TrajectoryReplay
 from presim.sim.robot import RobotConfig, default_robot, load_robot
 from presim.sim.simulator import SimConfig, Simulator
-from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-APC = DATA / "apc_cardboard_bin_kinfu50"
 FAST = BaseLimits(max_acc_mps2=1e6, max_ang_acc_radps2=1e6, max_vx_mps=2.0, max_wz_radps=2.0)
-
-
-def need(path: Path) -> None:
-    if not path.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"test data missing: {path}")
-        pytest.skip(f"test data missing: {path}")
 
 
 @pytest.fixture(scope="module")
@@ -215,11 +206,11 @@ def test_floorless_scene_needs_the_free_rig(toy):
 
 
 
-def test_free_rig_replays_poses_exactly_on_the_tabletop_capture():
-    need(APC)
+def test_free_rig_replays_poses_exactly_on_the_tabletop_capture(shared_data):
+    apc = shared_data("apc_cardboard_bin_kinfu50")
     from presim.capture.importers.registry import import_capture
 
-    scene = import_capture(APC)
+    scene = import_capture(apc)
     assert scene.floor is None
     sim = Simulator(scene, None, SimConfig(dt_s=0.1, cameras=(CameraSpec(width=64, height=48),)))
     assert sim.is_free

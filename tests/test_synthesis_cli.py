@@ -11,7 +11,7 @@ import pytest
 from presim.capture.store import save_scene
 from presim.cli import main
 from presim.geometry import Intrinsics, pose_to_tum
-from presim.synthesis import synthetic as S
+from presim.testing import rect_scene as S
 
 
 @pytest.fixture(scope="module")

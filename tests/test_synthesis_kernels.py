@@ -14,7 +14,7 @@ import pytest
 
 from presim.geometry import Intrinsics, invert, look_at
 from presim.synthesis import kernels_reference as ref
-from presim.synthesis import synthetic as S
+from presim.testing import rect_scene as S
 from presim.synthesis.composite import composite_layers
 from presim.synthesis.crack_filter import crack_filter
 from presim.synthesis.warp import assign_layers, prepare_view, warp_layers

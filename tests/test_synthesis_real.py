@@ -10,7 +10,6 @@ which is several times the spread between small, legitimate changes (view order,
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -23,32 +22,26 @@ from presim.synthesis.crack_filter import crack_filter
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.warp import prepare_view, warp_layers
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "apc_cardboard_bin_kinfu50"
 
-
-def _load() -> Scene:
-    if not DATA.is_dir():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{DATA} missing")
-        pytest.skip(f"{DATA} missing (real data not available here)")
+def _load(root: Path) -> Scene:
     # Read the few files directly (no dependency on the importer), all frames into memory.
-    ids = sorted(p.name[: -len(".color.png")] for p in DATA.glob("frame-*.color.png"))
-    K_mat = np.loadtxt(DATA / "intrinsics.K.txt")
+    ids = sorted(p.name[: -len(".color.png")] for p in root.glob("frame-*.color.png"))
+    K_mat = np.loadtxt(root / "intrinsics.K.txt")
     cols, deps, poses = [], [], []
     for fid in ids:
-        cols.append(cv2.cvtColor(cv2.imread(str(DATA / f"{fid}.color.png")), cv2.COLOR_BGR2RGB))
-        d = cv2.imread(str(DATA / f"{fid}.depth.png"), cv2.IMREAD_UNCHANGED)
+        cols.append(cv2.cvtColor(cv2.imread(str(root / f"{fid}.color.png")), cv2.COLOR_BGR2RGB))
+        d = cv2.imread(str(root / f"{fid}.depth.png"), cv2.IMREAD_UNCHANGED)
         deps.append(np.where(d == 65535, 0, d).astype(np.float32) / 1000.0)  # mm -> m
-        poses.append(np.loadtxt(DATA / f"{fid}.pose.txt"))
+        poses.append(np.loadtxt(root / f"{fid}.pose.txt"))
     h, w = deps[0].shape
     K = Intrinsics.from_K(K_mat, w, h)
     return Scene(ids, np.arange(len(ids)) / 30.0, np.stack(poses), [K] * len(ids),
-                 ArrayFrameSource(np.stack(cols), np.stack(deps)), SceneMeta(str(DATA), "kinfu-test"))
+                 ArrayFrameSource(np.stack(cols), np.stack(deps)), SceneMeta(str(root), "kinfu-test"))
 
 
 @pytest.fixture(scope="module")
-def apc() -> Scene:
-    return _load()
+def apc(shared_data) -> Scene:
+    return _load(shared_data("apc_cardboard_bin_kinfu50"))
 
 
 def _psnr(a, b, mask=None):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from presim.outputs.queue import QueuedSink
-from presim.outputs.testing import synthetic_info, synthetic_steps
+from presim.testing.steps import synthetic_info, synthetic_steps
 from presim.outputs.viewer import RerunViewer, ViewerConfig
 
 CAM = "/world/robot/base_link/head_pan_link/head_tilt_link/camera_link/camera_optical_frame"
@@ -107,7 +107,7 @@ def _listening_ips(pid: int) -> set[str]:
 
 @pytest.mark.browser
 def test_web_viewer_binds_loopback_and_renders_scene(tmp_path):
-    from presim.outputs.browser import find_browser, saturated_fraction, save_png, screenshot
+    from presim.testing.browser import find_browser, saturated_fraction, save_png, screenshot
 
     try:
         find_browser()

@@ -9,7 +9,6 @@ Everything here is a pure function of its inputs (and of a seed), vectorised wit
   Patterns are band-limited (smooth edges a few millimetres wide, noise octaves no finer than
   ``Material.scale_m / 8``) so that point-sampled renderings of the same surface seen from two
   cameras agree after reprojection (no aliasing flicker).
-- :func:`write_ply`: a small binary PLY writer (vertices, optional normals and uint8 colors, faces).
 
 Textures are *solid* (functions of 3D position) or use a planar projection picked by the dominant
 axis of the local normal; no UV atlas is needed and nothing depends on the viewing direction.
@@ -18,16 +17,14 @@ axis of the local normal; no UV atlas is needed and nothing depends on the viewi
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numba
 import numpy as np
 
-from presim.io_utils import atomic_write_bytes
 
 __all__ = [
     "Mesh", "box_mesh", "cylinder_mesh", "ellipsoid_mesh", "rock_mesh", "merge_meshes",
-    "Material", "NoiseField", "albedo", "write_ply", "srgb_encode",
+    "Material", "NoiseField", "albedo", "srgb_encode",
 ]
 
 
@@ -469,35 +466,3 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     8-bit rounding except within 1e-5 of a rounding boundary)."""
     x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
     return _SRGB_LUT[np.rint(x * _SRGB_STEPS).astype(np.int64)]
-
-
-# ---- PLY ----------------------------------------------------------------------------------------
-
-def write_ply(path: str | Path, vertices: np.ndarray, triangles: np.ndarray,
-              colors: np.ndarray | None = None, normals: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY (float32 x y z [nx ny nz] [uchar red green blue], int32 faces), atomic."""
-    v = np.asarray(vertices, dtype=np.float32)
-    f = np.asarray(triangles, dtype=np.int32)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}",
-              "property float x", "property float y", "property float z"]
-    if normals is not None:
-        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-        header += ["property float nx", "property float ny", "property float nz"]
-    if colors is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
-    vert = np.zeros(len(v), dtype=fields)
-    vert["x"], vert["y"], vert["z"] = v[:, 0], v[:, 1], v[:, 2]
-    if normals is not None:
-        nn = np.asarray(normals, dtype=np.float32)
-        vert["nx"], vert["ny"], vert["nz"] = nn[:, 0], nn[:, 1], nn[:, 2]
-    if colors is not None:
-        c = np.asarray(colors, dtype=np.uint8)
-        vert["red"], vert["green"], vert["blue"] = c[:, 0], c[:, 1], c[:, 2]
-    face = np.zeros(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    face["n"] = 3
-    face["i"] = f
-    data = ("\n".join(header) + "\n").encode("ascii") + vert.tobytes() + face.tobytes()
-    atomic_write_bytes(path, data)

@@ -31,7 +31,7 @@ from presim.geometry import Intrinsics, unproject_depth
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
-           "open_scene"]
+           "set_has_refined_depth", "open_scene"]
 
 FORMAT_NAME = "presim-scene"
 FORMAT_VERSION = 1
@@ -176,6 +176,19 @@ def save_scene(scene: Scene, dst: str | Path, overwrite: bool = False,
         # scene.json last: a folder without it is never taken for a scene.
         atomic_write_json(tmp / "scene.json", header, indent=1)
     return dst
+
+
+def set_has_refined_depth(path: str | Path) -> None:
+    """Update ``scene.json``'s ``has_refined_depth`` to whether ``depth_refined.npy`` exists
+    (``presim refine`` calls this once the file is complete). Atomic rewrite of scene.json."""
+    import json
+
+    path = Path(path)
+    hdr = json.loads((path / "scene.json").read_text())
+    present = (path / "depth_refined.npy").is_file()
+    if hdr.get("has_refined_depth") != present:
+        hdr["has_refined_depth"] = present
+        atomic_write_json(path / "scene.json", hdr, indent=1)
 
 
 def _with_arrays(meta_scene: Scene, array_scene: Scene) -> Scene:

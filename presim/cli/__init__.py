@@ -16,10 +16,31 @@ _MODULES = [
     "presim.cli.render_cmd",      # render
     "presim.cli.sim_cmds",        # drive
     "presim.cli.outputs_cmds",    # ros
+    "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
     "presim.cli.demo_cmd",        # demo
 ]
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Shows each option's default, unless its help already says it or there is none to show."""
+
+    def _get_help_string(self, action):
+        h = action.help or ""
+        if ("%(default)" in h or "default" in h or action.default in (None, False, argparse.SUPPRESS)
+                or not action.option_strings):
+            return h
+        return h + " (default: %(default)s)"
+
+
+def _add_common_options(p: argparse.ArgumentParser) -> None:
+    p.formatter_class = _HelpFormatter
+    if not any("--max-memory" in a.option_strings for a in p._actions):
+        p.add_argument("--max-memory", default=None, metavar="SIZE",
+                       help="memory the command may plan to use, e.g. 16G (default: half of the memory "
+                            "available at start, or $PRESIM_MAX_MEMORY); commands whose sizes need more "
+                            "refuse to start")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
     for name in _MODULES:
         importlib.import_module(name).register(sub)
+    for p in sub.choices.values():
+        _add_common_options(p)
     return parser
 
 
@@ -64,10 +87,11 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, MemoryError) as e:
         # Bad input (missing / unreadable / wrong kind of file, bad values): one clear line naming
         # the file and the problem, no traceback.
-        print(f"presim {args.command}: error: {e}", file=sys.stderr)
+        msg = str(e) if not isinstance(e, MemoryError) else f"out of memory ({e or 'allocation failed'})"
+        print(f"presim {args.command}: error: {msg}", file=sys.stderr)
         return 1
     except ImportError as e:
         # An optional dependency group is not installed (scripts/setup.sh installs all of them).

@@ -53,6 +53,15 @@ def _gen_bop(args) -> int:
     from presim.datasets.generate import GenConfig, generate_bop, report_path
     from presim.datasets.object_sources import resolve_objects
 
+    from presim.limits import check_intrinsics, check_positive, check_positive_int, check_render_memory
+
+    check_intrinsics(args.width, args.height)
+    check_positive_int(args.frames, "--frames", allow_none=False)
+    check_positive_int(args.workers, "--workers", allow_none=False)
+    check_positive(args.hfov_deg, "--hfov-deg")
+    check_positive(args.depth_scale, "--depth-scale", allow_none=False)
+    check_render_memory(args.width, args.height, max_memory=args.max_memory, copies=args.workers,
+                        per_frame_extra_px_bytes=32.0, what=f"generating frames ({args.workers} worker(s))")
     scene = load_scene(args.scene)
     objects = resolve_objects(scene, args.objects)
     config = GenConfig(

@@ -61,6 +61,8 @@ def _setup_ros_env(args) -> str:
 def _run_launch(args) -> int:
     import shutil
 
+    from presim.outputs.ros import master_alive, start_roscore, stop_process_group
+
     exe = shutil.which("roslaunch")
     if exe is None:
         raise FileNotFoundError("roslaunch not found: install Debian's ros-core")
@@ -72,23 +74,34 @@ def _run_launch(args) -> int:
     cmd = [exe, "--port", port, str(LAUNCH_DIR / "presim.launch"), f"scene:={args.scene.resolve()}",
            f"robot:={args.robot or 'auto'}", f"rate_hz:={args.rate_hz}", f"width:={args.width}",
            f"height:={args.height}", f"seed:={args.seed}"]
+    # Our loopback master + rosout first: roslaunch would start Debian's C++ rosout, which binds
+    # 0.0.0.0 (presim/outputs/ros/master.py); with a master running it starts only the node.
+    core = None
+    if not master_alive(env["ROS_MASTER_URI"]):
+        core = start_roscore(int(port), env)
     print("presim ros: " + " ".join(cmd), file=sys.stderr)
     p = subprocess.Popen(cmd, env=env)
     try:
         return p.wait()
     except KeyboardInterrupt:
         p.send_signal(signal.SIGINT)
-        return p.wait()
+        p.wait()
+        return 130
+    finally:
+        stop_process_group(core)
 
 
 def run_ros(args: argparse.Namespace) -> int:
+    from presim.limits import check_intrinsics, check_positive, check_render_memory
+
+    check_intrinsics(args.width, args.height)
+    check_positive(args.rate_hz, "--rate-hz", allow_none=False)
+    check_render_memory(args.width, args.height, max_memory=args.max_memory, what="one camera frame")
     uri = _setup_ros_env(args)
-    if args.rate_hz <= 0:
-        raise ValueError(f"--rate-hz must be positive, got {args.rate_hz}")
     if args.launch:
         return _run_launch(args)
-    from presim.outputs.ros_bridge import (RosBridge, RosBridgeConfig, import_rospy, master_alive,
-                                           start_roscore, stop_process_group)
+    from presim.outputs.ros import (RosBridge, RosBridgeConfig, import_rospy, master_alive, start_roscore,
+                                    stop_process_group)
     from presim.outputs.sinks import build_sinks
     from presim.sensors.camera import CameraSpec
     from presim.sim.simulator import SimConfig, Simulator
@@ -115,23 +128,29 @@ def run_ros(args: argparse.Namespace) -> int:
                                             max_steps=args.max_steps), extra_sinks=extra)
     print(f"presim ros: node /presim on {uri}; scene {sim.scene_name}, robot {robot.urdf_path.name}, "
           f"{args.width}x{args.height} at {args.rate_hz:g} Hz", file=sys.stderr)
+    rc = 0
     try:
         bridge.run()
     except KeyboardInterrupt:
-        pass
+        rc = 130  # like every long-running command (Ctrl-C, SIGTERM)
     finally:
         stop_process_group(core)
     print(f"presim ros: stopped after {bridge.steps} steps", file=sys.stderr)
-    return 0
+    return rc
 
 
 def run_view(args: argparse.Namespace) -> int:
-    from presim.outputs.viewer import free_port, rerun_executable, wait_for_port, web_viewer_url
+    from presim.outputs.viewer import (ViewerError, check_rrd_file, free_port, has_display, rerun_executable,
+                                       wait_for_port, web_viewer_url)
 
-    if not args.rrd.is_file():
-        raise FileNotFoundError(f"{args.rrd}: .rrd file not found")
+    check_rrd_file(args.rrd)
     if not args.web:
-        return subprocess.call(rerun_executable() + ["--bind", "127.0.0.1", str(args.rrd)])
+        if not has_display():
+            raise ViewerError("no display (DISPLAY and WAYLAND_DISPLAY are unset); use --web")
+        try:
+            return subprocess.call(rerun_executable() + ["--bind", "127.0.0.1", str(args.rrd)])
+        except KeyboardInterrupt:
+            return 130
     web, grpc = args.port or free_port(), free_port()
     p = subprocess.Popen(rerun_executable() + ["--serve-web", "--bind", "127.0.0.1", "--port", str(grpc),
                                                "--web-viewer-port", str(web), str(args.rrd)])
@@ -142,4 +161,4 @@ def run_view(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         p.terminate()
         p.wait()
-        return 0
+        return 130  # like every long-running command (Ctrl-C, SIGTERM)

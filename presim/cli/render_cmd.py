@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +21,14 @@ def register(sub) -> None:
     g.add_argument("--poses", type=Path, help="TUM trajectory file: lines 'stamp x y z qx qy qz qw'")
     g.add_argument("--frame", type=int, help="render at the pose of the scene frame at this position")
     p.add_argument("--out", type=Path, required=True, help="output folder (created)")
-    p.add_argument("--width", type=int, help="image width (default: the scene's; intrinsics scaled)")
-    p.add_argument("--height", type=int, help="image height (default: the scene's)")
-    p.add_argument("--fx", type=float, help="focal length x, pixels (after scaling)")
-    p.add_argument("--fy", type=float, help="focal length y, pixels")
-    p.add_argument("--cx", type=float, help="principal point x, pixels")
-    p.add_argument("--cy", type=float, help="principal point y, pixels")
+    p.add_argument("--width", type=int, help="image width (default: the scene's; with only --height, the "
+                                             "width that keeps the scene's aspect ratio); intrinsics scaled")
+    p.add_argument("--height", type=int, help="image height (default: the scene's; with only --width, the "
+                                              "height that keeps the scene's aspect ratio); intrinsics scaled")
+    p.add_argument("--fx", type=float, help="focal length x, pixels (default: the scene's, after scaling)")
+    p.add_argument("--fy", type=float, help="focal length y, pixels (default: the scene's, after scaling)")
+    p.add_argument("--cx", type=float, help="principal point x, pixels (default: the scene's, after scaling)")
+    p.add_argument("--cy", type=float, help="principal point y, pixels (default: the scene's, after scaling)")
     p.add_argument("--layers", type=int, default=4, help="number of depth layers L (1 = plain DIBR)")
     p.add_argument("--no-fill", action="store_true", help="leave uncovered pixels empty (black, depth 0)")
     p.add_argument("--raw-depth", action="store_true", help="ignore the scene's refined depth")
@@ -38,15 +41,21 @@ def _main(args: argparse.Namespace) -> int:
     from presim.capture.store import open_scene
     from presim.formats.tum import read_tum
     from presim.geometry import pose_from_tum
+    from presim.limits import check_intrinsics, check_positive_int
     from presim.synthesis.render_job import output_intrinsics, render_to_folder
     from presim.synthesis.renderer import RenderConfig
 
+    check_intrinsics(args.width, args.height, args.fx, args.fy, args.cx, args.cy)
+    check_positive_int(args.layers, "--layers", allow_none=False)
     scene = open_scene(args.scene)
     if args.pose is not None:
         vals = args.pose.replace(",", " ").split()
         if len(vals) != 7:
             raise ValueError(f"--pose needs 7 numbers 'x y z qx qy qz qw', got {len(vals)}")
-        T = pose_from_tum(np.array([float(v) for v in vals]))[None]
+        try:
+            T = pose_from_tum(np.array([float(v) for v in vals]))[None]
+        except ValueError as e:
+            raise ValueError(f"--pose {args.pose!r}: {e}") from None
         stamps = np.zeros(1)
     elif args.poses is not None:
         stamps, T = read_tum(args.poses)
@@ -60,10 +69,17 @@ def _main(args: argparse.Namespace) -> int:
     config = RenderConfig(num_layers=args.layers, fill_holes=not args.no_fill,
                           use_refined_depth=not args.raw_depth, backend=args.backend)
     K = output_intrinsics(scene.intrinsics[0], args.width, args.height, args.fx, args.fy, args.cx, args.cy)
+    from presim.limits import check_render_memory
+
+    check_render_memory(K.width, K.height, args.layers, args.max_memory)
     s = render_to_folder(scene, T, stamps, K, args.out, config)
     print(f"wrote {s['num_frames']} frame(s) to {args.out} ({K.width}x{K.height}, "
           f"median {s['ms_per_frame_median']:.1f} ms/frame, mean hole fraction before fill "
           f"{np.mean(s['hole_frac_before_fill']):.4f})")
     if s["depth_clipped_px"]:
         print(f"  {s['depth_clipped_px']} depth pixels beyond 65.535 m written as 0 (invalid)")
+    from presim.synthesis.coverage import far_poses
+
+    for w in far_poses(scene, T, s["hole_frac_before_fill"]):
+        print(f"warning: {w}", file=sys.stderr)
     return 0

@@ -26,6 +26,15 @@ def register(sub) -> None:
 def _run(args) -> int:
     from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
 
+    from presim.limits import check_intrinsics, check_memory, check_positive_int, sample_scene_memory_bytes
+
+    check_intrinsics(args.width, args.height)
+    check_positive_int(args.frames, "--frames")
+    config0 = SampleSceneConfig()
+    w, h = args.width or config0.width, args.height or config0.height
+    n = args.frames or config0.num_frames
+    check_memory(sample_scene_memory_bytes(w, h, n), f"--width/--height/--frames ({w}x{h}, {n} frames)",
+                 "building the sample scene", args.max_memory)
     changes = {k: v for k, v in (("num_frames", args.frames), ("width", args.width), ("height", args.height),
                                  ("num_objects", args.objects)) if v is not None}
     config = dataclasses.replace(SampleSceneConfig(), **changes)

@@ -100,6 +100,7 @@ def _controller(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     from presim.capture.store import open_scene
+    from presim.limits import check_intrinsics, check_positive, check_render_memory
     from presim.sensors.camera import CameraSpec
     from presim.sensors.noise import DepthNoiseConfig
     from presim.sensors.odometry import OdometryConfig
@@ -110,6 +111,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.steps <= 0:
         raise ValueError(f"--steps must be positive, got {args.steps}")
+    check_intrinsics(args.width, args.height)
+    check_positive(args.dt, "--dt", allow_none=False)
+    check_positive(args.rate_hz, "--rate-hz", allow_none=False)
+    check_positive(args.hfov_deg, "--hfov-deg")
+    if args.hfov_deg is not None and args.hfov_deg >= 180:
+        raise ValueError(f"--hfov-deg: must be below 180, got {args.hfov_deg}")
+    check_render_memory(args.width, args.height, max_memory=args.max_memory, what="one camera frame")
     _parse_controller(args)
     scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
     robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
@@ -134,4 +142,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {st.steps_per_s:.1f} steps/s ({st.wall_s:.1f} s wall, setup {st.setup_s:.1f} s); ms/step: {per}")
     if args.record is not None:
         print(f"  recorded to {args.record}")
+    if st.ended_early:
+        print(f"note: {st.ended_early} (--steps {args.steps} not reached)", file=sys.stderr)
     return 0

@@ -18,8 +18,13 @@ For every object instance in a frame this gives exactly what BOP's ``calc_gt_inf
 Rasterization is a z-buffer at pixel centres with perspective-correct depth (numba), checked
 against an exact ray cast (Open3D ``RaycastingScene``, :func:`render_model_depth_reference`).
 Point-cloud models (thesis §5.3.5) are splatted to their nearest pixel and their holes closed with
-a switching median filter (a zero pixel with more than half of its 8 neighbours set takes their
-median).
+the renderer's switching median filter (:func:`presim.synthesis.crack_filter.crack_filter`, thesis
+eq. 3.9: a zero pixel whose 3x3 window is more than half set takes the *lower* median of the set
+pixels).
+
+Each instance's result is one :class:`InstanceAnnotation`: the BOP records
+:class:`~presim.formats.bop.GtInstance` (``scene_gt``) and :class:`~presim.formats.bop.GtInfo`
+(``scene_gt_info``) plus the two masks.
 """
 
 from __future__ import annotations
@@ -32,7 +37,9 @@ import numba
 import numpy as np
 
 from presim.datasets.objects import ObjectModel
+from presim.formats.bop import GtInfo, GtInstance
 from presim.geometry import Intrinsics, check_rigid, project, transform_points
+from presim.synthesis.crack_filter import crack_filter
 
 __all__ = ["AnnotateConfig", "ModelRender", "InstanceAnnotation", "render_model_depth",
            "render_model_depth_reference", "annotate_instances", "bbox_from_mask", "ray_norm_image"]
@@ -93,34 +100,32 @@ class ModelRender:
 
 @dataclass(frozen=True)
 class InstanceAnnotation:
-    """Annotations of one object instance in one image (BOP ``scene_gt`` + ``scene_gt_info``)."""
+    """Annotations of one object instance in one image: its BOP rows and its masks."""
 
-    obj_id: int
-    T_cam_obj: np.ndarray
-    """4x4 model-to-camera pose, metres."""
+    gt: GtInstance
+    """``scene_gt.json`` row: object id and model-to-camera pose (metres)."""
+    info: GtInfo
+    """``scene_gt_info.json`` row: boxes, pixel counts, visible fraction."""
     mask: np.ndarray
     """bool (H, W) full silhouette inside the image."""
     mask_visib: np.ndarray
     """bool (H, W) visible part."""
-    bbox_obj: tuple[int, int, int, int]
-    bbox_visib: tuple[int, int, int, int]
-    px_count_all: int
-    px_count_valid: int
-    px_count_visib: int
-    visib_fract: float
+
+    @property
+    def obj_id(self) -> int:
+        return self.gt.obj_id
+
+    @property
+    def visib_fract(self) -> float:
+        return self.info.visib_fract
 
     def gt_dict(self) -> dict:
-        """``scene_gt.json`` entry: rotation row-major, translation in millimetres."""
-        T = np.asarray(self.T_cam_obj, dtype=np.float64)
-        return {"cam_R_m2c": [float(x) for x in T[:3, :3].ravel()],
-                "cam_t_m2c": [float(x) * 1000.0 for x in T[:3, 3]],  # BOP border: metres -> mm
-                "obj_id": int(self.obj_id)}
+        """``scene_gt.json`` entry (:meth:`GtInstance.to_json`)."""
+        return self.gt.to_json()
 
     def gt_info_dict(self) -> dict:
-        """``scene_gt_info.json`` entry (same keys as bop_toolkit)."""
-        return {"bbox_obj": [int(x) for x in self.bbox_obj], "bbox_visib": [int(x) for x in self.bbox_visib],
-                "px_count_all": int(self.px_count_all), "px_count_valid": int(self.px_count_valid),
-                "px_count_visib": int(self.px_count_visib), "visib_fract": float(self.visib_fract)}
+        """``scene_gt_info.json`` entry (:meth:`GtInfo.to_json`)."""
+        return self.info.to_json()
 
 
 # ---- rasterization ------------------------------------------------------------------------------
@@ -179,30 +184,6 @@ def _splat_points(u, v, z, u0, v0, out, near):  # pragma: no cover - compiled
             out[y, x] = z[i]
 
 
-@numba.njit(cache=True)
-def _switching_median_fill(d):  # pragma: no cover - compiled
-    """One pass: a zero pixel with more than half of its 8 neighbours non-zero takes their median."""
-    h, w = d.shape
-    out = d.copy()
-    buf = np.empty(8, np.float32)
-    for y in range(h):
-        for x in range(w):
-            if d[y, x] != 0.0:
-                continue
-            n = 0
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    if dx == 0 and dy == 0:
-                        continue
-                    yy, xx = y + dy, x + dx
-                    if 0 <= yy < h and 0 <= xx < w and d[yy, xx] != 0.0:
-                        buf[n] = d[yy, xx]
-                        n += 1
-            if n > 4:
-                out[y, x] = np.sort(buf[:n])[n // 2]
-    return out
-
-
 def _canvas_crop(uv: np.ndarray, ok: np.ndarray, K: Intrinsics, factor: int) -> tuple[int, int, int, int] | None:
     """Crop (u0, v0, w, h) of the large canvas covering the projected points, None if empty."""
     if not ok.any():
@@ -219,6 +200,14 @@ def _canvas_crop(uv: np.ndarray, ok: np.ndarray, K: Intrinsics, factor: int) -> 
     return u0, v0, u1 - u0 + 1, v1 - v0 + 1
 
 
+def _project_model(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics, config: AnnotateConfig):
+    """Model points in the camera frame (V, 3), their pixel coordinates (V, 2) and the canvas crop
+    ``(u0, v0, w, h)`` they cover (None: nothing in front of the camera)."""
+    p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
+    uv = project(K, p)[0] + config.pixel_offset_px
+    return p, uv, _canvas_crop(uv, p[:, 2] > config.near_m, K, config.canvas_factor)
+
+
 def render_model_depth(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics,
                        config: AnnotateConfig = AnnotateConfig()) -> ModelRender:
     """Render ``model`` alone at pose ``T_cam_obj`` (4x4, metres) with intrinsics ``K``.
@@ -230,13 +219,10 @@ def render_model_depth(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics,
         return render_model_depth_reference(model, T_cam_obj, K, config)
     if config.backend != "numba":
         raise ValueError(f"unknown annotation backend {config.backend!r} (use 'numba' or 'open3d')")
-    p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
-    z = p[:, 2]
-    ok = z > config.near_m
-    uv = project(K, p)[0] + config.pixel_offset_px
-    crop = _canvas_crop(uv, ok, K, config.canvas_factor)
+    p, uv, crop = _project_model(model, T_cam_obj, K, config)
     if crop is None:
         return ModelRender(np.zeros((0, 0), np.float32), 0, 0)
+    z = p[:, 2]
     u0, v0, w, h = crop
     out = np.zeros((h, w), np.float32)
     u = np.ascontiguousarray(uv[:, 0])
@@ -245,8 +231,10 @@ def render_model_depth(model: ObjectModel, T_cam_obj: np.ndarray, K: Intrinsics,
         _raster_mesh(u, v, np.ascontiguousarray(z), model.faces, u0, v0, out, config.near_m)
     else:
         _splat_points(u, v, np.ascontiguousarray(z), u0, v0, out, config.near_m)
-        for _ in range(config.point_fill_iters):
-            out = _switching_median_fill(out)
+        if config.point_fill_iters > 0:
+            color = np.zeros(out.shape + (3,), np.uint8)  # depth only: the filter carries colour along
+            for _ in range(config.point_fill_iters):
+                out, color = crack_filter(out, color, "switching_median", 3)
     return ModelRender(out, u0, v0)
 
 
@@ -260,13 +248,10 @@ def render_model_depth_reference(model: ObjectModel, T_cam_obj: np.ndarray, K: I
 
     if model.faces is None:
         raise ValueError(f"model {model.obj_id}: the ray-cast reference needs a mesh, not a point cloud")
-    p = transform_points(np.asarray(T_cam_obj, dtype=np.float64), model.vertices_m.astype(np.float64))
-    z = p[:, 2]
-    ok = z > config.near_m
-    uv = project(K, p)[0] + config.pixel_offset_px
-    crop = _canvas_crop(uv, ok, K, config.canvas_factor)
+    p, uv, crop = _project_model(model, T_cam_obj, K, config)
     if crop is None:
         return ModelRender(np.zeros((0, 0), np.float32), 0, 0)
+    z = p[:, 2]
     u0, v0, w, h = crop
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(p.astype(np.float32)), o3d.core.Tensor(model.faces.astype(np.uint32)))
@@ -381,8 +366,7 @@ def annotate_instances(models: Mapping[int, ObjectModel], instances: Sequence[tu
         visib_fract = px_visib / px_all if px_all > 0 else 0.0
         # bop_toolkit leaves bbox_obj at -1 when nothing of the object is visible.
         bbox_obj = bbox_from_mask(r.depth_m > 0, r.u0, r.v0) if px_visib > 0 else (-1, -1, -1, -1)
-        out.append(InstanceAnnotation(
-            obj_id=obj_id, T_cam_obj=T, mask=mask, mask_visib=visib, bbox_obj=bbox_obj,
-            bbox_visib=bbox_from_mask(visib), px_count_all=px_all, px_count_valid=px_valid,
-            px_count_visib=px_visib, visib_fract=float(visib_fract)))
+        info = GtInfo(bbox_obj=bbox_obj, bbox_visib=bbox_from_mask(visib), px_count_all=px_all,
+                      px_count_valid=px_valid, px_count_visib=px_visib, visib_fract=float(visib_fract))
+        out.append(InstanceAnnotation(GtInstance.from_pose(obj_id, T), info, mask, visib))
     return out

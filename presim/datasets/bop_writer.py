@@ -30,6 +30,7 @@ import numpy as np
 
 from presim.datasets.annotate import InstanceAnnotation
 from presim.datasets.objects import ObjectModel, models_info, write_model_ply_mm
+from presim.formats.bop import BopCamera, SceneCamera
 from presim.formats.depth_png import encode_depth_png
 from presim.geometry import Intrinsics, invert
 from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text
@@ -47,18 +48,15 @@ def scene_dir(out: Path, split: str, scene_id: int) -> Path:
 
 
 def camera_json(K: Intrinsics, depth_scale: float) -> dict:
-    """Dataset-level ``camera.json``."""
-    return {"cx": K.cx, "cy": K.cy, "depth_scale": float(depth_scale), "fx": K.fx, "fy": K.fy,
-            "height": K.height, "width": K.width}
+    """Dataset-level ``camera.json`` (:meth:`BopCamera.to_json`)."""
+    return BopCamera(K=K, depth_scale=float(depth_scale)).to_json()
 
 
 def scene_camera_entry(K: Intrinsics, T_world_cam: np.ndarray, depth_scale: float) -> dict:
-    """``scene_camera.json`` entry: cam_K (row-major), depth_scale, world-to-camera pose in mm."""
+    """``scene_camera.json`` entry (:meth:`SceneCamera.to_json`): cam_K (row-major), world-to-camera
+    pose in mm, depth_scale."""
     T_cam_world = invert(np.asarray(T_world_cam, dtype=np.float64))
-    return {"cam_K": [float(x) for x in K.K.ravel()],
-            "cam_R_w2c": [float(x) for x in T_cam_world[:3, :3].ravel()],
-            "cam_t_w2c": [float(x) * 1000.0 for x in T_cam_world[:3, 3]],  # BOP border: m -> mm
-            "depth_scale": float(depth_scale)}
+    return SceneCamera(K=K.K, depth_scale=float(depth_scale), T_cam_world=T_cam_world).to_json()
 
 
 def _encode_png(img: np.ndarray) -> bytes:

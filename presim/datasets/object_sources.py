@@ -34,7 +34,7 @@ import numpy as np
 
 from presim.capture.scene import Scene, SceneError
 from presim.capture.store import model_abspath
-from presim.datasets.objects import ObjectModel, load_model, symmetries_from_models_info
+from presim.datasets.objects import ObjectModel, load_model, symmetries_of
 from presim.geometry import check_rigid, compose, invert, make_pose
 
 __all__ = ["PlacedObject", "objects_from_scene", "objects_from_json", "objects_from_bop",
@@ -170,7 +170,7 @@ def _find_models_dir(start: Path) -> Path:
 
 def objects_from_bop(scene_folder: str | Path, scene: Scene) -> list[PlacedObject]:
     """Objects of a BOP scene placed in ``scene``'s world (see the module docstring)."""
-    from presim.datasets.bop_reader import read_models_info, read_scene_camera, read_scene_gt
+    from presim.formats.bop import read_models_info, read_scene_camera, read_scene_gt
 
     sdir = Path(scene_folder)
     if not (sdir / "scene_gt.json").is_file():
@@ -179,7 +179,6 @@ def objects_from_bop(scene_folder: str | Path, scene: Scene) -> list[PlacedObjec
     cams = read_scene_camera(sdir / "scene_camera.json") if (sdir / "scene_camera.json").is_file() else {}
     mdir = _find_models_dir(sdir)
     info = read_models_info(mdir / "models_info.json") if (mdir / "models_info.json").is_file() else {}
-    raw_info = json.loads((mdir / "models_info.json").read_text()) if info else {}
     T_world_bopworld = _world_from_transforms(scene)
     placed: dict[int, PlacedObject] = {}
     for im_id in sorted(gts):
@@ -191,7 +190,7 @@ def objects_from_bop(scene_folder: str | Path, scene: Scene) -> list[PlacedObjec
                 T_world_cam = compose(T_world_bopworld, invert(cam.T_cam_world))
             else:
                 T_world_cam = scene.T_world_cam[_frame_index(scene, im_id, str(sdir))]
-            syms_d, syms_c = symmetries_from_models_info(raw_info.get(str(inst.obj_id), {}))
+            syms_d, syms_c = symmetries_of(info.get(inst.obj_id))
             m = load_model(mdir / f"obj_{inst.obj_id:06d}.ply", inst.obj_id, unit="mm",
                            symmetries_discrete=syms_d, symmetries_continuous=syms_c)
             placed[inst.obj_id] = PlacedObject(m, compose(T_world_cam, inst.T_cam_obj))

@@ -2,7 +2,10 @@
 
 A model lives in its own object frame (BOP: ``x_cam = R_m2c x_model + t_m2c``). Inside PreSim it is in
 metres; BOP files are millimetres, converted only here (:func:`models_info_entry`,
-:func:`write_model_ply_mm`, :func:`load_model` with ``unit="mm"``).
+:func:`write_model_ply_mm`, :func:`load_model` with ``unit="mm"``). :class:`ObjectModel` is the one
+object-model type of PreSim; PLY files are read and written by :mod:`presim.formats.ply` and BOP
+``models_info.json`` rows are read into :class:`presim.formats.bop.ModelInfo`
+(:func:`symmetries_of` gives its symmetries in the form :class:`ObjectModel` holds them).
 
 Example:
     >>> m = load_model("lmo/models/obj_000001.ply", obj_id=1, unit="mm")   # doctest: +SKIP
@@ -18,12 +21,13 @@ from typing import Sequence
 
 import numpy as np
 
-from presim.io_utils import atomic_write_bytes
+from presim.formats.bop import M_TO_MM, MM_TO_M, ModelInfo
+from presim.formats.ply import read_ply, write_ply
 
 __all__ = ["ObjectModel", "load_model", "model_diameter_m", "models_info_entry", "models_info",
-           "write_model_ply_mm", "symmetries_from_models_info"]
+           "write_model_ply_mm", "symmetries_of"]
 
-_UNIT_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
+_UNIT_TO_M = {"m": 1.0, "mm": MM_TO_M, "cm": 1e-2}
 
 
 @dataclass(frozen=True)
@@ -128,11 +132,19 @@ def load_model(path: str | Path, obj_id: int, name: str = "", unit: str = "m",
         if data.shape[1] < 3:
             raise ValueError(f"{path}: point file needs at least 3 columns, got {data.shape[1]}")
         verts = data[:, :3]
-    else:
+    elif path.suffix.lower() == ".ply":
+        try:
+            ply = read_ply(path)  # keeps the file's vertex order (BOP models_eval / symmetries index it)
+        except ValueError as e:
+            raise ValueError(f"{path}: unreadable model ({e})") from e
+        verts, faces, colors = ply.vertices, ply.faces, ply.colors
+        if faces is not None:
+            normals = _vertex_normals(verts, faces)
+    else:  # OBJ, STL, ... through trimesh
         import trimesh
 
         try:
-            # process=False keeps the file's vertex order (BOP models_eval / symmetries index it).
+            # process=False keeps the file's vertex order.
             geom = trimesh.load(path, process=False, force="mesh")
         except Exception as e:  # trimesh raises many types for corrupt files
             raise ValueError(f"{path}: unreadable model ({type(e).__name__}: {e})") from e
@@ -143,14 +155,21 @@ def load_model(path: str | Path, obj_id: int, name: str = "", unit: str = "m",
         if vc is not None and getattr(geom.visual, "kind", None) == "vertex" and len(vc) == len(verts):
             colors = np.asarray(vc)[:, :3]
         if faces is not None:
-            # The file's normals when it has them, else area-weighted face normals.
-            normals = np.asarray(geom.vertex_normals)
+            normals = _vertex_normals(verts, faces)
     return ObjectModel(
         obj_id=obj_id, name=name or path.stem, vertices_m=verts * s, faces=faces, colors=colors,
         normals=normals, symmetries_discrete=tuple(np.asarray(T, dtype=np.float64) for T in symmetries_discrete),
         symmetries_continuous=tuple((tuple(map(float, a)), tuple(map(float, o))) for a, o in symmetries_continuous),
         source=str(path),
     )
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals of a triangle mesh (trimesh's rule). A PLY's own ``nx ny nz``
+    are not used: the models PreSim writes carry these normals, so reading them back is exact."""
+    import trimesh
+
+    return np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals)
 
 
 def model_diameter_m(vertices_m: np.ndarray) -> float:
@@ -176,10 +195,10 @@ def model_diameter_m(vertices_m: np.ndarray) -> float:
 
 def models_info_entry(model: ObjectModel) -> dict:
     """BOP ``models_info.json`` entry (millimetres): diameter, min_*, size_*, symmetries when given."""
-    v_mm = model.vertices_m.astype(np.float64) * 1000.0  # BOP border: metres -> millimetres
+    v_mm = model.vertices_m.astype(np.float64) * M_TO_MM  # BOP border: metres -> millimetres
     lo, hi = v_mm.min(0), v_mm.max(0)
     out = {
-        "diameter": round(model_diameter_m(model.vertices_m) * 1000.0, 4),
+        "diameter": round(model_diameter_m(model.vertices_m) * M_TO_MM, 4),
         "min_x": round(float(lo[0]), 4), "min_y": round(float(lo[1]), 4), "min_z": round(float(lo[2]), 4),
         "size_x": round(float(hi[0] - lo[0]), 4), "size_y": round(float(hi[1] - lo[1]), 4),
         "size_z": round(float(hi[2] - lo[2]), 4),
@@ -188,12 +207,12 @@ def models_info_entry(model: ObjectModel) -> dict:
         syms = []
         for T in model.symmetries_discrete:
             T = np.asarray(T, dtype=np.float64).copy()
-            T[:3, 3] *= 1000.0
+            T[:3, 3] *= M_TO_MM
             syms.append([round(float(x), 9) for x in T.ravel()])
         out["symmetries_discrete"] = syms
     if model.symmetries_continuous:
         out["symmetries_continuous"] = [
-            {"axis": [float(a) for a in axis], "offset": [float(o) * 1000.0 for o in off]}
+            {"axis": [float(a) for a in axis], "offset": [float(o) * M_TO_MM for o in off]}
             for axis, off in model.symmetries_continuous
         ]
     return out
@@ -204,18 +223,13 @@ def models_info(models: Sequence[ObjectModel]) -> dict:
     return {str(m.obj_id): models_info_entry(m) for m in sorted(models, key=lambda m: m.obj_id)}
 
 
-def symmetries_from_models_info(entry: dict) -> tuple[tuple[np.ndarray, ...], tuple]:
-    """Symmetries of one BOP models_info entry (mm) converted to metres."""
-    disc = []
-    for s in entry.get("symmetries_discrete", []):
-        T = np.asarray(s, dtype=np.float64).reshape(4, 4).copy()
-        T[:3, 3] *= 1e-3  # BOP border: millimetres -> metres
-        disc.append(T)
-    cont = tuple(
-        (tuple(map(float, c["axis"])), tuple(float(o) * 1e-3 for o in c.get("offset", [0, 0, 0])))
-        for c in entry.get("symmetries_continuous", [])
-    )
-    return tuple(disc), cont
+def symmetries_of(info: ModelInfo | None) -> tuple[tuple[np.ndarray, ...], tuple]:
+    """``(symmetries_discrete, symmetries_continuous)`` of a ``models_info`` record in the form
+    :class:`ObjectModel` holds them (metres; ``()`` when ``info`` is None)."""
+    if info is None:
+        return (), ()
+    cont = tuple((tuple(map(float, axis)), tuple(map(float, off))) for axis, off in info.symmetries_continuous)
+    return tuple(np.asarray(T, dtype=np.float64) for T in info.symmetries_discrete), cont
 
 
 def write_model_ply_mm(model: ObjectModel, path: str | Path) -> None:
@@ -224,28 +238,6 @@ def write_model_ply_mm(model: ObjectModel, path: str | Path) -> None:
     Properties: x y z [nx ny nz] [red green blue]; faces as ``vertex_indices`` (uchar count, int).
     The bytes depend only on the model (no timestamps), so reruns write identical files.
     """
-    v = model.vertices_m.astype(np.float32) * np.float32(1000.0)  # BOP border: metres -> millimetres
-    cols: list[tuple[str, np.ndarray]] = [("x", v[:, 0]), ("y", v[:, 1]), ("z", v[:, 2])]
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    header = ["ply", "format binary_little_endian 1.0", "comment PreSim BOP model, millimetres",
-              f"element vertex {len(v)}", "property float x", "property float y", "property float z"]
-    if model.normals is not None:
-        header += ["property float nx", "property float ny", "property float nz"]
-        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-        cols += [("nx", model.normals[:, 0]), ("ny", model.normals[:, 1]), ("nz", model.normals[:, 2])]
-    if model.colors is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        cols += [("red", model.colors[:, 0]), ("green", model.colors[:, 1]), ("blue", model.colors[:, 2])]
-    nf = 0 if model.faces is None else len(model.faces)
-    header += [f"element face {nf}", "property list uchar int vertex_indices", "end_header"]
-    rec = np.empty(len(v), dtype=fields)
-    for name, col in cols:
-        rec[name] = col
-    parts = [("\n".join(header) + "\n").encode("ascii"), rec.tobytes()]
-    if nf:
-        frec = np.empty(nf, dtype=[("n", "u1"), ("i", "<i4", (3,))])
-        frec["n"] = 3
-        frec["i"] = model.faces
-        parts.append(frec.tobytes())
-    atomic_write_bytes(path, b"".join(parts))
+    v = model.vertices_m.astype(np.float32) * np.float32(M_TO_MM)  # BOP border: metres -> millimetres
+    write_ply(path, v, model.faces, colors=model.colors, normals=model.normals,
+              comment="PreSim BOP model, millimetres")

@@ -15,13 +15,13 @@ Checks, each problem reported with the file it is in:
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from presim.datasets import bop_reader as br
 from presim.datasets.annotate import bbox_from_mask
+from presim.formats.ply import read_ply
 from presim.datasets.generate import COMPLETE_MARKER
 from presim.io_utils import read_image
 
@@ -51,7 +51,7 @@ def validate_bop(root: str | Path, splits: tuple[str, ...] | None = None, check_
     cam_path = root / "camera.json"
     cam = None
     try:
-        raw = json.loads(cam_path.read_text())
+        raw = br.load_json(cam_path)
         missing = [k for k in _CAMERA_KEYS if k not in raw]
         if missing:
             bad(f"{cam_path}: missing {missing}")
@@ -62,7 +62,7 @@ def validate_bop(root: str | Path, splits: tuple[str, ...] | None = None, check_
     info_path = root / "models" / "models_info.json"
     infos: dict = {}
     try:
-        raw_info = json.loads(info_path.read_text())
+        raw_info = br.load_json(info_path)
         for k, e in raw_info.items():
             miss = [f for f in _INFO_KEYS if f not in e]
             if miss:
@@ -76,14 +76,14 @@ def validate_bop(root: str | Path, splits: tuple[str, ...] | None = None, check_
             bad(f"{info_path}: no entry for {ply.name}")
             continue
         try:
-            m = br.load_ply(ply)
+            m = read_ply(ply)
         except (OSError, ValueError) as e:
             bad(f"{ply}: {e}")
             continue
-        lo_mm = m.pts.min(0)
-        size_mm = m.pts.max(0) - lo_mm
+        lo_mm = m.vertices.min(0)
+        size_mm = m.vertices.max(0) - lo_mm
         inf = infos[obj_id]
-        if np.abs(lo_mm - inf.min_m * 1000).max() > 0.01 or np.abs(size_mm - inf.size_m * 1000).max() > 0.01:
+        if np.abs(lo_mm - inf.min_m * br.M_TO_MM).max() > 0.01 or np.abs(size_mm - inf.size_m * br.M_TO_MM).max() > 0.01:
             bad(f"{ply}: extents {lo_mm}, {size_mm} mm disagree with models_info.json")
 
     if splits is None:
@@ -113,7 +113,7 @@ def _validate_scene(ds: br.BopDataset, sid: int, cam, infos: dict, check_images:
     except (OSError, ValueError) as e:
         bad(str(e))
         return
-    raw_info = json.loads((sdir / "scene_gt_info.json").read_text())
+    raw_info = br.load_json(sdir / "scene_gt_info.json")
     if not (set(cams) == set(gts) == set(gtis)):
         bad(f"{sdir}: scene_camera / scene_gt / scene_gt_info have different image ids")
     for im_id in sorted(set(gts) & set(gtis) & set(cams)):

@@ -149,5 +149,10 @@ def refine_scene(scene: Scene, workers: int = 1, overwrite: bool = False,
     (references from all frames). Returns the path when complete, None if stopped by ``max_frames``."""
     if scene.path is None:
         raise ValueError("refine_scene needs a saved scene (load it with presim.capture.store.load_scene)")
-    return refine_frames_to_file(scene, Path(scene.path) / "depth_refined.npy", config=config,
-                                 workers=workers, overwrite=overwrite, max_frames=max_frames)
+    from presim.capture.store import set_has_refined_depth
+
+    out = refine_frames_to_file(scene, Path(scene.path) / "depth_refined.npy", config=config,
+                                workers=workers, overwrite=overwrite, max_frames=max_frames)
+    if out is not None:
+        set_has_refined_depth(scene.path)
+    return out

@@ -2,6 +2,7 @@
 
 Written with ``mcap`` (container) + ``mcap_ros2`` (CDR encoding). Topics (frames in docs/ros.md)::
 
+    /clock                            rosgraph_msgs/msg/Clock    sim time, one per step (as the ROS 1 bridge)
     /tf                               tf2_msgs/msg/TFMessage     map->odom, odom->base_link, moving joints
     /tf_static                        tf2_msgs/msg/TFMessage     fixed joints, once (transient_local)
     /map_cloud                        sensor_msgs/msg/PointCloud2 scene cloud in map, once (transient_local)
@@ -158,6 +159,7 @@ class McapRecorder:
 
     def _record(self, r: StepResult) -> None:
         t = float(r.sim_time_s)
+        self._write("/clock", "rosgraph_msgs/msg/Clock", rm.ros2_clock(t), t)
         dynamic, static = self._tree.edges(r)
         if not self._static_done:
             self._static_done = True

@@ -5,7 +5,7 @@ Two flavours share the same numbers:
 - ROS 2 (MCAP recordings): the official ROS 2 Humble ``.msg`` definitions (comments stripped) in
   the concatenated form ``ros2 bag record`` stores as an MCAP schema, and builders returning plain
   dicts that ``mcap_ros2``'s CDR encoder serialises.
-- ROS 1 (live bridge): :mod:`presim.outputs.ros_bridge` fills rospy message classes from the same
+- ROS 1 (live bridge): :mod:`presim.outputs.ros` (messages.py, publisher.py) fills rospy message classes from the same
   helpers (:func:`image_fields`, :func:`camera_info_fields`, :func:`pose_fields`, :func:`cloud_fields`).
 
 Encodings (documented in docs/ros.md): color ``rgb8``; depth ``32FC1`` metres registered to the color
@@ -21,7 +21,7 @@ from presim.geometry import Intrinsics, R_to_quat_xyzw
 from presim.outputs.frames import FrameEdge
 
 __all__ = ["MSGDEFS", "msgdef", "split_stamp", "image_fields", "depth_to_ros", "camera_info_fields",
-           "pose_fields", "cloud_fields", "ros2_header", "ros2_image", "ros2_depth", "ros2_camera_info",
+           "pose_fields", "cloud_fields", "ros2_header", "ros2_clock", "ros2_image", "ros2_depth", "ros2_camera_info",
            "ros2_tf", "ros2_odometry", "ros2_path", "ros2_joint_state", "ros2_point_cloud"]
 
 _SEP = "=" * 80 + "\n"
@@ -30,6 +30,7 @@ _SEP = "=" * 80 + "\n"
 _DEFS: dict[str, str] = {
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
     "std_msgs/String": "string data\n",
+    "rosgraph_msgs/Clock": "builtin_interfaces/Time clock\n",
     "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
     "sensor_msgs/Image": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
                           "uint8 is_bigendian\nuint32 step\nuint8[] data\n"),
@@ -90,7 +91,7 @@ def msgdef(ros2_type: str) -> str:
 MSGDEFS = {t: msgdef(t) for t in (
     "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "tf2_msgs/msg/TFMessage",
     "nav_msgs/msg/Odometry", "nav_msgs/msg/Path", "sensor_msgs/msg/JointState",
-    "sensor_msgs/msg/PointCloud2", "std_msgs/msg/String")}
+    "sensor_msgs/msg/PointCloud2", "std_msgs/msg/String", "rosgraph_msgs/msg/Clock")}
 
 
 # ---- transport-neutral field values ---------------------------------------------------------------
@@ -163,6 +164,11 @@ def cloud_fields(points_xyz: np.ndarray, points_rgb: np.ndarray) -> dict:
 def ros2_header(stamp_s: float, frame_id: str) -> dict:
     sec, nsec = split_stamp(stamp_s)
     return {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": frame_id}
+
+
+def ros2_clock(stamp_s: float) -> dict:
+    sec, nsec = split_stamp(stamp_s)
+    return {"clock": {"sec": sec, "nanosec": nsec}}
 
 
 def ros2_image(color: np.ndarray, stamp_s: float, frame_id: str) -> dict:

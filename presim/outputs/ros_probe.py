@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from presim.outputs.ros_bridge import import_rospy, pose_to_T
+from presim.outputs.ros import import_rospy, pose_to_T
 
 __all__ = ["main"]
 
@@ -103,6 +103,73 @@ def _wait(pred, timeout_s: float) -> bool:
     return False
 
 
+_BAD_FLOATS = (float("nan"), float("inf"), -float("inf"), 1e308, -1e308, 1e6, 5e-324)
+
+
+def _fuzz(rospy, hz: float, seconds: float, seed: int) -> dict:
+    """Publish random and adversarial commands at ``hz`` for ``seconds`` (round-robin over the
+    three command topics); returns counts per kind."""
+    import random
+
+    from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
+    from sensor_msgs.msg import JointState
+
+    rng = random.Random(seed)
+    pubs = {"cmd_vel": rospy.Publisher("/cmd_vel", Twist, queue_size=1000),
+            "joint_command": rospy.Publisher("/joint_command", JointState, queue_size=1000),
+            "initialpose": rospy.Publisher("/initialpose", PoseWithCovarianceStamped, queue_size=1000)}
+    _wait(lambda: all(p.get_num_connections() > 0 for p in pubs.values()), 20.0)
+
+    def num():
+        r = rng.random()
+        return rng.choice(_BAD_FLOATS) if r < 0.4 else rng.uniform(-2.0, 2.0) if r < 0.9 else rng.uniform(-1e9, 1e9)
+
+    def name():
+        r = rng.random()
+        if r < 0.4:
+            return rng.choice(["head_pan_joint", "head_tilt_joint"])
+        if r < 0.7:
+            return rng.choice(["nope", "", " ", "base_link", "head_pan_joint\x00", "ü" * 50, "/joint"])
+        return "".join(chr(rng.randrange(32, 0x3000)) for _ in range(rng.randrange(0, 300)))
+
+    def make(kind: str):
+        if kind == "cmd_vel":
+            m = Twist()
+            m.linear.x, m.linear.y, m.linear.z = num(), num(), num()
+            m.angular.x, m.angular.y, m.angular.z = num(), num(), num()
+        elif kind == "joint_command":
+            k = rng.choice([0, 1, 2, 3, 2000])
+            names = [name()] * k if k > 3 else [name() for _ in range(k)]
+            pos = [num() for _ in range(k + rng.choice([0, 0, 0, -1, 1]) if k else rng.choice([0, 1]))]
+            m = JointState(name=names, position=pos)
+        else:
+            m = PoseWithCovarianceStamped()
+            m.header.frame_id = rng.choice(["map", "", "odom", "ü" * 10])
+            pp = m.pose.pose
+            pp.position.x, pp.position.y, pp.position.z = num(), num(), num()
+            o = pp.orientation
+            o.x, o.y, o.z, o.w = num(), num(), num(), num()
+        return m
+
+    # Messages are made before the timed loop (a pool per topic, cycled), so the send rate is the
+    # transport's, not the random generator's.
+    kinds = ("cmd_vel", "joint_command", "initialpose")
+    pool = {k: [make(k) for _ in range(400)] for k in kinds}
+    sent = {k: 0 for k in pubs}
+    t0 = time.monotonic()
+    n = 0
+    while time.monotonic() - t0 < seconds:
+        kind = kinds[n % 3]
+        pubs[kind].publish(pool[kind][(n // 3) % 400])
+        sent[kind] += 1
+        n += 1
+        lag = t0 + n / hz - time.monotonic()
+        if lag > 0:
+            time.sleep(lag)
+    wall = time.monotonic() - t0
+    return {"sent": n, "sent_per_topic": sent, "wall_s": wall, "rate_hz": n / wall}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="ros_probe", description=__doc__.split("\n")[0])
     ap.add_argument("--camera", default="head_camera")
@@ -127,6 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("flood")
     p.add_argument("--count", type=int, default=2000)
     p.add_argument("--seconds", type=float, default=5.0)
+    p = sub.add_parser("fuzz", help="random and adversarial /cmd_vel, /joint_command, /initialpose")
+    p.add_argument("--hz", type=float, default=1000.0)
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("diagnostics", help="print the next /diagnostics counters")
+    p.add_argument("--timeout", type=float, default=10.0)
     args = ap.parse_args(argv)
 
     rospy = import_rospy()
@@ -229,6 +302,18 @@ def main(argv: list[str] | None = None) -> int:
                 if lag > 0:
                     time.sleep(lag)
             out = {"sent": args.count, "wall_s": time.monotonic() - t0}
+        elif args.cmd == "fuzz":
+            out = _fuzz(rospy, args.hz, args.seconds, args.seed)
+        elif args.cmd == "diagnostics":
+            from diagnostic_msgs.msg import DiagnosticArray
+
+            got = []
+            rospy.Subscriber("/diagnostics", DiagnosticArray, lambda m: got.append(m), queue_size=5)
+            _wait(lambda: got, args.timeout)
+            st = got[-1].status[0] if got else None
+            out = {} if st is None else {"level": int.from_bytes(st.level, "little") if isinstance(st.level, bytes)
+                                         else int(st.level), "name": st.name, "message": st.message,
+                                         "values": {kv.key: kv.value for kv in st.values}}
     finally:
         rospy.signal_shutdown("probe done")
     print(json.dumps(out, default=float))

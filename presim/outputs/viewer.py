@@ -40,7 +40,35 @@ from presim.outputs.frames import BASE_FRAME, build_frame_tree
 from presim.sim.types import SimInfo, StepResult
 
 __all__ = ["ViewerConfig", "RerunViewer", "web_viewer_url", "free_port", "rerun_executable",
-           "wait_for_port"]
+           "wait_for_port", "ViewerError", "check_rrd_file", "has_display"]
+
+RRD_MAGIC = (b"RRF0", b"RRF1", b"RRF2")
+"""First four bytes of a rerun recording (``.rrd``) file."""
+
+
+class ViewerError(OSError):
+    """The viewer cannot run here (no display, the rerun binary did not start) or the file is not
+    a recording. An ``OSError`` so commands report it in one line."""
+
+
+def has_display() -> bool:
+    """True where a native window can open (always outside Linux; X11 or Wayland on Linux)."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def check_rrd_file(path: str | os.PathLike) -> Path:
+    """Refuse a file that is missing or is not a rerun recording (by its magic bytes)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ViewerError(f"{path}: .rrd file not found")
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if head not in RRD_MAGIC:
+        raise ViewerError(f"{path}: not a rerun recording (starts with {head!r}, expected one of "
+                          f"{', '.join(repr(m) for m in RRD_MAGIC)})")
+    return path
 
 MODES = ("native", "web", "rrd")
 
@@ -125,6 +153,9 @@ class RerunViewer:
             raise ValueError(f"unknown viewer mode {mode!r}; choose one of {', '.join(MODES)}")
         if mode == "rrd" and rrd_path is None:
             raise ValueError("viewer mode 'rrd' needs an .rrd path")
+        if mode == "native" and "--headless" not in config.extra_viewer_args and not has_display():
+            raise ViewerError("--viewer native: no display (DISPLAY and WAYLAND_DISPLAY are unset); use "
+                              "--viewer web (browser on 127.0.0.1) or --viewer rrd with --rrd FILE")
         self.mode = mode
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
         if self.rrd_path is not None and self.rrd_path.suffix != ".rrd":
@@ -165,7 +196,7 @@ class RerunViewer:
         except TimeoutError as e:
             self._stop_viewer(force=True)
             hint = " (no display? try --viewer web or --viewer rrd)" if self.mode == "native" else ""
-            raise RuntimeError(f"rerun viewer did not start ({' '.join(cmd)}): {e}{hint}") from e
+            raise ViewerError(f"rerun viewer did not start ({' '.join(cmd)}): {e}{hint}") from None
         self.grpc_url = f"rerun+http://{cfg.host}:{grpc_port}/proxy"
         sinks = [rr.GrpcSink(self.grpc_url)]
         if self.rrd_path is not None:

@@ -23,7 +23,6 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from presim.datasets.bop_reader import ModelInfo
 from presim.geometry import Intrinsics
 
 __all__ = [
@@ -134,9 +133,15 @@ def te(t_est, t_gt) -> float:
     return float(np.linalg.norm(t_gt - t_est))
 
 
-def symmetry_transformations(info: ModelInfo | None, max_sym_disc_step: float = 0.01) -> np.ndarray:
+def symmetry_transformations(symmetries_discrete: Sequence[np.ndarray] = (),
+                             symmetries_continuous: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+                             max_sym_disc_step: float = 0.01) -> np.ndarray:
     """Symmetry transformations of an object, (S, 4, 4), identity first (bop_toolkit's
-    ``misc.get_symmetry_transformations``; translations in the units of ``info``: metres).
+    ``misc.get_symmetry_transformations``; translations in the units of the inputs: metres).
+
+    ``symmetries_discrete``: 4x4 transforms; ``symmetries_continuous``: ``(axis (3,), offset (3,))``
+    pairs, as :class:`presim.formats.bop.ModelInfo` holds them. The result is the ``syms`` argument
+    of :func:`mssd` / :func:`mspd`.
 
     Continuous symmetries are discretised into ``ceil(pi / max_sym_disc_step)`` rotations so
     that the point farthest from the axis travels at most ``max_sym_disc_step`` x diameter between
@@ -144,20 +149,20 @@ def symmetry_transformations(info: ModelInfo | None, max_sym_disc_step: float = 
     """
     disc = [np.eye(4)]
     cont: list[np.ndarray] = []
-    if info is not None:
-        disc += [np.asarray(T, dtype=np.float64) for T in info.symmetries_discrete]
-        for axis, offset in info.symmetries_continuous:
-            n = int(np.ceil(np.pi / max_sym_disc_step))
-            step = 2.0 * np.pi / n
-            a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-            Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-            for i in range(n):  # i = 0 is the identity, as in current bop_toolkit
-                ang = i * step
-                R = np.eye(3) + np.sin(ang) * Kx + (1 - np.cos(ang)) * (Kx @ Kx)  # Rodrigues
-                T = np.eye(4)
-                T[:3, :3] = R
-                T[:3, 3] = -R @ offset + offset  # rotation about the axis through `offset`
-                cont.append(T)
+    disc += [np.asarray(T, dtype=np.float64) for T in symmetries_discrete]
+    for axis, offset in symmetries_continuous:
+        offset = np.asarray(offset, dtype=np.float64)
+        n = int(np.ceil(np.pi / max_sym_disc_step))
+        step = 2.0 * np.pi / n
+        a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+        Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        for i in range(n):  # i = 0 is the identity, as in current bop_toolkit
+            ang = i * step
+            R = np.eye(3) + np.sin(ang) * Kx + (1 - np.cos(ang)) * (Kx @ Kx)  # Rodrigues
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = -R @ offset + offset  # rotation about the axis through `offset`
+            cont.append(T)
     if not cont:
         return np.stack(disc)
     return np.stack([Tc @ Td for Td in disc for Tc in cont])

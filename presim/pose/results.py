@@ -13,7 +13,6 @@ naming the file and line. A wrong header is always an error.
 from __future__ import annotations
 
 import csv
-import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +23,8 @@ from presim.datasets.bop_reader import MM_TO_M
 __all__ = ["Estimate", "Rejection", "BopResults", "read_bop_results", "write_bop_results", "estimates_from_gt", "HEADER"]
 
 HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+MAX_ROW_CHARS = 4096
+"""Longest accepted row; a valid row is ~150-300 characters (9 + 3 numbers)."""
 
 
 @dataclass(frozen=True)
@@ -111,11 +112,30 @@ def read_bop_results(path: str | Path, known_obj_ids=None, rot_tol: float = 1e-2
         raise FileNotFoundError(f"{path}: results file not found")
     text = path.read_text(encoding="utf-8", errors="replace")
     known = None if known_obj_ids is None else {int(o) for o in known_obj_ids}
-    reader = csv.reader(io.StringIO(text))
     header = None
     estimates: list[Estimate] = []
     rejections: list[Rejection] = []
-    for lineno, row in enumerate(reader, start=1):
+    # One row per line (BOP rows have no quoted newlines). Oversized lines are rejected before the
+    # csv module sees them (its field limit would raise for the whole file).
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        if len(line) > MAX_ROW_CHARS:
+            if header is None:
+                raise ValueError(f"{path}: line {lineno}: header line of {len(line)} characters")
+            reason = f"row of {len(line)} characters (at most {MAX_ROW_CHARS})"
+            if strict:
+                raise ValueError(f"{path}: line {lineno}: {reason}")
+            rejections.append(Rejection(lineno, reason, line[:200], None))
+            continue
+        try:
+            row = next(csv.reader([line]), [])
+        except csv.Error as e:
+            row = None
+            reason = f"unreadable CSV row ({e})"
+        if row is None:
+            if header is None or strict:
+                raise ValueError(f"{path}: line {lineno}: {reason}")
+            rejections.append(Rejection(lineno, reason, line[:200], None))
+            continue
         if not row or all(not c.strip() for c in row):
             continue  # blank lines
         if header is None:

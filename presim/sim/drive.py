@@ -19,8 +19,8 @@ import numpy as np
 from presim.capture.scene import Scene
 from presim.sim.controllers import KeyboardTeleop, TrajectoryReplay, load_waypoints
 from presim.sim.robot import Robot
-from presim.sim.routes import (Driver, KeyboardDriver, ReplayDriver, RouteDriver, WaypointDriver, free_camera_route,
-                               ground_route)
+from presim.sim.routes import (Driver, KeyboardDriver, ReplayDriver, RouteDriver, WaypointDriver, ended_early,
+                               free_camera_route, ground_route)
 from presim.sim.simulator import SimConfig, Simulator
 from presim.sim.types import Sink
 
@@ -81,6 +81,8 @@ class DriveStats:
     """Wall time before the first step (simulator, driver, sinks, reset, route)."""
     stage_ms_per_step: dict[str, float] = field(default_factory=dict)
     """Mean wall milliseconds per step of each simulator stage (``total`` included)."""
+    ended_early: str | None = None
+    """Why the drive stopped before ``DriveConfig.steps`` (the driver finished), else None."""
 
     @property
     def steps_per_s(self) -> float:
@@ -126,7 +128,7 @@ def run_drive(scene: Scene, robot: Robot, sim_config: SimConfig, controller: Con
     result = sim.reset(config.seed, start=start, joint_positions=joints)
     if driver is None:  # built-in route drawn from the seed
         if sim.is_free:
-            driver = ReplayDriver(free_camera_route(sim, rng, config.steps))
+            driver = ReplayDriver(free_camera_route(sim, rng, config.steps), label="built-in route")
             result = sim.reset(config.seed, start=driver.start_pose(sim))
         else:
             driver = RouteDriver(ground_route(sim, rng), sim)
@@ -162,4 +164,5 @@ def run_drive(scene: Scene, robot: Robot, sim_config: SimConfig, controller: Con
     return DriveStats(
         scene_name=sim.scene_name, steps=steps, sim_time_s=sim.sim_time_s, distance_m=dist, contacts=contacts,
         outside_captured_area=outside, images=images, T_world_base=result.T_world_base.copy(), yaw_rad=float(sim.yaw),
-        wall_s=wall, setup_s=setup_s, stage_ms_per_step={k: v / max(steps, 1) for k, v in stage_ms.items()})
+        wall_s=wall, setup_s=setup_s, stage_ms_per_step={k: v / max(steps, 1) for k, v in stage_ms.items()},
+        ended_early=None if config.until_done else ended_early(driver, steps, config.steps))

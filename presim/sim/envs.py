@@ -1,7 +1,6 @@
 """Gymnasium environments (thesis Sec. 4.4, visual navigation).
 
-Registered ids (importing this module registers them; ``gym.make("presim.sim.envs:PreSim-PointNav-v0",
-scene=...)`` imports it for you):
+Registered ids (``import presim`` registers them, lazily: see ``presim.register_gym_envs``):
 
 - ``PreSim-PointNav-v0``: continuous actions ``Box([-1, -1], [1, 1])`` = (forward speed, turn rate)
   as fractions of the base's limits;
@@ -15,7 +14,7 @@ truncated after ``max_episode_steps``. Goals are drawn from the seed among free 
 from the start (same connected component of the map), ``min/max_goal_dist_m`` away (straight line).
 
 Example:
-    >>> import gymnasium as gym, presim.sim.envs                              # doctest: +SKIP
+    >>> import gymnasium as gym, presim                                       # doctest: +SKIP
     >>> env = gym.make("PreSim-PointNav-v0", scene="out/sample", width=64, height=48)   # doctest: +SKIP
     >>> obs, info = env.reset(seed=0)                                         # doctest: +SKIP
 """
@@ -89,6 +88,10 @@ class PointNavEnv(gym.Env):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
+        from presim.limits import check_intrinsics, check_render_memory
+
+        check_intrinsics(width, height, prefix="")
+        check_render_memory(width, height, what="one observation", size_flag="width/height")
         cam = CameraSpec(name="head_camera", width=width, height=height, hfov_deg=self.cfg.hfov_deg,
                          rate_hz=1.0 / self.cfg.dt_s, noise=DepthNoiseConfig() if self.cfg.depth_noise else None)
         self.sim = Simulator(_load(scene), default_robot(), SimConfig(dt_s=self.cfg.dt_s, cameras=(cam,)))
@@ -183,10 +186,10 @@ class PointNavEnv(gym.Env):
 
 
 def register_envs() -> None:
-    """Register the PreSim environments with gymnasium (idempotent)."""
-    for env_id, discrete in (("PreSim-PointNav-v0", False), ("PreSim-PointNavDiscrete-v0", True)):
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="presim.sim.envs:PointNavEnv", kwargs={"discrete": discrete})
+    """Register the PreSim environments with gymnasium (idempotent; ``import presim`` does it too)."""
+    from presim import register_gym_envs
+
+    register_gym_envs()
 
 
 register_envs()

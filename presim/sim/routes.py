@@ -18,13 +18,16 @@ from presim.sim.controllers import Action, KeyboardTeleop, TrajectoryReplay, Way
 from presim.sim.occupancy import plan_path
 from presim.sim.simulator import Simulator
 
-__all__ = ["Driver", "WaypointDriver", "RouteDriver", "ReplayDriver", "KeyboardDriver", "ground_route", "free_camera_route"]
+__all__ = ["Driver", "WaypointDriver", "RouteDriver", "ReplayDriver", "KeyboardDriver", "ground_route", "free_camera_route",
+           "ended_early"]
 
 
 class Driver:
     """One action per step; ``done`` when the controller has nothing left to do."""
 
     done: bool = False
+    label: str = "controller"
+    """What the driver follows, for messages ("built-in route", "waypoints", "trajectory")."""
 
     def start_pose(self, sim: Simulator) -> np.ndarray | None:
         """Pose to reset to (None = the simulator's seeded start)."""
@@ -42,6 +45,8 @@ class Driver:
 
 
 class WaypointDriver(Driver):
+    label = "waypoints"
+
     def __init__(self, waypoints_xy: np.ndarray, drive: str):
         self.follower = WaypointFollower(waypoints_xy, drive)
 
@@ -54,6 +59,8 @@ class WaypointDriver(Driver):
 class RouteDriver(WaypointDriver):
     """Waypoint following that also aims the head (pan/tilt joints, when the robot has them) along
     the nearest captured view, so the camera looks where the capture looked (fewer holes)."""
+
+    label = "built-in route"
 
     def __init__(self, waypoints_xy: np.ndarray, sim: Simulator, pan_joint: str = "head_pan_joint",
                  tilt_joint: str = "head_tilt_joint"):
@@ -87,8 +94,12 @@ class ReplayDriver(Driver):
     the robot itself produced) is reproduced exactly as long as the tilt keeps up with its
     velocity limit."""
 
+    label = "trajectory"
+
     def __init__(self, replay: TrajectoryReplay, frame: str = "camera", pan_joint: str = "head_pan_joint",
-                 tilt_joint: str = "head_tilt_joint"):
+                 tilt_joint: str = "head_tilt_joint", label: str | None = None):
+        if label is not None:
+            self.label = label
         if frame not in ("camera", "base"):
             raise ValueError(f"replay frame must be 'camera' or 'base', got '{frame}'")
         self.replay, self.frame = replay, frame
@@ -124,7 +135,17 @@ class ReplayDriver(Driver):
         return Action(T_world_base=self._base(sim, T, q_next), joint_targets=targets or None)
 
 
+def ended_early(driver: Driver, steps_done: int, steps_requested: int) -> str | None:
+    """Why a drive stopped before ``steps_requested`` steps (None when it did not, or when the user
+    quit the keyboard teleop)."""
+    if not driver.done or steps_done >= steps_requested or isinstance(driver, KeyboardDriver):
+        return None
+    return f"the {driver.label} ended after {steps_done} of {steps_requested} steps"
+
+
 class KeyboardDriver(Driver):
+    label = "keyboard"
+
     def __init__(self, teleop: KeyboardTeleop):
         self.teleop = teleop
 

@@ -13,12 +13,13 @@ are written scaled to metres into a temporary folder that ``save_scene`` copies 
 Camera poses: ``T_world_cam = inv([cam_R_w2c | cam_t_w2c])``. Scenes without ``cam_R_w2c`` (LM, LM-O)
 are static, so the camera poses follow from one object's ground truth: the world is the frame of the
 first object annotated in every frame (``T_world_cam = inv(T_cam_obj)``), noted in the meta.
+The JSON files are read into the BOP records of :mod:`presim.formats.bop` (already in metres) and the
+models through :mod:`presim.formats.ply`; their errors come back as ``SceneError`` naming the file.
 """
 
 from __future__ import annotations
 
 import atexit
-import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -29,56 +30,42 @@ from presim.capture.importers.common import (
     FileFrameSource, check_sizes, checked_pose, image_size_wh, select_indices,
 )
 from presim.capture.scene import Scene, SceneError, SceneMeta, SceneObject
-from presim.geometry import Intrinsics, compose, invert, make_pose
+from presim.formats.bop import MM_TO_M, GtInstance, SceneCamera, read_scene_camera, read_scene_gt
+from presim.formats.ply import read_ply, write_ply
+from presim.geometry import Intrinsics, compose, invert
 
 NAME = "bop"
 VERSION = "1"
-MM = 1e-3
 
 
 def detect(src: Path) -> bool:
     return src.is_dir() and (src / "scene_camera.json").is_file()
 
 
-def _load_json(path: Path) -> dict:
-    if not path.is_file():
-        raise SceneError(f"{path}: file not found")
+def _read(reader, path: Path):
+    """A :mod:`presim.formats.bop` reader's result, its errors as ``SceneError``."""
     try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SceneError(f"{path}: corrupt JSON ({e})") from None
-
-
-def _pose_mm(R9, t3, where: str) -> np.ndarray:
-    try:
-        R = np.asarray(R9, dtype=np.float64).reshape(3, 3)
-        t = np.asarray(t3, dtype=np.float64).reshape(3) * MM
-    except (TypeError, ValueError):
-        raise SceneError(f"{where}: rotation needs 9 numbers and translation 3") from None
-    return checked_pose(make_pose(R, t), where)
+        return reader(path)
+    except (OSError, ValueError) as e:
+        raise SceneError(str(e)) from None
 
 
 def _model_in_metres(src_ply: Path, out_dir: Path) -> Path:
-    import trimesh
-
     try:
-        mesh = trimesh.load(src_ply, force="mesh", process=False)
-    except Exception as e:  # noqa: BLE001 - any loader failure = unreadable model
+        mesh = read_ply(src_ply)
+    except (OSError, ValueError) as e:
         raise SceneError(f"{src_ply}: unreadable model ({e})") from None
-    mesh.apply_scale(MM)  # BOP models are in millimetres
     dst = out_dir / src_ply.name
-    mesh.export(dst)
+    # BOP models are in millimetres; normals are left out (the scene recomputes them from faces).
+    write_ply(dst, mesh.vertices * MM_TO_M, mesh.faces, colors=mesh.colors)
     return dst
 
 
 def read(src: Path, every: int = 1, max_frames: int | None = None, models_dir: Path | None = None) -> Scene:
     src = Path(src)
     cam_path = src / "scene_camera.json"
-    cams = _load_json(cam_path)
-    try:
-        im_ids = sorted(int(k) for k in cams)
-    except ValueError:
-        raise SceneError(f"{cam_path}: keys must be image ids") from None
+    cams: dict[int, SceneCamera] = _read(read_scene_camera, cam_path)
+    im_ids = sorted(cams)
     if not im_ids:
         raise SceneError(f"{cam_path}: no images")
     im_ids = [im_ids[i] for i in select_indices(len(im_ids), every, max_frames)]
@@ -87,7 +74,7 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, models_dir: P
     if not depth_dir.is_dir():
         raise SceneError(f"{depth_dir}: no depth folder (PreSim needs depth for every frame)")
     gt_path = src / "scene_gt.json"
-    gt = _load_json(gt_path) if gt_path.is_file() else {}
+    gt: dict[int, list[GtInstance]] = _read(read_scene_gt, gt_path) if gt_path.is_file() else {}
 
     colors, depths, Ks, scales = [], [], [], []
     for im in im_ids:
@@ -98,26 +85,23 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, models_dir: P
             raise SceneError(f"{rgb_dir / f'{im:06d}.png'}: color image not found (nor .jpg)")
         colors.append(c)
         depths.append(depth_dir / f"{im:06d}.png")
-        e = cams[str(im)]
-        if "cam_K" not in e:
-            raise SceneError(f"{cam_path}: image {im} has no cam_K")
-        Ks.append(np.asarray(e["cam_K"], dtype=np.float64).reshape(3, 3))
-        scales.append(float(e.get("depth_scale", 1.0)))
+        Ks.append(cams[im].K)
+        scales.append(cams[im].depth_scale)
     w, h = image_size_wh(colors[0])
     Ks = [Intrinsics.from_K(K, w, h) for K in Ks]
     check_sizes(colors, (w, h), "color")
     check_sizes(depths, (w, h), "depth")
 
     notes = []
-    if all("cam_R_w2c" in cams[str(im)] for im in im_ids):
-        poses = [invert(_pose_mm(cams[str(im)]["cam_R_w2c"], cams[str(im)]["cam_t_w2c"],
-                                 f"{cam_path} image {im} cam_R_w2c/cam_t_w2c")) for im in im_ids]
+    if all(cams[im].T_cam_world is not None for im in im_ids):
+        poses = [invert(checked_pose(cams[im].T_cam_world, f"{cam_path} image {im} cam_R_w2c/cam_t_w2c"))
+                 for im in im_ids]
     else:
         anchor = _anchor_object(gt, im_ids, cam_path, gt_path)
         poses = []
         for im in im_ids:
-            a = next(a for a in gt[str(im)] if a["obj_id"] == anchor)
-            poses.append(invert(_pose_mm(a["cam_R_m2c"], a["cam_t_m2c"], f"{gt_path} image {im} obj {anchor}")))
+            a = next(a for a in gt[im] if a.obj_id == anchor)
+            poses.append(invert(checked_pose(a.T_cam_obj, f"{gt_path} image {im} obj {anchor}")))
         notes.append(f"no cam_R_w2c: world = frame of object {anchor} (static scene), poses from scene_gt")
 
     objects = []
@@ -133,13 +117,13 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, models_dir: P
             atexit.register(shutil.rmtree, out_dir, ignore_errors=True)
         seen: set[int] = set()
         for k, im in enumerate(im_ids):
-            anns = gt.get(str(im), [])
-            new = sorted({int(a["obj_id"]) for a in anns} - seen)
+            anns = gt.get(im, [])
+            new = sorted({a.obj_id for a in anns} - seen)
             for a in anns:
-                oid = int(a["obj_id"])
+                oid = a.obj_id
                 if oid not in new:
                     continue
-                T_cam_obj = _pose_mm(a["cam_R_m2c"], a["cam_t_m2c"], f"{gt_path} image {im} obj {oid}")
+                T_cam_obj = checked_pose(a.T_cam_obj, f"{gt_path} image {im} obj {oid}")
                 model = None
                 if models_dir is not None:
                     ply = Path(models_dir) / f"obj_{oid:06d}.ply"
@@ -157,7 +141,7 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, models_dir: P
         if not np.issubdtype(raw.dtype, np.integer):
             raise SceneError(f"{path}: BOP depth must be an integer PNG, got {raw.dtype}")
         # depth_mm = value * depth_scale
-        return raw.astype(np.float32) * np.float32(scale_by_path[str(path)] * MM)
+        return raw.astype(np.float32) * np.float32(scale_by_path[str(path)] * MM_TO_M)
 
     source = FileFrameSource(colors, depths, Ks, decode)
     ids = [f"{im:06d}" for im in im_ids]
@@ -166,15 +150,15 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, models_dir: P
                  SceneMeta(str(src.resolve()), NAME, VERSION, notes=tuple(notes)), objects=objects)
 
 
-def _anchor_object(gt: dict, im_ids: list[int], cam_path: Path, gt_path: Path) -> int:
+def _anchor_object(gt: dict[int, list[GtInstance]], im_ids: list[int], cam_path: Path, gt_path: Path) -> int:
     if not gt:
         raise SceneError(f"{cam_path}: no cam_R_w2c/cam_t_w2c and no scene_gt.json: camera poses unknown")
     common = None
     for im in im_ids:
-        anns = gt.get(str(im))
+        anns = gt.get(im)
         if not anns:
             raise SceneError(f"{gt_path}: image {im} has no annotation and {cam_path.name} no cam_R_w2c")
-        ids = [int(a["obj_id"]) for a in anns]
+        ids = [a.obj_id for a in anns]
         single = {o for o in ids if ids.count(o) == 1}
         common = single if common is None else common & single
     if not common:

@@ -1,0 +1,43 @@
+"""Where rospy comes from, and the loopback ROS environment.
+
+rospy comes from Debian's packages (``ros-core``, ``python3-rospy``, message packages) installed in
+``/usr/lib/python3/dist-packages``. The project's venv is not a ``--system-site-packages`` venv, so
+:func:`import_rospy` APPENDS that folder to ``sys.path`` (at the end, so the venv's numpy, yaml etc.
+win) before importing rospy. Both use Python 3.11, so the pure-Python ROS packages load as they are.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+__all__ = ["ROS_DIST_PACKAGES", "import_rospy", "ros_env"]
+
+ROS_DIST_PACKAGES = "/usr/lib/python3/dist-packages"
+
+
+def import_rospy():
+    """Import Debian's rospy from the venv (see the module docstring). Clear error when missing."""
+    if ROS_DIST_PACKAGES not in sys.path and os.path.isdir(ROS_DIST_PACKAGES):
+        sys.path.append(ROS_DIST_PACKAGES)  # at the END: the venv's own packages keep priority
+    try:
+        import rospy  # noqa: F401
+    except ImportError as e:
+        raise ImportError(f"rospy not found ({e}); install Debian's ROS 1 packages: "
+                          "apt-get install ros-core python3-rospy ros-sensor-msgs ros-nav-msgs "
+                          "ros-tf2-msgs ros-std-srvs python3-diagnostic-msgs "
+                          "(scripts/setup.sh --test-system)") from e
+    return rospy
+
+
+def ros_env(master_port: int = 11311, host: str = "127.0.0.1", base: dict | None = None) -> dict[str, str]:
+    """Environment for ROS processes on ``host`` (loopback by default: rospy then binds 127.0.0.1).
+
+    Both ``ROS_IP`` and ``ROS_HOSTNAME`` are set: rospy's bind address follows whichever it reads
+    (``ROS_IP`` first), and a node advertises ``ROS_HOSTNAME`` when set."""
+    env = dict(os.environ if base is None else base)
+    env.setdefault("ROS_MASTER_URI", f"http://{host}:{master_port}")
+    env.setdefault("ROS_IP", host)
+    env.setdefault("ROS_HOSTNAME", host)
+    env.setdefault("ROS_HOME", os.path.join(os.path.expanduser("~"), ".ros"))
+    return env

@@ -1,0 +1,177 @@
+"""Package layering (docs/layout.md): parse the imports of every module of presim/ and fail on an
+import between sub-packages that the table below does not allow (upward imports, sibling imports,
+the product importing presim.testing).
+
+``ALLOWED`` is the table of docs/layout.md ("Who may import whom"); change both together.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "presim"
+
+# Sub-package -> sub-packages it may import. Root modules (presim/*.py and the package __init__) are
+# the base: everybody may import them and they import only each other (see _unit / _violations).
+_ALL = {"formats", "sensors", "capture", "depth", "synthesis", "evaluation", "sim", "datasets", "outputs",
+        "pose", "cli", "testing"}
+ALLOWED: dict[str, set[str]] = {
+    "formats": set(),
+    "sensors": set(),
+    "capture": {"formats", "sensors"},
+    "depth": {"formats", "capture"},
+    "synthesis": {"formats", "capture"},
+    "evaluation": {"formats", "sensors", "capture", "depth", "synthesis"},
+    "sim": {"formats", "sensors", "capture", "synthesis"},
+    "datasets": {"formats", "sensors", "capture", "synthesis"},
+    "outputs": {"formats", "sensors", "capture", "sim"},
+    "pose": {"formats", "capture", "datasets"},
+    "cli": _ALL - {"cli", "testing"},
+    "testing": _ALL - {"testing"},
+}
+ROOT = "<root>"  # presim/__init__.py and presim/*.py
+
+# KNOWN EXCEPTIONS -- imports that break the table today and are being removed on other branches of
+# issue 10. Each entry: (importing module, imported sub-package). The lead empties this list after
+# merging those branches; test_known_exceptions_are_still_needed fails once an entry is obsolete.
+KNOWN_EXCEPTIONS: set[tuple[str, str]] = {
+    # eval_views compares synthesis with refinement; it moves to presim/evaluation/ (issue 10, item 5).
+    ("presim.synthesis.eval_views", "depth"),
+}
+
+
+def _module_name(path: Path, pkg: Path = PKG) -> str:
+    rel = path.relative_to(pkg.parent).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def _unit(module: str, pkg: Path = PKG) -> str:
+    """Layering unit of a dotted module name: its sub-package, or ROOT for presim and presim/*.py
+    (``presim/__main__.py``, ``python -m presim``, belongs to ``cli``)."""
+    parts = module.split(".")
+    if module == "presim.__main__":
+        return "cli"
+    if len(parts) >= 2 and (pkg / parts[1]).is_dir():
+        return parts[1]
+    return ROOT
+
+
+def imported_modules(source: str, module: str, is_package: bool, pkg: Path = PKG) -> list[tuple[str, int]]:
+    """``(absolute presim module name, line)`` of every import in ``source``, at any depth (lazy
+    imports inside functions count), relative imports resolved, plus
+    ``importlib.import_module("presim...")`` with a literal name."""
+    out = []
+    package = module if is_package else module.rpartition(".")[0]
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            out += [(a.name, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            if mod == "presim":
+                # `from presim import x`: a sub-package / root module named x, else a name of presim/__init__.
+                for a in node.names:
+                    is_mod = (pkg / a.name).is_dir() or (pkg / f"{a.name}.py").is_file()
+                    out.append((f"presim.{a.name}" if is_mod else "presim", node.lineno))
+            else:
+                out.append((mod, node.lineno))
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+              and node.func.attr == "import_module" and node.args
+              and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            out.append((node.args[0].value, node.lineno))
+    return [(m, ln) for m, ln in out if m == "presim" or m.startswith("presim.")]
+
+
+def _violations(pkg: Path = PKG) -> tuple[list[tuple[str, str, int, str]], list[str]]:
+    """``([(importing module, imported unit, line, imported module)], [unknown sub-packages])``."""
+    bad, unknown = [], set()
+    for path in sorted(pkg.rglob("*.py")):
+        module = _module_name(path, pkg)
+        src_unit = _unit(module, pkg)
+        if src_unit != ROOT and src_unit not in ALLOWED:
+            unknown.add(src_unit)
+            continue
+        for target, line in imported_modules(path.read_text(), module, path.name == "__init__.py", pkg):
+            dst_unit = _unit(target, pkg)
+            if dst_unit == src_unit or dst_unit == ROOT:
+                continue
+            if src_unit == ROOT or dst_unit not in ALLOWED.get(src_unit, set()):
+                bad.append((module, dst_unit, line, target))
+    return bad, sorted(unknown)
+
+
+def test_every_sub_package_is_in_the_table():
+    _, unknown = _violations()
+    assert not unknown, (f"sub-packages {unknown} are not in docs/layout.md's table: add them there and to "
+                         f"ALLOWED in tests/test_layering.py")
+
+
+def test_no_import_breaks_the_layering():
+    bad, _ = _violations()
+    bad = [b for b in bad if (b[0], b[1]) not in KNOWN_EXCEPTIONS]
+    lines = [f"{m.replace('.', '/')}.py:{ln}: imports {t} ({d} is not allowed; docs/layout.md)" for m, d, ln, t in bad]
+    assert not bad, "\n".join(lines)
+
+
+def test_known_exceptions_are_still_needed():
+    bad, _ = _violations()
+    found = {(b[0], b[1]) for b in bad}
+    obsolete = sorted(KNOWN_EXCEPTIONS - found)
+    assert not obsolete, f"remove {obsolete} from KNOWN_EXCEPTIONS in tests/test_layering.py (fixed)"
+
+
+def test_product_never_imports_testing():
+    bad, _ = _violations()
+    assert not [b for b in bad if b[1] == "testing"]
+    assert "testing" not in set().union(*(v for k, v in ALLOWED.items() if k != "testing"))
+
+
+@pytest.fixture()
+def toy_pkg(tmp_path) -> Path:
+    """A tiny presim/ tree with one upward, one sibling, one relative-upward and one testing import."""
+    pkg = tmp_path / "presim"
+    files = {
+        "__init__.py": "",
+        "geometry.py": "import numpy as np\n",
+        "capture/__init__.py": "",
+        "capture/scene.py": "from presim.geometry import look_at\nfrom presim.capture import store\n",
+        "capture/store.py": "def f():\n    from presim.sim.robot import load_robot  # lazy, upward\n",
+        "sim/__init__.py": "",
+        "sim/robot.py": "from presim.capture.scene import Scene\nfrom presim import datasets\n",
+        "datasets/__init__.py": "",
+        "datasets/gen.py": "from ..synthesis import renderer\nfrom presim.testing.steps import x\n",
+        "synthesis/__init__.py": "from . import renderer\n",
+        "synthesis/renderer.py": "import importlib\nm = importlib.import_module('presim.depth.refine')\n",
+        "depth/__init__.py": "",
+        "testing/__init__.py": "from presim.cli import main\n",
+        "cli/__init__.py": "from presim.datasets.gen import y\n",
+    }
+    for name, text in files.items():
+        (pkg / name).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / name).write_text(text)
+    return pkg
+
+
+def test_checker_finds_each_kind_of_bad_import(toy_pkg):
+    bad, unknown = _violations(toy_pkg)
+    got = sorted((m, d, ln) for m, d, ln, _ in bad)
+    assert got == [
+        ("presim.capture.store", "sim", 2),        # lazy import inside a function, upward
+        ("presim.datasets.gen", "testing", 2),     # product -> testing
+        ("presim.sim.robot", "datasets", 2),       # sibling, via `from presim import datasets`
+        ("presim.synthesis.renderer", "depth", 2),  # importlib with a literal name
+    ], got
+    # Allowed and not reported: capture -> root (geometry), within capture, sim -> capture,
+    # datasets -> synthesis (relative `..`), synthesis/__init__ -> its own module, testing/cli -> anything.
+    assert unknown == []
+    (toy_pkg / "newpkg").mkdir()
+    (toy_pkg / "newpkg" / "__init__.py").write_text("")
+    assert _violations(toy_pkg)[1] == ["newpkg"]
