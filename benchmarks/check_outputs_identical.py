@@ -126,16 +126,22 @@ def _refine(out: dict) -> None:
         out[f"refine/{backend}/cost"] = res.cost
 
 
-def fingerprint(work: Path) -> dict[str, np.ndarray]:
+def fingerprint(work: Path, parts: tuple[str, ...] = ("sample", "apc", "refine")) -> dict[str, np.ndarray]:
     from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
     from presim.capture.store import load_scene
 
     out: dict[str, np.ndarray] = {}
+    if "refine" in parts:
+        _refine(out)
+    if "sample" not in parts and "apc" not in parts:
+        return out
     sample_dir = work / "sample"
     if not sample_dir.is_dir():
         build_sample_scene(sample_dir, seed=0, config=SampleSceneConfig(width=320, height=240, num_frames=16))
-    sample = load_scene(sample_dir)
-    _render_scene("sample", sample, [(2, 3), (7, 8), (12, 13)], out)
+    if "sample" in parts:
+        _render_scene("sample", load_scene(sample_dir), [(2, 3), (7, 8), (12, 13)], out)
+    if "apc" not in parts:
+        return out
     if APC.is_dir():
         from presim.capture.importers import import_capture
 
@@ -144,7 +150,6 @@ def fingerprint(work: Path) -> dict[str, np.ndarray]:
         _reprojection(apc, "apc", out)
     else:
         print(f"{APC} missing: real-capture part skipped")
-    _refine(out)
     return out
 
 
@@ -155,9 +160,11 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--compare", type=Path, help="compare with the fingerprint saved in this folder")
     ap.add_argument("--work", type=Path, default=Path("/tmp/presim_fingerprint_work"),
                     help="where the sample scene is built once")
+    ap.add_argument("--parts", nargs="+", choices=("sample", "apc", "refine"), default=("sample", "apc", "refine"),
+                    help="compute only these parts (--compare then checks only their arrays)")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
-    fp = fingerprint(args.work)
+    fp = fingerprint(args.work, tuple(args.parts))
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(args.save / "fingerprint.npz", **{k.replace("/", "__"): v for k, v in fp.items()})
@@ -165,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     ref = np.load(args.compare / "fingerprint.npz")
     ref = {k.replace("__", "/"): ref[k] for k in ref.files}
+    ref = {k: v for k, v in ref.items() if k.split("/")[0] in args.parts}
     bad = 0
     for k in sorted(set(ref) | set(fp)):
         if k not in ref or k not in fp:
