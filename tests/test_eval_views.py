@@ -11,10 +11,10 @@ from presim.capture.scene import ArrayFrameSource, Scene, SceneMeta
 from presim.depth.refine import RefineConfig
 from presim.depth.synthetic import render_two_planes, two_plane_poses
 from presim.geometry import Intrinsics
-from presim.synthesis.eval_views import (
+from presim.evaluation.eval_views import (
     METHODS, METRICS, EvalConfig, capture_and_targets, eval_views, format_table,
 )
-from presim.synthesis.tsdf_baseline import TSDFConfig, fuse_tsdf_mesh, raycast_mesh
+from presim.evaluation.tsdf_baseline import TSDFConfig, fuse_tsdf_mesh, raycast_mesh
 
 
 @pytest.fixture(autouse=True)
