@@ -325,3 +325,18 @@ def test_forward_warp_rounds_half_pixels_up():
     T[0, 3] = 0.05  # x + 0.05 m at z = 1 m -> u + 0.5 px
     c, d = forward_warp(color, depth, K, K, T)
     assert d.tolist() == [[0.0, 1.0]] and c[0, 1].tolist() == [10, 10, 10]
+
+
+def test_synthesis_imports_nothing_above_capture():
+    # Layering: geometry -> capture -> depth -> synthesis; synthesis needs no depth (the
+    # evaluation, which refines depth, lives in presim.evaluation).
+    import subprocess
+    import sys
+
+    code = ("import sys, importlib\n"
+            "for m in ('core', 'renderer', 'select', 'warp', 'composite', 'crack_filter', 'fill',\n"
+            "          'kernels_reference', 'rgbd'):\n"
+            "    importlib.import_module('presim.synthesis.' + m)\n"
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('presim.'))))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out and not [m for m in out if m.split(".")[1] not in ("capture", "geometry", "synthesis")], out
