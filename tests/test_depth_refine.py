@@ -7,7 +7,7 @@ import pytest
 
 from presim.depth.refine import RefineConfig, RefView, refine_depth, select_reference_views
 from presim.testing.two_planes import render_two_planes, two_plane_poses
-from presim.geometry import Intrinsics
+from presim.geometry import Intrinsics, make_pose
 
 
 def _views(width: int, height: int, n: int, baseline_m: float = 0.06):
@@ -82,10 +82,22 @@ def test_numba_matches_reference_on_tiny_input():
 
 
 def test_select_reference_views_nearest_within_angle():
-    T = two_plane_poses(12, 0.05)
-    T[5, :3, :3] = np.diag([1.0, -1.0, -1.0])  # looks backwards: never a reference
-    refs = select_reference_views(T, 0, range(12), num_refs=4, max_angle_deg=60)
-    assert 0 not in refs and 5 not in refs and len(refs) == 4
+    def rot_y(deg: float) -> np.ndarray:
+        a = np.radians(deg)
+        return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+    # Target 0 at the origin looking along +z; candidates on the x axis at known distances.
+    x_m = [0.0, 0.30, 0.10, 0.50, 0.05, 0.20, 0.15, 0.40, -0.25]
+    T = np.stack([make_pose(np.eye(3), [x, 0.0, 0.0]) for x in x_m])
+    T[4, :3, :3] = np.diag([1.0, -1.0, -1.0])  # 0.05 m, looks backwards: never a reference
+    T[5, :3, :3] = rot_y(70.0)  # 0.20 m, 70 deg off the target's axis: beyond 60 deg
+    T[6, :3, :3] = rot_y(50.0)  # 0.15 m, 50 deg: allowed
+    refs = select_reference_views(T, 0, range(9), num_refs=4, max_angle_deg=60)
+    # Eligible by distance: 2 (0.10), 6 (0.15), 8 (0.25), 1 (0.30), 7 (0.40), 3 (0.50).
+    assert refs == [2, 6, 8, 1]
+    assert select_reference_views(T, 0, [3, 7, 1], num_refs=2) == [1, 7]
+    assert select_reference_views(T, 0, range(9), num_refs=10, max_angle_deg=45) == [2, 8, 1, 7, 3]
+    assert select_reference_views(T, 0, [0, 4]) == []
 
 
 def test_bad_inputs_raise_clear_errors():

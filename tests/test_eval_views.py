@@ -11,10 +11,12 @@ from presim.capture.scene import ArrayFrameSource, Scene, SceneMeta
 from presim.depth.refine import RefineConfig
 from presim.testing.two_planes import render_two_planes, two_plane_poses
 from presim.geometry import Intrinsics
-from presim.synthesis.eval_views import (
-    METHODS, METRICS, EvalConfig, capture_and_targets, eval_views, format_table,
+from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.rgbd import RGBD
+from presim.evaluation.eval_views import (
+    METHODS, METRICS, EvalConfig, capture_and_targets, eval_views, format_table, image_metrics,
 )
-from presim.synthesis.tsdf_baseline import TSDFConfig, fuse_tsdf_mesh, raycast_mesh
+from presim.evaluation.tsdf_baseline import TSDFConfig, fuse_tsdf_mesh, raycast_mesh
 
 
 @pytest.fixture(autouse=True)
@@ -62,7 +64,75 @@ def test_eval_views_all_metrics_sane():
     assert res.methods["fixed_1"]["hole_frac"] > full["hole_frac"]
     table = format_table(res)
     assert table.count("\n") == len(methods) + 1 and "| full |" in table
-    json.dumps(res.to_json())
+    # Each method's mean is the mean of its per-target values.
+    for name, m in res.methods.items():
+        for key in METRICS:
+            vals = [p[key] for p in res.per_target[name]]
+            assert m[key] == pytest.approx(float(np.mean(vals)), nan_ok=True), (name, key)
+    # The JSON round trip keeps every number.
+    back = json.loads(json.dumps(res.to_json()))
+    assert back["targets"] == res.target_ids and set(back["methods"]) == set(methods)
+    for name, m in res.methods.items():
+        for key in METRICS:
+            assert back["methods"][name][key] == pytest.approx(m[key], nan_ok=True), (name, key)
+
+
+def test_eval_views_dibr_equals_a_direct_leave_one_out_render():
+    # DIBR = raw depth, one layer: eval-views must report exactly the metrics of rendering the
+    # target from the other frames with that RenderConfig (no refinement involved).
+    scene = two_plane_scene()
+    res = eval_views(scene, EvalConfig(stride=1, target_every=3, methods=("DIBR",), warmup=False))
+    assert res.target_ids == ["frame-000003", "frame-000006"]
+    for k, per in zip((3, 6), res.per_target["DIBR"]):
+        loo = scene.subset([j for j in range(len(scene)) if j != k])
+        f = scene.frame(k)
+        out = Renderer(loo, RenderConfig(num_layers=1, use_refined_depth=False)).render(f.T_world_cam, f.K)
+        want = image_metrics(out, f.color, f.depth_m)
+        for key in ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel"):
+            assert per[key] == want[key], key
+
+
+def _rgbd(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, hole_frac: float) -> RGBD:
+    K = Intrinsics(fx=8.0, fy=8.0, cx=3.5, cy=3.5, width=8, height=8)
+    return RGBD(color, depth_m, valid, np.zeros(valid.shape, np.int32), K, np.eye(4), hole_frac)
+
+
+def test_image_metrics_hand_computed():
+    real_c = np.full((8, 8, 3), 100, np.uint8)
+    real_d = np.full((8, 8), 2.0, np.float32)
+    real_d[0, 0] = 0  # no real depth there: not counted in AbsRel
+    color = real_c.copy()
+    color[4:, 4:] = 110  # 16 of 64 pixels off by 10 (filled pixels)
+    valid = np.ones((8, 8), bool)
+    valid[4:, 4:] = False
+    depth = np.full((8, 8), 2.5, np.float32)  # 25 % too far everywhere
+    m = image_metrics(_rgbd(color, depth, valid, 0.25), real_c, real_d)
+    # MSE = 16 * 10^2 / 64 = 25 -> PSNR = 10 log10(255^2 / 25) = 34.151 dB.
+    assert m["psnr_db"] == pytest.approx(10 * np.log10(255**2 / 25), abs=1e-9)
+    assert m["psnr_db"] == pytest.approx(34.1514, abs=1e-4)
+    # Black at the 16 invalid pixels: MSE = 16 * 100^2 / 64 = 2500 -> 14.151 dB.
+    assert m["psnr_black_db"] == pytest.approx(10 * np.log10(255**2 / 2500), abs=1e-9)
+    # The covered pixels are exact: the PSNR cap of identical images.
+    assert m["psnr_covered_db"] == 100.0
+    assert m["hole_frac"] == 0.25
+    # AbsRel over the 47 covered pixels with real depth: |2.5 - 2| / 2 = 0.25 each.
+    assert m["depth_absrel"] == pytest.approx(0.25, abs=1e-7)
+    # SSIM of two constant images a, b: structure and contrast terms are 1, luminance is
+    # (2ab + C1) / (a^2 + b^2 + C1) with C1 = (0.01 * 255)^2.
+    c1 = (0.01 * 255) ** 2
+    m = image_metrics(_rgbd(np.full((8, 8, 3), 110, np.uint8), real_d, np.ones((8, 8), bool), 0.0),
+                      real_c, real_d)
+    assert m["ssim"] == pytest.approx((2 * 110 * 100 + c1) / (110**2 + 100**2 + c1), abs=1e-9)
+    assert m["ssim"] == pytest.approx(0.995476, abs=1e-6)
+    assert m["psnr_db"] == pytest.approx(10 * np.log10(255**2 / 100), abs=1e-9)  # 28.131 dB
+    # Given the unfilled image, the black PSNR uses it (not the delivered one).
+    unfilled = np.full((8, 8, 3), 90, np.uint8)  # 10 off on the 48 valid pixels
+    m = image_metrics(_rgbd(color, depth, valid, 0.25), real_c, real_d, unfilled_color=unfilled)
+    # MSE = (48 * 10^2 + 16 * 100^2) / 64 = 2575.
+    assert m["psnr_black_db"] == pytest.approx(10 * np.log10(255**2 / 2575), abs=1e-9)
+    assert m["psnr_db"] == pytest.approx(10 * np.log10(255**2 / 25), abs=1e-9)  # delivered image
+    m = image_metrics(_rgbd(color, depth, np.zeros((8, 8), bool), 1.0), real_c, real_d)
+    assert np.isnan(m["psnr_covered_db"]) and np.isnan(m["depth_absrel"])
 
 
 def test_eval_views_rejects_bad_requests():

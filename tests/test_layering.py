@@ -34,13 +34,10 @@ ALLOWED: dict[str, set[str]] = {
 }
 ROOT = "<root>"  # presim/__init__.py and presim/*.py
 
-# KNOWN EXCEPTIONS -- imports that break the table today and are being removed on other branches of
-# issue 10. Each entry: (importing module, imported sub-package). The lead empties this list after
-# merging those branches; test_known_exceptions_are_still_needed fails once an entry is obsolete.
-KNOWN_EXCEPTIONS: set[tuple[str, str]] = {
-    # eval_views compares synthesis with refinement; it moves to presim/evaluation/ (issue 10, item 5).
-    ("presim.synthesis.eval_views", "depth"),
-}
+# KNOWN EXCEPTIONS -- imports that break the table and are accepted for a stated reason. Each entry:
+# (importing module, imported sub-package); test_known_exceptions_are_still_needed fails once an
+# entry is obsolete. Empty: every import follows the table.
+KNOWN_EXCEPTIONS: set[tuple[str, str]] = set()
 
 
 def _module_name(path: Path, pkg: Path = PKG) -> str:

@@ -19,7 +19,57 @@ import numpy as np
 
 from presim.geometry import Intrinsics, compose, invert, project, unproject_depth
 
-__all__ = ["reprojection_mae", "forward_warp"]
+__all__ = ["reprojection_mae", "forward_warp", "nearest_pixel", "zbuffer_splat"]
+
+
+def nearest_pixel(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel each projection ``uv`` (n, 2) lands on, by the conventions' pixel-centre rule.
+
+    Pixel (0, 0) is the centre of the top-left pixel (docs/conventions.md), so pixel ``i`` covers
+    ``[i - 0.5, i + 0.5)`` and a projection lands on ``floor(u + 0.5)`` (halves round up, never to
+    even). Returns ``(ui, vi, inside)``: int64 (n,) pixel columns/rows and a bool (n,) mask of the
+    finite projections inside the ``width`` x ``height`` image (``ui`` / ``vi`` are only meaningful
+    where ``inside``).
+    """
+    uv = np.asarray(uv)
+    with np.errstate(invalid="ignore"):
+        uf = np.floor(uv[:, 0] + 0.5)
+        vf = np.floor(uv[:, 1] + 0.5)
+        inside = (uf >= 0) & (uf < width) & (vf >= 0) & (vf < height)  # False for nan
+    ui = np.where(inside, uf, 0).astype(np.int64)
+    vi = np.where(inside, vf, 0).astype(np.int64)
+    return ui, vi, inside
+
+
+def zbuffer_splat(uv: np.ndarray, z: np.ndarray, width: int, height: int, near_m: float = 0.0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """One-pixel z-buffer splat: the front-most point per pixel (the project's one splat rule).
+
+    Each point in front of the camera (``z > near_m``) with a finite projection lands on its
+    :func:`nearest_pixel`; each pixel keeps the point of smallest ``z`` (compared in ``z``'s own
+    dtype), and on an exact tie the point that comes first (lowest index). Used by
+    :func:`forward_warp` and by the synthesis reference kernels (every fast path is tested
+    against those).
+
+    Args:
+        uv: (n, 2) projections, pixels; z: (n,) camera z-depth (any float dtype), metres.
+        width, height: image size.
+    Returns:
+        ``(pixel, point)``: int64 (k,) flat pixel indices ``v * width + u`` (ascending, unique) and
+        int64 (k,) the index of the point that wins each of them.
+    """
+    z = np.asarray(z)
+    with np.errstate(invalid="ignore"):
+        front = z > near_m
+    ui, vi, inside = nearest_pixel(uv, width, height)
+    idx = np.flatnonzero(front & inside)
+    lin = vi[idx] * width + ui[idx]
+    # Sort by (pixel, depth); lexsort is stable, so equal depths keep the point order.
+    order = np.lexsort((z[idx], lin))
+    lin, idx = lin[order], idx[order]
+    first = np.ones(len(lin), dtype=bool)
+    first[1:] = lin[1:] != lin[:-1]
+    return lin[first], idx[first]
 
 
 def forward_warp(color_src: np.ndarray, depth_src_m: np.ndarray, K_src: Intrinsics, K_dst: Intrinsics,
@@ -34,7 +84,8 @@ def forward_warp(color_src: np.ndarray, depth_src_m: np.ndarray, K_src: Intrinsi
 
     Returns:
         ``(color_dst, depth_dst_m)``: uint8 (H', W', 3) and float32 (H', W') with 0 where nothing
-        landed; the front-most source point wins each destination pixel.
+        landed; the front-most source point wins each destination pixel (:func:`zbuffer_splat`:
+        nearest pixel ``floor(u + 0.5)``, smallest z, ties to the first point).
     """
     color_src = np.asarray(color_src)
     if color_src.shape != (K_src.height, K_src.width, 3):
@@ -42,23 +93,11 @@ def forward_warp(color_src: np.ndarray, depth_src_m: np.ndarray, K_src: Intrinsi
     pts, mask = unproject_depth(K_src, depth_src_m, T_dst_src)
     rgb = color_src[mask]
     uv, z = project(K_dst, pts)
-    ok = np.isfinite(uv).all(axis=1) & (z > 0)
-    u = np.rint(uv[ok, 0]).astype(np.int64)
-    v = np.rint(uv[ok, 1]).astype(np.int64)
-    z, rgb = z[ok], rgb[ok]
-    inside = (u >= 0) & (u < K_dst.width) & (v >= 0) & (v < K_dst.height)
-    u, v, z, rgb = u[inside], v[inside], z[inside], rgb[inside]
-    lin = v * K_dst.width + u
-    # Z-buffer without relying on write order of duplicate indices: sort by (pixel, depth) and keep
-    # the first (nearest) entry of each pixel.
-    order = np.lexsort((z, lin))
-    lin, z, rgb = lin[order], z[order], rgb[order]
-    first = np.ones(len(lin), dtype=bool)
-    first[1:] = lin[1:] != lin[:-1]
+    lin, win = zbuffer_splat(uv, z, K_dst.width, K_dst.height, near_m=0.0)
     color_dst = np.zeros((K_dst.height * K_dst.width, 3), np.uint8)
     depth_dst = np.zeros(K_dst.height * K_dst.width, np.float32)
-    color_dst[lin[first]] = rgb[first]
-    depth_dst[lin[first]] = z[first]
+    color_dst[lin] = rgb[win]
+    depth_dst[lin] = z[win]
     return color_dst.reshape(K_dst.height, K_dst.width, 3), depth_dst.reshape(K_dst.height, K_dst.width)
 
 

@@ -51,7 +51,7 @@ def _refine(args) -> int:
 def _eval(args) -> int:
     from presim.capture.store import load_scene
     from presim.io_utils import atomic_write_json
-    from presim.synthesis.eval_views import DEFAULT_METHODS, EvalConfig, eval_views, format_table
+    from presim.evaluation.eval_views import DEFAULT_METHODS, EvalConfig, eval_views, format_table
 
     scene = load_scene(args.scene)
     cfg = EvalConfig(stride=args.stride, target_every=args.target_every,

@@ -39,7 +39,7 @@ used by tests on tiny inputs; both follow the same order of operations and must 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numba as nb
 import numpy as np
@@ -132,6 +132,44 @@ class RefinedDepth:
     """bool (H, W): no depth in the input, depth in the output."""
     changed: np.ndarray = field(repr=False)
     """bool (H, W): valid in the input and changed by more than 1 mm."""
+
+
+class CostParams(NamedTuple):
+    """The cost terms' parameters as the numba kernels take them (from :class:`RefineConfig`)."""
+
+    lam: float
+    """lambda of eq. 3.2 / 3.4 (color vs gradient)."""
+    truncation: float
+    """Per-reference cost truncation."""
+    occlusion_rel_tol: float
+    """Front-most test tolerance."""
+    patch_weight: float
+    """Weight of C_patch."""
+    support_gamma: float
+    """gamma of the adaptive support weight."""
+    depth_rel_tol: float
+    """Relative depth difference of full disagreement in C_patch."""
+    half_patch: int
+    """h = patch_size // 2."""
+    unseen_cost: float
+    """C_pixel of a depth no reference sees front-most."""
+
+
+class FillParams(NamedTuple):
+    """Propagation parameters as the numba kernel takes them (from :class:`RefineConfig`)."""
+
+    fill_max_cost: float
+    fill_color_max: float
+    max_fill_hops: int
+    num_passes: int
+
+
+def _kernel_params(cfg: RefineConfig) -> tuple[CostParams, FillParams]:
+    return (CostParams(float(cfg.lam), float(cfg.truncation), float(cfg.occlusion_rel_tol),
+                       float(cfg.patch_weight), float(cfg.support_gamma), float(cfg.depth_rel_tol),
+                       int(cfg.patch_size // 2), float(cfg.unseen_cost)),
+            FillParams(float(cfg.fill_max_cost), float(cfg.fill_color_max), int(cfg.max_fill_hops),
+                       int(cfg.num_passes)))
 
 
 # ---- preprocessing (shared by both backends) -----------------------------------------------------
@@ -278,10 +316,10 @@ def _patch_cost_nb(u, v, d, D, sup, h, rel_tol):
 
 @nb.njit(cache=True)
 def _cost_nb(u, v, d, D, fx, fy, cx, cy, img, grad, sup, R_rt, t_rt, kr, img_r, grad_r, dep_r, p):
-    # p: lam, trunc, occ_tol, patch_weight, gamma, rel_tol, h, unseen
+    # p: CostParams
     cp = _pixel_cost_nb(u, v, d, fx, fy, cx, cy, img, grad, R_rt, t_rt, kr, img_r, grad_r, dep_r,
-                        p[0], p[1], p[2], p[7])
-    return cp + p[3] * _patch_cost_nb(u, v, d, D, sup, int(p[6]), p[5])
+                        p.lam, p.truncation, p.occlusion_rel_tol, p.unseen_cost)
+    return cp + p.patch_weight * _patch_cost_nb(u, v, d, D, sup, p.half_patch, p.depth_rel_tol)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -299,11 +337,10 @@ def _initial_cost_nb(D, fx, fy, cx, cy, img, grad, sup, R_rt, t_rt, kr, img_r, g
 @nb.njit(cache=True)
 def _propagate_nb(D, C, hops, fx, fy, cx, cy, img, grad, sup, dif, R_rt, t_rt, kr, img_r, grad_r,
                   dep_r, p, q):
-    # q: fill_max_cost, fill_color_max, max_fill_hops, num_passes
+    # p: CostParams, q: FillParams
     H, W = D.shape
-    h = int(p[6])
-    lam = p[0]
-    for it in range(int(q[3])):
+    h = p.half_patch
+    for it in range(q.num_passes):
         fwd = it % 2 == 0
         for vi in range(H):
             v = vi if fwd else H - 1 - vi
@@ -341,9 +378,9 @@ def _propagate_nb(D, C, hops, fx, fy, cx, cy, img, grad, sup, dif, R_rt, t_rt, k
                         if dq <= 0.0 or dq == best_d:
                             continue
                         if invalid:
-                            if hops[qv, qu] >= q[2]:
+                            if hops[qv, qu] >= q.max_fill_hops:
                                 continue
-                            if dif[v, u, k] > q[1]:
+                            if dif[v, u, k] > q.fill_color_max:
                                 continue
                         c = _cost_nb(u, v, dq, D, fx, fy, cx, cy, img, grad, sup, R_rt, t_rt, kr, img_r,
                                      grad_r, dep_r, p)
@@ -351,7 +388,7 @@ def _propagate_nb(D, C, hops, fx, fy, cx, cy, img, grad, sup, dif, R_rt, t_rt, k
                             best_c = c
                             best_d = dq
                             best_h = hops[qv, qu] + 1 if invalid else hops[v, u]
-                if invalid and best_c >= q[0]:
+                if invalid and best_c >= q.fill_max_cost:
                     continue
                 D[v, u] = best_d
                 C[v, u] = best_c
@@ -598,9 +635,7 @@ def refine_depth(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
             kr[i] = (r.K.fx, r.K.fy, r.K.cx, r.K.cy)
             img_r[i], grad_r[i] = prepare_image(np.asarray(r.color))
             dep_r[i] = np.asarray(r.depth_m, dtype=np.float64)
-        p = np.array([cfg.lam, cfg.truncation, cfg.occlusion_rel_tol, cfg.patch_weight, cfg.support_gamma,
-                      cfg.depth_rel_tol, float(cfg.patch_size // 2), cfg.unseen_cost])
-        q = np.array([cfg.fill_max_cost, cfg.fill_color_max, float(cfg.max_fill_hops), float(cfg.num_passes)])
+        p, q = _kernel_params(cfg)
         dif, sup = _support_nb(img, grad, cfg.patch_size // 2, cfg.lam, cfg.support_gamma)
         C = _initial_cost_nb(D, K.fx, K.fy, K.cx, K.cy, img, grad, sup, R_rt, t_rt, kr, img_r, grad_r, dep_r, p)
         hops = np.zeros(D.shape, np.int64)

@@ -7,10 +7,13 @@ projection, float64 arithmetic and plain loops where a loop is the clearest stat
 
 Conventions shared by all backends (the reference *defines* them):
 
-- A warped point lands on the pixel nearest to its projection: ``ui = floor(u + 0.5)``.
+- A warped point lands on the pixel nearest to its projection: ``ui = floor(u + 0.5)`` (pixel
+  centres, docs/conventions.md).
 - Points with camera z <= ``near_m`` are dropped.
-- Within one layer the z-buffer keeps the smallest z; on an exact tie, the point that comes first in
-  the view's point order (the lower index) wins.
+- Within one layer the z-buffer keeps the smallest z (as the float32 depth that is stored); on an
+  exact tie, the point that comes first in the view's point order (the lower index) wins.
+  These three rules are :func:`presim.capture.reprojection.zbuffer_splat`, the project's one splat,
+  which the reference calls.
 - Empty pixels have depth 0 and color 0.
 - Switching median (thesis eq. 3.9): an empty pixel is filled when more than half of the N x N
   window (the pixel itself included, out-of-image positions counting as empty) is non-empty; its
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from presim.capture.reprojection import zbuffer_splat
 from presim.geometry import Intrinsics, project, transform_points
 
 __all__ = [
@@ -76,17 +80,22 @@ def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, n
     color = np.zeros((num_layers, H, W, 3), np.uint8)
     p_cam = transform_points(T_cam_world, np.asarray(xyz_world, np.float64))
     uv, z = project(K, p_cam)
-    for i in range(len(z)):
-        if not (z[i] > near_m) or not np.all(np.isfinite(uv[i])):
-            continue
-        ui, vi = int(np.floor(uv[i, 0] + 0.5)), int(np.floor(uv[i, 1] + 0.5))
-        if not (0 <= ui < W and 0 <= vi < H):
-            continue
-        cur = depth[layer[i], vi, ui]
-        if cur == 0 or np.float32(z[i]) < cur:
-            depth[layer[i], vi, ui] = z[i]
-            color[layer[i], vi, ui] = rgb[i]
+    rgb = np.asarray(rgb)
+    layer = np.asarray(layer)
+    for lay in range(num_layers):
+        pts = np.flatnonzero(layer == lay)  # this layer's points, in point order
+        lin, win = _splat_front(uv[pts], z[pts], near_m, W, H)
+        depth[lay].reshape(-1)[lin] = z[pts[win]]
+        color[lay].reshape(-1, 3)[lin] = rgb[pts[win]]
     return depth, color
+
+
+def _splat_front(uv: np.ndarray, z: np.ndarray, near_m: float, W: int, H: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`zbuffer_splat` of the points with float64 ``z > near_m``, depths compared as the float32
+    values that are stored. Returns (flat pixel, winning index into ``uv`` / ``z``)."""
+    front = np.flatnonzero(z > near_m)
+    lin, win = zbuffer_splat(uv[front], z[front].astype(np.float32), W, H)
+    return lin, front[win]
 
 
 def switching_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
@@ -168,17 +177,8 @@ def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.n
     for color_v, depth_v, K_v, T_world_v in views:
         pts, mask = unproject_depth(K_v, depth_v, compose(T_cam_world, T_world_v))
         uv, z = project(K, pts)
-        ok = z > 1e-3
-        u = np.floor(uv[ok, 0] + 0.5).astype(np.int64)
-        v = np.floor(uv[ok, 1] + 0.5).astype(np.int64)
-        zz, cc = z[ok].astype(np.float32), color_v[mask][ok]
-        inb = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        lin, zz, cc = v[inb] * W + u[inb], zz[inb], cc[inb]
-        order = np.lexsort((zz, lin))
-        lin, zz, cc = lin[order], zz[order], cc[order]
-        first = np.ones(len(lin), bool)
-        first[1:] = lin[1:] != lin[:-1]
-        lin, zz, cc = lin[first], zz[first], cc[first]
+        lin, win = _splat_front(uv, z, 1e-3, W, H)
+        zz, cc = z[win].astype(np.float32), color_v[mask][win]
         closer = zz < zbuf[lin]
         zbuf[lin[closer]] = zz[closer]
         out[lin[closer]] = cc[closer]

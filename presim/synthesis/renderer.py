@@ -3,7 +3,10 @@
     Renderer(scene, RenderConfig()).render(T_world_cam, K) -> RGBD
     Renderer(...).render_batch(T_world_cams (B, 4, 4), K) -> list[RGBD]
 
-Per frame: select views (:mod:`select`), then for each selected view in order — warp it in L layers
+Per frame: select views (:mod:`select`), then the pure per-frame core (:mod:`core`,
+:func:`~presim.synthesis.core.synthesize_frame` with this renderer's caches and its backend's
+view-image function from :data:`~presim.synthesis.core.BACKEND_TABLE`): for each selected view in
+order — warp it in L layers
 with a z-buffer per layer (:mod:`warp`), fill cracks in every layer with the switching median
 (:mod:`crack_filter`), composite the layers front to back plus one crack pass over the layer seams,
 and merge it into the target image on the pixels still missing (holes, big ones dilated against
@@ -29,20 +32,16 @@ import cv2
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
-from presim.geometry import Intrinsics, check_rigid, invert, project, transform_points, unproject_depth
-from presim.synthesis import kernels_reference as ref
-from presim.synthesis.composite import (analyse_holes, composite_layers, filtered_composite,
-                                        filtered_composite_masked, merge_view)
-from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
-from presim.synthesis.fill import FILL_METHODS, fill_holes
+from presim.geometry import Intrinsics, check_rigid, invert, unproject_depth
+from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
+                                   synthesize_frame)
+from presim.synthesis.crack_filter import CRACK_FILTERS
+from presim.synthesis.fill import FILL_METHODS
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
-from presim.synthesis.warp import ViewPoints, prepare_view, warp_layers
+from presim.synthesis.warp import ViewPoints, prepare_view
 
-__all__ = ["BACKENDS", "RenderConfig", "Renderer"]
-
-BACKENDS = ("numba", "reference", "torch")
-STAGES = ("select", "load", "warp", "crack", "composite", "holes", "fill")
+__all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
 
 
 @dataclass(frozen=True)
@@ -130,6 +129,16 @@ class RenderConfig:
             if not ok:
                 raise ValueError(f"RenderConfig: {msg}")
 
+    def frame_config(self) -> FrameConfig:
+        """The knobs of the per-frame core (:func:`presim.synthesis.core.synthesize_frame`)."""
+        return FrameConfig(
+            view=ViewImageConfig(near_m=self.near_m, crack_filter=self.crack_filter,
+                                 crack_kernel_px=self.crack_kernel_px),
+            fixed_views=self.fixed_views, max_views=self.max_views, stop_hole_frac=self.stop_hole_frac,
+            big_hole_px=self.big_hole_px, hole_dilation_px=self.hole_dilation_px,
+            next_view_fill_frac=self.next_view_fill_frac, fill_holes=self.fill_holes,
+            fill_method=self.fill_method)
+
 
 @dataclass
 class RenderStats:
@@ -150,11 +159,6 @@ class RenderStats:
 class Renderer:
     """Renders RGB-D images of a scene at arbitrary poses and intrinsics from its captured views."""
 
-    MASKED_MAX_FRAC = 0.12
-    """Later views filter/composite only their replaceable pixels while these are below this
-    fraction of the image (measured crossover: ~350 ns per masked pixel vs ~19 ms CPU for the
-    dense per-layer filter + composite + seam pass at 640x480, L = 4)."""
-
     def __init__(self, scene: Scene, config: RenderConfig = RenderConfig()):
         self.scene = scene
         self.config = config
@@ -168,14 +172,10 @@ class Renderer:
         self._views_bytes = 0
         self._grids: dict[int, np.ndarray] = {}
         self.last = RenderStats()
-        self._lay_buf = None  # warp buffers reused across views and frames (numba backend)
-        self._device = None
-        if config.backend == "torch":
-            from presim.synthesis import torch_backend
-
-            self._tb = torch_backend
-            self._device = torch_backend.torch.device(config.torch_device) if config.torch_device \
-                else torch_backend.default_device()
+        self._frame_config = config.frame_config()
+        self._workspace = Workspace()  # warp buffers reused across views and frames (numba backend)
+        self._backend = get_backend(config.backend)
+        self._device = self._backend.resolve_device(config.torch_device)
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
@@ -218,9 +218,7 @@ class Renderer:
         if v is not None:
             self._views.move_to_end(idx)
             return v
-        v = self._prepare(idx)
-        if self.config.backend == "torch":
-            v = self._tb.to_device(v, self._device)
+        v = self._backend.upload(self._prepare(idx), self._device)
         self._views[idx] = v
         self._views_bytes += v.nbytes
         limit = self.config.cache_mb * 2**20
@@ -233,84 +231,6 @@ class Renderer:
     def cache_bytes(self) -> int:
         """Bytes held by the per-view point cache."""
         return self._views_bytes
-
-    # ---- one view -> one composited image ------------------------------------------------------
-    def _view_image(self, view, T_cam_world: np.ndarray, K: Intrinsics, ms: dict,
-                    replace: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Warp + crack filter + composite of one view; exact at least on ``replace`` (None = all)."""
-        cfg = self.config
-        t0 = time.perf_counter()
-        if cfg.backend == "numba":
-            lay = self._lay_buf = warp_layers(view, T_cam_world, K, cfg.near_m, self._lay_buf)
-            t1 = time.perf_counter()
-            if replace is not None and cfg.crack_filter == "switching_median" \
-                    and replace.mean() < self.MASKED_MAX_FRAC:
-                # Later views only write into the replaceable region: filter/composite just there.
-                d, c = filtered_composite_masked(lay.depth_m, lay.color, replace, cfg.crack_kernel_px,
-                                                 seam_pass=True)
-                t2 = time.perf_counter()
-                ms["warp"] += (t1 - t0) * 1e3
-                ms["crack"] += (t2 - t1) * 1e3
-                return d, c
-            if cfg.crack_filter == "switching_median":  # per-layer filter fused with the composite
-                d, c = filtered_composite(lay.depth_m, lay.color, cfg.crack_kernel_px)
-                t2 = time.perf_counter()
-            else:
-                d, c = crack_filter(lay.depth_m, lay.color, cfg.crack_filter, cfg.crack_kernel_px)
-                t2 = time.perf_counter()
-                d, c = composite_layers(d, c)
-            # Second pass on the composite: cracks along layer seams and at crossings of crack
-            # lines (4 of 9 neighbours before the first pass filled the lines).
-            d, c = crack_filter(d, c, cfg.crack_filter, cfg.crack_kernel_px)
-        elif cfg.backend == "torch":
-            tb = self._tb
-            d, c = tb.warp_layers_torch(view, T_cam_world, K, cfg.near_m)
-            if d.is_cuda:
-                tb.torch.cuda.synchronize()
-            t1 = time.perf_counter()
-            d, c = tb.crack_filter_torch(d, c, cfg.crack_filter, cfg.crack_kernel_px)
-            if d.is_cuda:
-                tb.torch.cuda.synchronize()
-            t2 = time.perf_counter()
-            d, c = tb.composite_layers_torch(d, c)
-            d, c = tb.crack_filter_torch(d[None], c[None], cfg.crack_filter, cfg.crack_kernel_px)
-            d, c = d[0], c[0]
-            d, c = d.cpu().numpy(), c.cpu().numpy()
-        else:
-            lay_d, lay_c = ref.warp_layers_ref(view.xyz_world, view.rgb, view.layer, view.num_layers,
-                                               T_cam_world, K, cfg.near_m)
-            t1 = time.perf_counter()
-            filt = {"switching_median": ref.switching_median_ref, "median": ref.plain_median_ref}.get(cfg.crack_filter)
-            if filt is not None:
-                pairs = [filt(lay_d[i], lay_c[i], cfg.crack_kernel_px) for i in range(view.num_layers)]
-                lay_d = np.stack([p[0] for p in pairs])
-                lay_c = np.stack([p[1] for p in pairs])
-            t2 = time.perf_counter()
-            d, c = ref.composite_layers_ref(lay_d, lay_c)
-            if filt is not None:
-                d, c = filt(d, c, cfg.crack_kernel_px)
-        t3 = time.perf_counter()
-        ms["warp"] += (t1 - t0) * 1e3
-        ms["crack"] += (t2 - t1) * 1e3
-        ms["composite"] += (t3 - t2) * 1e3
-        return d, c
-
-    def _grid_pixels(self, idx: int, T_cam_world: np.ndarray, K: Intrinsics) -> np.ndarray:
-        """Flat pixel indices (v * W + u) where view ``idx``'s sub-sampled grid lands in the target."""
-        g = self.grid_points(idx)
-        if len(g) == 0:
-            return np.zeros(0, np.int64)
-        uv, z = project(K, transform_points(T_cam_world, g))
-        ok = z > self.config.near_m
-        u = np.floor(uv[ok, 0] + 0.5)
-        v = np.floor(uv[ok, 1] + 0.5)
-        inb = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
-        return v[inb].astype(np.int64) * K.width + u[inb].astype(np.int64)
-
-    @staticmethod
-    def _fill_count(pixels: np.ndarray, holes: np.ndarray) -> int:
-        """How many of a view's grid pixels (from :meth:`_grid_pixels`) fall into ``holes``."""
-        return int(np.count_nonzero(holes.reshape(-1)[pixels]))
 
     # ---- public API ----------------------------------------------------------------------------
     def select(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection:
@@ -339,72 +259,15 @@ class Renderer:
         return self._render(T_world_cam, K)
 
     def _render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
-        cfg = self.config
-        H, W = K.height, K.width
-        ms = {s: 0.0 for s in STAGES}
         t0 = time.perf_counter()
         sel = self.select(T_world_cam, K)
-        ms["select"] = (time.perf_counter() - t0) * 1e3
-        adaptive = cfg.fixed_views == 0
-        # The adaptive loop considers the first max_views candidates (bounds the frame time).
-        pending = [int(v) for v in sel.view_idx[:cfg.max_views if adaptive else cfg.fixed_views]]
-        n_target = len(pending)
-        T_cam_world = invert(T_world_cam)
-        acc_d = np.zeros((H, W), np.float32)
-        acc_c = np.zeros((H, W, 3), np.uint8)
-        acc_src = np.full((H, W), -1, np.int32)
-        stats = RenderStats(selection=sel)
-        stop_px = cfg.stop_hole_frac * H * W
-        replace = big = None
-        grid_px: dict[int, np.ndarray] = {}
-        while pending and len(stats.views) < n_target:
-            if stats.views and adaptive:
-                # Next view by how many of its sampled grid points land in the big holes; none
-                # lands there -> no candidate can help, stop.
-                t = time.perf_counter()
-                for v in pending:  # each candidate's grid is projected once per frame
-                    if v not in grid_px:
-                        grid_px[v] = self._grid_pixels(v, T_cam_world, K)
-                counts = [self._fill_count(grid_px[v], big) for v in pending]
-                ms["select"] += (time.perf_counter() - t) * 1e3
-                cmax = max(counts)
-                if cmax == 0:
-                    stats.skipped.extend(pending)
-                    break
-                best = next(i for i, n in enumerate(counts) if n > 0 and n >= cfg.next_view_fill_frac * cmax)
-                vi = pending.pop(best)
-            else:
-                vi = pending.pop(0)
-            t = time.perf_counter()
-            view = self._view(vi)
-            ms["load"] += (time.perf_counter() - t) * 1e3
-            d, c = self._view_image(view, T_cam_world, K, ms, replace)
-            t = time.perf_counter()
-            if replace is None:
-                acc_d, acc_c = d, c
-                acc_src[d > 0] = vi
-            else:
-                merge_view(acc_d, acc_c, acc_src, replace, d, c, vi)
-            stats.views.append(vi)
-            last = len(stats.views) == n_target or not pending
-            hs = analyse_holes(acc_d > 0, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
-                               stop_px=stop_px if adaptive else 0.0)
-            stats.hole_frac_per_view.append(hs.hole_frac)
-            replace, big = hs.replace, hs.big
-            ms["holes"] += (time.perf_counter() - t) * 1e3
-            if last or (adaptive and hs.largest_hole_px <= stop_px):
-                break
-        valid = acc_d > 0
-        hole_frac = float(1.0 - valid.mean())
-        t = time.perf_counter()
-        if not len(stats.views):
-            acc_c = np.zeros((H, W, 3), np.uint8)
-        if cfg.fill_holes and hole_frac > 0:
-            acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method)
-        ms["fill"] = (time.perf_counter() - t) * 1e3
-        stats.ms = ms
-        self.last = stats
-        return RGBD(acc_c, acc_d, valid, acc_src, K, T_world_cam, hole_frac)
+        select_ms = (time.perf_counter() - t0) * 1e3
+        res = synthesize_frame(sel.view_idx, invert(T_world_cam), K, self._frame_config,
+                               self._backend.view_image, self._view, self.grid_points, self._workspace)
+        res.ms["select"] += select_ms
+        self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
+                                ms=res.ms, skipped=res.skipped)
+        return RGBD(res.color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
 
     def render_batch(self, T_world_cams: np.ndarray, K: Intrinsics) -> list[RGBD]:
         """Render B poses (B, 4, 4) with the same intrinsics (per-view data is shared)."""

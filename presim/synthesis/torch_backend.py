@@ -10,11 +10,15 @@ Same definitions as :mod:`presim.synthesis.kernels_reference` (tested against it
 - composite: first non-empty layer via ``argmax`` of the occupancy (first maximum is returned).
 
 Per-view tensors are built once (:func:`to_device`) and cached by the Renderer.
+:func:`view_image_torch` is this backend's entry of the per-frame core
+(:data:`presim.synthesis.core.BACKEND_TABLE`), with the signature every backend shares.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -22,13 +26,21 @@ import torch
 from presim.geometry import Intrinsics
 from presim.synthesis.warp import ViewPoints
 
-__all__ = ["default_device", "TorchView", "to_device", "warp_layers_torch", "crack_filter_torch",
-           "composite_layers_torch"]
+if TYPE_CHECKING:
+    from presim.synthesis.core import ViewImage, ViewImageConfig, Workspace
+
+__all__ = ["default_device", "resolve_device", "TorchView", "to_device", "warp_layers_torch",
+           "crack_filter_torch", "composite_layers_torch", "view_image_torch"]
 
 
 def default_device() -> torch.device:
     """CUDA when present, else CPU."""
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def resolve_device(name: str | None) -> torch.device:
+    """``torch.device(name)``, or :func:`default_device` when ``name`` is None / empty."""
+    return torch.device(name) if name else default_device()
 
 
 @dataclass(frozen=True)
@@ -147,3 +159,26 @@ def composite_layers_torch(depth_m: torch.Tensor, color: torch.Tensor) -> tuple[
     c = color.gather(0, first[..., None].expand(-1, -1, -1, 3))[0]
     anyv = occ.any(0)
     return torch.where(anyv, d, torch.zeros_like(d)), torch.where(anyv[..., None], c, torch.zeros_like(c))
+
+
+def view_image_torch(view: TorchView, T_cam_world: np.ndarray, K: Intrinsics, config: "ViewImageConfig",
+                     replace: np.ndarray | None, workspace: "Workspace") -> "ViewImage":
+    """Torch backend of the per-frame core: warp + per-layer crack filter + composite + seam pass.
+
+    Computes every pixel (``replace`` and ``workspace`` are not used); returns numpy arrays.
+    """
+    from presim.synthesis.core import ViewImage
+
+    t0 = time.perf_counter()
+    d, c = warp_layers_torch(view, T_cam_world, K, config.near_m)
+    if d.is_cuda:
+        torch.cuda.synchronize()
+    t1 = time.perf_counter()
+    d, c = crack_filter_torch(d, c, config.crack_filter, config.crack_kernel_px)
+    if d.is_cuda:
+        torch.cuda.synchronize()
+    t2 = time.perf_counter()
+    d, c = composite_layers_torch(d, c)
+    d, c = crack_filter_torch(d[None], c[None], config.crack_filter, config.crack_kernel_px)
+    d, c = d[0].cpu().numpy(), c[0].cpu().numpy()
+    return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)

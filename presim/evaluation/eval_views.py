@@ -202,7 +202,7 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
                log: Callable[[str], None] | None = None) -> EvalResult:
     """Run the leave-one-out evaluation (see module docstring) and return per-method metrics."""
     from presim.synthesis.renderer import Renderer
-    from presim.synthesis.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
+    from presim.evaluation.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
 
     unknown = [m for m in config.methods if m not in METHODS]
     if unknown:

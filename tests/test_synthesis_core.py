@@ -1,0 +1,342 @@
+"""Known answers for the per-frame core: final fill, hole analysis, view merge (dilation ring), the
+adaptive loop with a scripted backend, the backend table, and the one z-buffer splat."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from presim.capture.reprojection import forward_warp, nearest_pixel, zbuffer_splat
+from presim.geometry import Intrinsics
+from presim.synthesis.composite import analyse_holes, merge_view
+from presim.synthesis.core import (BACKEND_TABLE, BACKENDS, FrameConfig, ViewImage, Workspace, get_backend,
+                                   grid_pixels, synthesize_frame, view_image_numba, view_image_reference)
+from presim.synthesis.fill import fill_holes
+
+H, W = 48, 64
+
+
+def _hole(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    valid = np.ones((H, W), bool)
+    valid[r0:r1, c0:c1] = False
+    return valid
+
+
+# ---- fill_holes -----------------------------------------------------------------------------------
+
+def test_fill_constant_image_is_reproduced():
+    color = np.full((H, W, 3), (10, 120, 240), np.uint8)
+    depth = np.full((H, W), 1.5, np.float32)
+    valid = _hole(20, 26, 30, 36)
+    c, d = fill_holes(color, depth, valid, "pushpull")
+    assert np.array_equal(c, color) and np.array_equal(d, depth)  # averages of one value: exact
+    c, d = fill_holes(color, depth, valid, "telea")
+    assert np.array_equal(d, depth)  # depth is always pull-push
+    # OpenCV's Telea adds a gradient-estimate term and rounds per step: measured +-2 levels on a
+    # constant image (never more than 2).
+    assert np.abs(c.astype(int) - color).max() <= 2
+
+
+def test_fill_linear_ramp_is_reproduced():
+    u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
+    v = np.arange(H, dtype=np.float32)[:, None].repeat(W, 1)
+    ramp = 2 * u + v  # 0..173 grey levels
+    color = np.stack([ramp, 200 - 0.5 * ramp, np.full_like(ramp, 77)], -1).astype(np.uint8)
+    depth = (1.0 + 0.01 * u).astype(np.float32)  # 1 cm per pixel
+    valid = _hole(20, 26, 30, 36)
+    holes = ~valid
+    c, d = fill_holes(color, depth, valid, "pushpull")
+    # Pull-push blends pyramid averages: on a ramp the color comes back to the level (measured 0),
+    # the depth within 0.25 px worth of the slope (measured 0.0022 m = 0.22 px on a 6x6 hole).
+    assert np.abs(c[holes].astype(int) - color[holes]).max() <= 1
+    assert np.abs(d[holes] - depth[holes]).max() < 0.0025
+    c, _ = fill_holes(color, depth, valid, "telea")
+    assert np.abs(c[holes].astype(int) - color[holes]).max() <= 4  # measured 4 / 3 / 2 per channel
+
+
+def test_fill_switches_from_telea_to_pushpull_above_two_percent():
+    rng = np.random.default_rng(0)
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    depth = rng.uniform(1, 2, (H, W)).astype(np.float32)
+    limit = int(0.02 * H * W)  # 61 of 3072 pixels
+    for n_hole, expect in ((limit, "telea"), (limit + 1, "pushpull")):
+        valid = np.ones(H * W, bool)
+        valid[1000:1000 + n_hole] = False
+        valid = valid.reshape(H, W)
+        auto = fill_holes(color, depth, valid, "auto")
+        want = fill_holes(color, depth, valid, expect)
+        other = fill_holes(color, depth, valid, "pushpull" if expect == "telea" else "telea")
+        assert np.array_equal(auto[0], want[0]) and np.array_equal(auto[1], want[1]), n_hole
+        assert not np.array_equal(auto[0], other[0]), n_hole  # the two methods differ here
+    # The threshold is a parameter.
+    valid = _hole(0, 8, 0, 8)  # 64 px = 2.08 %
+    assert np.array_equal(fill_holes(color, depth, valid, "auto", telea_max_hole_frac=0.05)[0],
+                          fill_holes(color, depth, valid, "telea")[0])
+
+
+@pytest.mark.parametrize("method", ["telea", "pushpull", "auto"])
+def test_fill_respects_the_valid_mask(method):
+    rng = np.random.default_rng(1)
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    depth = rng.uniform(1, 2, (H, W)).astype(np.float32)
+    valid = rng.random((H, W)) > 0.3
+    c0, d0 = color.copy(), depth.copy()
+    c, d = fill_holes(color, depth, valid, method)
+    assert np.array_equal(c[valid], color[valid]) and np.array_equal(d[valid], depth[valid])
+    assert (d[~valid] > 0).all()  # every hole got a depth from the known ones
+    assert np.array_equal(color, c0) and np.array_equal(depth, d0)  # inputs untouched
+    # Nothing missing / nothing known: unchanged copies.
+    for mask in (np.ones((H, W), bool), np.zeros((H, W), bool)):
+        c, d = fill_holes(color, depth, mask, method)
+        assert np.array_equal(c, color) and c is not color and np.array_equal(d, depth)
+    with pytest.raises(ValueError, match="fill method"):
+        fill_holes(color, depth, valid, "nope")
+
+
+# ---- analyse_holes ----------------------------------------------------------------------------------
+
+def test_analyse_holes_components_big_mask_and_dilation_ring():
+    valid = np.ones((H, W), bool)
+    valid[10:15, 20:25] = False  # 25 px: big (>= 16)
+    valid[30:32, 40:42] = False  # 4 px: small
+    hs = analyse_holes(valid, big_hole_px=16, hole_dilation_px=2)
+    assert hs.hole_frac == pytest.approx(29 / (H * W))
+    assert hs.largest_hole_px == 25
+    big = np.zeros((H, W), bool)
+    big[10:15, 20:25] = True
+    assert np.array_equal(hs.big, big)
+    # The 5x5 elliptic kernel (radius 2) is a plus-shaped disc: 3 full middle rows, one pixel
+    # above and below. Dilating the 5x5 square by it gives the 9x9 square without the two pixels
+    # at each end of its top and bottom rows: 81 - 8 = 73 pixels; the small hole is not dilated.
+    ring = np.zeros((H, W), bool)
+    ring[8:17, 18:27] = True
+    ring[[8, 8, 8, 8, 16, 16, 16, 16], [18, 19, 25, 26, 18, 19, 25, 26]] = False
+    assert ring.sum() == 73
+    assert np.array_equal(hs.replace, ring | ~valid)
+    assert hs.replace.sum() == 73 + 4
+    # No dilation: the replace mask is the holes themselves.
+    assert np.array_equal(analyse_holes(valid, 16, 0).replace, ~valid)
+    # Raising big_hole_px above 25 makes no hole big: nothing is dilated.
+    hs = analyse_holes(valid, big_hole_px=26, hole_dilation_px=2)
+    assert not hs.big.any() and np.array_equal(hs.replace, ~valid)
+
+
+def test_analyse_holes_shortcuts():
+    full = np.ones((H, W), bool)
+    hs = analyse_holes(full)
+    assert (hs.hole_frac, hs.largest_hole_px) == (0.0, 0) and not hs.replace.any()
+    valid = _hole(0, 2, 0, 3)  # 6 px
+    hs = analyse_holes(valid, want_replace=False)
+    assert hs.largest_hole_px == 6 and hs.replace is None and hs.big is None
+    # All holes together below stop_px: components are skipped, the bound is reported.
+    hs = analyse_holes(valid, stop_px=6.0)
+    assert hs.largest_hole_px == 6 and hs.replace is None
+    # Two 3-px holes touching diagonally are one 8-connected hole.
+    valid = np.ones((H, W), bool)
+    valid[5, 5:8] = False
+    valid[6, 8:11] = False
+    assert analyse_holes(valid).largest_hole_px == 6
+    # uint8 coverage (non-zero = valid) gives the same answer as bool.
+    assert analyse_holes(valid.astype(np.uint8)).largest_hole_px == 6
+
+
+# ---- merge_view -------------------------------------------------------------------------------------
+
+def test_merge_view_writes_only_replaceable_pixels_the_view_covers():
+    acc_d = np.full((H, W), 2.0, np.float32)
+    acc_c = np.full((H, W, 3), 50, np.uint8)
+    acc_s = np.full((H, W), 3, np.int32)
+    acc_d[10:15, 20:25] = 0  # a big hole of the first view
+    acc_c[10:15, 20:25] = 0
+    acc_s[10:15, 20:25] = -1
+    replace = analyse_holes(acc_d > 0, 16, 2).replace
+    d = np.full((H, W), 1.0, np.float32)
+    c = np.full((H, W, 3), 200, np.uint8)
+    d[12, 22] = 0  # the second view misses one hole pixel
+    before = acc_d.copy(), acc_c.copy(), acc_s.copy()
+    merge_view(acc_d, acc_c, acc_s, replace, d, c, 7)
+    took = replace & (d > 0)
+    assert took.sum() == 73 - 1  # the hole (minus one pixel) and its dilation ring
+    assert (acc_d[took] == 1.0).all() and (acc_c[took] == 200).all() and (acc_s[took] == 7).all()
+    keep = ~took
+    assert np.array_equal(acc_d[keep], before[0][keep]) and np.array_equal(acc_c[keep], before[1][keep])
+    assert np.array_equal(acc_s[keep], before[2][keep])
+    assert acc_d[12, 22] == 0 and acc_s[12, 22] == -1
+    # The ring replaced pixels the first view had (ghost contours): 2 px around the hole.
+    ring = replace & (before[0] > 0)
+    assert ring.sum() == 73 - 25 and (acc_s[ring] == 7).all()
+
+
+# ---- the adaptive loop with a scripted backend ------------------------------------------------------
+
+K8 = Intrinsics(fx=8.0, fy=8.0, cx=3.5, cy=3.5, width=8, height=8)
+
+
+def _scripted(images: dict[int, tuple[np.ndarray, np.ndarray]], calls: list):
+    def view_image(view, T_cam_world, K, config, replace, workspace):
+        calls.append((view, None if replace is None else replace.copy()))
+        d, c = images[view]
+        return ViewImage(d.copy(), c.copy())
+    return view_image
+
+
+def _grid_at(pixels: list[tuple[int, int]]) -> np.ndarray:
+    """World points (identity target pose) that project onto the given (u, v) pixels of K8 at z = 1."""
+    return np.array([[(u - K8.cx) / K8.fx, (v - K8.cy) / K8.fy, 1.0] for u, v in pixels], np.float32)
+
+
+def test_synthesize_frame_adaptive_loop_order_stop_and_hook():
+    d0 = np.ones((8, 8), np.float32)
+    d0[:, 4:] = 0  # view 10 covers the left half
+    c0 = np.zeros((8, 8, 3), np.uint8)
+    c0[d0 > 0] = 10
+    d1 = np.full((8, 8), 2.0, np.float32)  # views 11 and 12 cover everything
+    c1 = np.full((8, 8, 3), 20, np.uint8)
+    images = {10: (d0, c0), 11: (d1, c1), 12: (d1 * 1.5, c1 + 5), 13: (d1, c1)}
+    grids = {10: _grid_at([(0, 0)]), 11: _grid_at([(1, 1)]),  # 11 cannot reach the hole
+             12: _grid_at([(5, 5), (6, 6)]), 13: _grid_at([(6, 1)])}
+    calls: list = []
+    cfg = FrameConfig(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
+    res = synthesize_frame([10, 11, 12, 13], np.eye(4), K8, cfg, _scripted(images, calls),
+                           get_view=lambda i: i, get_grid=grids.__getitem__,
+                           color_transform=lambda i, c: c + np.uint8(i))
+    # 10 first (whole image), then the first candidate whose grid lands in the big hole: 12 (11 is
+    # skipped over, 13 would also do but comes later). After 12 there is no hole: stop.
+    assert res.views == [10, 12] and res.skipped == []
+    assert [v for v, _ in calls] == [10, 12]
+    assert calls[0][1] is None and np.array_equal(calls[1][1], d0 == 0)  # replace = the hole
+    assert res.hole_frac_per_view == [0.5, 0.0] and res.hole_frac == 0.0
+    assert np.array_equal(res.source_view, np.where(d0 > 0, 10, 12))
+    assert np.array_equal(res.depth_m, np.where(d0 > 0, 1.0, 3.0).astype(np.float32))
+    # color_transform(view id, color) ran on each view before merging: 10 + 10 and 25 + 12.
+    assert np.array_equal(res.color[..., 0], np.where(d0 > 0, 20, 37))
+    # greedy (next_view_fill_frac = 1): 12 puts 2 grid points into the hole, 13 puts 0 -> 12.
+    calls.clear()
+    res = synthesize_frame([10, 13, 12], np.eye(4), K8, FrameConfig(big_hole_px=4, hole_dilation_px=0,
+                           stop_hole_frac=0.0, next_view_fill_frac=1.0), _scripted(images, calls),
+                           lambda i: i, grids.__getitem__)
+    assert res.views == [10, 12]
+
+
+def test_synthesize_frame_stops_when_no_candidate_can_fill_and_fixed_views():
+    d0 = np.ones((8, 8), np.float32)
+    d0[:, 4:] = 0
+    c0 = np.full((8, 8, 3), 9, np.uint8)
+    c0[d0 == 0] = 0  # empty pixels are black, as every backend returns them
+    images = {1: (d0, c0), 2: (d0, c0), 3: (d0, c0)}
+    grids = {i: _grid_at([(0, 0)]) for i in images}  # nobody lands in the right half
+    calls: list = []
+    cfg = FrameConfig(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
+    res = synthesize_frame([1, 2, 3], np.eye(4), K8, cfg, _scripted(images, calls), lambda i: i, grids.__getitem__)
+    assert res.views == [1] and res.skipped == [2, 3] and res.hole_frac == 0.5
+    assert (res.color[:, 4:] == 0).all() and not res.valid[:, 4:].any()
+    # fixed_views = 2 warps the first two whatever they add; max_views bounds the adaptive pool.
+    res = synthesize_frame([3, 1, 2], np.eye(4), K8, FrameConfig(fixed_views=2, fill_holes=False),
+                           _scripted(images, []), lambda i: i, grids.__getitem__)
+    assert res.views == [3, 1] and res.skipped == []
+    res = synthesize_frame([3, 1, 2], np.eye(4), K8, FrameConfig(max_views=1, fill_holes=False),
+                           _scripted(images, []), lambda i: i, grids.__getitem__)
+    assert res.views == [3]
+    # With filling on, the uncovered half gets a color/depth but stays invalid.
+    res = synthesize_frame([1], np.eye(4), K8, FrameConfig(), _scripted(images, []), lambda i: i,
+                           grids.__getitem__)
+    assert (res.depth_m > 0).all() and not res.valid[:, 4:].any() and res.hole_frac == 0.5
+    # No candidate at all: an empty (filled-with-nothing) frame.
+    res = synthesize_frame([], np.eye(4), K8, FrameConfig(), _scripted(images, []), lambda i: i, grids.__getitem__)
+    assert res.views == [] and res.hole_frac == 1.0 and not res.color.any()
+
+
+def test_grid_pixels_uses_the_pixel_centre_rule():
+    pts = np.array([[(2.5 - K8.cx) / K8.fx, 0.0, 1.0],   # u = 2.5 -> pixel 3 (halves round up)
+                    [(-0.5 - K8.cx) / K8.fx, 0.0, 1.0],  # u = -0.5 -> pixel 0
+                    [(7.5 - K8.cx) / K8.fx, 0.0, 1.0],   # u = 7.5 -> pixel 8: outside
+                    [0.0, 0.0, 0.005]], np.float32)       # nearer than near_m: dropped
+    v = int(np.floor(K8.cy + 0.5))
+    assert grid_pixels(pts, np.eye(4), K8, 0.01).tolist() == [v * 8 + 3, v * 8 + 0]
+
+
+# ---- backend table ----------------------------------------------------------------------------------
+
+def test_backend_table_dispatch():
+    assert BACKENDS == ("numba", "reference", "torch") and tuple(BACKEND_TABLE) == BACKENDS
+    assert get_backend("numba").view_image is view_image_numba
+    assert get_backend("reference").view_image is view_image_reference
+    with pytest.raises(ValueError, match="backend must be one of"):
+        get_backend("cuda")
+
+
+def test_backends_share_one_signature_and_agree_on_a_plane():
+    from presim.synthesis.core import ViewImageConfig
+    from presim.synthesis.warp import prepare_view
+
+    K = Intrinsics(fx=20.0, fy=20.0, cx=11.5, cy=8.5, width=24, height=18)
+    rng = np.random.default_rng(2)
+    color = rng.integers(0, 256, (18, 24, 3), dtype=np.uint8)
+    depth = np.full((18, 24), 2.0, np.float32)
+    depth[5:12, 6:14] = 1.0
+    view = prepare_view(color, depth, K, np.eye(4), 4)
+    T = np.eye(4)
+    T[0, 3] = 0.03
+    cfg = ViewImageConfig()
+    outs = {}
+    for name in BACKENDS:
+        try:
+            b = get_backend(name)
+        except ImportError:  # torch is an optional group
+            continue
+        img = b.view_image(b.upload(view, b.resolve_device("cpu" if name == "torch" else None)), T, K, cfg,
+                           None, Workspace())
+        outs[name] = img
+    ref = outs["reference"]
+    for name, img in outs.items():
+        assert img.depth_m.dtype == np.float32 and img.color.dtype == np.uint8
+        # float32 (+ fastmath) vs float64 projection: a projection within ~1e-5 px of a pixel
+        # border may land one pixel over; on this 432-px image none does.
+        assert np.array_equal(img.depth_m, ref.depth_m), name
+        assert np.array_equal(img.color, ref.color), name
+
+
+# ---- the one z-buffer splat ---------------------------------------------------------------------------
+
+def test_zbuffer_splat_rules():
+    uv = np.array([[0.49, 0.0],    # -> pixel (0, 0)
+                   [0.5, 0.0],     # half rounds up -> (1, 0)
+                   [1.49, 0.2],    # -> (1, 0), nearer: wins over point 1
+                   [1.0, 0.0],     # -> (1, 0), same depth as point 2: later, loses the tie
+                   [2.5, 1.5],     # -> (3, 2): outside a 3-wide image
+                   [-0.5, -0.5],   # -> (0, 0) by the centre rule, but behind near: dropped
+                   [np.nan, 0.0],  # not finite: dropped
+                   [1.5, 1.4999]], np.float64)  # -> (2, 1)
+    z = np.array([1.0, 2.0, 1.5, 1.5, 1.0, 0.005, 1.0, 3.0])
+    lin, win = zbuffer_splat(uv, z, 3, 2, near_m=0.01)
+    assert lin.tolist() == [0, 1, 5] and win.tolist() == [0, 2, 7]
+    ui, vi, inside = nearest_pixel(uv, 3, 2)
+    assert inside.tolist() == [True, True, True, True, False, True, False, True]
+    assert ui[inside].tolist() == [0, 1, 1, 1, 0, 2] and vi[inside].tolist() == [0, 0, 0, 0, 0, 1]
+
+
+def test_forward_warp_rounds_half_pixels_up():
+    # A 2 px wide image shifted by exactly half a pixel: with floor(u + 0.5) both pixels move one to
+    # the right (np.rint would have sent u = 0.5 to 0 and u = 1.5 to 2, splitting them).
+    K = Intrinsics(fx=10.0, fy=10.0, cx=0.5, cy=0.0, width=2, height=1)
+    color = np.array([[[10, 10, 10], [20, 20, 20]]], np.uint8)
+    depth = np.ones((1, 2), np.float32)
+    T = np.eye(4)
+    T[0, 3] = 0.05  # x + 0.05 m at z = 1 m -> u + 0.5 px
+    c, d = forward_warp(color, depth, K, K, T)
+    assert d.tolist() == [[0.0, 1.0]] and c[0, 1].tolist() == [10, 10, 10]
+
+
+def test_synthesis_imports_nothing_above_capture():
+    # Layering: geometry -> capture -> depth -> synthesis; synthesis needs no depth (the
+    # evaluation, which refines depth, lives in presim.evaluation).
+    import subprocess
+    import sys
+
+    code = ("import sys, importlib\n"
+            "for m in ('core', 'renderer', 'select', 'warp', 'composite', 'crack_filter', 'fill',\n"
+            "          'kernels_reference', 'rgbd'):\n"
+            "    importlib.import_module('presim.synthesis.' + m)\n"
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('presim.'))))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out and not [m for m in out if m.split(".")[1] not in ("capture", "geometry", "synthesis")], out
