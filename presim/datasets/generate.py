@@ -38,7 +38,7 @@ from presim.datasets.camera_sampling import (
     CameraSamplingConfig, check_candidate, frame_rng, output_intrinsics, perturb_pose, seed_views,
 )
 from presim.datasets.object_sources import PlacedObject
-from presim.datasets.objects import models_info_entry, write_model_ply_mm
+from presim.datasets.objects import merge_models_dir
 from presim.geometry import Intrinsics, compose, invert, transform_points
 from presim.io_utils import atomic_write_bytes, atomic_write_json, progress
 
@@ -328,16 +328,7 @@ def _write_dataset_level(out: Path, K: Intrinsics, objects: Sequence[PlacedObjec
                              f"write to another --out or use the same size/field of view/depth scale")
     else:
         atomic_write_json(cam_path, cam)
-    info_path = out / "models" / "models_info.json"
-    merged = json.loads(info_path.read_text()) if info_path.is_file() else {}
-    for o in objects:
-        entry = models_info_entry(o.model)
-        key = str(o.obj_id)
-        if key in merged and merged[key] != entry:
-            raise ValueError(f"{info_path}: object {o.obj_id} already exists with a different model")
-        merged[key] = entry
-        write_model_ply_mm(o.model, out / "models" / f"obj_{o.obj_id:06d}.ply")
-    atomic_write_json(info_path, {k: merged[k] for k in sorted(merged, key=int)})
+    merge_models_dir(out, objects)
 
 
 def _store(sdir: Path, work: Path, fo: FrameOutput) -> None:

@@ -241,3 +241,24 @@ def write_model_ply_mm(model: ObjectModel, path: str | Path) -> None:
     v = model.vertices_m.astype(np.float32) * np.float32(M_TO_MM)  # BOP border: metres -> millimetres
     write_ply(path, v, model.faces, colors=model.colors, normals=model.normals,
               comment="PreSim BOP model, millimetres")
+
+
+def merge_models_dir(out: str | Path, objects, hint: str = "") -> None:
+    """Write ``out/models/`` (mm PLYs + ``models_info.json``) for ``objects`` (each with ``obj_id`` and
+    ``model``), merged with what the folder already holds: the same id must have the same
+    ``models_info`` entry, else ``ValueError`` (``hint`` is appended to its message). Shared by every
+    split written into one BOP dataset (synthesized and real)."""
+    from presim.formats.bop import load_json
+    from presim.io_utils import atomic_write_json
+
+    info_path = Path(out) / "models" / "models_info.json"
+    merged = dict(load_json(info_path)) if info_path.is_file() else {}
+    for o in objects:
+        entry = models_info_entry(o.model)
+        key = str(o.obj_id)
+        if key in merged and merged[key] != entry:
+            raise ValueError(f"{info_path}: object {o.obj_id} already exists with a different model{hint}")
+        merged[key] = entry
+    for o in objects:
+        write_model_ply_mm(o.model, Path(out) / "models" / f"obj_{o.obj_id:06d}.ply")
+    atomic_write_json(info_path, {k: merged[k] for k in sorted(merged, key=int)})

@@ -27,7 +27,7 @@ from presim.capture.store import load_scene
 from presim.datasets import bop_writer
 from presim.datasets.annotate import AnnotateConfig, annotate_instances
 from presim.datasets.object_sources import PlacedObject, resolve_objects
-from presim.datasets.objects import models_info_entry, write_model_ply_mm
+from presim.datasets.objects import merge_models_dir
 from presim.geometry import compose, invert
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
@@ -80,23 +80,6 @@ def parse_frame_range(text: str) -> tuple[int, int, int]:
     return (start, stop, step)
 
 
-def _merge_models(out: Path, objects: list[PlacedObject]) -> None:
-    """``models/`` shared with the synthesized split: same entry for the same id, else refuse."""
-    info_path = out / "models" / "models_info.json"
-    merged = json.loads(info_path.read_text()) if info_path.is_file() else {}
-    for o in objects:
-        entry = models_info_entry(o.model)
-        key = str(o.obj_id)
-        if key in merged and merged[key] != entry:
-            raise ValueError(f"{info_path}: object {o.obj_id} already exists with a different model (the "
-                             "dataset was made from other objects; rerun gen-bop after `presim objects`, or "
-                             "write to another --out)")
-        merged[key] = entry
-    for o in objects:
-        write_model_ply_mm(o.model, out / "models" / f"obj_{o.obj_id:06d}.ply")
-    atomic_write_json(info_path, {k: merged[k] for k in sorted(merged, key=int)})
-
-
 def write_real_split(scene_path: str | Path, out: str | Path, config: RealSplitConfig = RealSplitConfig(),
                      objects_spec: str | None = None, overwrite: bool = False) -> RealSplitReport:
     """Write the captured frames of a scene as one BOP scene (see the module docstring).
@@ -136,7 +119,7 @@ def write_real_split(scene_path: str | Path, out: str | Path, config: RealSplitC
                                                config.image_format)
             bop_writer.write_frame_files(tmp, files)
             n_inst += len(anns)
-            n_vis += sum(a.px_count_visib > 0 for a in anns)
+            n_vis += sum(a.info.px_count_visib > 0 for a in anns)
             fracs += [a.visib_fract for a in anns]
             records.append({
                 "im_id": im_id,
@@ -146,7 +129,7 @@ def write_real_split(scene_path: str | Path, out: str | Path, config: RealSplitC
                 "scene_gt_info": [a.gt_info_dict() for a in anns],
             })
         bop_writer.write_scene_json(tmp, records)
-        _merge_models(out, objects)
+        merge_models_dir(out, objects, hint=" (the dataset was made from other objects; rerun gen-bop after `presim objects`, or write to another --out)")
         cam_path = out / "camera.json"
         if not cam_path.is_file():  # per-image cam_K in scene_camera.json is what readers use
             atomic_write_json(cam_path, bop_writer.camera_json(scene.intrinsics[0], config.depth_scale))
