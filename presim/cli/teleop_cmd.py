@@ -91,7 +91,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"presim teleop: {sim.scene_name} with {sim.robot.urdf_path.name} ({sim.robot.drive})", flush=True)
     print(f"presim teleop: open {server.url}  (Ctrl-C stops; recordings and snapshots go to {args.record})",
           flush=True)
-    server.serve()
+    try:
+        server.serve()
+    except KeyboardInterrupt:  # Ctrl-C / SIGTERM is how a server ends: recordings were closed by serve()
+        pass
+    print("presim teleop: stopped", flush=True)
     if session.error is not None:
         print(f"presim teleop: error: the simulator stopped: {session.error}", file=sys.stderr)
         return 1

@@ -54,6 +54,7 @@ class TeleopServer:
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             self.sock.bind((host, port))
+            self.sock.listen(128)  # listening before the URL is printed; uvicorn accepts from it
         except OSError as e:
             self.sock.close()
             raise OSError(f"--port {port}: cannot listen on {host}:{port} ({e.strerror or e})") from None
