@@ -285,3 +285,79 @@ def test_cli_teleop_bad_port_is_one_line(tmp_path, capsys):
 
     assert main(["teleop", str(tmp_path / "missing")]) == 1
     assert "scene folder not found" in capsys.readouterr().err
+
+
+# ---- a real browser ---------------------------------------------------------------------------------
+def _canvas_crop(browser, img: np.ndarray, element_id: str) -> np.ndarray:
+    r = browser.execute(f"const r = document.getElementById('{element_id}').getBoundingClientRect();"
+                        "return [r.left, r.top, r.width, r.height, window.devicePixelRatio];")
+    x, y, w, h, dpr = (float(v) for v in r)
+    return img[int(y * dpr):int((y + h) * dpr), int(x * dpr):int((x + w) * dpr)]
+
+
+def _wait(browser, script: str, timeout_s: float = 20.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        v = browser.execute(script)
+        if v:
+            return v
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for: {script}")
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_browser_keys_drive_robot_and_page_image_changes(toy_server, tmp_path):
+    import psutil
+
+    from presim.outputs.browser import Browser, find_browser, save_png
+
+    try:
+        find_browser()
+    except FileNotFoundError as e:
+        if os.environ.get("CI") == "true":
+            raise
+        pytest.skip(str(e))
+    server, sim = toy_server, toy_server.session.sim
+    listen = {c.laddr.ip for c in psutil.Process().net_connections(kind="inet")
+              if c.status == psutil.CONN_LISTEN and c.laddr.port == server.port}
+    assert listen == {"127.0.0.1"}
+    with Browser(1280, 900) as b:
+        b.open(server.url)
+        _wait(b, "return window.teleop && window.teleop.framesDrawn >= 2")
+        before = _canvas_crop(b, b.screenshot(), "color")
+        assert before.std() > 5, "colour canvas is blank"
+        p0 = sim.T_world_base.copy()
+        b.keys("w", 1.2)
+        b.keys("\ue012", 0.8)   # arrow left: turn
+        p1 = sim.T_world_base
+        moved = np.linalg.norm(p1[:2, 3] - p0[:2, 3])
+        turned = abs(np.arctan2(p1[1, 0], p1[0, 0]) - np.arctan2(p0[1, 0], p0[0, 0]))
+        assert moved > 0.1 or turned > 0.2, f"robot did not move: {moved:.3f} m, {turned:.3f} rad"
+        seen = b.execute("return window.teleop.framesDrawn")
+        _wait(b, f"return window.teleop.framesDrawn >= {seen + 2}")
+        img = b.screenshot()
+        save_png(tmp_path / "teleop_page.png", img)
+        after = _canvas_crop(b, img, "color")
+        diff = np.abs(after.astype(np.int16) - before.astype(np.int16)).mean()
+        assert diff > 3, f"camera image on the page did not change (mean abs diff {diff:.2f})"
+        lat = b.execute("return window.teleop.latencies")
+        assert lat and min(lat) < 2000, lat
+        # The page shows a refusal for bad input; the server keeps running.
+        b.execute("""window.teleop.sendRaw('{"type":"cmd_vel","vx":NaN,"vy":0,"wz":0}')""")
+        _wait(b, "const m = document.getElementById('msg');"
+                 "return m.classList.contains('error') && m.textContent.includes('refused')")
+        # A second tab sees the first one drive; closing it frees its client.
+        first = b.handles()[0]
+        b.new_tab()
+        b.open(server.url)
+        _wait(b, "return window.teleop && window.teleop.framesDrawn >= 1 && window.teleop.lastState")
+        assert len(server.clients) == 2
+        state = b.execute("return window.teleop.lastState")
+        assert state["driver"] is not None and state["driver"] != b.execute("return window.teleop.clientId")
+        b.close_tab()
+        b.switch_to(first)
+        deadline = time.monotonic() + 10
+        while len(server.clients) != 1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert len(server.clients) == 1 and len(server.session.clients) == 1
