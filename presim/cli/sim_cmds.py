@@ -57,6 +57,8 @@ def register(sub) -> None:
                    help="live 3D viewer (native window, web on 127.0.0.1 while the drive runs, or rrd: file "
                         "only); with --rrd, `presim view FILE.rrd [--web]` shows it again afterwards")
     p.add_argument("--rrd", type=Path, default=None, help="also save the viewer stream to this .rrd file")
+    p.add_argument("--keep-open", action="store_true",
+                   help="with --viewer web: keep serving the web viewer after the drive ends (Ctrl-C stops it)")
     p.add_argument("--realtime", action="store_true", help="pace steps to wall time (always on for keyboard)")
     p.set_defaults(func=run)
 
@@ -105,6 +107,11 @@ def _build_sinks(args) -> list:
         raise ValueError(f"--record/--viewer/--rrd need presim.outputs.sinks, which is not available ({e})") from e
     viewer = args.viewer if args.viewer is not None else ("rrd" if args.rrd is not None else None)
     params = inspect.signature(build_sinks).parameters
+    if getattr(args, "keep_open", False):
+        from presim.outputs.viewer import ViewerConfig
+
+        return build_sinks(args.record, viewer, args.rrd, overwrite=args.overwrite,
+                           viewer_config=ViewerConfig(keep_open=True))
     if "overwrite" in params:
         return build_sinks(args.record, viewer, args.rrd, overwrite=args.overwrite)
     if args.record is not None and args.record.exists():
@@ -142,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.steps <= 0:
         raise ValueError(f"--steps must be positive, got {args.steps}")
+    if args.keep_open and args.viewer != "web":
+        raise ValueError("--keep-open keeps the web viewer serving: it needs --viewer web")
     _parse_controller(args)
     scene = _load_scene(args.scene)
     robot = _build_robot(args, scene)
@@ -215,4 +224,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {rate:.1f} steps/s ({wall:.1f} s wall, setup {setup_s:.1f} s); ms/step: {per}")
     if args.record is not None:
         print(f"  recorded to {args.record}")
+    _wait_for_kept_viewers(sinks)
     return 0
+
+
+def _wait_for_kept_viewers(sinks: list) -> None:
+    """``--keep-open``: the web viewer keeps serving after the drive until Ctrl-C / SIGTERM."""
+    for s in sinks:
+        viewer = getattr(s, "inner", s)
+        if getattr(viewer, "kept_open", False):
+            print(f"  web viewer still serving at {viewer.url} (Ctrl-C stops it)", flush=True)
+            viewer.wait_closed()
