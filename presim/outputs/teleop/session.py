@@ -385,5 +385,5 @@ class TeleopSession:
             "steps_per_s": round(rate, 2), "render_ms": round(self._render_ms, 1),
             "hole_fraction": round(self._holes, 4), "collisions": self._contacts, "contact": bool(r.contact),
             "outside": bool(r.outside_captured_area), "recording": rec, "driver": driver, "clients": n_clients,
-            "depth_max_m": self._depth_max,
+            "depth_max_m": self._depth_max, "wall_time_s": time.time(),
         }

@@ -4,7 +4,7 @@
 (function () {
   const $ = (id) => document.getElementById(id);
   const T = {            // exposed as window.teleop for tests and measurements
-    framesDrawn: 0, frameTimes: [], latencies: [], messages: [], lastState: null, init: null,
+    framesDrawn: 0, frameTimes: [], latencies: [], lags: [], messages: [], lastState: null, init: null,
     connected: false, clientId: null,
   };
   window.teleop = T;
@@ -176,11 +176,18 @@
     const rows = [
       ["steps/s", s.steps_per_s], ["render ms", s.render_ms], ["hole fraction", (100 * s.hole_fraction).toFixed(1) + " %"],
       ["collisions", s.collisions + (s.contact ? " (now)" : "")], ["outside capture", s.outside ? "yes" : "no"],
-      ["page frames/s", fps().toFixed(1)], ["key→motion ms", T.latencies.length ? T.latencies[T.latencies.length - 1].toFixed(0) : "–"],
+      ["page frames/s", fps().toFixed(1)], ["frame lag ms", T.lags.length ? T.lags[T.lags.length - 1].toFixed(0) : "–"], ["key→motion ms", T.latencies.length ? T.latencies[T.latencies.length - 1].toFixed(0) : "–"],
       ["pose", `x ${s.pose.x.toFixed(2)} y ${s.pose.y.toFixed(2)} yaw ${(s.pose.yaw * 57.2958).toFixed(0)}°`],
       ["sim time", s.sim_time_s.toFixed(1) + " s"], ["recording", s.recording || "off"], ["tabs", s.clients],
     ];
     $("status").innerHTML = rows.map((r) => `<tr><td>${r[0]}</td><td>${r[1]}</td></tr>`).join("");
+    document.querySelectorAll("#joints input").forEach((inp) => {   // sliders follow the robot unless dragged
+      const q = s.joints[inp.dataset.joint];
+      if (q != null && document.activeElement !== inp) {
+        inp.value = q;
+        inp.parentElement.querySelector("span").textContent = q.toFixed(2);
+      }
+    });
     $("record").textContent = s.recording ? "Stop recording" : "Start recording";
     $("record").classList.toggle("on", !!s.recording);
     const me = s.driver === T.clientId;
@@ -206,6 +213,8 @@
     }
     T.framesDrawn += 1;
     T.frameTimes.push(performance.now());
+    T.lags.push(Date.now() - 1000 * state.wall_time_s);   // publish -> drawn (same machine, same clock)
+    if (T.lags.length > 1000) T.lags.shift();
     T.lastImageStep = state.step;
   }
 
