@@ -113,9 +113,22 @@ class TeleopSession:
         self._step_times: deque[float] = deque(maxlen=20)
         self._render_ms = 0.0
         self._holes = 0.0
-        self._depth_max = config.depth_max_m
+        self._depth_max = config.depth_max_m if config.depth_max_m is not None else self._scene_depth_range()
 
     # ---- set-up ----------------------------------------------------------------------------------
+    def _scene_depth_range(self) -> float | None:
+        """Depth colour range from up to 8 captured depth maps (None: decided by the first frame)."""
+        scene = self.sim.scene
+        n = len(scene)
+        if n == 0:
+            return None
+        idx = np.unique(np.linspace(0, n - 1, min(n, 8)).astype(int))
+        try:
+            d = np.concatenate([np.asarray(scene.depth(int(i), refined=False))[::4, ::4].ravel() for i in idx])
+        except (OSError, ValueError, IndexError):
+            return None
+        return depth_range_m(d)
+
     def _build_map(self) -> MapImage:
         sim = self.sim
         pts = sim.points
