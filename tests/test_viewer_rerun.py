@@ -245,3 +245,10 @@ def test_web_viewer_keep_open_serves_after_close(tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+
+
+def test_drive_keep_open_needs_web_viewer(tmp_path, capsys):
+    from presim.cli import main
+
+    assert main(["drive", str(tmp_path / "missing"), "--keep-open"]) == 1
+    assert "--keep-open" in capsys.readouterr().err

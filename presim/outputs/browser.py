@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -142,7 +143,15 @@ def screenshot(url: str, ready, width: int = 1280, height: int = 800, timeout_s:
         b.open(url)
         deadline = time.monotonic() + timeout_s
         while True:
-            img = b.screenshot()
+            try:
+                img = b.screenshot()
+            except urllib.error.HTTPError as e:
+                # chromedriver answers 500 "timed out receiving message from renderer" while the page's
+                # renderer is busy (the wasm viewer compiling on a loaded machine): try again.
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"no screenshot of {url} within {timeout_s:.0f} s ({e})") from e
+                time.sleep(poll_s)
+                continue
             if ready(img) or time.monotonic() > deadline:
                 return img
             time.sleep(poll_s)
