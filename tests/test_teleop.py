@@ -239,6 +239,33 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
         assert json.loads(f.read())["error"] is None
 
 
+def test_free_rig_session_map_from_points_and_teleport_keeps_height(tmp_path):
+    """A scene without a floor drives the free camera rig: the map comes from the points, teleport
+    moves x, y and keeps height and orientation."""
+    import dataclasses
+
+    from presim.outputs.teleop.protocol import Teleport
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession, _Command
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+
+    scene = dataclasses.replace(build_toy_room(ToyRoomConfig(width=40, height=30)), floor=None)
+    sim = Simulator(scene, None, SimConfig(cameras=(CameraSpec(width=40, height=30),)))
+    assert sim.is_free
+    session = TeleopSession(sim, TeleopConfig(out_dir=tmp_path))
+    lo, hi = session.spec.map_min_xy, session.spec.map_max_xy
+    assert lo[0] < 0.0 and hi[0] > 5.0 and lo[1] < 0.0 and hi[1] > 4.0   # the 5 x 4 m room + padding
+    session.sim.reset(0)
+    T0 = sim.T_world_base
+    session._apply(_Command(1, Teleport(2.0, 1.5)))
+    T1 = sim.T_world_base
+    np.testing.assert_allclose(T1[:3, 3], [2.0, 1.5, T0[2, 3]], atol=1e-9)
+    np.testing.assert_allclose(T1[:3, :3], T0[:3, :3], atol=1e-9)
+    session.sim.close()
+
+
+@pytest.mark.slow
 def test_cli_teleop_serves_page_on_loopback_and_stops_on_sigterm(tmp_path):
     import signal
     import urllib.request
