@@ -226,6 +226,13 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
             await t.send(type="snapshot")
             await t.send(type="record", on=False)
             await t.pump(3.0, until=lambda t: any("recording saved" in m for _, m in t.messages))
+            async with websockets.connect(_ws_url(server), max_size=None) as big:   # 100 kB: this tab is closed
+                await big.send("x" * 100_000)
+                with pytest.raises(websockets.ConnectionClosed):
+                    for _ in range(100):
+                        await asyncio.wait_for(big.recv(), 5)
+            await t.pump(0.5)                                                   # the first tab carries on
+            assert t.ws.state.name == "OPEN"
             return t
 
     t = asyncio.run(main())
