@@ -164,6 +164,10 @@ def test_two_tabs_one_drives_both_see_closed_tab_freed(toy_server):
             assert ta.init["client_id"] != tb.init["client_id"] and ta.images > 0 and tb.images > 0
             assert server.session.clients == {ta.init["client_id"], tb.init["client_id"]}
             p0 = sim.T_world_base[:3, 3].copy()
+            assert ta.state["at_rest"] and tb.state["at_rest"]             # nothing to do: no steps, no renders
+            step = server.session.latest.state["step"]
+            await asyncio.gather(ta.pump(0.5), tb.pump(0.5))
+            assert server.session.latest.state["step"] == step
             for k in range(8):   # tab A drives (first to send)
                 await ta.send(type="cmd_vel", vx=0.5, vy=0, wz=0.4, seq=k)
                 await asyncio.gather(ta.pump(0.1), tb.pump(0.1))
@@ -217,7 +221,9 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
             await t.send(type="teleport", x=1.0, y=1.0, yaw=0.0)
             await t.pump(1.0, until=lambda t: len(t.messages) >= 7)
             assert np.allclose(sim.T_world_base[:2, 3], [1.0, 1.0], atol=1e-6)
-            await t.send(type="joint", name="head_tilt_joint", value=0.5)
+            await t.send(type="joint", name="head_tilt_joint", value=0.5)   # wakes a robot at rest
+            await t.pump(1.0, until=lambda t: abs(t.state["joints"]["head_tilt_joint"] - 0.5) < 1e-6)
+            assert abs(t.state["joints"]["head_tilt_joint"] - 0.5) < 1e-6
             await t.send(type="record", on=True)
             for k in range(10):
                 await t.send(type="cmd_vel", vx=0.3, vy=0, wz=0.0, seq=k)

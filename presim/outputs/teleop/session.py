@@ -52,6 +52,10 @@ class TeleopConfig:
     """Trajectory points kept for pages that join later."""
     pause_without_clients: bool = True
     """Stop stepping while no page is connected (and nothing records)."""
+    pause_at_rest: bool = True
+    """Stop stepping while the robot is at rest (no command, base and joints still, nothing records):
+    the image would not change. A command wakes the loop at once (so key-to-motion is one step, not
+    one and a half); sim time does not advance while paused."""
 
 
 @dataclass(frozen=True)
@@ -223,6 +227,12 @@ class TeleopSession:
                 self._apply_commands()
                 now = time.monotonic()
                 cmd = self._cmd if now - self._cmd_stamp <= self.config.command_timeout_s else CmdVel(0.0, 0.0, 0.0)
+                if self._at_rest(cmd):
+                    self._publish_rest()
+                    self._wake.wait(0.5)
+                    self._wake.clear()
+                    next_t = time.perf_counter()
+                    continue
                 if self.sim.is_free:
                     twist = np.array([cmd.vx, cmd.vy, cmd.vz, 0.0, 0.0, cmd.wz])
                 else:
@@ -240,6 +250,34 @@ class TeleopSession:
         except BaseException as e:  # noqa: BLE001 - reported to the pages and the CLI, never silent
             self.error = e
             self.notify(None, {"type": "error", "message": f"simulator stopped: {type(e).__name__}: {e}"})
+
+    def _at_rest(self, cmd: CmdVel) -> bool:
+        r = self._last
+        if not self.config.pause_at_rest or r is None or self._recorder:
+            return False
+        if cmd.vx or cmd.vy or cmd.wz or cmd.vz:
+            return False
+        with self._lock:
+            if self._commands:
+                return False
+        target = self.sim.q_target.copy()
+        for name, value in self._joint_targets.items():  # slider moves not applied by a step yet
+            target[self.sim.robot.joint_index(name)] = value
+        q_goal = np.clip(target, self.sim.robot.lower, self.sim.robot.upper)
+        return (not np.any(r.applied_command) and not np.any(r.odometry.twist_base)
+                and np.allclose(self.sim.joint_positions, q_goal, atol=1e-9))
+
+    def _publish_rest(self) -> None:
+        """Once per pause: republish the newest state flagged ``at_rest`` (pages show it)."""
+        f = self.latest
+        if f is None or f.state.get("at_rest"):
+            return
+        self._seq += 1
+        self.latest = Frame(self._seq, dict(f.state, seq=self._seq, at_rest=True, steps_per_s=0.0,
+                                            wall_time_s=time.time()),
+                            f.image_seq, f.color_jpeg, f.depth_jpeg)
+        self._step_times.clear()
+        self.on_frame()
 
     # ---- commands (sim thread) -------------------------------------------------------------------
     def _apply_commands(self) -> None:
@@ -398,5 +436,5 @@ class TeleopSession:
             "steps_per_s": round(rate, 2), "render_ms": round(self._render_ms, 1),
             "hole_fraction": round(self._holes, 4), "collisions": self._contacts, "contact": bool(r.contact),
             "outside": bool(r.outside_captured_area), "recording": rec, "driver": driver, "clients": n_clients,
-            "depth_max_m": self._depth_max, "wall_time_s": time.time(),
+            "depth_max_m": self._depth_max, "wall_time_s": time.time(), "at_rest": False,
         }

@@ -174,7 +174,7 @@
   }
   function status(s) {
     const rows = [
-      ["steps/s", s.steps_per_s], ["render ms", s.render_ms], ["hole fraction", (100 * s.hole_fraction).toFixed(1) + " %"],
+      ["steps/s", s.at_rest ? "0 (at rest: paused until a command)" : s.steps_per_s], ["render ms", s.render_ms], ["hole fraction", (100 * s.hole_fraction).toFixed(1) + " %"],
       ["collisions", s.collisions + (s.contact ? " (now)" : "")], ["outside capture", s.outside ? "yes" : "no"],
       ["page frames/s", fps().toFixed(1)], ["frame lag ms", T.lags.length ? T.lags[T.lags.length - 1].toFixed(0) : "–"], ["key→motion ms", T.latencies.length ? T.latencies[T.latencies.length - 1].toFixed(0) : "–"],
       ["pose", `x ${s.pose.x.toFixed(2)} y ${s.pose.y.toFixed(2)} yaw ${(s.pose.yaw * 57.2958).toFixed(0)}°`],
