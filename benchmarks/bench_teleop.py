@@ -59,7 +59,7 @@ def main() -> int:
         with Browser(1280, 1000) as b:
             b.open(url)
             deadline = time.monotonic() + 60
-            while not b.execute("return window.teleop && window.teleop.framesDrawn >= 3"):
+            while not b.execute("return window.teleop && window.teleop.framesDrawn >= 1"):
                 if time.monotonic() > deadline:
                     raise TimeoutError("the page drew no frames in 60 s")
                 time.sleep(0.2)

@@ -364,7 +364,7 @@ def test_browser_keys_drive_robot_and_page_image_changes(toy_server, tmp_path):
     assert listen == {"127.0.0.1"}
     with Browser(1280, 900) as b:
         b.open(server.url)
-        _wait(b, "return window.teleop && window.teleop.framesDrawn >= 2")
+        _wait(b, "return window.teleop && window.teleop.framesDrawn >= 1")
         before = _canvas_crop(b, b.screenshot(), "color")
         assert before.std() > 5, "colour canvas is blank"
         p0 = sim.T_world_base.copy()
@@ -374,8 +374,8 @@ def test_browser_keys_drive_robot_and_page_image_changes(toy_server, tmp_path):
         moved = np.linalg.norm(p1[:2, 3] - p0[:2, 3])
         turned = abs(np.arctan2(p1[1, 0], p1[0, 0]) - np.arctan2(p0[1, 0], p0[0, 0]))
         assert moved > 0.1 or turned > 0.2, f"robot did not move: {moved:.3f} m, {turned:.3f} rad"
-        seen = b.execute("return window.teleop.framesDrawn")
-        _wait(b, f"return window.teleop.framesDrawn >= {seen + 2}")
+        # the robot stops (keys up), the page shows its last image, the simulator pauses at rest
+        _wait(b, "return window.teleop.lastState.at_rest && window.teleop.framesDrawn >= 2", 30)
         img = b.screenshot()
         save_png(tmp_path / "teleop_page.png", img)
         after = _canvas_crop(b, img, "color")
