@@ -10,7 +10,7 @@
   window.teleop = T;
   let ws = null, map = null, mapImg = null, traj = [], pending = null, teleportMode = false;
   const held = new Set();
-  let cmdSeq = 0, lastSentZero = true, sentAt = new Map();
+  let cmdSeq = 0, lastSentZero = true, pressStart = null;   // pressStart: first command of a press from rest
 
   function show(kind, text) {
     const m = $("msg");
@@ -41,12 +41,16 @@
     const zero = !c.vx && !c.vy && !c.wz && !c.vz;
     if (zero && lastSentZero) return;
     cmdSeq += 1;
-    sentAt.set(cmdSeq, performance.now());
     send(Object.assign({ type: "cmd_vel", seq: cmdSeq }, c));
     lastSentZero = zero;
   }
   setInterval(sendCmd, 100);   // held keys keep the command alive (the server stops the robot after 0.5 s)
-  function press(k) { if (!held.has(k)) { held.add(k); sendCmd(); } }
+  function press(k) {
+    if (held.has(k)) return;
+    if (!held.size) pressStart = { seq: cmdSeq + 1, t: performance.now() };   // key-to-motion starts here
+    held.add(k);
+    sendCmd();
+  }
   function release(k) { if (held.delete(k)) sendCmd(); }
   function stopAll() { held.clear(); lastSentZero = false; sendCmd(); }
 
@@ -224,16 +228,12 @@
     } catch (e) {
       show("error", "could not draw a frame: " + e);
     }
-    const prev = T.lastState;
     T.lastState = s;
-    if (s.cmd_seq != null && sentAt.size && s.has_images) {
-      for (const [k, t0] of sentAt) {
-        if (k <= s.cmd_seq) {
-          if (k === s.cmd_seq && (s.applied[0] || s.applied[1] || s.applied[2]) && (!prev || prev.cmd_seq !== k))
-            T.latencies.push(performance.now() - t0);
-          sentAt.delete(k);
-        }
-      }
+    // key-to-motion: keydown -> the first drawn frame of a step that applied that press's command
+    if (pressStart && color && s.cmd_seq != null && s.cmd_seq >= pressStart.seq &&
+        (s.applied[0] || s.applied[1] || s.applied[2])) {
+      T.latencies.push(performance.now() - pressStart.t);
+      pressStart = null;
     }
     const last = traj[traj.length - 1];
     if (!last || Math.hypot(last[0] - s.pose.x, last[1] - s.pose.y) > 0.01) traj.push([s.pose.x, s.pose.y]);
