@@ -155,3 +155,100 @@ def test_native_mode_streams_on_loopback_and_saves_rrd(tmp_path):
         p = psutil.Process(pid)  # native viewers outlive the run on purpose; this one is ours to stop
         p.terminate()
         p.wait(10)
+
+
+def test_robot_visuals_from_urdf():
+    from presim.outputs.viewer import robot_visuals
+    from presim.sim.robot import default_robot
+
+    vis = robot_visuals(default_robot().urdf_xml)
+    assert [(v.link, v.kind) for v in vis] == [("base_link", "cylinder"), ("base_link", "cylinder"),
+                                               ("head_pan_link", "cylinder"), ("head_tilt_link", "box")]
+    assert vis[0].size == (0.25, 0.30)
+    np.testing.assert_allclose(vis[3].size, (0.12, 0.20, 0.10))
+
+
+def test_blueprint_eye_behind_above_robot_and_separate_image_panels():
+    import rerun.blueprint as rrb
+
+    from presim.geometry import make_pose, rotation_z
+    from presim.outputs.viewer import viewer_blueprint
+
+    T = make_pose(rotation_z(np.pi / 2), [1.0, 2.0, 0.0])   # robot at (1, 2) facing +y
+    bp = viewer_blueprint("world/robot/base_link", T, "world/robot/cam")
+    view3d, images = bp.root_container.contents
+    assert isinstance(view3d, rrb.Spatial3DView) and view3d.origin == "world"
+    eye = view3d.properties["EyeControls3D"]
+    text = repr(eye)
+    assert "world/robot/base_link" in text                       # the eye follows the robot
+    pos = np.array([float(x) for x in text.split("position=[[")[1].split("]]")[0].split(",")])
+    np.testing.assert_allclose(pos, [1.0, -0.5, 2.5], atol=1e-9)   # 2.5 m behind (-y), 2.5 m up
+    color, depth = images.contents
+    assert isinstance(color, rrb.Spatial2DView) and isinstance(depth, rrb.Spatial2DView)
+    assert (color.origin, color.contents) == ("world/robot/cam", "world/robot/cam/color")
+    assert (depth.origin, depth.contents) == ("world/robot/cam", "world/robot/cam/depth")
+
+
+def test_rrd_has_robot_links_blueprint_and_no_ceiling(tmp_path):
+    import subprocess
+
+    from rerun.chunk import RrdReader
+
+    from presim.outputs.viewer import rerun_executable
+
+    info = dataclasses.replace(synthetic_info(num_points=3000), floor_z_m=0.0)   # points up to 2.5 m
+    v = RerunViewer("rrd", tmp_path / "bp.rrd")
+    v.open(info)
+    for r in synthetic_steps(3, width=32, height=24):
+        v.on_step(r)
+    v.close()
+    chunks = RrdReader(tmp_path / "bp.rrd").stream().to_chunks()
+    rows = _rows(chunks)
+    assert "/world/robot/base_link/visual_0" in rows and "/world/robot/base_link/body" not in rows
+    assert "/world/robot/base_link/head_pan_link/head_tilt_link/visual_3" in rows
+    scene = [c.to_record_batch() for c in chunks if c.entity_path == "/world/scene"]
+    pos = np.array(scene[0].column("Points3D:positions").to_pylist()[0])
+    assert len(pos) < 3000 and pos[:, 2].max() <= 2.0 + 1e-6 and pos[:, 2].max() > 1.8  # clipped at 2 m
+    out = subprocess.run(rerun_executable() + ["rrd", "print", str(tmp_path / "bp.rrd")], capture_output=True,
+                         text=True, env=dict(os.environ, RERUN_ANALYTICS="0"), timeout=60).stdout
+    assert "EyeControls3D:tracking_entity" in out
+    assert out.count("ViewBlueprint:class_identifier") == 3      # one 3D view, colour and depth panels
+
+
+def test_live_viewer_drops_images_to_wall_rate():
+    v = RerunViewer("web", config=ViewerConfig(live_max_image_hz=5.0))
+    assert v._image_due("cam") and not v._image_due("cam") and v._image_due("other")
+    assert all(RerunViewer("rrd", "x.rrd")._image_due("cam") for _ in range(3))   # files keep every image
+
+
+def test_web_viewer_keep_open_serves_after_close(tmp_path):
+    import signal
+
+    import psutil
+
+    from presim.outputs.viewer import wait_for_port
+
+    v = RerunViewer("web", config=ViewerConfig(keep_open=True))
+    v.open(synthetic_info(num_points=100))
+    proc = v.process
+    try:
+        for r in synthetic_steps(2, width=16, height=12):
+            v.on_step(r)
+        v.close()
+        assert v.kept_open and proc.poll() is None
+        port = int(v.url.split("://127.0.0.1:")[1].split("/")[0])
+        wait_for_port("127.0.0.1", port, 5)                       # still serving the page
+        os.killpg(proc.pid, signal.SIGTERM)                        # what Ctrl-C ends
+        v.wait_closed()
+        assert v.process is None and not psutil.pid_exists(proc.pid) or proc.poll() is not None
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def test_drive_keep_open_needs_web_viewer(tmp_path, capsys):
+    from presim.cli import main
+
+    assert main(["drive", str(tmp_path / "missing"), "--keep-open"]) == 1
+    assert "--keep-open" in capsys.readouterr().err

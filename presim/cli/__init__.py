@@ -15,6 +15,7 @@ _MODULES = [
     "presim.cli.refine_eval_cmds",  # refine, eval-views
     "presim.cli.render_cmd",      # render
     "presim.cli.sim_cmds",        # drive
+    "presim.cli.teleop_cmd",      # teleop
     "presim.cli.outputs_cmds",    # ros
     "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop

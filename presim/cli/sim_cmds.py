@@ -54,6 +54,8 @@ def register(sub) -> None:
                    help="live 3D viewer (native window, web on 127.0.0.1 while the drive runs, or rrd: file "
                         "only); with --rrd, `presim view FILE.rrd [--web]` shows it again afterwards")
     p.add_argument("--rrd", type=Path, default=None, help="also save the viewer stream to this .rrd file")
+    p.add_argument("--keep-open", action="store_true",
+                   help="with --viewer web: keep serving the web viewer after the drive ends (Ctrl-C stops it)")
     p.add_argument("--realtime", action="store_true", help="pace steps to wall time (always on for keyboard)")
     p.set_defaults(func=run)
 
@@ -66,6 +68,11 @@ def _build_sinks(args) -> list:
     except ImportError as e:
         raise ValueError(f"--record/--viewer/--rrd need presim.outputs.sinks, which is not available ({e})") from e
     viewer = args.viewer if args.viewer is not None else ("rrd" if args.rrd is not None else None)
+    if getattr(args, "keep_open", False):
+        from presim.outputs.viewer import ViewerConfig
+
+        return build_sinks(args.record, viewer, args.rrd, overwrite=args.overwrite,
+                           viewer_config=ViewerConfig(keep_open=True))
     return build_sinks(args.record, viewer, args.rrd, overwrite=args.overwrite)
 
 
@@ -118,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
     if args.hfov_deg is not None and args.hfov_deg >= 180:
         raise ValueError(f"--hfov-deg: must be below 180, got {args.hfov_deg}")
     check_render_memory(args.width, args.height, max_memory=args.max_memory, what="one camera frame")
+    if args.keep_open and args.viewer != "web":
+        raise ValueError("--keep-open keeps the web viewer serving: it needs --viewer web")
     _parse_controller(args)
     scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
     robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
@@ -144,4 +153,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"  recorded to {args.record}")
     if st.ended_early:
         print(f"note: {st.ended_early} (--steps {args.steps} not reached)", file=sys.stderr)
+    _wait_for_kept_viewers(sinks)
     return 0
+
+
+def _wait_for_kept_viewers(sinks: list) -> None:
+    """``--keep-open``: the web viewer keeps serving after the drive until Ctrl-C / SIGTERM."""
+    for s in sinks:
+        viewer = getattr(s, "inner", s)
+        if getattr(viewer, "kept_open", False):
+            print(f"  web viewer still serving at {viewer.url} (Ctrl-C stops it)", flush=True)
+            viewer.wait_closed()

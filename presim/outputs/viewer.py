@@ -39,8 +39,8 @@ import numpy as np
 from presim.outputs.frames import BASE_FRAME, build_frame_tree
 from presim.sim.types import SimInfo, StepResult
 
-__all__ = ["ViewerConfig", "RerunViewer", "web_viewer_url", "free_port", "rerun_executable",
-           "wait_for_port", "ViewerError", "check_rrd_file", "has_display"]
+__all__ = ["ViewerConfig", "RerunViewer", "LinkVisual", "robot_visuals", "viewer_blueprint", "web_viewer_url",
+           "free_port", "rerun_executable", "wait_for_port", "ViewerError", "check_rrd_file", "has_display"]
 
 RRD_MAGIC = (b"RRF0", b"RRF1", b"RRF2")
 """First four bytes of a rerun recording (``.rrd``) file."""
@@ -95,6 +95,87 @@ class ViewerConfig:
     """Extra ``rerun`` arguments (e.g. ``--headless`` in tests)."""
     input_image_plane_m: float = 0.15
     """Drawn depth of the input-view frusta, metres."""
+    scene_clip_above_floor_m: float | None = 2.0
+    """Scene points higher than this above the floor are left out of the 3D view (ceilings and wall
+    tops would hide the robot from above); None keeps all. Scenes without a floor keep all."""
+    live_max_image_hz: float = 5.0
+    """Live viewers (native / web): camera images are logged at most this often per second of wall
+    time, newer ones replacing older ones, so the viewer never falls behind the simulation; 0 = all.
+    The ``.rrd`` of an ``rrd``-only viewer always gets every image (``image_every_n_steps``)."""
+    live_jpeg_quality: int | None = 85
+    """Live viewers: JPEG quality of the colour images (a tenth of the bytes to stream); None = raw."""
+    keep_open: bool = False
+    """Web mode: keep serving the viewer after the run ends (:meth:`RerunViewer.wait_closed` stops it)."""
+    blueprint: bool = True
+    """Send a layout: 3D view above and behind the robot (following it), colour and depth as separate
+    panels."""
+
+
+@dataclass(frozen=True)
+class LinkVisual:
+    """One URDF ``<visual>``: a primitive (or a mesh file) fixed to a link."""
+
+    link: str
+    T_link_geom: np.ndarray
+    """4x4 pose of the geometry in the link frame."""
+    kind: str
+    """``box`` | ``cylinder`` (along z, centred) | ``sphere`` | ``mesh``."""
+    size: tuple[float, ...]
+    """box: (x, y, z) full sizes; cylinder: (radius, length); sphere: (radius,); mesh: scale (x, y, z)."""
+    mesh_path: str | None = None
+    rgba: tuple[float, float, float, float] | None = None
+
+
+def robot_visuals(urdf_xml: str) -> list[LinkVisual]:
+    """The robot's visual geometry from its URDF text (yourdfpy parses; no meshes are loaded)."""
+    import io
+
+    import yourdfpy
+
+    urdf = yourdfpy.URDF.load(io.StringIO(urdf_xml), load_meshes=False, build_scene_graph=False,
+                              build_collision_scene_graph=False)
+    out = []
+    for link in urdf.robot.links:
+        for v in link.visuals:
+            T = np.asarray(v.origin, dtype=np.float64) if v.origin is not None else np.eye(4)
+            g = v.geometry
+            rgba = None
+            if v.material is not None and v.material.color is not None:
+                rgba = tuple(float(c) for c in v.material.color.rgba)
+            if g.box is not None:
+                out.append(LinkVisual(link.name, T, "box", tuple(float(x) for x in g.box.size), rgba=rgba))
+            elif g.cylinder is not None:
+                out.append(LinkVisual(link.name, T, "cylinder", (float(g.cylinder.radius), float(g.cylinder.length)),
+                                      rgba=rgba))
+            elif g.sphere is not None:
+                out.append(LinkVisual(link.name, T, "sphere", (float(g.sphere.radius),), rgba=rgba))
+            elif g.mesh is not None:
+                scale = g.mesh.scale if g.mesh.scale is not None else (1.0, 1.0, 1.0)
+                scale = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
+                out.append(LinkVisual(link.name, T, "mesh", tuple(float(x) for x in scale),
+                                      mesh_path=g.mesh.filename, rgba=rgba))
+    return out
+
+
+def viewer_blueprint(base_entity: str, T_world_base: np.ndarray, camera_entity: str | None):
+    """rerun layout: a 3D view whose eye starts 2.5 m behind and 2.5 m above the robot looking at it
+    (and follows it), plus the camera's colour and depth as two separate 2D panels."""
+    import rerun.blueprint as rrb
+
+    p = np.asarray(T_world_base, dtype=np.float64)[:3, 3]
+    fwd = np.asarray(T_world_base, dtype=np.float64)[:3, 0]
+    fwd = fwd / max(np.linalg.norm(fwd[:2]), 1e-9)
+    eye = p - 2.5 * np.array([fwd[0], fwd[1], 0.0]) + np.array([0.0, 0.0, 2.5])
+    view3d = rrb.Spatial3DView(
+        name="3D (follows the robot)", origin="world",
+        eye_controls=rrb.EyeControls3D(position=eye.tolist(), look_target=(p + [0, 0, 0.5]).tolist(),
+                                       eye_up=[0.0, 0.0, 1.0], tracking_entity=base_entity))
+    if camera_entity is None:
+        return rrb.Blueprint(view3d, collapse_panels=True)
+    images = rrb.Vertical(
+        rrb.Spatial2DView(name="colour", origin=camera_entity, contents=f"{camera_entity}/color"),
+        rrb.Spatial2DView(name="depth", origin=camera_entity, contents=f"{camera_entity}/depth"))
+    return rrb.Blueprint(rrb.Horizontal(view3d, images, column_shares=[2, 1]), collapse_panels=True)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -173,6 +254,9 @@ class RerunViewer:
         self._steps = 0
         self._readings: dict[str, int] = {}
         self._static_logged: set[str] = set()
+        self._last_image_wall: dict[str, float] = {}
+        self._visuals: list[LinkVisual] = []
+        self._blueprint_sent = False
 
     # -- connection ----------------------------------------------------------------------------
     def _start_viewer(self) -> None:
@@ -242,6 +326,10 @@ class RerunViewer:
         rec, cfg = self.rec, self.config
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         pts, rgb = np.asarray(info.points_xyz, np.float32), np.asarray(info.points_rgb, np.uint8)
+        floor_z = getattr(info, "floor_z_m", None)
+        if floor_z is not None and cfg.scene_clip_above_floor_m is not None and len(pts):
+            keep = pts[:, 2] <= floor_z + cfg.scene_clip_above_floor_m
+            pts, rgb = pts[keep], rgb[keep]
         if len(pts) > cfg.max_scene_points:
             keep = np.random.default_rng(0).choice(len(pts), cfg.max_scene_points, replace=False)
             pts, rgb = pts[np.sort(keep)], rgb[np.sort(keep)]
@@ -256,6 +344,11 @@ class RerunViewer:
                                      image_plane_distance=cfg.input_image_plane_m,
                                      color=[120, 160, 255]), static=True)
         self._entity = self._entity_paths(info)
+        try:
+            self._visuals = robot_visuals(info.urdf_xml)
+        except Exception as e:  # noqa: BLE001 - a URDF yourdfpy cannot read still gets the box body
+            print(f"presim: viewer: robot visuals not read from the URDF ({e}); drawing a box", file=sys.stderr)
+            self._visuals = []
 
     def _entity_paths(self, info: SimInfo) -> dict[str, str]:
         """Link name -> entity path under world/robot, following the URDF parent chain."""
@@ -292,10 +385,11 @@ class RerunViewer:
         rec.log(base, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
         if "body" not in self._static_logged:
             self._static_logged.add("body")
-            rec.log(f"{base}/body", rr.Boxes3D(centers=[[0, 0, 0.15]], half_sizes=[[0.25, 0.25, 0.15]],
-                                               colors=[[200, 120, 40]], labels=["robot"]), static=True)
-            rec.log(f"{base}/heading", rr.Arrows3D(origins=[[0, 0, 0.31]], vectors=[[0.4, 0, 0]],
-                                                  colors=[[255, 60, 60]]), static=True)
+            self._log_robot_body(base)
+        if not self._blueprint_sent and self.config.blueprint:
+            self._blueprint_sent = True
+            cam_path = self._link_path(r.cameras[0].frame_id) if r.cameras else None
+            rr.send_blueprint(viewer_blueprint(base, T, cam_path), recording=rec)
         dynamic, static = self._tree.edges(r)
         # map->odom->base_link are replaced by the exact base pose.
         for e, is_static in [(e, False) for e in dynamic[2:]] + [(e, True) for e in static]:
@@ -317,16 +411,61 @@ class RerunViewer:
                                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.4,
                                       color=[255, 200, 0]), static=True)
             self._cam_xyz.append(np.asarray(cam.T_world_cam, dtype=np.float64)[:3, 3])
-            if n % cfg.image_every_n_steps == 0:
+            if n % cfg.image_every_n_steps == 0 and self._image_due(cam.sensor_name):
                 img = rr.Image(np.ascontiguousarray(cam.color))
-                if cfg.jpeg_quality is not None:
-                    img = img.compress(jpeg_quality=cfg.jpeg_quality)
+                quality = cfg.jpeg_quality if self.mode == "rrd" or cfg.live_jpeg_quality is None else cfg.live_jpeg_quality
+                if quality is not None:
+                    img = img.compress(jpeg_quality=quality)
                 rec.log(f"{p}/color", img)
                 rec.log(f"{p}/depth", rr.DepthImage(np.asarray(cam.depth_m, dtype=np.float32), meter=1.0))
         self._base_xy.append(T[:3, 3].copy())
         self._steps += 1
         if self._steps % cfg.trajectory_every_n_steps == 0 or self._steps == 1:
             self._log_trajectory()
+
+    def _image_due(self, sensor: str) -> bool:
+        """Live viewers: at most ``live_max_image_hz`` images per wall second (the rest are dropped)."""
+        hz = self.config.live_max_image_hz
+        if self.mode == "rrd" or hz <= 0:
+            return True
+        now = time.monotonic()
+        if now - self._last_image_wall.get(sensor, -np.inf) < 1.0 / hz:
+            return False
+        self._last_image_wall[sensor] = now
+        return True
+
+    def _log_robot_body(self, base: str) -> None:
+        """The URDF's visual geometry on each link's entity (static; the links' transforms move it);
+        a box when the URDF has no visuals."""
+        import rerun as rr
+
+        rec = self.rec
+        rec.log(f"{base}/heading", rr.Arrows3D(origins=[[0, 0, 0.02]], vectors=[[0.4, 0, 0]],
+                                              colors=[[255, 60, 60]]), static=True)
+        if not self._visuals:
+            rec.log(f"{base}/body", rr.Boxes3D(centers=[[0, 0, 0.15]], half_sizes=[[0.25, 0.25, 0.15]],
+                                               colors=[[200, 120, 40]], labels=["robot"]), static=True)
+            return
+        palette = {"box": [90, 90, 110], "cylinder": [200, 120, 40], "sphere": [160, 160, 160], "mesh": [180, 180, 190]}
+        for k, v in enumerate(self._visuals):
+            p = f"{self._link_path(v.link)}/visual_{k}"
+            color = [int(255 * c) for c in v.rgba] if v.rgba is not None else palette[v.kind]
+            rec.log(p, rr.Transform3D(translation=v.T_link_geom[:3, 3], mat3x3=v.T_link_geom[:3, :3]), static=True)
+            if v.kind == "box":
+                rec.log(p, rr.Boxes3D(half_sizes=[[x / 2 for x in v.size]], colors=[color],
+                                      fill_mode="solid"), static=True)
+            elif v.kind == "cylinder":
+                rec.log(p, rr.Cylinders3D(radii=[v.size[0]], lengths=[v.size[1]], colors=[color],
+                                          fill_mode="solid"), static=True)
+            elif v.kind == "sphere":
+                rec.log(p, rr.Ellipsoids3D(half_sizes=[[v.size[0]] * 3], colors=[color], fill_mode="solid"),
+                        static=True)
+            elif v.mesh_path is not None and Path(v.mesh_path).is_file():
+                import trimesh
+
+                mesh = trimesh.load(v.mesh_path, force="mesh")
+                rec.log(p, rr.Mesh3D(vertex_positions=np.asarray(mesh.vertices) * np.asarray(v.size),
+                                     triangle_indices=np.asarray(mesh.faces), albedo_factor=color), static=True)
 
     def _log_trajectory(self) -> None:
         import rerun as rr
@@ -353,6 +492,22 @@ class RerunViewer:
         finally:
             rec.disconnect()  # drops the sinks: the .rrd gets its footer and is closed
             self.rec = None
-            self._stop_viewer()
+            if not (self.config.keep_open and self.mode == "web"):
+                self._stop_viewer()
             if self.rrd_path is not None and self._rrd_partial.exists():
                 os.replace(self._rrd_partial, self.rrd_path)  # complete: under its final name
+
+    @property
+    def kept_open(self) -> bool:
+        """True after ``close`` when the web viewer keeps serving (``keep_open``)."""
+        return self.rec is None and self.process is not None and self.mode == "web"
+
+    def wait_closed(self) -> None:
+        """Block until Ctrl-C / SIGTERM (or the viewer exits), then stop a kept-open web viewer."""
+        try:
+            while self.process is not None and self.process.poll() is None:
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self._stop_viewer(force=True)

@@ -129,6 +129,7 @@ class Simulator:
             urdf_xml=self.robot.urdf_xml,
             link_parents=dict(self.robot.link_parents),
             dt_s=self.config.dt_s,
+            floor_z_m=self._floor_z(0.0, 0.0) if self.scene.floor is not None else None,
         )
 
     @property

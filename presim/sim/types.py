@@ -95,6 +95,8 @@ class SimInfo:
     link_parents: dict[str, str]
     """child link -> parent link, for the tf tree."""
     dt_s: float
+    floor_z_m: float | None = None
+    """Floor height at the world origin (None: the scene has no floor, e.g. a tabletop capture)."""
 
 
 class Sink(Protocol):

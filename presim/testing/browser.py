@@ -1,4 +1,4 @@
-"""Screenshot a page in headless Chromium (used to check the served web viewer renders).
+"""Headless Chromium for checks of served pages (the rerun web viewer, the teleop page).
 
 Drives Debian's ``chromedriver`` over its W3C WebDriver HTTP API with the standard library (no
 selenium needed). WebGL runs on SwiftShader (``--use-gl=swiftshader --enable-unsafe-swiftshader``);
@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from presim.outputs.viewer import free_port, wait_for_port
 
-__all__ = ["CHROMIUM_ARGS", "find_browser", "screenshot", "saturated_fraction"]
+__all__ = ["CHROMIUM_ARGS", "Browser", "find_browser", "screenshot", "saturated_fraction", "save_png"]
 
 CHROMIUM_ARGS = ("--headless", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
                  "--enable-unsafe-swiftshader", "--disable-background-networking",
@@ -48,44 +49,112 @@ def _req(base: str, method: str, path: str, body: dict | None = None, timeout_s:
         return json.loads(f.read())
 
 
+class Browser:
+    """A headless Chromium driven over chromedriver's W3C WebDriver API: ``open``, ``screenshot``,
+    ``execute`` (JavaScript), ``keys`` (held key presses). Use as a context manager."""
+
+    def __init__(self, width: int = 1280, height: int = 800):
+        self.width, self.height = width, height
+        self.proc: subprocess.Popen | None = None
+        self.sid: str | None = None
+        self._profile: tempfile.TemporaryDirectory | None = None
+
+    def __enter__(self) -> "Browser":
+        chromium, driver = find_browser()
+        port = free_port()
+        self._profile = tempfile.TemporaryDirectory(prefix="presim-chromium-")
+        self.proc = subprocess.Popen([driver, f"--port={port}", "--allowed-ips=127.0.0.1"],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.base = f"http://127.0.0.1:{port}"
+        try:
+            wait_for_port("127.0.0.1", port, 20)
+            args = list(CHROMIUM_ARGS) + [f"--window-size={self.width},{self.height}",
+                                          f"--user-data-dir={self._profile.name}"]
+            caps = {"capabilities": {"alwaysMatch": {
+                "browserName": "chrome", "goog:chromeOptions": {"binary": chromium, "args": args}}}}
+            self.sid = _req(self.base, "POST", "/session", caps)["value"]["sessionId"]
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def _s(self, method: str, path: str, body: dict | None = None) -> dict:
+        return _req(self.base, method, f"/session/{self.sid}{path}", body)
+
+    def open(self, url: str) -> None:
+        self._s("POST", "/url", {"url": url})
+
+    def screenshot(self) -> np.ndarray:
+        """RGB uint8 (H, W, 3) of the viewport."""
+        png = base64.b64decode(self._s("GET", "/screenshot")["value"])
+        return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+    def execute(self, script: str, *args):
+        """Run ``script`` (a function body; ``return`` gives the value) in the page."""
+        return self._s("POST", "/execute/sync", {"script": script, "args": list(args)})["value"]
+
+    def keys(self, key: str, hold_s: float) -> None:
+        """Press ``key`` (a character, or a WebDriver key code such as ``\ue013`` for arrow up) and
+        hold it ``hold_s`` seconds."""
+        self._s("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": [
+            {"type": "keyDown", "value": key}, {"type": "pause", "duration": int(hold_s * 1000)},
+            {"type": "keyUp", "value": key}]}]})
+
+    def new_tab(self) -> str:
+        """Open a new tab, switch to it, return its handle."""
+        handle = self._s("POST", "/window/new", {"type": "tab"})["value"]["handle"]
+        self.switch_to(handle)
+        return handle
+
+    def switch_to(self, handle: str) -> None:
+        self._s("POST", "/window", {"handle": handle})
+
+    def close_tab(self) -> None:
+        self._s("DELETE", "/window")
+
+    def handles(self) -> list[str]:
+        return self._s("GET", "/window/handles")["value"]
+
+    def __exit__(self, *exc) -> None:
+        if self.sid is not None:
+            try:
+                _req(self.base, "DELETE", f"/session/{self.sid}", timeout_s=20)
+            except OSError:
+                pass
+            self.sid = None
+        if self.proc is not None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+            self.proc = None
+        if self._profile is not None:
+            self._profile.cleanup()
+            self._profile = None
+
+
 def screenshot(url: str, ready, width: int = 1280, height: int = 800, timeout_s: float = 90.0,
                poll_s: float = 2.0) -> np.ndarray:
     """Load ``url`` and return the first screenshot (RGB uint8 (H, W, 3)) for which ``ready(img)``
     is true, or the last one after ``timeout_s``."""
-    chromium, driver = find_browser()
-    port = free_port()
-    with tempfile.TemporaryDirectory(prefix="presim-chromium-") as profile:
-        proc = subprocess.Popen([driver, f"--port={port}", "--allowed-ips=127.0.0.1"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        base = f"http://127.0.0.1:{port}"
-        sid = None
-        try:
-            wait_for_port("127.0.0.1", port, 20)
-            args = list(CHROMIUM_ARGS) + [f"--window-size={width},{height}", f"--user-data-dir={profile}"]
-            caps = {"capabilities": {"alwaysMatch": {
-                "browserName": "chrome", "goog:chromeOptions": {"binary": chromium, "args": args}}}}
-            sid = _req(base, "POST", "/session", caps)["value"]["sessionId"]
-            _req(base, "POST", f"/session/{sid}/url", {"url": url})
-            deadline = time.monotonic() + timeout_s
-            while True:
-                png = base64.b64decode(_req(base, "GET", f"/session/{sid}/screenshot")["value"])
-                img = cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR),
-                                   cv2.COLOR_BGR2RGB)
-                if ready(img) or time.monotonic() > deadline:
-                    return img
-                time.sleep(poll_s)
-        finally:
-            if sid is not None:
-                try:
-                    _req(base, "DELETE", f"/session/{sid}", timeout_s=20)
-                except OSError:
-                    pass
-            proc.terminate()
+    with Browser(width, height) as b:
+        b.open(url)
+        deadline = time.monotonic() + timeout_s
+        while True:
             try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+                img = b.screenshot()
+            except urllib.error.HTTPError as e:
+                # chromedriver answers 500 "timed out receiving message from renderer" while the page's
+                # renderer is busy (the wasm viewer compiling on a loaded machine): try again.
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"no screenshot of {url} within {timeout_s:.0f} s ({e})") from e
+                time.sleep(poll_s)
+                continue
+            if ready(img) or time.monotonic() > deadline:
+                return img
+            time.sleep(poll_s)
 
 
 def saturated_fraction(img: np.ndarray, min_saturation: int = 120, min_value: int = 60) -> float:

@@ -1,0 +1,106 @@
+"""``presim teleop``: drive a robot from a browser page served on 127.0.0.1."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "teleop",
+        help="drive a robot from a web page: live colour + depth, top-down map, keyboard, recording",
+        description=(
+            "Start the simulator on SCENE and a web server on 127.0.0.1 serving one page: the robot camera's "
+            "live colour and depth, a top-down map (click to teleport), keyboard / on-screen driving through "
+            "the same controller as `presim drive`, joint sliders, reset, recording (MCAP + capture folder, "
+            "as `drive --record`) and snapshots. Open the printed URL; Ctrl-C stops. Needs the [web] group."
+        ),
+    )
+    p.add_argument("scene", type=Path, help="saved scene folder (or a capture folder to import on the fly)")
+    p.add_argument("--robot", default=None,
+                   help="URDF file, 'default' (presim_bot) or 'free' (free-flying camera rig); "
+                        "default: presim_bot, or the free rig when the scene has no floor")
+    p.add_argument("--camera-link", default=None, help="URDF link of the camera (OpenCV optical frame)")
+    p.add_argument("--camera-link-body", action="store_true",
+                   help="the --camera-link is a ROS body frame (x forward, z up), not an optical frame")
+    p.add_argument("--drive", choices=["diff", "holonomic"], default="diff",
+                   help="base motion model (holonomic: Q/E strafe)")
+    p.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: a free port)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1; anything else exposes the robot to the network)")
+    p.add_argument("--record", type=Path, default=Path("presim_teleop"),
+                   help="folder for recordings (rec_NNN/: recording.mcap + capture/) and snapshots "
+                        "(default ./presim_teleop, created on first use)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start pose")
+    p.add_argument("--dt", type=float, default=0.1, help="sim time per step, seconds (steps run in real time)")
+    p.add_argument("--width", type=int, default=640, help="camera image width")
+    p.add_argument("--height", type=int, default=480, help="camera image height")
+    p.add_argument("--rate-hz", type=float, default=10.0, help="camera rate (Hz of sim time)")
+    p.add_argument("--hfov-deg", type=float, default=None, help="camera horizontal FOV (default: the capture's)")
+    p.add_argument("--tilt-deg", type=float, default=10.0, help="initial head tilt (positive looks down)")
+    p.add_argument("--jpeg-quality", type=int, default=80, help="JPEG quality of the images sent to the page")
+    p.set_defaults(func=run)
+
+
+def build_simulator(args: argparse.Namespace):
+    """Scene + robot + simulator exactly as ``presim drive`` builds them (the one place teleop calls
+    drive's builders)."""
+    import numpy as np
+
+    from presim.capture.store import open_scene
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.robot import robot_for_scene
+    from presim.sim.simulator import SimConfig, Simulator
+
+    scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
+    robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
+                            camera_link_is_optical=not args.camera_link_body, head_tilt_rad=np.radians(args.tilt_deg))
+    cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz)
+    return Simulator(scene, robot, SimConfig(dt_s=args.dt, cameras=(cam,)))
+
+
+def make_recorder(record_dir: Path) -> list:
+    """The sinks of ``presim drive --record DIR`` (MCAP + capture folder)."""
+    from presim.outputs.sinks import build_sinks
+
+    return build_sinks(record_dir, None, None)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        import starlette  # noqa: F401
+        import uvicorn  # noqa: F401
+    except ImportError as e:
+        raise ImportError(f"teleop needs the [web] optional group ({e})") from e
+    from presim.outputs.teleop.server import TeleopServer
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession
+
+    if not 1 <= args.jpeg_quality <= 100:
+        raise ValueError(f"--jpeg-quality must be in 1..100, got {args.jpeg_quality}")
+    if not 0 <= args.port <= 65535:
+        raise ValueError(f"--port must be in 0..65535, got {args.port}")
+    if args.dt <= 0:
+        raise ValueError(f"--dt must be positive, got {args.dt}")
+    sim = build_simulator(args)
+    try:
+        import mcap  # noqa: F401
+        recorder = make_recorder
+    except ImportError:
+        recorder = None
+    session = TeleopSession(sim, TeleopConfig(out_dir=args.record, seed=args.seed,
+                                              jpeg_quality=args.jpeg_quality), recorder)
+    server = TeleopServer(session, args.host, args.port)
+    print(f"presim teleop: {sim.scene_name} with {sim.robot.urdf_path.name} ({sim.robot.drive})", flush=True)
+    print(f"presim teleop: open {server.url}  (Ctrl-C stops; recordings and snapshots go to {args.record})",
+          flush=True)
+    try:
+        server.serve()
+    except KeyboardInterrupt:  # Ctrl-C / SIGTERM is how a server ends: recordings were closed by serve()
+        pass
+    print("presim teleop: stopped", flush=True)
+    if session.error is not None:
+        print(f"presim teleop: error: the simulator stopped: {session.error}", file=sys.stderr)
+        return 1
+    return 0

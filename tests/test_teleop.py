@@ -1,0 +1,403 @@
+"""``presim teleop``: the page's protocol is validated (pure functions), the map and depth colours
+have known answers, the WebSocket server serves two tabs at once (one drives, both see), frees a
+closed tab, refuses bad input without crashing, records like ``drive --record``, binds 127.0.0.1; a
+real headless Chromium drives the robot with keys and sees the camera image change."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from presim.outputs.teleop.frames import colorize_depth, depth_range_m, hole_fraction, top_down_map
+from presim.outputs.teleop.protocol import (CmdVel, JointTarget, ProtocolError, ProtocolSpec, Record, Simple,
+                                            Teleport, parse_message)
+
+SPEC = ProtocolSpec((-1.0, -2.0), (4.0, 3.0), {"head_tilt_joint": (-0.6, 0.9), "wheel": (-np.inf, np.inf)})
+
+
+# ---- protocol (pure) -------------------------------------------------------------------------------
+def test_valid_messages_parse():
+    assert parse_message('{"type":"cmd_vel","vx":0.5,"vy":0,"wz":-1,"seq":7}', SPEC) == CmdVel(0.5, 0.0, -1.0, 0.0, 7)
+    assert parse_message(b'{"type":"joint","name":"head_tilt_joint","value":0.2}', SPEC) == JointTarget("head_tilt_joint", 0.2)
+    assert parse_message('{"type":"joint","name":"wheel","value":100}', SPEC) == JointTarget("wheel", 100.0)
+    assert parse_message('{"type":"teleport","x":4.0,"y":-2.0}', SPEC) == Teleport(4.0, -2.0, None)
+    assert parse_message('{"type":"teleport","x":0,"y":0,"yaw":1.5}', SPEC) == Teleport(0.0, 0.0, 1.5)
+    assert parse_message('{"type":"record","on":true}', SPEC) == Record(True)
+    for t in ("reset", "snapshot", "take_control"):
+        assert parse_message(json.dumps({"type": t}), SPEC) == Simple(t)
+
+
+@pytest.mark.parametrize("raw, reason", [
+    ('{"type":"cmd_vel","vx":NaN,"vy":0,"wz":0}', "finite"),           # Python's json reads NaN literals
+    ('{"type":"cmd_vel","vx":Infinity,"vy":0,"wz":0}', "finite"),
+    ('{"type":"cmd_vel","vx":null,"vy":0,"wz":0}', "missing"),         # JSON.stringify(NaN) is null
+    ('{"type":"cmd_vel","vx":"1","vy":0,"wz":0}', "number"),
+    ('{"type":"cmd_vel","vx":true,"vy":0,"wz":0}', "number"),
+    ('{"type":"cmd_vel","vx":0,"vy":0}', "missing"),
+    ('{"type":"cmd_vel","vx":1e9,"vy":0,"wz":0}', "above"),
+    ('{"type":"cmd_vel","vx":0,"vy":0,"wz":0,"seq":-1}', "integer"),
+    ("not json {", "not JSON"),
+    ("[1, 2]", "object"),
+    ('{"vx": 1}', "unknown message type"),
+    ('{"type":"fly"}', "unknown message type"),
+    ('{"type":"teleport","x":4.01,"y":0}', "outside the map"),
+    ('{"type":"teleport","x":0,"y":-2.5}', "outside the map"),
+    ('{"type":"teleport","x":0}', "missing"),
+    ('{"type":"joint","name":"head_tilt_joint","value":1.0}', "outside its limits"),
+    ('{"type":"joint","name":"nope","value":0}', "unknown joint"),
+    ('{"type":"record","on":"yes"}', "true or false"),
+    ('{"type":"ack"}', "missing"),
+    ('{"type":"reset","pad":"' + "x" * 5000 + '"}', "too long"),
+    (b"\xff\xfe", "UTF-8"),
+    ("[" * 100000, "too long"),
+])
+def test_bad_messages_are_refused_with_a_reason(raw, reason):
+    with pytest.raises(ProtocolError, match=reason):
+        parse_message(raw, SPEC)
+
+
+def test_deeply_nested_json_is_refused_not_crashing():
+    with pytest.raises(ProtocolError):
+        parse_message("[" * 2000 + "]" * 2000, SPEC)
+
+
+# ---- frames (known answers) ------------------------------------------------------------------------
+def test_depth_colours_and_range():
+    d = np.array([[0.0, 0.5, 4.0, 9.0]], np.float32)
+    rgb = colorize_depth(d, 4.0)
+    assert rgb.shape == (1, 4, 3) and rgb.dtype == np.uint8
+    assert (rgb[0, 0] == 0).all()                      # invalid -> black
+    assert (rgb[0, 2] == rgb[0, 3]).all()              # beyond the range clips to the far colour
+    assert rgb[0, 1, 2] > rgb[0, 1, 0]                 # near is blue-ish on turbo
+    assert rgb[0, 2, 0] > rgb[0, 2, 2]                 # far is red-ish
+    assert depth_range_m(np.array([0.0, 1.2, 2.3], np.float32), percentile=100) == 2.5
+    assert depth_range_m(np.zeros(3, np.float32)) == 5.0
+    assert hole_fraction(np.array([True, True, False, True]), np.array([1.0, 0.0, 1.0, 1.0])) == 0.5
+
+
+def test_top_down_map_places_points_and_obstacles():
+    # 4 x 3 cells of 0.5 m from (0, 0); a red point in cell (row i=1, col j=2), an obstacle at (0, 3).
+    occupied = np.zeros((3, 4), bool)
+    occupied[0, 3] = True
+    known = np.ones((3, 4), bool)
+    known[2, 0] = False
+    m = top_down_map(np.array([[1.2, 0.7, 0.3], [1.2, 0.7, 5.0]]), np.array([[255, 0, 0], [0, 0, 255]]),
+                     occupied=occupied, known=known, origin_xy=(0.0, 0.0), resolution_m=0.5, z_max_m=2.0)
+    assert m.rgb.shape == (3, 4, 3) and m.max_xy == (2.0, 1.5)
+    # rows are flipped so +y is up: grid row i is image row H-1-i
+    assert tuple(m.rgb[3 - 1 - 1, 2]) == (255, 0, 0)   # the point above z_max (blue) is left out
+    assert m.rgb[3 - 1 - 0, 3, 0] > 100 and m.rgb[3 - 1 - 0, 3, 1] < 60   # obstacle tinted red
+    assert tuple(m.rgb[0, 0]) == (70, 70, 70)          # unknown, no points: grey
+
+
+# ---- the server over WebSockets (no browser) -------------------------------------------------------
+@pytest.fixture
+def toy_server(tmp_path):
+    from presim.cli.teleop_cmd import make_recorder
+    from presim.outputs.teleop.server import TeleopServer
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+
+    sim = Simulator(build_toy_room(ToyRoomConfig(width=80, height=60)), None,
+                    SimConfig(cameras=(CameraSpec(width=160, height=120),)))
+    session = TeleopSession(sim, TeleopConfig(out_dir=tmp_path / "teleop"), make_recorder)
+    server = TeleopServer(session)
+    server.start()
+    yield server
+    server.stop()
+
+
+class _Tab:
+    """A minimal page: acks every frame, keeps the newest state and every info / error message."""
+
+    def __init__(self, ws):
+        self.ws, self.state, self.messages, self.images, self.init = ws, None, [], 0, None
+
+    async def pump(self, seconds: float, until=None):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not (until and until(self)):
+            try:
+                m = await asyncio.wait_for(self.ws.recv(), timeout=max(0.01, end - time.monotonic()))
+            except asyncio.TimeoutError:
+                break
+            if isinstance(m, bytes):
+                if m[0] == 2:
+                    self.images += 1
+                    await self.ws.send(json.dumps({"type": "ack", "seq": self.state["seq"]}))
+                continue
+            d = json.loads(m)
+            if d["type"] == "state":
+                self.state = d
+                if not d["has_images"]:
+                    await self.ws.send(json.dumps({"type": "ack", "seq": d["seq"]}))
+            elif d["type"] == "init":
+                self.init = d
+            elif d["type"] in ("info", "error"):
+                self.messages.append((d["type"], d["message"]))
+
+    async def send(self, **msg):
+        await self.ws.send(json.dumps(msg))
+
+
+def _ws_url(server) -> str:
+    return server.url.replace("http://", "ws://") + "ws"
+
+
+def test_two_tabs_one_drives_both_see_closed_tab_freed(toy_server):
+    import websockets
+
+    server, sim = toy_server, toy_server.session.sim
+
+    async def main():
+        async with websockets.connect(_ws_url(server)) as a, websockets.connect(_ws_url(server)) as b:
+            ta, tb = _Tab(a), _Tab(b)
+            await asyncio.gather(ta.pump(1.0), tb.pump(1.0))
+            assert ta.init["client_id"] != tb.init["client_id"] and ta.images > 0 and tb.images > 0
+            assert server.session.clients == {ta.init["client_id"], tb.init["client_id"]}
+            p0 = sim.T_world_base[:3, 3].copy()
+            assert ta.state["at_rest"] and tb.state["at_rest"]             # nothing to do: no steps, no renders
+            step = server.session.latest.state["step"]
+            await asyncio.gather(ta.pump(0.5), tb.pump(0.5))
+            assert server.session.latest.state["step"] == step
+            for k in range(8):   # tab A drives (first to send)
+                await ta.send(type="cmd_vel", vx=0.5, vy=0, wz=0.4, seq=k)
+                await asyncio.gather(ta.pump(0.1), tb.pump(0.1))
+            assert np.linalg.norm(sim.T_world_base[:2, 3] - p0[:2]) > 0.05
+            assert tb.state["driver"] == ta.init["client_id"]          # B sees A's drive
+            assert abs(tb.state["pose"]["x"] - ta.state["pose"]["x"]) < 0.3
+            await tb.send(type="cmd_vel", vx=0.5, vy=0, wz=0)             # B may not drive ...
+            await tb.pump(0.5, until=lambda t: t.messages)
+            assert tb.messages and "drives" in tb.messages[-1][1]
+            await tb.send(type="take_control")                           # ... until it takes control
+            await tb.pump(0.5)
+            assert server.session.driver == tb.init["client_id"]
+            await b.close()
+            await ta.pump(0.5)
+            assert server.session.clients == {ta.init["client_id"]} and len(server.clients) == 1
+            assert server.session.driver is None                          # the closed tab released control
+        for _ in range(50):
+            if not server.clients:
+                break
+            await asyncio.sleep(0.05)
+        assert not server.clients and not server.session.clients
+
+    asyncio.run(main())
+    step = server.session.latest.state["step"]
+    time.sleep(0.5)
+    assert server.session.latest.state["step"] == step               # no tab: the simulator pauses
+
+
+def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tmp_path):
+    import urllib.request
+
+    import websockets
+
+    server, sim = toy_server, toy_server.session.sim
+
+    async def main():
+        async with websockets.connect(_ws_url(server)) as ws:
+            t = _Tab(ws)
+            await t.pump(0.5)
+            for raw in ('{"type":"cmd_vel","vx":NaN,"vy":0,"wz":0}', "garbage", b"\x00\xff",
+                        '{"type":"teleport","x":1000,"y":0}', '{"type":"cmd_vel","vx":null,"vy":0,"wz":0}'):
+                await ws.send(raw)
+            await t.pump(1.5, until=lambda t: len(t.messages) >= 5)
+            errors = [m for k, m in t.messages if k == "error"]
+            assert len(errors) == 5 and all(m.startswith("refused:") for m in errors)
+            assert "outside the map" in errors[3]
+            # teleport into the pillar of the toy room: valid JSON, inside the map, refused by the session
+            await t.send(type="teleport", x=3.6, y=2.0)
+            await t.pump(1.0, until=lambda t: len(t.messages) >= 6)
+            assert "obstacle" in t.messages[-1][1]
+            await t.send(type="teleport", x=1.0, y=1.0, yaw=0.0)
+            await t.pump(1.0, until=lambda t: len(t.messages) >= 7)
+            assert np.allclose(sim.T_world_base[:2, 3], [1.0, 1.0], atol=1e-6)
+            await t.send(type="joint", name="head_tilt_joint", value=0.5)   # wakes a robot at rest
+            await t.pump(1.0, until=lambda t: abs(t.state["joints"]["head_tilt_joint"] - 0.5) < 1e-6)
+            assert abs(t.state["joints"]["head_tilt_joint"] - 0.5) < 1e-6
+            await t.send(type="record", on=True)
+            for k in range(10):
+                await t.send(type="cmd_vel", vx=0.3, vy=0, wz=0.0, seq=k)
+                await t.pump(0.1)
+            await t.send(type="teleport", x=1.5, y=1.5)                  # refused while recording
+            await t.send(type="snapshot")
+            await t.send(type="record", on=False)
+            await t.pump(3.0, until=lambda t: any("recording saved" in m for _, m in t.messages))
+            async with websockets.connect(_ws_url(server), max_size=None) as big:   # 100 kB: this tab is closed
+                await big.send("x" * 100_000)
+                with pytest.raises(websockets.ConnectionClosed):
+                    for _ in range(100):
+                        await asyncio.wait_for(big.recv(), 5)
+            await t.pump(0.5)                                                   # the first tab carries on
+            assert t.ws.state.name == "OPEN"
+            return t
+
+    t = asyncio.run(main())
+    text = "\n".join(m for _, m in t.messages)
+    assert "stop the recording before teleporting" in text and "snapshot saved" in text
+    rec = tmp_path / "teleop" / "rec_000"
+    assert (rec / "recording.mcap").stat().st_size > 0 and (rec / "capture").is_dir()
+    assert list((tmp_path / "teleop" / "snapshots").glob("snap_000_depth.png"))
+    assert abs(sim.joint_positions[sim.robot.joint_index("head_tilt_joint")] - 0.5) < 1e-6
+    with urllib.request.urlopen(server.url + "health", timeout=5) as f:   # still serving
+        assert json.loads(f.read())["error"] is None
+
+
+def test_free_rig_session_map_from_points_and_teleport_keeps_height(tmp_path):
+    """A scene without a floor drives the free camera rig: the map comes from the points, teleport
+    moves x, y and keeps height and orientation."""
+    import dataclasses
+
+    from presim.outputs.teleop.protocol import Teleport
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession, _Command
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+
+    scene = dataclasses.replace(build_toy_room(ToyRoomConfig(width=40, height=30)), floor=None)
+    sim = Simulator(scene, None, SimConfig(cameras=(CameraSpec(width=40, height=30),)))
+    assert sim.is_free
+    session = TeleopSession(sim, TeleopConfig(out_dir=tmp_path))
+    lo, hi = session.spec.map_min_xy, session.spec.map_max_xy
+    assert lo[0] < 0.0 and hi[0] > 5.0 and lo[1] < 0.0 and hi[1] > 4.0   # the 5 x 4 m room + padding
+    session.sim.reset(0)
+    T0 = sim.T_world_base
+    session._apply(_Command(1, Teleport(2.0, 1.5)))
+    T1 = sim.T_world_base
+    np.testing.assert_allclose(T1[:3, 3], [2.0, 1.5, T0[2, 3]], atol=1e-9)
+    np.testing.assert_allclose(T1[:3, :3], T0[:3, :3], atol=1e-9)
+    session.sim.close()
+
+
+@pytest.mark.slow
+def test_cli_teleop_serves_page_on_loopback_and_stops_on_sigterm(tmp_path):
+    import signal
+    import urllib.request
+
+    import psutil
+
+    from presim.capture.store import save_scene
+    from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+
+    save_scene(build_toy_room(ToyRoomConfig(width=80, height=60)), tmp_path / "toy")
+    p = subprocess.Popen([sys.executable, "-m", "presim", "teleop", str(tmp_path / "toy"), "--width", "160",
+                          "--height", "120", "--record", str(tmp_path / "rec")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = None
+        deadline = time.monotonic() + 60
+        while url is None and time.monotonic() < deadline:
+            line = p.stdout.readline()
+            if not line:
+                break
+            if "open http://" in line:
+                url = line.split("open ")[1].split()[0]
+        assert url and url.startswith("http://127.0.0.1:"), p.stderr.read() if p.poll() is not None else url
+        port = int(url.rstrip("/").rsplit(":", 1)[1])
+        listen = {c.laddr.ip for c in psutil.Process(p.pid).net_connections(kind="inet")
+                  if c.status == psutil.CONN_LISTEN}
+        assert listen == {"127.0.0.1"}
+        with urllib.request.urlopen(url, timeout=10) as f:
+            page = f.read().decode()
+        assert "/static/app.js" in page and "http" not in page.replace("http-equiv", "")  # no CDN
+        with urllib.request.urlopen(url + "static/app.js", timeout=10) as f:
+            assert b"WebSocket" in f.read()
+        assert port > 0
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(30) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
+def test_cli_teleop_bad_port_is_one_line(tmp_path, capsys):
+    from presim.cli import main
+
+    assert main(["teleop", str(tmp_path / "missing")]) == 1
+    assert "scene folder not found" in capsys.readouterr().err
+
+
+# ---- a real browser ---------------------------------------------------------------------------------
+def _canvas_crop(browser, img: np.ndarray, element_id: str) -> np.ndarray:
+    r = browser.execute(f"const r = document.getElementById('{element_id}').getBoundingClientRect();"
+                        "return [r.left, r.top, r.width, r.height, window.devicePixelRatio];")
+    x, y, w, h, dpr = (float(v) for v in r)
+    return img[int(y * dpr):int((y + h) * dpr), int(x * dpr):int((x + w) * dpr)]
+
+
+def _wait(browser, script: str, timeout_s: float = 20.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        v = browser.execute(script)
+        if v:
+            return v
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for: {script}")
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_browser_keys_drive_robot_and_page_image_changes(toy_server, tmp_path):
+    import psutil
+
+    from presim.testing.browser import Browser, find_browser, save_png
+
+    try:
+        find_browser()
+    except FileNotFoundError as e:
+        if os.environ.get("CI") == "true":
+            raise
+        pytest.skip(str(e))
+    server, sim = toy_server, toy_server.session.sim
+    listen = {c.laddr.ip for c in psutil.Process().net_connections(kind="inet")
+              if c.status == psutil.CONN_LISTEN and c.laddr.port == server.port}
+    assert listen == {"127.0.0.1"}
+    with Browser(1280, 900) as b:
+        b.open(server.url)
+        _wait(b, "return window.teleop && window.teleop.framesDrawn >= 1")
+        before = _canvas_crop(b, b.screenshot(), "color")
+        assert before.std() > 5, "colour canvas is blank"
+        p0 = sim.T_world_base.copy()
+        b.keys("w", 1.2)
+        b.keys("\ue012", 0.8)   # arrow left: turn
+        p1 = sim.T_world_base
+        moved = np.linalg.norm(p1[:2, 3] - p0[:2, 3])
+        turned = abs(np.arctan2(p1[1, 0], p1[0, 0]) - np.arctan2(p0[1, 0], p0[0, 0]))
+        assert moved > 0.1 or turned > 0.2, f"robot did not move: {moved:.3f} m, {turned:.3f} rad"
+        # the robot stops (keys up), the page shows its last image, the simulator pauses at rest
+        _wait(b, "return window.teleop.lastState.at_rest && window.teleop.framesDrawn >= 2", 30)
+        img = b.screenshot()
+        save_png(tmp_path / "teleop_page.png", img)
+        after = _canvas_crop(b, img, "color")
+        diff = np.abs(after.astype(np.int16) - before.astype(np.int16)).mean()
+        assert diff > 3, f"camera image on the page did not change (mean abs diff {diff:.2f})"
+        lat = b.execute("return window.teleop.latencies")
+        assert lat and min(lat) < 2000, lat
+        # The page shows a refusal for bad input; the server keeps running.
+        b.execute("""window.teleop.sendRaw('{"type":"cmd_vel","vx":NaN,"vy":0,"wz":0}')""")
+        _wait(b, "const m = document.getElementById('msg');"
+                 "return m.classList.contains('error') && m.textContent.includes('refused')")
+        # A second tab sees the first one drive; closing it frees its client.
+        first = b.handles()[0]
+        b.new_tab()
+        b.open(server.url)
+        _wait(b, "return window.teleop && window.teleop.framesDrawn >= 1 && window.teleop.lastState")
+        assert len(server.clients) == 2
+        state = b.execute("return window.teleop.lastState")
+        assert state["driver"] is not None and state["driver"] != b.execute("return window.teleop.clientId")
+        b.close_tab()
+        b.switch_to(first)
+        deadline = time.monotonic() + 10
+        while len(server.clients) != 1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert len(server.clients) == 1 and len(server.session.clients) == 1
