@@ -105,7 +105,7 @@ def toy_server(tmp_path):
     from presim.outputs.teleop.session import TeleopConfig, TeleopSession
     from presim.sensors.camera import CameraSpec
     from presim.sim.simulator import SimConfig, Simulator
-    from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+    from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
     sim = Simulator(build_toy_room(ToyRoomConfig(width=80, height=60)), None,
                     SimConfig(cameras=(CameraSpec(width=160, height=120),)))
@@ -261,7 +261,7 @@ def test_free_rig_session_map_from_points_and_teleport_keeps_height(tmp_path):
     from presim.outputs.teleop.session import TeleopConfig, TeleopSession, _Command
     from presim.sensors.camera import CameraSpec
     from presim.sim.simulator import SimConfig, Simulator
-    from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+    from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
     scene = dataclasses.replace(build_toy_room(ToyRoomConfig(width=40, height=30)), floor=None)
     sim = Simulator(scene, None, SimConfig(cameras=(CameraSpec(width=40, height=30),)))
@@ -286,7 +286,7 @@ def test_cli_teleop_serves_page_on_loopback_and_stops_on_sigterm(tmp_path):
     import psutil
 
     from presim.capture.store import save_scene
-    from presim.sim.toy_scene import ToyRoomConfig, build_toy_room
+    from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
     save_scene(build_toy_room(ToyRoomConfig(width=80, height=60)), tmp_path / "toy")
     p = subprocess.Popen([sys.executable, "-m", "presim", "teleop", str(tmp_path / "toy"), "--width", "160",
