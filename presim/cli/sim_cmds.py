@@ -141,7 +141,13 @@ def run(args: argparse.Namespace) -> int:
             print("keyboard: stdin is not a terminal; reading keys from it anyway", file=sys.stderr)
         print(f"keyboard: {KeyboardTeleop.help}", file=sys.stderr)
     config = DriveConfig(steps=args.steps, seed=args.seed, realtime=args.realtime or keyboard, until_done=keyboard)
-    st = run_drive(scene, robot, sim_config, controller, config, make_sinks=lambda: _build_sinks(args))
+    sinks: list = []
+
+    def make_sinks() -> list:
+        sinks.extend(_build_sinks(args))
+        return sinks
+
+    st = run_drive(scene, robot, sim_config, controller, config, make_sinks=make_sinks)
     p = st.T_world_base[:3, 3]
     print(f"drive: {st.scene_name}  robot {robot.urdf_path.name} ({robot.drive})  seed {args.seed}")
     print(f"  steps {st.steps}  sim time {st.sim_time_s:.1f} s  distance {st.distance_m:.2f} m  contacts {st.contacts}  "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from presim.outputs import ros_msgs as rm
@@ -11,7 +13,10 @@ from presim.outputs.ros.env import import_rospy
 from presim.outputs.ros.messages import header, pose_msg, stamp, tf_msg
 from presim.sim.types import SimInfo, StepResult
 
-__all__ = ["RosPublisherSink"]
+__all__ = ["RosPublisherSink", "STATIC_TF_PERIOD_S"]
+
+STATIC_TF_PERIOD_S = 1.0
+"""Wall-time period at which the latched /tf_static message is re-sent."""
 
 
 class RosPublisherSink:
@@ -30,7 +35,7 @@ class RosPublisherSink:
         self.last_stamp_s = 0.0
         self._pubs: dict = {}
         self._path_poses: list = []
-        self._static_sent = False
+        self._static_sent_wall_s: float | None = None  # time.monotonic() of the last /tf_static
         self.published_steps = 0
 
     def open(self, info: SimInfo) -> None:
@@ -93,8 +98,12 @@ class RosPublisherSink:
         pub = self._pubs
         pub["/clock"].publish(Clock(clock=stamp(rospy, t)))
         dynamic, static = self._tree.edges(r)
-        if not self._static_sent and static:
-            self._static_sent = True
+        # /tf_static is latched; it is also re-sent every STATIC_TF_PERIOD_S of wall time, because a
+        # subscriber that connects while the publisher is busy can miss the latched copy (seen on a
+        # loaded machine: a late listener got /tf but no static edges). tf2 accepts repeats.
+        now = time.monotonic()
+        if static and (self._static_sent_wall_s is None or now - self._static_sent_wall_s >= STATIC_TF_PERIOD_S):
+            self._static_sent_wall_s = now
             pub["/tf_static"].publish(tf_msg(rospy, static, t))
         pub["/tf"].publish(tf_msg(rospy, dynamic, t))
         tw = np.asarray(r.odometry.twist_base, dtype=np.float64).reshape(6)
