@@ -9,7 +9,9 @@ Files::
                       mocap world = T_world_cam (OpenCV camera), metres
     intrinsics        camera-intrinsics.txt / intrinsics.K.txt (3x3) or calibration.txt
                       ('fx fy cx cy [k1 k2 p1 p2 k3]'); otherwise the published Freiburg 1/2/3 values are
-                      used when the folder name says which sensor (fr1/fr2 with their distortion)
+                      used when the folder name says which sensor (fr1/fr2 with their distortion);
+                      distorted images are undistorted and cropped to the valid rectangle at the
+                      same size (adjusted intrinsics, no black borders: valid_rectangle_intrinsics)
 
 Association (as TUM's ``associate.py``): every rgb/depth pair within ``max_dt_s`` (0.02 s), taken
 greedily by smallest stamp difference, one-to-one. Ground truth is interpolated at the rgb stamp
@@ -23,6 +25,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from presim.capture.importers.common import (
@@ -119,6 +122,18 @@ def interpolate_pose(gt_stamps: np.ndarray, gt_vals: np.ndarray, t: float, max_g
     return make_pose(quat_xyzw_to_R(q), p)
 
 
+def valid_rectangle_intrinsics(K: Intrinsics, dist: tuple[float, ...]) -> Intrinsics:
+    """Intrinsics of the undistorted image, same size, that holds only pixels with data.
+
+    Undistorting a Freiburg 1 frame into its own K leaves 5.3 % of the image as black corners with
+    no color and no depth, which every render and the evaluation would score. We crop instead: the
+    output camera zooms in (fx 517 -> 547 for fr1) so that every output pixel maps inside the raw
+    image (OpenCV's optimal new camera matrix with alpha = 0), at the same resolution.
+    """
+    K_new, _ = cv2.getOptimalNewCameraMatrix(K.K, np.asarray(dist, np.float64), K.size_wh, 0.0, K.size_wh)
+    return Intrinsics.from_K(K_new, K.width, K.height)
+
+
 def read_intrinsics(src: Path, w: int, h: int) -> tuple[Intrinsics, Undistortion | None, str]:
     for name in ("camera-intrinsics.txt", "intrinsics.K.txt"):
         if (src / name).is_file():
@@ -133,13 +148,19 @@ def read_intrinsics(src: Path, w: int, h: int) -> tuple[Intrinsics, Undistortion
             raise SceneError(f"{calib}: expected 4, 8 or 9 numbers (fx fy cx cy [k1 k2 p1 p2 k3]), got {len(vals)}")
         K = Intrinsics(*vals[:4], w, h)
         dist = tuple(vals[4:])
-        return K, (Undistortion(K, dist, K) if dist and any(dist) else None), "calibration.txt"
+        if dist and any(dist):
+            K_out = valid_rectangle_intrinsics(K, dist)
+            return K_out, Undistortion(K, dist, K_out), "calibration.txt (undistorted to the valid rectangle)"
+        return K, None, "calibration.txt"
     m = re.search(r"freiburg([123])", str(src.resolve()))
     if m:
         key = f"freiburg{m.group(1)}"
         (fx, fy, cx, cy), dist = FREIBURG[key]
         K = Intrinsics(fx, fy, cx, cy, w, h)
-        return K, (Undistortion(K, dist, K) if dist else None), f"published {key} calibration"
+        if dist:
+            K_out = valid_rectangle_intrinsics(K, dist)
+            return K_out, Undistortion(K, dist, K_out), f"published {key} calibration (undistorted to the valid rectangle)"
+        return K, None, f"published {key} calibration"
     raise SceneError(f"{src}: no intrinsics (add camera-intrinsics.txt with the 3x3 K, or calibration.txt "
                      "'fx fy cx cy [k1 k2 p1 p2 k3]'; Freiburg folders are recognised by name)")
 
