@@ -32,6 +32,9 @@ def register(sub) -> None:
     p.add_argument("--raw-depth", action="store_true", help="ignore the scene's refined depth")
     p.add_argument("--backend", default="numba", choices=("numba", "torch", "reference"),
                    help="kernel backend (default numba)")
+    p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
+                   help="camera poses of the scene: refined by `presim align` when present (auto, default), "
+                        "the capture's given ones, or refined (error when absent)")
     p.set_defaults(func=_main)
 
 
@@ -125,7 +128,7 @@ def _main(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.scene}: scene folder not found")
     if not is_scene_dir(args.scene):
         raise FileNotFoundError(f"{args.scene}: not a saved scene (no scene.json); import it with `presim import`")
-    scene = load_scene(args.scene)
+    scene = load_scene(args.scene, poses=args.scene_poses)
     if args.pose is not None:
         vals = args.pose.replace(",", " ").split()
         if len(vals) != 7:

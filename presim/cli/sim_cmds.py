@@ -58,16 +58,19 @@ def register(sub) -> None:
                         "only); with --rrd, `presim view FILE.rrd [--web]` shows it again afterwards")
     p.add_argument("--rrd", type=Path, default=None, help="also save the viewer stream to this .rrd file")
     p.add_argument("--realtime", action="store_true", help="pace steps to wall time (always on for keyboard)")
+    p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
+                   help="camera poses of the scene: refined by `presim align` when present (auto, default), "
+                        "the capture's given ones, or refined (error when absent)")
     p.set_defaults(func=run)
 
 
-def _load_scene(path: Path):
+def _load_scene(path: Path, poses: str = "auto"):
     from presim.capture.store import is_scene_dir, load_scene
 
     if not path.exists():
         raise FileNotFoundError(f"{path}: scene folder not found")
     if is_scene_dir(path):
-        return load_scene(path)
+        return load_scene(path, poses=poses)
     from presim.capture.importers.registry import import_capture
 
     print(f"{path}: not a saved scene; importing it on the fly (save it with `presim import` to skip this)",
@@ -143,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     if args.steps <= 0:
         raise ValueError(f"--steps must be positive, got {args.steps}")
     _parse_controller(args)
-    scene = _load_scene(args.scene)
+    scene = _load_scene(args.scene, getattr(args, "scene_poses", "auto"))
     robot = _build_robot(args, scene)
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz,
                      noise=DepthNoiseConfig() if args.depth_noise else None)

@@ -6,8 +6,9 @@ Stages, each one pure function with its config dataclass beside it:
   within the field of view), as §5.3.3.
 - :mod:`.features`  -- ``extract_features`` (OpenCV SIFT) and ``match_pair`` (ratio test, then PnP
   RANSAC on the key image's depth: works for pure rotations where a fundamental matrix degenerates).
-- :mod:`.bundle`    -- ``bundle_adjust``: poses + 3D points, reprojection and depth residuals, Huber loss
-  (scipy ``least_squares`` with a sparse Jacobian).
+- :mod:`.bundle`    -- ``adjust_poses``: poses with points anchored in the key frame's depth (thesis eq.
+  5.1), reprojection and depth residuals, Huber loss (scipy ``least_squares``, sparse Jacobian);
+  ``bundle_adjust``: the same with free 3D points (slower; not used by the pipeline).
 - :mod:`.pipeline`  -- ``align_poses``: local BA per group, global BA of the key poses, an optional joint
   pass over all frames, and the rigid fit that keeps the scene's world frame.
 

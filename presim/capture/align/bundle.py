@@ -194,3 +194,115 @@ def _compose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T[:, :3, :3] = R
     T[:, :3, 3] = t
     return T
+
+
+@dataclass(frozen=True)
+class PairObservations:
+    """Feature matches between frames with the first frame's depth (the thesis' form of eq. 5.1:
+    the 3D point is the key feature lifted with its measured depth, moving with the key's pose)."""
+
+    a_idx: np.ndarray
+    """(O,) camera whose depth lifts the feature."""
+    b_idx: np.ndarray
+    """(O,) camera that observes it."""
+    X_a: np.ndarray
+    """(O, 3) the feature in camera a's frame (pixel lifted with a's depth)."""
+    uv_b: np.ndarray
+    """(O, 2) the matched pixel in b."""
+    z_b: np.ndarray
+    """(O,) b's depth at the matched pixel, 0 = none."""
+
+
+@dataclass(frozen=True)
+class PoseAdjustResult:
+    T_world_cam: np.ndarray
+    inlier: np.ndarray
+    transfer_px_before: np.ndarray
+    transfer_px_after: np.ndarray
+    nfev: int
+
+
+def transfer(T_world_cam: np.ndarray, K: np.ndarray, obs: PairObservations) -> tuple[np.ndarray, np.ndarray]:
+    """(predicted pixel in b (O, 2), predicted z in b (O,)) of each observation under the poses."""
+    Ra, ta = T_world_cam[obs.a_idx, :3, :3], T_world_cam[obs.a_idx, :3, 3]
+    Rb, tb = T_world_cam[obs.b_idx, :3, :3], T_world_cam[obs.b_idx, :3, 3]
+    Xw = np.einsum("oij,oj->oi", Ra, obs.X_a) + ta
+    Rb_t = np.swapaxes(Rb, 1, 2)
+    return _project(Rb_t, -np.einsum("oij,oj->oi", Rb_t, tb), K[obs.b_idx], Xw)
+
+
+def adjust_poses(T_world_cam: np.ndarray, fixed: np.ndarray, K: np.ndarray, obs: PairObservations,
+                 config: BAConfig = BAConfig()) -> PoseAdjustResult:
+    """Pose-only RGB-D adjustment: moves the free cameras so that every feature of a, lifted with a's
+    depth, lands on its match in b (reprojection residual) at b's depth (depth residual, sigma from
+    both depths). Huber IRLS and outlier passes as :func:`bundle_adjust`. 6 parameters per free
+    camera: fast enough for hundreds of frames (no point parameters)."""
+    T0 = np.asarray(T_world_cam, dtype=np.float64)
+    C, O = len(T0), len(obs.a_idx)
+    if not np.any(fixed):
+        raise ValueError("adjust_poses needs at least one fixed camera (the gauge)")
+    if O == 0:
+        raise ValueError("adjust_poses: no observations")
+    free = np.flatnonzero(~np.asarray(fixed))
+    slot = -np.ones(C, dtype=int)
+    slot[free] = np.arange(len(free))
+    z_a = obs.X_a[:, 2]
+
+    def poses(x: np.ndarray) -> np.ndarray:
+        T = T0.copy()
+        if len(free):
+            d = x.reshape(-1, 6)
+            T[free, :3, :3] = Rotation.from_rotvec(d[:, :3]).as_matrix() @ T0[free, :3, :3]
+            T[free, :3, 3] = T0[free, :3, 3] + d[:, 3:]
+        return T
+
+    def build(active: np.ndarray):
+        sub = PairObservations(obs.a_idx[active], obs.b_idx[active], obs.X_a[active], obs.uv_b[active],
+                               obs.z_b[active])
+        has_d = (sub.z_b > 0) if config.use_depth else np.zeros(len(sub.z_b), bool)
+        sig = config.depth_sigma_coeff * np.sqrt(z_a[active][has_d] ** 4 + sub.z_b[has_d] ** 4)
+
+        def fun(x: np.ndarray) -> np.ndarray:
+            pred, z = transfer(poses(x), K, sub)
+            return np.concatenate([((pred - sub.uv_b) / config.sigma_px).ravel(), (z[has_d] - sub.z_b[has_d]) / sig])
+
+        m = len(sub.a_idx)
+        rows = np.concatenate([2 * np.arange(m), 2 * np.arange(m) + 1, 2 * m + np.arange(int(has_d.sum()))])
+        obs_of_row = np.concatenate([np.arange(m), np.arange(m), np.flatnonzero(has_d)])
+        rr, cc = [], []
+        for cams in (sub.a_idx, sub.b_idx):
+            s = slot[cams[obs_of_row]]
+            ok = s >= 0
+            for k in range(6):
+                rr.append(rows[ok])
+                cc.append(6 * s[ok] + k)
+        rr_a, cc_a = np.concatenate(rr), np.concatenate(cc)
+        sparsity = coo_matrix((np.ones(len(rr_a)), (rr_a, cc_a)), shape=(len(rows), 6 * len(free))).tocsr()
+        return fun, sparsity
+
+    x = np.zeros(6 * len(free))
+    active = np.ones(O, dtype=bool)
+    nfev = 0
+    pred0, _ = transfer(T0, K, obs)
+    err0 = np.linalg.norm(pred0 - obs.uv_b, axis=1)
+    if len(free):
+        for k in range(max(1, config.passes)):
+            fun, sparsity = build(active)
+            for _ in range(max(1, config.irls_rounds)):
+                a = np.abs(fun(x))
+                w = np.sqrt(np.where(a <= config.huber, 1.0, config.huber / np.maximum(a, 1e-12)))
+                sol = least_squares(lambda xx, w=w: w * fun(xx), x, jac_sparsity=sparsity, method="trf",
+                                    x_scale=1.0, max_nfev=config.max_nfev, tr_solver="lsmr", verbose=0)
+                x, nfev = sol.x, nfev + sol.nfev
+            if k + 1 < config.passes:
+                pred, z = transfer(poses(x), K, obs)
+                bad = np.linalg.norm(pred - obs.uv_b, axis=1) > config.outlier_px
+                if config.use_depth:
+                    sig = config.depth_sigma_coeff * np.sqrt(z_a ** 4 + obs.z_b ** 4)
+                    bad |= (obs.z_b > 0) & (np.abs(z - obs.z_b) > config.outlier_depth_sigma * sig)
+                if not (~bad).any() or np.array_equal(~bad, active):
+                    break
+                active = ~bad
+    T = poses(x)
+    pred1, _ = transfer(T, K, obs)
+    return PoseAdjustResult(T, active, err0, np.linalg.norm(pred1 - obs.uv_b, axis=1), nfev)

@@ -3,11 +3,12 @@
 1. SIFT features of every frame, with the (raw) depth at each keypoint.
 2. Groups of <= 10 poses around seeded random key poses (:func:`group_poses`).
 3. Local: the key image's features matched to each group member (ratio test + PnP RANSAC); 3D points
-   from the key's depth; bundle adjustment of the members and points, key fixed.
-4. Global: key images matched to their nearest keys using only features the local stage kept; bundle
+   from the key's depth (thesis eq. 5.1: fixed reference points lifted with the key's pose); adjustment
+   of the members' poses (:func:`adjust_poses`: reprojection + depth residuals, Huber), key fixed.
+4. Global: key images matched to their nearest keys using only features the local stage kept;
    adjustment of the key poses (first key fixed); members follow their key rigidly.
-5. Joint (beyond the thesis, ``joint=True``): one bundle adjustment of all frames with all local and
-   global observations, started from step 4.
+5. Joint (beyond the thesis, ``joint=True``): each frame also matched to its nearest frames, then one
+   adjustment of all frames with all observations, started from step 4.
 6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
    mean of centre offsets), so floor, objects and point cloud keep their world frame.
 Deterministic for a seed (OpenCV RANSAC is seeded per pair; scipy's solver is deterministic).
@@ -21,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from presim.capture.align.bundle import BAConfig, BAProblem, bundle_adjust, residuals_px
+from presim.capture.align.bundle import BAConfig, PairObservations, adjust_poses, residuals_px
 from presim.capture.align.features import FeatureConfig, Features, PairMatch, extract_features, match_pair, unproject_uv
 from presim.capture.align.grouping import GroupConfig, PoseGroup, group_poses, view_angles_rad
 from presim.capture.scene import Scene
@@ -48,6 +49,8 @@ class AlignConfig:
     """For the joint pass, each frame is also matched to this many nearest frames (camera-centre
     distance, viewing directions within the FOV): links neighbouring groups, whose members the
     thesis' stages never match to each other."""
+    max_matches_per_pair: int = 200
+    """Verified matches per image pair used by the adjustments (seeded random subset): bounds the time."""
     min_features: int = 20
     """A frame with fewer SIFT keypoints with depth is an error (named)."""
     keep_unmatched: bool = False
@@ -93,29 +96,32 @@ def _K4(scene: Scene, i: int) -> np.ndarray:
     return np.array([K.fx, K.fy, K.cx, K.cy])
 
 
-def _problem(pairs: list[Pair], feats: list[Features], scene: Scene, T_world_cam: np.ndarray,
-             cams: list[int], fixed: set[int]) -> tuple[BAProblem, dict[int, int]]:
-    """BA problem over frames ``cams``: one landmark per (frame a, keypoint) of the pairs, lifted with
-    a's depth and pose; observed in a (its depth) and in each b it was matched to."""
+def _pair_obs(pairs: list[Pair], feats: list[Features], scene: Scene, cams: list[int],
+              max_per_pair: int, seed: int) -> tuple[PairObservations, np.ndarray, dict[int, int]]:
+    """Observations of ``pairs`` over the frames ``cams`` (local indices), at most ``max_per_pair``
+    matches per pair (a seeded random subset); also each observation's feature index in a."""
     slot = {c: k for k, c in enumerate(cams)}
-    lm: dict[tuple[int, int], int] = {}
-    pts, obs_c, obs_p, obs_uv, obs_d = [], [], [], [], []
+    rng = np.random.default_rng(seed)
+    A, B, X, UV, Z, FA = [], [], [], [], [], []
     for a, b, m in pairs:
+        sel = np.arange(len(m.idx_a))
+        if len(sel) > max_per_pair:
+            sel = np.sort(rng.choice(len(sel), max_per_pair, replace=False))
+        ia, ib = m.idx_a[sel], m.idx_b[sel]
         fa, fb = feats[a], feats[b]
-        for ia, ib in zip(m.idx_a.tolist(), m.idx_b.tolist()):
-            key = (a, ia)
-            if key not in lm:
-                lm[key] = len(pts)
-                Xc = unproject_uv(scene.intrinsics[a], fa.uv[ia:ia + 1].astype(np.float64),
-                                  fa.depth_m[ia:ia + 1].astype(np.float64))[0]
-                pts.append(T_world_cam[a, :3, :3] @ Xc + T_world_cam[a, :3, 3])
-                obs_c.append(slot[a]); obs_p.append(lm[key]); obs_uv.append(fa.uv[ia]); obs_d.append(fa.depth_m[ia])
-            obs_c.append(slot[b]); obs_p.append(lm[key]); obs_uv.append(fb.uv[ib]); obs_d.append(fb.depth_m[ib])
-    T_cw = np.stack([invert_pose(T_world_cam[c]) for c in cams])
-    prob = BAProblem(T_cw, np.array([c in fixed for c in cams]), np.stack([_K4(scene, c) for c in cams]),
-                     np.array(pts, dtype=np.float64).reshape(-1, 3), np.array(obs_c), np.array(obs_p),
-                     np.array(obs_uv, dtype=np.float64).reshape(-1, 2), np.array(obs_d, dtype=np.float64))
-    return prob, slot
+        X.append(unproject_uv(scene.intrinsics[a], fa.uv[ia].astype(np.float64), fa.depth_m[ia].astype(np.float64)))
+        A.append(np.full(len(ia), slot[a]))
+        B.append(np.full(len(ia), slot[b]))
+        UV.append(fb.uv[ib].astype(np.float64))
+        Z.append(fb.depth_m[ib].astype(np.float64))
+        FA.append(ia)
+    obs = PairObservations(np.concatenate(A), np.concatenate(B), np.concatenate(X), np.concatenate(UV),
+                           np.concatenate(Z))
+    return obs, np.concatenate(FA), slot
+
+
+def _K4s(scene: Scene, cams: list[int]) -> np.ndarray:
+    return np.stack([_K4(scene, c) for c in cams])
 
 
 def transfer_errors(pairs: list[Pair], feats: list[Features], scene: Scene,
@@ -217,20 +223,11 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         if not pairs:
             continue
         cams = [g.key_idx] + [b for _, b, _ in pairs]
-        prob, slot = _problem(pairs, feats, scene, T_given, cams, {g.key_idx})
-        res = bundle_adjust(prob, config.ba)
+        obs, feat_a, slot = _pair_obs(pairs, feats, scene, cams, config.max_matches_per_pair, config.seed + g.key_idx)
+        res = adjust_poses(T_given[cams], np.arange(len(cams)) == 0, _K4s(scene, cams), obs, config.ba)
         for c in cams[1:]:
-            T_local[c] = invert_pose(res.T_cam_world[slot[c]])
-        kept_pts = set(prob.pt_idx[res.inlier].tolist())
-        # key features behind kept landmarks (landmark ids follow first appearance in the pairs)
-        lm_feat = []
-        seen = set()
-        for _, _, pm in pairs:
-            for ia in pm.idx_a.tolist():
-                if ia not in seen:
-                    seen.add(ia)
-                    lm_feat.append(ia)
-        used[g.key_idx] = {lm_feat[p] for p in kept_pts}
+            T_local[c] = res.T_world_cam[slot[c]]
+        used[g.key_idx] = set(feat_a[res.inlier].tolist())
         local_pairs.extend(pairs)
 
     # 4. global over key poses
@@ -283,11 +280,11 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
     if global_pairs:
         gkeys = sorted({k for a, b, _ in global_pairs for k in (a, b)} & main)
         gpairs = [p for p in global_pairs if p[0] in main]
-        prob, slot = _problem(gpairs, feats, scene, T_local, gkeys, {gkeys[0]})
-        res = bundle_adjust(prob, config.ba)
+        obs, _, slot = _pair_obs(gpairs, feats, scene, gkeys, config.max_matches_per_pair, config.seed + 1)
+        res = adjust_poses(T_local[gkeys], np.arange(len(gkeys)) == 0, _K4s(scene, gkeys), obs, config.ba)
         member_of = {m: g.key_idx for g in groups for m in g.member_idxs}
         for k in gkeys:
-            T_glob[k] = invert_pose(res.T_cam_world[slot[k]])
+            T_glob[k] = res.T_world_cam[slot[k]]
         for m, k in member_of.items():
             if k in slot:
                 T_glob[m] = T_glob[k] @ invert_pose(T_local[k]) @ T_local[m]
@@ -298,11 +295,12 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
     if config.joint and all_pairs:
         cams = sorted(main)
         jpairs = [p for p in all_pairs if p[0] in main and p[1] in main]
-        prob, slot = _problem(jpairs, feats, scene, T_glob, cams, {keys[0] if keys[0] in main else cams[0]})
-        res = bundle_adjust(prob, config.ba)
+        gauge = keys[0] if keys[0] in main else cams[0]
+        obs, _, slot = _pair_obs(jpairs, feats, scene, cams, config.max_matches_per_pair, config.seed + 2)
+        res = adjust_poses(T_glob[cams], np.array([c == gauge for c in cams]), _K4s(scene, cams), obs, config.ba)
         T_ref = T_glob.copy()
         for c in cams:
-            T_ref[c] = invert_pose(res.T_cam_world[slot[c]])
+            T_ref[c] = res.T_world_cam[slot[c]]
 
     # 6. rigid fit onto the given trajectory (frames in the main component)
     idx = sorted(main)
