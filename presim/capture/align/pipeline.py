@@ -54,8 +54,8 @@ class AlignConfig:
     min_features: int = 20
     """A frame with fewer SIFT keypoints with depth is an error (named)."""
     keep_unmatched: bool = False
-    """Frames no verified match connects to the rest: False = error naming them; True = keep their
-    given pose (moved with the rigid fit)."""
+    """Frames no verified match connects to the rest (or with too few features): False = error naming
+    them; True = keep their given pose."""
     seed: int = 0
     """Key-pose draw and RANSAC seeds."""
 
@@ -199,9 +199,9 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         feats.append(f)
     if no_depth:
         raise AlignError(f"{len(no_depth)} frame(s) with no valid depth: {_names(scene, no_depth)}")
-    if few:
+    if few and not config.keep_unmatched:
         raise AlignError(f"{len(few)} frame(s) with fewer than {config.min_features} SIFT features with depth "
-                         f"(texture-less or blurred?): {_names(scene, few)}")
+                         f"(texture-less or blurred?): {_names(scene, few)} (--keep-unmatched keeps their given poses)")
     t_feat = time.perf_counter()
 
     # 2. groups
