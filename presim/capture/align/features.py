@@ -36,8 +36,8 @@ class FeatureConfig:
     min_inliers: int = 20
     """A pair with fewer verified matches is not used."""
     max_depth_jump: float = 0.03
-    """A keypoint's depth is kept only when its 3x3 neighbourhood spans less than this fraction of it
-    (drops flying pixels on depth edges)."""
+    """A keypoint's depth (median of the valid pixels of its 3x3 window, at least 3) is kept only
+    when those span less than this fraction of it (drops flying pixels on depth edges)."""
 
 
 @dataclass(frozen=True)
@@ -81,8 +81,20 @@ def extract_features(color: np.ndarray, depth_m: np.ndarray, config: FeatureConf
     d = np.asarray(depth_m, dtype=np.float32)
     pad = np.pad(d, 1, mode="edge")
     win = np.stack([pad[iv + dy, iu + dx] for dy in range(3) for dx in range(3)], axis=1)
-    z = d[iv, iu]
-    ok = (win.min(axis=1) > 0) & (win.max(axis=1) - win.min(axis=1) < config.max_depth_jump * np.maximum(z, 1e-6))
+    # Registered depth often has a hole pattern (a depth pixel lands on every other color pixel): take
+    # the median of the valid pixels of the 3x3 window when at least 3 are valid and they agree.
+    valid = win > 0
+    cnt = valid.sum(axis=1)
+    w_nan = np.where(valid, win, np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            z = np.nanmedian(w_nan, axis=1)
+            spread = np.nanmax(w_nan, axis=1) - np.nanmin(w_nan, axis=1)
+    ok = (cnt >= 3) & (spread < config.max_depth_jump * np.nan_to_num(z, nan=0.0))
+    z = np.nan_to_num(z, nan=0.0)
     # SIFT descriptors are integers 0..255: uint8 keeps 180 frames x 2000 features at 46 MB.
     return Features(uv, np.clip(np.rint(desc), 0, 255).astype(np.uint8), np.where(ok, z, 0.0).astype(np.float32))
 
