@@ -165,12 +165,39 @@ def read_intrinsics(src: Path, w: int, h: int) -> tuple[Intrinsics, Undistortion
                      "'fx fy cx cy [k1 k2 p1 p2 k3]'; Freiburg folders are recognised by name)")
 
 
+def _read_without_poses(src: Path, rgb, dep, every: int, max_frames: int | None, max_dt_s: float) -> Scene:
+    """A TUM folder without groundtruth.txt: frames with placeholder poses (``poses_source="none"``);
+    ``import_capture`` estimates them."""
+    if not rgb or not dep:
+        raise SceneError(f"{src}: empty {'rgb.txt' if not rgb else 'depth.txt'}")
+    pairs = associate(np.array([t for t, _ in rgb]), np.array([t for t, _ in dep]), max_dt_s)
+    if not pairs:
+        raise SceneError(f"{src}: no rgb/depth pair within {max_dt_s} s")
+    pairs = [pairs[k] for k in select_indices(len(pairs), every, max_frames)]
+    colors = [src / rgb[i][1][0] for i, _ in pairs]
+    depths = [src / dep[j][1][0] for _, j in pairs]
+    for p in colors + depths:
+        require_file(p, "image")
+    w, h = image_size_wh(colors[0])
+    K, undist, k_src = read_intrinsics(src, w, h)
+    check_sizes(colors, (w, h), "color")
+    check_sizes(depths, (w, h), "depth")
+    stamps = np.array([rgb[i][0] for i, _ in pairs])
+    ids = [f"{t:.6f}" for t in stamps]
+    notes = (f"intrinsics: {k_src}", "no groundtruth.txt: poses estimated at import")
+    source = FileFrameSource(colors, depths, K, decode_depth_png_scale(DEPTH_SCALE_M), undistortion=undist)
+    return Scene(ids, stamps, np.tile(np.eye(4), (len(ids), 1, 1)), [K] * len(ids), source,
+                 SceneMeta(str(src.resolve()), NAME, VERSION, notes=notes), poses_source="none")
+
+
 def read(src: Path, every: int = 1, max_frames: int | None = None, max_dt_s: float = MAX_DT_S,
          max_gt_gap_s: float = MAX_GT_GAP_S) -> Scene:
     src = Path(src)
     rgb = read_list(src / "rgb.txt", 2)
     dep = read_list(src / "depth.txt", 2)
     gt_path = src / "groundtruth.txt"
+    if not gt_path.is_file():
+        return _read_without_poses(src, rgb, dep, every, max_frames, max_dt_s)
     gt = read_list(gt_path, 8)
     if not rgb or not dep or not gt:
         empty = [p for p, l in (("rgb.txt", rgb), ("depth.txt", dep), ("groundtruth.txt", gt)) if not l]
