@@ -131,7 +131,7 @@ def valid_rectangle_intrinsics(K: Intrinsics, dist: tuple[float, ...]) -> Intrin
     image (OpenCV's optimal new camera matrix with alpha = 0), at the same resolution.
     """
     K_new, _ = cv2.getOptimalNewCameraMatrix(K.K, np.asarray(dist, np.float64), K.size_wh, 0.0, K.size_wh)
-    return Intrinsics.from_K(K_new, K.width, K.height)
+    return Intrinsics(float(K_new[0, 0]), float(K_new[1, 1]), float(K_new[0, 2]), float(K_new[1, 2]), K.width, K.height)
 
 
 def read_intrinsics(src: Path, w: int, h: int) -> tuple[Intrinsics, Undistortion | None, str]:
