@@ -231,78 +231,137 @@ def transfer(T_world_cam: np.ndarray, K: np.ndarray, obs: PairObservations) -> t
     return _project(Rb_t, -np.einsum("oij,oj->oi", Rb_t, tb), K[obs.b_idx], Xw)
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(O, 3) -> (O, 3, 3) cross-product matrices."""
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def _linearize(T: np.ndarray, K: np.ndarray, obs: PairObservations, sig_z: np.ndarray, use_depth: bool,
+               sigma_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whitened residuals (O, 3) [u, v, z] and their Jacobians (O, 3, 6) w.r.t. increments
+    (w, v) of camera a and of camera b (R <- Exp(w) R, t <- t + v), at the poses ``T``."""
+    Ra, ta = T[obs.a_idx, :3, :3], T[obs.a_idx, :3, 3]
+    Rb, tb = T[obs.b_idx, :3, :3], T[obs.b_idx, :3, 3]
+    RaX = np.einsum("oij,oj->oi", Ra, obs.X_a)
+    pw = RaX + ta
+    y = pw - tb
+    RbT = np.swapaxes(Rb, 1, 2)
+    pb = np.einsum("oij,oj->oi", RbT, y)
+    z = np.where(np.abs(pb[:, 2]) < 1e-6, 1e-6, pb[:, 2])
+    fx, fy, cx, cy = (K[obs.b_idx, k] for k in range(4))
+    r = np.empty((len(z), 3))
+    r[:, 0] = (fx * pb[:, 0] / z + cx - obs.uv_b[:, 0]) / sigma_px
+    r[:, 1] = (fy * pb[:, 1] / z + cy - obs.uv_b[:, 1]) / sigma_px
+    has_d = (obs.z_b > 0) & use_depth
+    r[:, 2] = np.where(has_d, (pb[:, 2] - obs.z_b) / sig_z, 0.0)
+    # d(residual)/d(pb)
+    P = np.zeros((len(z), 3, 3))
+    P[:, 0, 0] = fx / z / sigma_px
+    P[:, 0, 2] = -fx * pb[:, 0] / z ** 2 / sigma_px
+    P[:, 1, 1] = fy / z / sigma_px
+    P[:, 1, 2] = -fy * pb[:, 1] / z ** 2 / sigma_px
+    P[:, 2, 2] = np.where(has_d, 1.0 / sig_z, 0.0)
+    PRbT = P @ RbT
+    Ja = np.concatenate([PRbT @ -_skew(RaX), PRbT], axis=2)          # pb = Rb^T (Exp(w)Ra X + ta + v - tb)
+    Jb = np.concatenate([PRbT @ _skew(y), -PRbT], axis=2)             # pb = Rb^T Exp(-w) (y - v)
+    return r, Ja, Jb
+
+
 def adjust_poses(T_world_cam: np.ndarray, fixed: np.ndarray, K: np.ndarray, obs: PairObservations,
                  config: BAConfig = BAConfig()) -> PoseAdjustResult:
     """Pose-only RGB-D adjustment: moves the free cameras so that every feature of a, lifted with a's
     depth, lands on its match in b (reprojection residual) at b's depth (depth residual, sigma from
-    both depths). Huber IRLS and outlier passes as :func:`bundle_adjust`. 6 parameters per free
-    camera: fast enough for hundreds of frames (no point parameters)."""
-    T0 = np.asarray(T_world_cam, dtype=np.float64)
-    C, O = len(T0), len(obs.a_idx)
+    both depths). Huber loss by reweighting inside a Levenberg-Marquardt loop with an analytic
+    Jacobian (6 parameters per free camera, dense normal equations: hundreds of frames in seconds);
+    outlier passes as :func:`bundle_adjust`."""
+    T = np.asarray(T_world_cam, dtype=np.float64).copy()
+    fixed = np.asarray(fixed, dtype=bool)
+    C, O = len(T), len(obs.a_idx)
     if not np.any(fixed):
         raise ValueError("adjust_poses needs at least one fixed camera (the gauge)")
     if O == 0:
         raise ValueError("adjust_poses: no observations")
-    free = np.flatnonzero(~np.asarray(fixed))
-    slot = -np.ones(C, dtype=int)
-    slot[free] = np.arange(len(free))
+    free = np.flatnonzero(~fixed)
     z_a = obs.X_a[:, 2]
-
-    def poses(x: np.ndarray) -> np.ndarray:
-        T = T0.copy()
-        if len(free):
-            d = x.reshape(-1, 6)
-            T[free, :3, :3] = Rotation.from_rotvec(d[:, :3]).as_matrix() @ T0[free, :3, :3]
-            T[free, :3, 3] = T0[free, :3, 3] + d[:, 3:]
-        return T
-
-    def build(active: np.ndarray):
-        sub = PairObservations(obs.a_idx[active], obs.b_idx[active], obs.X_a[active], obs.uv_b[active],
-                               obs.z_b[active])
-        has_d = (sub.z_b > 0) if config.use_depth else np.zeros(len(sub.z_b), bool)
-        sig = config.depth_sigma_coeff * np.sqrt(z_a[active][has_d] ** 4 + sub.z_b[has_d] ** 4)
-
-        def fun(x: np.ndarray) -> np.ndarray:
-            pred, z = transfer(poses(x), K, sub)
-            return np.concatenate([((pred - sub.uv_b) / config.sigma_px).ravel(), (z[has_d] - sub.z_b[has_d]) / sig])
-
-        m = len(sub.a_idx)
-        rows = np.concatenate([2 * np.arange(m), 2 * np.arange(m) + 1, 2 * m + np.arange(int(has_d.sum()))])
-        obs_of_row = np.concatenate([np.arange(m), np.arange(m), np.flatnonzero(has_d)])
-        rr, cc = [], []
-        for cams in (sub.a_idx, sub.b_idx):
-            s = slot[cams[obs_of_row]]
-            ok = s >= 0
-            for k in range(6):
-                rr.append(rows[ok])
-                cc.append(6 * s[ok] + k)
-        rr_a, cc_a = np.concatenate(rr), np.concatenate(cc)
-        sparsity = coo_matrix((np.ones(len(rr_a)), (rr_a, cc_a)), shape=(len(rows), 6 * len(free))).tocsr()
-        return fun, sparsity
-
-    x = np.zeros(6 * len(free))
-    active = np.ones(O, dtype=bool)
-    nfev = 0
-    pred0, _ = transfer(T0, K, obs)
+    sig_all = config.depth_sigma_coeff * np.sqrt(z_a ** 4 + obs.z_b ** 4)
+    sig_all = np.maximum(sig_all, 1e-6)
+    pred0, _ = transfer(T, K, obs)
     err0 = np.linalg.norm(pred0 - obs.uv_b, axis=1)
+    active = np.ones(O, dtype=bool)
+    k_h = config.huber
+    nfev = 0
+
+    def sub(m: np.ndarray) -> PairObservations:
+        return PairObservations(obs.a_idx[m], obs.b_idx[m], obs.X_a[m], obs.uv_b[m], obs.z_b[m])
+
+    def cost(r: np.ndarray) -> float:
+        a = np.abs(r)
+        return float(np.sum(np.where(a <= k_h, 0.5 * a ** 2, k_h * (a - 0.5 * k_h))))
+
+    def update(Tc: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        Tn = Tc.copy()
+        d = delta.reshape(-1, 6)
+        Tn[free, :3, :3] = Rotation.from_rotvec(d[:, :3]).as_matrix() @ Tc[free, :3, :3]
+        Tn[free, :3, 3] = Tc[free, :3, 3] + d[:, 3:]
+        return Tn
+
     if len(free):
-        for k in range(max(1, config.passes)):
-            fun, sparsity = build(active)
-            for _ in range(max(1, config.irls_rounds)):
-                a = np.abs(fun(x))
-                w = np.sqrt(np.where(a <= config.huber, 1.0, config.huber / np.maximum(a, 1e-12)))
-                sol = least_squares(lambda xx, w=w: w * fun(xx), x, jac_sparsity=sparsity, method="trf",
-                                    x_scale=1.0, max_nfev=config.max_nfev, tr_solver="lsmr", verbose=0)
-                x, nfev = sol.x, nfev + sol.nfev
-            if k + 1 < config.passes:
-                pred, z = transfer(poses(x), K, obs)
+        col = -np.ones(C, dtype=int)
+        col[free] = np.arange(len(free))
+        for p in range(max(1, config.passes)):
+            o = sub(active)
+            sig = sig_all[active]
+            lam = 1e-3
+            r, Ja, Jb = _linearize(T, K, o, sig, config.use_depth, config.sigma_px)
+            nfev += 1
+            c0 = cost(r)
+            for _ in range(config.max_nfev * max(1, config.irls_rounds)):
+                a = np.abs(r)
+                w = np.where(a <= k_h, 1.0, k_h / np.maximum(a, 1e-12))        # Huber IRLS weights
+                H = np.zeros((C, C, 6, 6))
+                g = np.zeros((C, 6))
+                JaW, JbW = Ja * w[:, :, None], Jb * w[:, :, None]
+                np.add.at(H, (o.a_idx, o.a_idx), np.einsum("oki,okj->oij", JaW, Ja))
+                np.add.at(H, (o.b_idx, o.b_idx), np.einsum("oki,okj->oij", JbW, Jb))
+                Hab = np.einsum("oki,okj->oij", JaW, Jb)
+                np.add.at(H, (o.a_idx, o.b_idx), Hab)
+                np.add.at(H, (o.b_idx, o.a_idx), np.swapaxes(Hab, 1, 2))
+                np.add.at(g, o.a_idx, np.einsum("oki,ok->oi", JaW, r))
+                np.add.at(g, o.b_idx, np.einsum("oki,ok->oi", JbW, r))
+                Hf = H[np.ix_(free, free)].transpose(0, 2, 1, 3).reshape(6 * len(free), 6 * len(free))
+                gf = g[free].reshape(-1)
+                while True:
+                    A = Hf + lam * np.diag(np.diag(Hf) + 1e-9)
+                    try:
+                        delta = -np.linalg.solve(A, gf)
+                    except np.linalg.LinAlgError:
+                        delta = -np.linalg.lstsq(A, gf, rcond=None)[0]
+                    Tn = update(T, delta)
+                    rn, Jan, Jbn = _linearize(Tn, K, o, sig, config.use_depth, config.sigma_px)
+                    nfev += 1
+                    cn = cost(rn)
+                    if cn <= c0 or lam > 1e8:
+                        break
+                    lam *= 10
+                if cn > c0:
+                    break
+                T, r, Ja, Jb = Tn, rn, Jan, Jbn
+                lam = max(lam / 10, 1e-7)
+                done = c0 - cn < 1e-10 * max(c0, 1.0) or np.abs(delta).max() < 1e-10
+                c0 = cn
+                if done:
+                    break
+            if p + 1 < config.passes:
+                pred, zz = transfer(T, K, obs)
                 bad = np.linalg.norm(pred - obs.uv_b, axis=1) > config.outlier_px
                 if config.use_depth:
-                    sig = config.depth_sigma_coeff * np.sqrt(z_a ** 4 + obs.z_b ** 4)
-                    bad |= (obs.z_b > 0) & (np.abs(z - obs.z_b) > config.outlier_depth_sigma * sig)
+                    bad |= (obs.z_b > 0) & (np.abs(zz - obs.z_b) > config.outlier_depth_sigma * sig_all)
                 if not (~bad).any() or np.array_equal(~bad, active):
                     break
                 active = ~bad
-    T = poses(x)
     pred1, _ = transfer(T, K, obs)
     return PoseAdjustResult(T, active, err0, np.linalg.norm(pred1 - obs.uv_b, axis=1), nfev)
