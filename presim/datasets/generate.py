@@ -369,6 +369,8 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
         stop_after: make at most this many new frames, then return without finishing (time-sliced
             jobs; rerun to continue). The report then has ``complete = False``.
         show_progress: progress bar (None = unless PRESIM_NO_PROGRESS=1).
+        scene_poses: the scene's camera poses (``store.load_scene(poses=...)``: "auto" = refined by
+            ``presim align`` when present, "given", "refined").
 
     Returns:
         The :class:`GenReport` (also written to :func:`report_path` when the scene is complete).
