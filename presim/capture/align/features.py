@@ -8,6 +8,7 @@ exactly the matches the bundle adjustment can use (landmarks need depth in the k
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -86,13 +87,10 @@ def extract_features(color: np.ndarray, depth_m: np.ndarray, config: FeatureConf
     valid = win > 0
     cnt = valid.sum(axis=1)
     w_nan = np.where(valid, win, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            z = np.nanmedian(w_nan, axis=1)
-            spread = np.nanmax(w_nan, axis=1) - np.nanmin(w_nan, axis=1)
+    with warnings.catch_warnings():  # all-NaN windows (no valid depth) are expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        z = np.nanmedian(w_nan, axis=1)
+        spread = np.nanmax(w_nan, axis=1) - np.nanmin(w_nan, axis=1)
     ok = (cnt >= 3) & (spread < config.max_depth_jump * np.nan_to_num(z, nan=0.0))
     z = np.nan_to_num(z, nan=0.0)
     # SIFT descriptors are integers 0..255: uint8 keeps 180 frames x 2000 features at 46 MB.

@@ -24,7 +24,7 @@ import numpy as np
 
 from presim.capture.align.bundle import BAConfig, PairObservations, adjust_poses, residuals_px
 from presim.capture.align.features import FeatureConfig, Features, PairMatch, extract_features, match_pair, unproject_uv
-from presim.capture.align.grouping import GroupConfig, PoseGroup, group_poses, view_angles_rad
+from presim.capture.align.grouping import GroupConfig, group_poses, view_angles_rad
 from presim.capture.scene import Scene
 from presim.geometry import invert as invert_pose
 from presim.io_utils import progress
