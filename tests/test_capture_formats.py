@@ -82,8 +82,28 @@ def test_tum_freiburg_calibration_by_name(tmp_path):
     src = write_tum(tmp_path / "rgbd_dataset_freiburg1_xyz", synth_frames(n=2))
     (src / "camera-intrinsics.txt").unlink()
     s = tum.read(src)
-    assert s.intrinsics[0].fx == 517.3 and s.frames.undistortions[0] is not None
+    u = s.frames.undistortions[0]
+    assert u is not None and u.K_raw.fx == 517.3
+    # output camera = the valid rectangle (zoomed in, same size): no black corners
+    assert s.intrinsics[0] == u.K_out and s.intrinsics[0].fx > 517.3
     assert s.frame(0).depth_m.shape == (30, 40)
+
+
+def test_tum_fr1_undistortion_leaves_no_black_border(tmp_path):
+    """A white, fully valid 640x480 fr1 frame stays white and valid everywhere after undistortion
+    (into its own K it lost 5.3 % of the pixels to black corners)."""
+    import numpy as np
+
+    f = synth_frames(n=2, w=640, h=480)
+    f.color[:] = 255
+    f.depth_mm[:] = 1500
+    src = write_tum(tmp_path / "rgbd_dataset_freiburg1_rpy", f)
+    (src / "camera-intrinsics.txt").unlink()
+    c, d = tum.read(src).frames.load(0)
+    assert (c.min(axis=2) > 0).all() and (d > 0).all()
+    K = tum.valid_rectangle_intrinsics(tum.Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480),
+                                       tum.FREIBURG["freiburg1"][1])
+    assert abs(K.fx - 546.75) < 0.05 and abs(K.fy - 543.09) < 0.05
 
 
 # ---- COLMAP -----------------------------------------------------------------------------------

@@ -63,8 +63,36 @@ def scene_info(scene: Scene, max_sample_frames: int = 50) -> dict:
                      "position_m": [round(float(x), 4) for x in np.asarray(o.T_world_obj)[:3, 3]],
                      "model": o.model_path} for o in scene.objects],
         "refined_depth": scene.has_refined_depth,
+        "poses": _poses_info(scene),
         "notes": list(scene.meta.notes),
     }
+
+
+def _poses_info(scene: Scene) -> dict:
+    """Which poses are in use, and how far ``presim align`` moved each frame from the given pose."""
+    from presim.capture.store import load_scene, read_refined_poses
+
+    out: dict = {"in_use": scene.poses_source, "refined_available": False}
+    if scene.path is None:
+        return out
+    rec = read_refined_poses(scene.path, scene.frame_ids)
+    if rec is None:
+        return out
+    T_ref, prov = rec
+    T_given = load_scene(scene.path, poses="given").T_world_cam
+    dt = np.linalg.norm(T_ref[:, :3, 3] - T_given[:, :3, 3], axis=1)
+    Rrel = np.einsum("nji,njk->nik", T_given[:, :3, :3], T_ref[:, :3, :3])
+    dr = np.degrees(np.arccos(np.clip((np.trace(Rrel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    st = prov.get("stats", {})
+    out.update({
+        "refined_available": True,
+        "change_m": {"median": float(np.median(dt)), "max": float(dt.max())},
+        "change_deg": {"median": float(np.median(dr)), "max": float(dr.max())},
+        "transfer_px": [st.get("transfer_px_before", {}).get("median"), st.get("transfer_px_after", {}).get("median")],
+        "per_frame": [{"frame_id": f, "dt_m": round(float(a), 6), "dr_deg": round(float(b), 5)}
+                      for f, a, b in zip(scene.frame_ids, dt, dr)],
+    })
+    return out
 
 
 def format_info(info: dict) -> str:
@@ -107,6 +135,19 @@ def format_info(info: dict) -> str:
         f"\n  {o['obj_id']:>4} {o['name']} at {o['position_m']}" + ("" if o["model"] else " (no model)")
         for o in i["objects"]))
     lines.append(f"refined     {'yes' if i['refined_depth'] else 'no'}")
+    ps = i.get("poses")
+    if ps:
+        if not ps["refined_available"]:
+            lines.append(f"poses       {ps['in_use']} (no refined poses; `presim align` makes them)")
+        else:
+            cm, cd = ps["change_m"], ps["change_deg"]
+            tp = ps["transfer_px"]
+            tp_s = f"; feature transfer error {tp[0]:.2f} -> {tp[1]:.2f} px" if None not in tp else ""
+            lines.append(f"poses       {ps['in_use']} in use; refined moved the cameras median {cm['median'] * 100:.2f} cm / "
+                         f"{cd['median']:.2f} deg, max {cm['max'] * 100:.2f} cm / {cd['max']:.2f} deg{tp_s}")
+            worst = sorted(ps["per_frame"], key=lambda r: -r["dt_m"])[:5]
+            lines.append("  largest   " + ", ".join(f"{r['frame_id']} {r['dt_m'] * 100:.2f} cm/{r['dr_deg']:.2f} deg"
+                                                   for r in worst) + " (per frame: --json)")
     for n in i["notes"]:
         lines.append(f"note        {n}")
     return "\n".join(lines)

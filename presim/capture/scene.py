@@ -229,6 +229,11 @@ class Scene:
     """(N, H, W) float32 refined depth (``presim refine``), memory-mapped when loaded; None if absent."""
     path: Path | None = None
     """Folder of the saved scene (None until saved/loaded)."""
+    poses_source: str = "given"
+    """Which camera poses ``T_world_cam`` holds: ``"given"`` (the capture's) or ``"refined"``
+    (``presim align``'s, from ``SCENE/poses_refined.json``; see ``store.load_scene(poses=...)``);
+    ``"none"`` only between an importer and ``import_capture`` for a capture without poses
+    (placeholders, estimated there)."""
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)

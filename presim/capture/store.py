@@ -31,10 +31,13 @@ from presim.geometry import Intrinsics, unproject_depth
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
-           "set_has_refined_depth", "open_scene"]
+           "set_has_refined_depth", "open_scene",
+           "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses"]
 
 FORMAT_NAME = "presim-scene"
 FORMAT_VERSION = 1
+REFINED_POSES_FILE = "poses_refined.json"
+POSE_CHOICES = ("auto", "given", "refined")
 
 
 def is_scene_dir(path: str | Path) -> bool:
@@ -207,9 +210,67 @@ def _load_array(path: Path, mmap: bool = True) -> np.ndarray:
         raise SceneError(f"{path}: unreadable array ({e}); the scene folder is damaged") from None
 
 
-def load_scene(path: str | Path, _skip_points: bool = False) -> Scene:
-    """Load a saved scene; pixel arrays are memory-mapped (read-only), nothing else is read eagerly."""
+def load_scene(path: str | Path, _skip_points: bool = False, poses: str = "auto") -> Scene:
+    """Load a saved scene; pixel arrays are memory-mapped (read-only), nothing else is read eagerly.
+
+    ``poses``: ``"auto"`` (default) uses the refined poses of ``presim align`` when the scene has them
+    (``poses_refined.json``), else the given ones; ``"given"`` always the capture's poses;
+    ``"refined"`` the refined ones or an error when there are none. ``scene.poses_source`` says which.
+    """
+    if poses not in POSE_CHOICES:
+        raise ValueError(f"poses must be one of {', '.join(POSE_CHOICES)}, got {poses!r}")
+    scene = _load_scene_given(Path(path), _skip_points)
+    if _skip_points or poses == "given":
+        return scene
+    rec = read_refined_poses(scene.path, scene.frame_ids)
+    if rec is None:
+        if poses == "refined":
+            raise SceneError(f"{scene.path}: no refined poses ({REFINED_POSES_FILE}); run `presim align "
+                             f"{scene.path}` first or use the given poses")
+        return scene
+    scene.T_world_cam = rec[0]
+    scene.poses_source = "refined"
+    return scene
+
+
+def save_refined_poses(path: str | Path, T_world_cam: np.ndarray, frame_ids: list[str], provenance: dict) -> Path:
+    """Store refined camera poses beside a saved scene's given ones (which are never touched).
+
+    One JSON file (``poses_refined.json``: frame ids, ``T_world_cam`` per frame at full float64
+    precision, provenance), written atomically: an interrupted ``presim align`` leaves the scene as
+    it was (no file, or the previous complete one).
+    """
     path = Path(path)
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.shape != (len(frame_ids), 4, 4) or not np.all(np.isfinite(T)):
+        raise SceneError(f"{path}: refined poses must be finite ({len(frame_ids)}, 4, 4), got {T.shape}")
+    out = path / REFINED_POSES_FILE
+    atomic_write_json(out, {"format": "presim-refined-poses", "version": 1, "frame_ids": list(frame_ids),
+                            "T_world_cam": T.tolist(), "provenance": provenance}, indent=None)
+    return out
+
+
+def read_refined_poses(path: str | Path | None, frame_ids: list[str]) -> tuple[np.ndarray, dict] | None:
+    """(T_world_cam (N, 4, 4), provenance) of ``poses_refined.json``, or None when the scene has none.
+    A file whose frames differ from the scene's is an error (it belongs to another scene)."""
+    if path is None:
+        return None
+    f = Path(path) / REFINED_POSES_FILE
+    if not f.is_file():
+        return None
+    try:
+        d = json.loads(f.read_text())
+        T = np.asarray(d["T_world_cam"], dtype=np.float64)
+        ids = list(d["frame_ids"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise SceneError(f"{f}: corrupt refined poses ({type(e).__name__}: {e}); delete it or rerun `presim align`") from None
+    if ids != list(frame_ids) or T.shape != (len(frame_ids), 4, 4):
+        raise SceneError(f"{f}: refined poses are for other frames ({len(ids)} frames) than the scene's "
+                         f"({len(frame_ids)}); rerun `presim align --overwrite`")
+    return T, dict(d.get("provenance", {}))
+
+
+def _load_scene_given(path: Path, _skip_points: bool = False) -> Scene:
     hdr_path = path / "scene.json"
     if not hdr_path.is_file() and not _skip_points:  # save_scene reads its arrays before scene.json exists
         if path.with_name(path.name + ".partial").exists():
@@ -281,15 +342,16 @@ def model_abspath(scene: Scene, obj: SceneObject) -> Path | None:
 
 
 def open_scene(path: str | Path, allow_capture: bool = False,
-               on_import: Callable[[str], None] | None = None) -> Scene:
+               on_import: Callable[[str], None] | None = None, poses: str = "auto") -> Scene:
     """The scene a user names on the command line: a saved scene folder, or with ``allow_capture``
     a capture folder any importer reads (imported in memory, not saved; ``on_import`` gets a
     one-line note first). Every refusal is a :class:`SceneError` (a ValueError) naming the path:
     missing, an interrupted save (``.partial``), not a saved scene, or what the loader / importer found.
+    ``poses`` picks a saved scene's camera poses (:data:`POSE_CHOICES`, see :func:`load_scene`).
     """
     path = Path(path)
     if is_scene_dir(path) or path.with_name(path.name + ".partial").exists():
-        return load_scene(path)  # an interrupted save gets load_scene's own message
+        return load_scene(path, poses=poses)  # an interrupted save gets load_scene's own message
     if not path.exists():
         raise SceneError(f"{path}: scene folder not found")
     if not allow_capture:

@@ -12,6 +12,7 @@ import threading
 _MODULES = [
     "presim.cli.sample_cmd",      # sample-scene
     "presim.cli.capture_cmds",    # import, info
+    "presim.cli.align_cmds",      # align, eval-poses
     "presim.cli.refine_eval_cmds",  # refine, eval-views
     "presim.cli.render_cmd",      # render
     "presim.cli.sim_cmds",        # drive

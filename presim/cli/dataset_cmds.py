@@ -43,6 +43,9 @@ def register(sub) -> None:
     p.add_argument("--max-new-frames", type=int, default=None,
                    help="make at most this many new frames then stop (time-sliced jobs; rerun to continue)")
     p.add_argument("--validate", action="store_true", help="validate the written dataset at the end")
+    p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
+                   help="camera poses of the scene: refined by `presim align` when present (auto, default), "
+                        "the capture's given ones, or refined (error when absent)")
     p.set_defaults(func=_gen_bop)
 
 
@@ -62,7 +65,7 @@ def _gen_bop(args) -> int:
     check_positive(args.depth_scale, "--depth-scale", allow_none=False)
     check_render_memory(args.width, args.height, max_memory=args.max_memory, copies=args.workers,
                         per_frame_extra_px_bytes=32.0, what=f"generating frames ({args.workers} worker(s))")
-    scene = load_scene(args.scene)
+    scene = load_scene(args.scene, poses=args.scene_poses)
     objects = resolve_objects(scene, args.objects)
     config = GenConfig(
         frames=args.frames, seed=args.seed, width=args.width, height=args.height, hfov_deg=args.hfov_deg,
@@ -73,7 +76,8 @@ def _gen_bop(args) -> int:
         annotate=AnnotateConfig(visib_tolerance_m=args.visib_tolerance_m),
     )
     rep = generate_bop(args.scene, args.out, objects, config, workers=args.workers, ray_address=args.ray,
-                       overwrite=args.overwrite, stop_after=args.max_new_frames)
+                       overwrite=args.overwrite, stop_after=args.max_new_frames,
+                       scene_poses=args.scene_poses)
     d = asdict(rep)
     print(json.dumps({k: d[k] for k in ("scene_dir", "frames_written", "frames_requested", "dropped_not_visible",
                                         "slots_failed", "instances", "complete", "frames_per_s")}))

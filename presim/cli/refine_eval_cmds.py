@@ -31,6 +31,9 @@ def register(sub) -> None:
     e.add_argument("--cache-dir", type=Path, default=None,
                    help="where the capture's refined depth is cached (default SCENE/eval_cache)")
     e.add_argument("--workers", type=int, default=1, help="processes for the refinement of the capture")
+    e.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
+                   help="camera poses of the scene: refined by `presim align` when present (auto, default), "
+                        "the capture's given ones, or refined (error when absent)")
     e.set_defaults(func=_eval)
 
 
@@ -53,7 +56,8 @@ def _eval(args) -> int:
     from presim.io_utils import atomic_write_json
     from presim.evaluation.eval_views import DEFAULT_METHODS, EvalConfig, eval_views, format_table
 
-    scene = load_scene(args.scene)
+    scene = load_scene(args.scene, poses=args.scene_poses)
+    print(f"{args.scene}: {scene.poses_source} poses", file=sys.stderr)
     cfg = EvalConfig(stride=args.stride, target_every=args.target_every,
                      methods=tuple(args.methods) if args.methods else DEFAULT_METHODS,
                      max_targets=args.max_targets, refine_workers=args.workers)

@@ -34,6 +34,9 @@ def register(sub) -> None:
     p.add_argument("--raw-depth", action="store_true", help="ignore the scene's refined depth")
     p.add_argument("--backend", default="numba", choices=("numba", "torch", "reference"),
                    help="kernel backend (default numba)")
+    p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
+                   help="camera poses of the scene: refined by `presim align` when present (auto, default), "
+                        "the capture's given ones, or refined (error when absent)")
     p.set_defaults(func=_main)
 
 
@@ -47,7 +50,7 @@ def _main(args: argparse.Namespace) -> int:
 
     check_intrinsics(args.width, args.height, args.fx, args.fy, args.cx, args.cy)
     check_positive_int(args.layers, "--layers", allow_none=False)
-    scene = open_scene(args.scene)
+    scene = open_scene(args.scene, poses=args.scene_poses)
     if args.pose is not None:
         vals = args.pose.replace(",", " ").split()
         if len(vals) != 7:

@@ -57,6 +57,9 @@ def register(sub) -> None:
     p.add_argument("--keep-open", action="store_true",
                    help="with --viewer web: keep serving the web viewer after the drive ends (Ctrl-C stops it)")
     p.add_argument("--realtime", action="store_true", help="pace steps to wall time (always on for keyboard)")
+    p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
+                   help="camera poses of the scene: refined by `presim align` when present (auto, default), "
+                        "the capture's given ones, or refined (error when absent)")
     p.set_defaults(func=run)
 
 
@@ -128,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     if args.keep_open and args.viewer != "web":
         raise ValueError("--keep-open keeps the web viewer serving: it needs --viewer web")
     _parse_controller(args)
-    scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
+    scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr),
+                       poses=getattr(args, "scene_poses", "auto"))
     robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
                             camera_link_is_optical=not args.camera_link_body, head_tilt_rad=np.radians(args.tilt_deg))
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz,

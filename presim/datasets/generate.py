@@ -110,6 +110,8 @@ class GenJob:
     config: GenConfig
     render_config: object | None = None
     """``presim.synthesis.renderer.RenderConfig`` (None = its defaults)."""
+    scene_poses: str = "auto"
+    """Camera poses of the scene: ``store.load_scene(poses=...)`` ("auto": refined when present)."""
 
     def fingerprint(self) -> str:
         """Hash of everything that changes the output (scene, objects, config)."""
@@ -124,6 +126,9 @@ class GenJob:
             h.update(np.asarray(o.T_world_obj, dtype=np.float64).tobytes())
         h.update(json.dumps(_config_dict(self.config), sort_keys=True).encode())
         h.update(repr(self.render_config).encode())
+        refined = Path(self.scene_path) / "poses_refined.json"
+        if self.scene_poses != "given" and refined.is_file():  # refined poses change every image
+            h.update(refined.read_bytes())
         return h.hexdigest()[:16]
 
 
@@ -154,7 +159,7 @@ class FrameGenerator:
 
         self.job = job
         self.cfg = job.config
-        self.scene = load_scene(job.scene_path)
+        self.scene = load_scene(job.scene_path, poses=job.scene_poses)
         self.renderer = Renderer(self.scene, job.render_config if job.render_config is not None else RenderConfig())
         self.K = output_intrinsics(self.scene.intrinsics[0], self.cfg.width, self.cfg.height, self.cfg.hfov_deg)
         self.objects = list(job.objects)
@@ -340,7 +345,7 @@ def _store(sdir: Path, work: Path, fo: FrameOutput) -> None:
 def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[PlacedObject],
                  config: GenConfig = GenConfig(), workers: int = 1, ray_address: str | None = None,
                  render_config=None, overwrite: bool = False, stop_after: int | None = None,
-                 show_progress: bool | None = None) -> GenReport:
+                 show_progress: bool | None = None, scene_poses: str = "auto") -> GenReport:
     """Generate (or resume) one BOP scene. See the module docstring.
 
     Args:
@@ -355,6 +360,8 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
         stop_after: make at most this many new frames, then return without finishing (time-sliced
             jobs; rerun to continue). The report then has ``complete = False``.
         show_progress: progress bar (None = unless PRESIM_NO_PROGRESS=1).
+        scene_poses: the scene's camera poses (``store.load_scene(poses=...)``: "auto" = refined by
+            ``presim align`` when present, "given", "refined").
 
     Returns:
         The :class:`GenReport` (also written to :func:`report_path` when the scene is complete).
@@ -364,7 +371,7 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
     out = Path(out)
     if not objects:
         raise ValueError("no objects to annotate")
-    job = GenJob(str(scene_path), tuple(objects), config, render_config)
+    job = GenJob(str(scene_path), tuple(objects), config, render_config, scene_poses)
     fp = job.fingerprint()
     sdir = bop_writer.scene_dir(out, config.split, config.scene_id)
     work = sdir / WORK_DIR
@@ -391,7 +398,7 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
     atomic_write_json(job_file, {"fingerprint": fp, "scene": str(scene_path), "config": _config_dict(config)})
 
     # Dataset-level files are deterministic: (re)writing them on resume changes nothing.
-    scene = load_scene(scene_path)
+    scene = load_scene(scene_path, poses=scene_poses)
     K = output_intrinsics(scene.intrinsics[0], config.width, config.height, config.hfov_deg)
     _write_dataset_level(out, K, objects, config.depth_scale)
     del scene

@@ -43,13 +43,13 @@ def refine_one_frame(scene: Scene, idx: int, ref_pool: Sequence[int], config: Re
 _W: dict = {}
 
 
-def _init_worker(scene_path: str, partial: str, done_dir: str, config: RefineConfig) -> None:
+def _init_worker(scene_path: str, partial: str, done_dir: str, config: RefineConfig, poses: str = "auto") -> None:
     import numba
 
     from presim.capture.store import load_scene
 
     numba.set_num_threads(1)  # parallelism comes from the processes
-    _W.update(scene=load_scene(scene_path), partial=partial, done=Path(done_dir), config=config)
+    _W.update(scene=load_scene(scene_path, poses=poses), partial=partial, done=Path(done_dir), config=config)
 
 
 def _work(task: tuple[int, int, list[int]]) -> int:
@@ -127,7 +127,8 @@ def refine_frames_to_file(scene: Scene, out_path: str | Path, indices: Sequence[
                 raise ValueError("parallel refinement needs a saved scene (scene.path is None)")
             ctx = mp.get_context("spawn")
             with ctx.Pool(min(workers, len(tasks)), initializer=_init_worker,
-                          initargs=(str(scene.path), str(partial), str(done), config)) as p:
+                          initargs=(str(scene.path), str(partial), str(done), config,
+                                    getattr(scene, "poses_source", "auto"))) as p:
                 for _ in p.imap_unordered(_work, tasks):
                     bar.update(1)
         else:

@@ -176,8 +176,11 @@ def _refined_capture_depth(scene: Scene, capture: list[int], cfg: EvalConfig,
         pool = list(range(len(capture)))
         return np.stack([refine_one_frame(sub, k, pool, cfg.refine) for k in
                          progress(range(len(capture)), desc="refine capture", unit="frame")])
-    key = json.dumps({"refine": dataclasses.asdict(cfg.refine), "capture": capture,
-                      "frames": list(scene.frame_ids), "src": str(scene.path)}, sort_keys=True)
+    key = {"refine": dataclasses.asdict(cfg.refine), "capture": capture,
+           "frames": list(scene.frame_ids), "src": str(scene.path)}
+    if scene.poses_source != "given":  # refined depth depends on the poses (given keys stay as before)
+        key["poses"] = hashlib.sha256(np.ascontiguousarray(scene.T_world_cam).tobytes()).hexdigest()[:16]
+    key = json.dumps(key, sort_keys=True)
     out = Path(cache_dir) / f"refined_{hashlib.sha256(key.encode()).hexdigest()[:16]}.npy"
     if not out.is_file():
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -34,8 +34,12 @@ DEFAULT_RATE_HZ = 30.0
 
 
 def detect(src: Path) -> bool:
-    """A folder with ``frame-*.color.*`` and ``frame-*.pose.txt`` files."""
-    return src.is_dir() and any(src.glob("frame-*.pose.txt")) and any(src.glob("frame-*.color.*"))
+    """A folder with ``frame-*.color.*`` and ``frame-*.pose.txt`` files, or (no poses: estimated at
+    import) ``frame-*.color.*`` + ``frame-*.depth.png`` + ``camera-intrinsics.txt``."""
+    if not (src.is_dir() and any(src.glob("frame-*.color.*"))):
+        return False
+    return any(src.glob("frame-*.pose.txt")) or (any(src.glob("frame-*.depth.png"))
+                                                  and (src / "camera-intrinsics.txt").is_file())
 
 
 def list_frames(src: Path) -> list[tuple[str, int, Path]]:
@@ -94,10 +98,14 @@ def read(src: Path, every: int = 1, max_frames: int | None = None) -> Scene:
     stamp_map = read_timestamps(stamps_file) if stamps_file.is_file() else None
 
     ids, stamps, poses, colors, depths = [], [], [], [], []
+    has_poses = any(src.glob("frame-*.pose.txt"))  # none at all: estimated by import_capture
     for fid, num, cpath in frames:
         dpath = require_file(src / f"{fid}.depth.png", "depth image")
-        ppath = require_file(src / f"{fid}.pose.txt", "pose file")
-        poses.append(checked_pose(read_matrix_txt(ppath, (4, 4)), str(ppath)))
+        if has_poses:
+            ppath = require_file(src / f"{fid}.pose.txt", "pose file")
+            poses.append(checked_pose(read_matrix_txt(ppath, (4, 4)), str(ppath)))
+        else:
+            poses.append(np.eye(4))
         if stamp_map is not None:
             if fid not in stamp_map:
                 raise SceneError(f"{stamps_file}: no stamp for {fid}")
@@ -116,5 +124,8 @@ def read(src: Path, every: int = 1, max_frames: int | None = None) -> Scene:
     notes = () if stamp_map is not None else (f"stamps = frame number / {DEFAULT_RATE_HZ:g} Hz (no timestamps.txt)",)
     if depth_cam is not None:
         notes += ("depth registered into the color camera at read (depth-intrinsics.txt + depth-to-color.txt)",)
+    if not has_poses:
+        notes += ("no frame-*.pose.txt: poses estimated at import",)
     return Scene(ids, np.asarray(stamps), np.stack(poses), [K] * len(ids), source,
-                 SceneMeta(str(src.resolve()), NAME, VERSION, notes=notes))
+                 SceneMeta(str(src.resolve()), NAME, VERSION, notes=notes),
+                 poses_source="given" if has_poses else "none")

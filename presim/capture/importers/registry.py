@@ -61,6 +61,27 @@ def detect_format(src: str | Path) -> str:
         "Pass --format to force one.")
 
 
+def _estimate_poses(scene: Scene) -> Scene:
+    """A capture without poses: sequential PnP registration, then the local-to-global alignment
+    (docs/alignment.md). Unregistered frames are dropped and named in the notes."""
+    import sys
+
+    from presim.capture.align import AlignConfig, align_poses
+    from presim.capture.align.initial import estimate_initial_poses
+
+    T0, reg = estimate_initial_poses(scene)
+    lost = [scene.frame_ids[i] for i in range(len(scene)) if i not in set(reg)]
+    sub = replace(scene.subset(reg), T_world_cam=T0[reg], poses_source="given")
+    res = align_poses(sub, AlignConfig(keep_unmatched=True), log=lambda s: print(s, file=sys.stderr))
+    notes = [f"poses estimated from the images (RGB-D SfM: sequential PnP + local-to-global alignment); "
+             f"{len(reg)} of {len(scene)} frames registered"]
+    if lost:
+        notes.append(f"not registered (left out): {', '.join(lost)}")
+        print(f"import: {len(lost)} frame(s) could not be registered and were left out: {', '.join(lost[:10])}",
+              file=sys.stderr)
+    return replace(sub, T_world_cam=res.T_world_cam, meta=replace(sub.meta, notes=sub.meta.notes + tuple(notes)))
+
+
 def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_frames: int | None = None,
                    gravity: np.ndarray | None = None, align_floor: bool = True,
                    floor_config: FloorConfig = FloorConfig(), voxel_m: float = 0.01) -> Scene:
@@ -92,6 +113,8 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
         src = src / "capture"
     name = detect_format(src) if fmt is None else importer(fmt).NAME
     scene = importer(name).read(src, every=every, max_frames=max_frames)
+    if scene.poses_source == "none":
+        scene = _estimate_poses(scene)
     if gravity is not None:
         gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(gravity)) or np.linalg.norm(gravity) < 1e-9:

@@ -9,7 +9,9 @@ Files::
                       mocap world = T_world_cam (OpenCV camera), metres
     intrinsics        camera-intrinsics.txt / intrinsics.K.txt (3x3) or calibration.txt
                       ('fx fy cx cy [k1 k2 p1 p2 k3]'); otherwise the published Freiburg 1/2/3 values are
-                      used when the folder name says which sensor (fr1/fr2 with their distortion)
+                      used when the folder name says which sensor (fr1/fr2 with their distortion);
+                      distorted images are undistorted and cropped to the valid rectangle at the
+                      same size (adjusted intrinsics, no black borders: valid_rectangle_intrinsics)
 
 Association (as TUM's ``associate.py``): every rgb/depth pair within ``max_dt_s`` (0.02 s), taken
 greedily by smallest stamp difference, one-to-one. Ground truth is interpolated at the rgb stamp
@@ -23,6 +25,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from presim.capture.importers.common import (
@@ -119,6 +122,18 @@ def interpolate_pose(gt_stamps: np.ndarray, gt_vals: np.ndarray, t: float, max_g
     return make_pose(quat_xyzw_to_R(q), p)
 
 
+def valid_rectangle_intrinsics(K: Intrinsics, dist: tuple[float, ...]) -> Intrinsics:
+    """Intrinsics of the undistorted image, same size, that holds only pixels with data.
+
+    Undistorting a Freiburg 1 frame into its own K leaves 5.3 % of the image as black corners with
+    no color and no depth, which every render and the evaluation would score. We crop instead: the
+    output camera zooms in (fx 517 -> 547 for fr1) so that every output pixel maps inside the raw
+    image (OpenCV's optimal new camera matrix with alpha = 0), at the same resolution.
+    """
+    K_new, _ = cv2.getOptimalNewCameraMatrix(K.K, np.asarray(dist, np.float64), K.size_wh, 0.0, K.size_wh)
+    return Intrinsics(float(K_new[0, 0]), float(K_new[1, 1]), float(K_new[0, 2]), float(K_new[1, 2]), K.width, K.height)
+
+
 def read_intrinsics(src: Path, w: int, h: int) -> tuple[Intrinsics, Undistortion | None, str]:
     for name in ("camera-intrinsics.txt", "intrinsics.K.txt"):
         if (src / name).is_file():
@@ -133,15 +148,46 @@ def read_intrinsics(src: Path, w: int, h: int) -> tuple[Intrinsics, Undistortion
             raise SceneError(f"{calib}: expected 4, 8 or 9 numbers (fx fy cx cy [k1 k2 p1 p2 k3]), got {len(vals)}")
         K = Intrinsics(*vals[:4], w, h)
         dist = tuple(vals[4:])
-        return K, (Undistortion(K, dist, K) if dist and any(dist) else None), "calibration.txt"
+        if dist and any(dist):
+            K_out = valid_rectangle_intrinsics(K, dist)
+            return K_out, Undistortion(K, dist, K_out), "calibration.txt (undistorted to the valid rectangle)"
+        return K, None, "calibration.txt"
     m = re.search(r"freiburg([123])", str(src.resolve()))
     if m:
         key = f"freiburg{m.group(1)}"
         (fx, fy, cx, cy), dist = FREIBURG[key]
         K = Intrinsics(fx, fy, cx, cy, w, h)
-        return K, (Undistortion(K, dist, K) if dist else None), f"published {key} calibration"
+        if dist:
+            K_out = valid_rectangle_intrinsics(K, dist)
+            return K_out, Undistortion(K, dist, K_out), f"published {key} calibration (undistorted to the valid rectangle)"
+        return K, None, f"published {key} calibration"
     raise SceneError(f"{src}: no intrinsics (add camera-intrinsics.txt with the 3x3 K, or calibration.txt "
                      "'fx fy cx cy [k1 k2 p1 p2 k3]'; Freiburg folders are recognised by name)")
+
+
+def _read_without_poses(src: Path, rgb, dep, every: int, max_frames: int | None, max_dt_s: float) -> Scene:
+    """A TUM folder without groundtruth.txt: frames with placeholder poses (``poses_source="none"``);
+    ``import_capture`` estimates them."""
+    if not rgb or not dep:
+        raise SceneError(f"{src}: empty {'rgb.txt' if not rgb else 'depth.txt'}")
+    pairs = associate(np.array([t for t, _ in rgb]), np.array([t for t, _ in dep]), max_dt_s)
+    if not pairs:
+        raise SceneError(f"{src}: no rgb/depth pair within {max_dt_s} s")
+    pairs = [pairs[k] for k in select_indices(len(pairs), every, max_frames)]
+    colors = [src / rgb[i][1][0] for i, _ in pairs]
+    depths = [src / dep[j][1][0] for _, j in pairs]
+    for p in colors + depths:
+        require_file(p, "image")
+    w, h = image_size_wh(colors[0])
+    K, undist, k_src = read_intrinsics(src, w, h)
+    check_sizes(colors, (w, h), "color")
+    check_sizes(depths, (w, h), "depth")
+    stamps = np.array([rgb[i][0] for i, _ in pairs])
+    ids = [f"{t:.6f}" for t in stamps]
+    notes = (f"intrinsics: {k_src}", "no groundtruth.txt: poses estimated at import")
+    source = FileFrameSource(colors, depths, K, decode_depth_png_scale(DEPTH_SCALE_M), undistortion=undist)
+    return Scene(ids, stamps, np.tile(np.eye(4), (len(ids), 1, 1)), [K] * len(ids), source,
+                 SceneMeta(str(src.resolve()), NAME, VERSION, notes=notes), poses_source="none")
 
 
 def read(src: Path, every: int = 1, max_frames: int | None = None, max_dt_s: float = MAX_DT_S,
@@ -150,6 +196,8 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, max_dt_s: flo
     rgb = read_list(src / "rgb.txt", 2)
     dep = read_list(src / "depth.txt", 2)
     gt_path = src / "groundtruth.txt"
+    if not gt_path.is_file():
+        return _read_without_poses(src, rgb, dep, every, max_frames, max_dt_s)
     gt = read_list(gt_path, 8)
     if not rgb or not dep or not gt:
         empty = [p for p, l in (("rgb.txt", rgb), ("depth.txt", dep), ("groundtruth.txt", gt)) if not l]

@@ -1,0 +1,20 @@
+"""Camera pose refinement of a captured scene (thesis §5.3.3): local-to-global RGB-D bundle adjustment.
+
+Stages, each one pure function with its config dataclass beside it:
+
+- :mod:`.grouping`  -- ``group_poses``: groups of <= 10 poses around key poses (distance rank, angle
+  within the field of view), as §5.3.3.
+- :mod:`.features`  -- ``extract_features`` (OpenCV SIFT) and ``match_pair`` (ratio test, then PnP
+  RANSAC on the key image's depth: works for pure rotations where a fundamental matrix degenerates).
+- :mod:`.bundle`    -- ``adjust_poses``: poses with points anchored in the key frame's depth (thesis eq.
+  5.1), reprojection and depth residuals, Huber loss (scipy ``least_squares``, sparse Jacobian);
+  ``bundle_adjust``: the same with free 3D points (slower; not used by the pipeline).
+- :mod:`.pipeline`  -- ``align_poses``: local BA per group, global BA of the key poses, an optional joint
+  pass over all frames, and the rigid fit that keeps the scene's world frame.
+
+See docs/alignment.md.
+"""
+
+from presim.capture.align.pipeline import AlignConfig, AlignError, AlignResult, align_poses
+
+__all__ = ["AlignConfig", "AlignError", "AlignResult", "align_poses"]

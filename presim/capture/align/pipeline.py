@@ -1,0 +1,347 @@
+"""``align_poses``: local-to-global RGB-D bundle adjustment of a scene's camera poses (thesis §5.3.3).
+
+1. SIFT features of every frame, with the (raw) depth at each keypoint.
+2. Groups of <= 10 poses around seeded random key poses (:func:`group_poses`).
+3. Local: the key image's features matched to each group member (ratio test + PnP RANSAC); 3D points
+   from the key's depth (thesis eq. 5.1: fixed reference points lifted with the key's pose); adjustment
+   of the members' poses (:func:`adjust_poses`: reprojection + depth residuals, Huber), key fixed.
+4. Global: key images matched to their nearest keys using only features the local stage kept;
+   adjustment of the key poses (first key fixed); members follow their key rigidly.
+5. Joint (beyond the thesis, ``joint=True``): each frame also matched to its nearest frames, then one
+   adjustment of all frames with all observations, started from step 4.
+6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
+   mean of centre offsets), so floor, objects and point cloud keep their world frame.
+Deterministic for a seed (OpenCV RANSAC is seeded per pair; scipy's solver is deterministic).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from presim.capture.align.bundle import BAConfig, PairObservations, adjust_poses, residuals_px
+from presim.capture.align.features import FeatureConfig, Features, PairMatch, extract_features, match_pair, unproject_uv
+from presim.capture.align.grouping import GroupConfig, group_poses, view_angles_rad
+from presim.capture.scene import Scene
+from presim.geometry import invert as invert_pose
+from presim.io_utils import progress
+
+__all__ = ["AlignConfig", "AlignError", "AlignResult", "align_poses", "fit_rigid_to", "pose_change"]
+
+
+class AlignError(ValueError):
+    """Alignment impossible with this input (the message names the frames)."""
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    grouping: GroupConfig = field(default_factory=GroupConfig)
+    ba: BAConfig = field(default_factory=BAConfig)
+    global_neighbours: int = 4
+    """Each key image is matched to this many nearest keys (within the FOV) for the global stage."""
+    joint: bool = True
+    """Finish with one bundle adjustment of all frames (beyond the thesis; ablation: False)."""
+    joint_neighbours: int = 6
+    """For the joint pass, each frame is also matched to this many nearest frames (camera-centre
+    distance, viewing directions within the FOV): links neighbouring groups, whose members the
+    thesis' stages never match to each other."""
+    max_matches_per_pair: int = 200
+    """Verified matches per image pair used by the adjustments (seeded random subset): bounds the time."""
+    min_features: int = 20
+    """A frame with fewer SIFT keypoints with depth is an error (named)."""
+    keep_unmatched: bool = False
+    """Frames no verified match connects to the rest (or with too few features): False = error naming
+    them; True = keep their given pose."""
+    seed: int = 0
+    """Key-pose draw and RANSAC seeds."""
+
+
+@dataclass(frozen=True)
+class AlignResult:
+    T_world_cam: np.ndarray
+    """(N, 4, 4) refined camera-to-world poses, in the scene's world frame."""
+    stats: dict
+    """JSON-ready: groups, pairs, matches, transfer errors before/after, per-frame change, timings."""
+
+
+Pair = tuple[int, int, PairMatch]
+
+
+def pose_change(T_a: np.ndarray, T_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame (translation m, rotation deg) between two (N, 4, 4) pose sets."""
+    dt = np.linalg.norm(T_a[:, :3, 3] - T_b[:, :3, 3], axis=1)
+    Rrel = np.einsum("nji,njk->nik", T_a[:, :3, :3], T_b[:, :3, :3])
+    c = np.clip((np.trace(Rrel, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    return dt, np.degrees(np.arccos(c))
+
+
+def fit_rigid_to(T_ref: np.ndarray, T_est: np.ndarray) -> np.ndarray:
+    """4x4 ``S`` minimising sum ||S @ T_est_i - T_ref_i|| over rotations (chordal mean of
+    ``R_ref R_est^T``) and camera centres (mean offset after rotation)."""
+    M = np.einsum("nij,nkj->ik", T_ref[:, :3, :3], T_est[:, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    t = np.mean(T_ref[:, :3, 3] - T_est[:, :3, 3] @ R.T, axis=0)
+    S = np.eye(4)
+    S[:3, :3], S[:3, 3] = R, t
+    return S
+
+
+def _K4(scene: Scene, i: int) -> np.ndarray:
+    K = scene.intrinsics[i]
+    return np.array([K.fx, K.fy, K.cx, K.cy])
+
+
+def _pair_obs(pairs: list[Pair], feats: list[Features], scene: Scene, cams: list[int],
+              max_per_pair: int, seed: int) -> tuple[PairObservations, np.ndarray, dict[int, int]]:
+    """Observations of ``pairs`` over the frames ``cams`` (local indices), at most ``max_per_pair``
+    matches per pair (a seeded random subset); also each observation's feature index in a."""
+    slot = {c: k for k, c in enumerate(cams)}
+    rng = np.random.default_rng(seed)
+    A, B, X, UV, Z, FA = [], [], [], [], [], []
+    for a, b, m in pairs:
+        sel = np.arange(len(m.idx_a))
+        if len(sel) > max_per_pair:
+            sel = np.sort(rng.choice(len(sel), max_per_pair, replace=False))
+        ia, ib = m.idx_a[sel], m.idx_b[sel]
+        fa, fb = feats[a], feats[b]
+        X.append(unproject_uv(scene.intrinsics[a], fa.uv[ia].astype(np.float64), fa.depth_m[ia].astype(np.float64)))
+        A.append(np.full(len(ia), slot[a]))
+        B.append(np.full(len(ia), slot[b]))
+        UV.append(fb.uv[ib].astype(np.float64))
+        Z.append(fb.depth_m[ib].astype(np.float64))
+        FA.append(ia)
+    obs = PairObservations(np.concatenate(A), np.concatenate(B), np.concatenate(X), np.concatenate(UV),
+                           np.concatenate(Z))
+    return obs, np.concatenate(FA), slot
+
+
+def _K4s(scene: Scene, cams: list[int]) -> np.ndarray:
+    return np.stack([_K4(scene, c) for c in cams])
+
+
+def transfer_errors(pairs: list[Pair], feats: list[Features], scene: Scene,
+                    T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Feature transfer errors of all verified matches under poses ``T_world_cam``: each keypoint of a
+    is lifted with a's depth, moved to b, projected: (pixel error (M,), |depth residual| m, NaN without
+    b depth). The pose-only measure reported before/after alignment."""
+    errs, dres = [], []
+    for a, b, m in pairs:
+        Xa = unproject_uv(scene.intrinsics[a], feats[a].uv[m.idx_a].astype(np.float64),
+                          feats[a].depth_m[m.idx_a].astype(np.float64))
+        T_ba = invert_pose(T_world_cam[b]) @ T_world_cam[a]
+        Xw = Xa  # points in a's frame; camera b seen from a
+        n = len(Xa)
+        e, d = residuals_px(T_ba[None], _K4(scene, b)[None], Xw, np.zeros(n, int), np.arange(n),
+                            feats[b].uv[m.idx_b].astype(np.float64), feats[b].depth_m[m.idx_b].astype(np.float64))
+        errs.append(e)
+        dres.append(d)
+    if not errs:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate(errs), np.concatenate(dres)
+
+
+def _components(n: int, edges: list[tuple[int, int]]) -> list[list[int]]:
+    parent = list(range(n))
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for a, b in edges:
+        parent[find(a)] = find(b)
+    comps: dict[int, list[int]] = {}
+    for i in range(n):
+        comps.setdefault(find(i), []).append(i)
+    return sorted(comps.values(), key=lambda c: (-len(c), c[0]))
+
+
+def _names(scene: Scene, idxs: list[int], limit: int = 8) -> str:
+    s = ", ".join(scene.frame_ids[i] for i in idxs[:limit])
+    return s + (f" and {len(idxs) - limit} more" if len(idxs) > limit else "")
+
+
+def _stat(x: np.ndarray) -> dict:
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return {"median": None, "mean": None, "p90": None}
+    return {"median": float(np.median(x)), "mean": float(np.mean(x)), "p90": float(np.percentile(x, 90))}
+
+
+def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
+                log: Callable[[str], None] | None = None) -> AlignResult:
+    """Refined camera poses of ``scene`` (see module doc). Raises :class:`AlignError` naming the frames
+    when a frame has no depth or too few features, or the frames do not form one connected set."""
+    t_start = time.perf_counter()
+    log = log or (lambda s: None)
+    n = len(scene)
+    if n < 2:
+        raise AlignError(f"alignment needs at least 2 frames, the scene has {n}")
+    T_given = np.asarray(scene.T_world_cam, dtype=np.float64).copy()
+    fc = config.features
+
+    # 1. features
+    feats: list[Features] = []
+    no_depth, few = [], []
+    for i in progress(range(n), desc="align: features", unit="frame"):
+        color, depth = scene.frames.load(i)
+        if not np.any(depth > 0):
+            no_depth.append(i)
+        f = extract_features(color, depth, fc)
+        if int(np.count_nonzero(f.depth_m > 0)) < config.min_features:
+            few.append(i)
+        feats.append(f)
+    if no_depth:
+        raise AlignError(f"{len(no_depth)} frame(s) with no valid depth: {_names(scene, no_depth)}")
+    if few and not config.keep_unmatched:
+        raise AlignError(f"{len(few)} frame(s) with fewer than {config.min_features} SIFT features with depth "
+                         f"(texture-less or blurred?): {_names(scene, few)} (--keep-unmatched keeps their given poses)")
+    t_feat = time.perf_counter()
+
+    # 2. groups
+    fov = float(np.radians(scene.intrinsics[0].hfov_deg))
+    groups = group_poses(T_given, fov, config.grouping, seed=config.seed)
+    pair_seed = config.seed * 1_000_003
+
+    # 3. local
+    T_local = T_given.copy()
+    local_pairs: list[Pair] = []
+    used: dict[int, set[int]] = {}
+    for g in progress(groups, desc="align: local groups", unit="group"):
+        pairs = []
+        for m in g.member_idxs:
+            pm = match_pair(feats[g.key_idx], feats[m], scene.intrinsics[g.key_idx], scene.intrinsics[m], fc,
+                            seed=pair_seed + g.key_idx * n + m, T_b_a_prior=_rel(T_given, g.key_idx, m))
+            if pm is not None:
+                pairs.append((g.key_idx, m, pm))
+        if not pairs:
+            continue
+        cams = [g.key_idx] + [b for _, b, _ in pairs]
+        obs, feat_a, slot = _pair_obs(pairs, feats, scene, cams, config.max_matches_per_pair, config.seed + g.key_idx)
+        res = adjust_poses(T_given[cams], np.arange(len(cams)) == 0, _K4s(scene, cams), obs, config.ba)
+        for c in cams[1:]:
+            T_local[c] = res.T_world_cam[slot[c]]
+        used[g.key_idx] = set(feat_a[res.inlier].tolist())
+        local_pairs.extend(pairs)
+
+    # 4. global over key poses
+    keys = [g.key_idx for g in groups]
+    key_centres = T_given[keys, :3, 3]
+    global_pairs: list[Pair] = []
+    done = set()
+    for ka in progress(keys, desc="align: key matches", unit="key"):
+        ang = view_angles_rad(T_given[keys], keys.index(ka))
+        dist = np.linalg.norm(key_centres - T_given[ka, :3, 3], axis=1)
+        order = [keys[j] for j in np.argsort(dist, kind="stable") if keys[j] != ka and ang[j] <= fov]
+        for kb in order[: config.global_neighbours]:
+            if (min(ka, kb), max(ka, kb)) in done:
+                continue
+            done.add((min(ka, kb), max(ka, kb)))
+            fa, fb = _restrict(feats[ka], used.get(ka), fc), _restrict(feats[kb], used.get(kb), fc)
+            pm = match_pair(fa[0], fb[0], scene.intrinsics[ka], scene.intrinsics[kb], fc, seed=pair_seed + ka * n + kb,
+                            T_b_a_prior=_rel(T_local, ka, kb))
+            if pm is not None:
+                global_pairs.append((ka, kb, PairMatch(fa[1][pm.idx_a], fb[1][pm.idx_b], pm.T_b_a)))
+
+    # neighbour pairs for the joint pass (beyond the thesis)
+    neighbour_pairs: list[Pair] = []
+    if config.joint and config.joint_neighbours > 0:
+        have = {(min(a, b), max(a, b)) for a, b, _ in local_pairs + global_pairs}
+        centres = T_given[:, :3, 3]
+        for i in progress(range(n), desc="align: neighbour matches", unit="frame"):
+            ang = view_angles_rad(T_given, i)
+            dist = np.linalg.norm(centres - centres[i], axis=1)
+            order = [int(j) for j in np.argsort(dist, kind="stable") if j != i and ang[j] <= fov]
+            for j in order[: config.joint_neighbours]:
+                key = (min(i, j), max(i, j))
+                if key in have:
+                    continue
+                have.add(key)
+                pm = match_pair(feats[i], feats[j], scene.intrinsics[i], scene.intrinsics[j], fc,
+                                seed=pair_seed + i * n + j, T_b_a_prior=_rel(T_given, i, j))
+                if pm is not None:
+                    neighbour_pairs.append((i, j, pm))
+
+    all_pairs = local_pairs + global_pairs + neighbour_pairs
+    comps = _components(n, [(a, b) for a, b, _ in all_pairs])
+    main = set(comps[0])
+    unmatched = sorted(i for c in comps[1:] for i in c)
+    if unmatched and not config.keep_unmatched:
+        raise AlignError(f"disconnected sequence: {len(unmatched)} frame(s) share no verified matches with the "
+                         f"{len(main)} others: {_names(scene, unmatched)} (pass keep_unmatched / --keep-unmatched "
+                         f"to keep their given poses)")
+    T_glob = T_local.copy()
+    if global_pairs:
+        gkeys = sorted({k for a, b, _ in global_pairs for k in (a, b)} & main)
+        gpairs = [p for p in global_pairs if p[0] in main]
+        obs, _, slot = _pair_obs(gpairs, feats, scene, gkeys, config.max_matches_per_pair, config.seed + 1)
+        res = adjust_poses(T_local[gkeys], np.arange(len(gkeys)) == 0, _K4s(scene, gkeys), obs, config.ba)
+        member_of = {m: g.key_idx for g in groups for m in g.member_idxs}
+        for k in gkeys:
+            T_glob[k] = res.T_world_cam[slot[k]]
+        for m, k in member_of.items():
+            if k in slot:
+                T_glob[m] = T_glob[k] @ invert_pose(T_local[k]) @ T_local[m]
+    t_stages = time.perf_counter()
+
+    # 5. joint
+    T_ref = T_glob
+    if config.joint and all_pairs:
+        cams = sorted(main)
+        jpairs = [p for p in all_pairs if p[0] in main and p[1] in main]
+        gauge = keys[0] if keys[0] in main else cams[0]
+        obs, _, slot = _pair_obs(jpairs, feats, scene, cams, config.max_matches_per_pair, config.seed + 2)
+        res = adjust_poses(T_glob[cams], np.array([c == gauge for c in cams]), _K4s(scene, cams), obs, config.ba)
+        T_ref = T_glob.copy()
+        for c in cams:
+            T_ref[c] = res.T_world_cam[slot[c]]
+
+    # 6. rigid fit onto the given trajectory (frames in the main component)
+    idx = sorted(main)
+    S = fit_rigid_to(T_given[idx], T_ref[idx])
+    T_out = T_given.copy()
+    T_out[idx] = S @ T_ref[idx]
+    t_end = time.perf_counter()
+
+    e0, d0 = transfer_errors(all_pairs, feats, scene, T_given)
+    e1, d1 = transfer_errors(all_pairs, feats, scene, T_out)
+    dt, dr = pose_change(T_given, T_out)
+    stats = {
+        "frames": n, "groups": len(groups), "group_sizes": [1 + len(g.member_idxs) for g in groups],
+        "local_pairs": len(local_pairs), "global_pairs": len(global_pairs),
+        "neighbour_pairs": len(neighbour_pairs),
+        "matches": int(sum(len(p[2].idx_a) for p in all_pairs)),
+        "unmatched_frames": [scene.frame_ids[i] for i in unmatched],
+        "transfer_px_before": _stat(e0), "transfer_px_after": _stat(e1),
+        "depth_res_m_before": _stat(d0), "depth_res_m_after": _stat(d1),
+        "change_m": _stat(dt), "change_deg": _stat(dr),
+        "per_frame_change": [{"frame_id": scene.frame_ids[i], "dt_m": float(dt[i]), "dr_deg": float(dr[i])}
+                             for i in range(n)],
+        "time_s": {"features": t_feat - t_start, "local_global": t_stages - t_feat,
+                   "joint": t_end - t_stages, "total": t_end - t_start},
+        "config": asdict(config),
+    }
+    log(f"aligned {n} frames: transfer error median {stats['transfer_px_before']['median']:.2f} -> "
+        f"{stats['transfer_px_after']['median']:.2f} px, cameras moved median {np.median(dt) * 100:.2f} cm / "
+        f"{np.median(dr):.2f} deg, {t_end - t_start:.1f} s")
+    return AlignResult(T_out, stats)
+
+
+def _rel(T_world_cam: np.ndarray, a: int, b: int) -> np.ndarray:
+    """T_b_a: camera a -> camera b."""
+    return invert_pose(T_world_cam[b]) @ T_world_cam[a]
+
+
+def _restrict(f: Features, used: set[int] | None, fc: FeatureConfig) -> tuple[Features, np.ndarray]:
+    """Features of a key image limited to those its local adjustment kept (thesis: the global feature
+    group holds only locally used features); all features when too few were used (singleton groups)."""
+    if not used or len(used) < 2 * fc.min_inliers:
+        return f, np.arange(len(f.uv))
+    idx = np.array(sorted(used))
+    return Features(f.uv[idx], f.desc[idx], f.depth_m[idx]), idx
