@@ -229,6 +229,8 @@ class FrameConfig:
     """Fill the pixels no view covers (they stay invalid)."""
     fill_method: str = "auto"
     """``"auto"``, ``"telea"`` or ``"pushpull"``."""
+    time_budget_ms: float = 0.0
+    """> 0: the adaptive loop adds no view once the frame has run this long (0 = no budget)."""
 
     def __post_init__(self) -> None:
         if self.fixed_views < 0 or self.max_views < 1:
@@ -308,7 +310,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     stop_px = cfg.stop_hole_frac * H * W
     replace = big = None
     grid_px: dict[int, np.ndarray] = {}
+    t_start = time.perf_counter()
     while pending and len(views) < n_target:
+        if views and adaptive and cfg.time_budget_ms > 0 and (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
+            break  # time budget spent: deliver what we have (the fill closes the rest)
         if views and adaptive:
             # Next view by how many of its sampled grid points land in the big holes; none lands
             # there -> no candidate can help, stop.
