@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import resource
 import sys
 import time
@@ -85,7 +86,7 @@ def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: R
     cold_ms = (time.perf_counter() - t0) * 1e3 / len(poses)
     for T in poses[:warmup]:
         r.render(T, K)
-    ms, cpu_ms, base_ms, views, holes = [], [], [], [], []
+    ms, cpu_ms, base_ms, views, holes, lods = [], [], [], [], [], []
     stages = {s: [] for s in STAGES + ("upsample",)}
     frames, base_cpu, used_views = {}, [], []
     for T in poses:
@@ -96,6 +97,7 @@ def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: R
         for s in stages:
             stages[s].append(r.last.ms.get(s, 0.0))
         views.append(len(r.last.views))
+        lods.extend(r.last.lod_levels)
         holes.append(out.hole_frac_before_fill)
         used_views.append(list(r.last.views))
     # The baseline in its own pass over the same poses and views (interleaving it with the
@@ -118,7 +120,7 @@ def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: R
         "cpu_ms_median": float(np.median(cpu_ms)), "baseline_cpu_ms_median": float(np.median(base_cpu)),
         "cpu_speedup_vs_naive": float(np.median(base_cpu) / np.median(cpu_ms)),
         "stages_ms_median": {s: round(float(np.median(v)), 2) for s, v in stages.items()},
-        "views_mean": float(np.mean(views)), "hole_frac_mean": float(np.mean(holes)),
+        "views_mean": float(np.mean(views)), "lod_level_mean": float(np.mean(lods)) if lods else 0.0, "hole_frac_mean": float(np.mean(holes)),
         "cache_mb": r.cache_bytes / 2**20, "frames": len(ms), "cold_pass_ms_per_frame": cold_ms,
     }
 
@@ -130,10 +132,12 @@ def main() -> int:
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--sizes", default="640x480,1280x720")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--no-today", action="store_true",
+                    help="skip the same-run pass with the pre-LOD pipeline (lod_levels=0, no selection reuse)")
     args = ap.parse_args()
     import numba
 
-    print(f"numba threads: {numba.get_num_threads()}")
+    print(f"numba threads: {numba.get_num_threads()}  load average at start: {os.getloadavg()}")
     results = {}
     for name, scene in load_scenes(args).items():
         hfov = scene.intrinsics[0].hfov_deg
@@ -142,6 +146,17 @@ def main() -> int:
             w, h = (int(x) for x in size.split("x"))
             K = Intrinsics.from_fov(w, h, hfov)
             res = bench(scene, K, poses, args.warmup, RenderConfig())
+            if not args.no_today:
+                # The pipeline as it was before level of detail and temporal reuse, same run, same poses.
+                old = bench(scene, K, poses, args.warmup, RenderConfig(lod_levels=0, reuse_move_m=0.0))
+                res["today_ms_median"] = old["ms_median"]
+                res["today_fps_median"] = old["fps_median"]
+                res["today_stages_ms_median"] = old["stages_ms_median"]
+                res["today_views_mean"] = old["views_mean"]
+                res["speedup_vs_today"] = old["ms_median"] / res["ms_median"]
+                print(f"{'':26s} {'':9s} today (lod_levels=0, no reuse) {old['ms_median']:7.1f} ms "
+                      f"{old['fps_median']:5.1f} fps  -> x{res['speedup_vs_today']:.2f}  | " + " ".join(
+                          f"{k}={v:.1f}" for k, v in old["stages_ms_median"].items() if v > 0))
             results[f"{name} {size}"] = res
             st = " ".join(f"{k}={v:.1f}" for k, v in res["stages_ms_median"].items() if v > 0)
             print(f"{name:26s} {size:9s} {res['ms_median']:7.1f} ms  {res['fps_median']:5.1f} fps  "
@@ -153,7 +168,8 @@ def main() -> int:
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak RSS: {peak_mb:.0f} MB")
     if args.json:
-        Path(args.json).write_text(json.dumps({"results": results, "peak_rss_mb": peak_mb}, indent=2))
+        Path(args.json).write_text(json.dumps({"results": results, "peak_rss_mb": peak_mb,
+                                               "load_average_end": os.getloadavg()}, indent=2))
     return 0
 
 

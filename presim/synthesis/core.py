@@ -162,6 +162,9 @@ class SynthesisBackend:
     """``upload(view_points, device)`` -> the view in the form ``view_image`` takes (cached)."""
     resolve_device: Callable[[str | None], Any]
     """``resolve_device(name_or_None)`` -> the device object passed to ``upload``."""
+    frame_batch: Callable[..., Any] | None = None
+    """Optional: renders many frames in one call (``Renderer.render_batch`` uses it), e.g.
+    :func:`presim.synthesis.batch_torch.synthesize_batch_torch`."""
 
 
 def _host_view(view: ViewPoints, device: Any) -> ViewPoints:
@@ -186,10 +189,19 @@ def _torch_backend() -> SynthesisBackend:
     return SynthesisBackend("torch", tb.view_image_torch, tb.to_device, tb.resolve_device)
 
 
+def _torch_batch_backend() -> SynthesisBackend:
+    from presim.synthesis import batch_torch as bt  # torch is imported only when asked for
+    from presim.synthesis import torch_backend as tb
+
+    return SynthesisBackend("torch_batch", tb.view_image_torch, tb.to_device, tb.resolve_device,
+                            bt.synthesize_batch_torch)
+
+
 BACKEND_TABLE: dict[str, Callable[[], SynthesisBackend]] = {
     "numba": _numba_backend,
     "reference": _reference_backend,
     "torch": _torch_backend,
+    "torch_batch": _torch_batch_backend,
 }
 """Backend name -> factory of its :class:`SynthesisBackend` (factories keep torch imports lazy)."""
 
