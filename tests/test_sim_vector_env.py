@@ -51,7 +51,7 @@ def test_vector_env_torch_batch_and_autoreset(toy_path):
     from presim.sim.envs import PointNavConfig
 
     venv = PointNavVectorEnv(toy_path, num_envs=3, width=32, height=24,
-                             config=PointNavConfig(max_episode_steps=2))
+                             config=PointNavConfig(max_episode_steps=2), render=RenderConfig(backend="torch_batch"))
     assert venv.renderer.config.backend == "torch_batch"
     obs, _ = venv.reset(seed=0)
     assert obs["rgb"].shape == (3, 24, 32, 3) and obs["depth"].shape == (3, 24, 32, 1)

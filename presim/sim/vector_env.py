@@ -4,9 +4,10 @@
 loaded scene and ONE :class:`~presim.synthesis.renderer.Renderer` (per-view caches are shared, so
 memory does not grow with N beyond the robots' occupancy maps and observations). Each step moves
 all N robots (control, collision, odometry: per env, cheap), then renders the N head cameras with
-one :meth:`Renderer.render_batch` call: on ``backend="torch_batch"`` (default when torch is
-installed) that is one batch of tensor operations on CUDA when present, else CPU; with another
-backend (e.g. ``"numba"``) the N frames are rendered one after another by the per-frame core.
+one :meth:`Renderer.render_batch` call: on ``backend="torch_batch"`` (the default when CUDA is
+present; pass ``render=RenderConfig(backend="torch_batch")`` to force it on CPU) that is one batch
+of tensor operations; with another backend (``"numba"``, the default without CUDA) the N frames are
+rendered one after another by the per-frame core.
 
 Gymnasium 1.x vector API: ``reset(seed=..., options=...) -> (obs, infos)``,
 ``step(actions) -> (obs, rewards, terminations, truncations, infos)``; observations are the single
@@ -37,12 +38,14 @@ __all__ = ["default_batch_backend", "PointNavVectorEnv"]
 
 
 def default_batch_backend() -> str:
-    """``"torch_batch"`` when torch can be imported, else ``"numba"`` (frames rendered one by one)."""
+    """``"torch_batch"`` when torch sees a CUDA device, else ``"numba"`` (frames one by one on the
+    CPU: on the 2-core test machine the numba per-frame core was faster than torch's CPU batch,
+    see docs/synthesis.md)."""
     try:
-        import torch  # noqa: F401
+        import torch
     except ImportError:  # pragma: no cover - torch is part of the install
         return "numba"
-    return "torch_batch"
+    return "torch_batch" if torch.cuda.is_available() else "numba"
 
 
 class PointNavVectorEnv(VectorEnv):
