@@ -41,7 +41,8 @@ def _steps_per_s(step, n: int) -> float:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True, help="saved scene folder (with a floor)")
+    ap.add_argument("--scene", help="saved scene folder with a floor (default: the sample scene, seed 0, "
+                    "30 frames, built once into the temp directory as benchmarks/bench_sim.py does)")
     ap.add_argument("--steps", type=int, default=20, help="steps per measured repeat")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--num-envs", type=int, default=8)
@@ -58,6 +59,14 @@ def main() -> int:
     from presim.sim.vector_env import PointNavVectorEnv
     from presim.synthesis.renderer import RenderConfig, Renderer
 
+    if args.scene is None:
+        import tempfile
+
+        from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
+
+        args.scene = str(Path(tempfile.gettempdir()) / "presim_bench_sim_sample_seed0_640x480_30")
+        if not (Path(args.scene) / "scene.json").is_file():
+            build_sample_scene(args.scene, seed=0, config=SampleSceneConfig(num_frames=30), overwrite=True)
     scene = load_scene(args.scene)
     print(f"scene {args.scene}  cpus {os.cpu_count()}  load average {os.getloadavg()}", flush=True)
     res: dict[str, dict] = {}
