@@ -32,10 +32,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 TODAY = dict(lod_levels=0, reuse_move_m=0.0)
 
 
+CPU_MS: list[float] = []
+"""CPU ms per step of the last :func:`_steps_per_s` call is appended here (process time, all threads)."""
+
+
 def _steps_per_s(step, n: int) -> float:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(n):
         step()
+    CPU_MS.append((time.process_time() - c0) * 1e3 / n)
     return n / (time.perf_counter() - t0)
 
 
@@ -81,6 +86,7 @@ def main() -> int:
         for _ in range(3):
             env.step(env.action_space.sample())
     rates = {name: [] for name in envs}
+    cpu = {name: [] for name in envs}
     for _ in range(args.repeats):
         for name, env in envs.items():
             rng = rngs[name]
@@ -90,12 +96,18 @@ def main() -> int:
                 if te or tr:
                     env.reset()
             rates[name].append(_steps_per_s(step, args.steps))
+            cpu[name].append(CPU_MS[-1])
     single = statistics.median(rates["new"])
     res["pointnav single"] = {"steps_per_s_median": single, "today_steps_per_s_median": statistics.median(rates["today"]),
                               "speedup_vs_today": single / statistics.median(rates["today"]),
-                              "runs": rates["new"], "today_runs": rates["today"]}
+                              "runs": rates["new"], "today_runs": rates["today"],
+                              "cpu_ms_per_step_median": statistics.median(cpu["new"]),
+                              "today_cpu_ms_per_step_median": statistics.median(cpu["today"])}
+    r1 = res["pointnav single"]
     print(f"PointNav single env 128x96 : {single:7.1f} steps/s   today {statistics.median(rates['today']):7.1f}  "
-          f"-> x{res['pointnav single']['speedup_vs_today']:.2f}", flush=True)
+          f"-> x{r1['speedup_vs_today']:.2f}   CPU ms/step {r1['cpu_ms_per_step_median']:.1f} vs today "
+          f"{r1['today_cpu_ms_per_step_median']:.1f} -> x{r1['today_cpu_ms_per_step_median'] / r1['cpu_ms_per_step_median']:.2f}",
+          flush=True)
 
     # ---- vector env ----------------------------------------------------------------------------
     for backend in ("torch_batch", "numba"):
@@ -107,10 +119,12 @@ def main() -> int:
         rs = [_steps_per_s(lambda: venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32)),
                            max(2, args.steps // 4)) * args.num_envs for _ in range(args.repeats)]
         med = statistics.median(rs)
+        cpu_env = statistics.median(CPU_MS[-args.repeats:]) / args.num_envs
         key = f"pointnav vector {args.num_envs} {backend}"
-        res[key] = {"env_steps_per_s_median": med, "ratio_vs_single": med / single, "runs": rs}
+        res[key] = {"env_steps_per_s_median": med, "ratio_vs_single": med / single, "runs": rs,
+                    "cpu_ms_per_env_step_median": cpu_env}
         print(f"PointNav vector env x{args.num_envs} ({backend:11s}): {med:7.1f} env-steps/s  = "
-              f"x{med / single:.2f} the single env", flush=True)
+              f"x{med / single:.2f} the single env   CPU ms/env-step {cpu_env:.1f}", flush=True)
         venv.close()
 
     # ---- demo drive: 640x480 camera, built-in route -------------------------------------------
@@ -123,13 +137,18 @@ def main() -> int:
         sim.step(drv.action(sim))
         sims[name] = (sim, drv)
     rates = {name: [] for name in sims}
+    cpu = {name: [] for name in sims}
     for _ in range(args.repeats):
         for name, (sim, drv) in sims.items():
             rates[name].append(_steps_per_s(lambda: sim.step(drv.action(sim)), args.drive_steps))
+            cpu[name].append(CPU_MS[-1])
     d_new, d_old = statistics.median(rates["new"]), statistics.median(rates["today"])
     res["demo drive 640x480"] = {"steps_per_s_median": d_new, "today_steps_per_s_median": d_old,
-                                 "speedup_vs_today": d_new / d_old, "runs": rates["new"], "today_runs": rates["today"]}
-    print(f"demo drive 640x480         : {d_new:7.2f} steps/s   today {d_old:7.2f}  -> x{d_new / d_old:.2f}")
+                                 "speedup_vs_today": d_new / d_old, "runs": rates["new"], "today_runs": rates["today"],
+                                 "cpu_ms_per_step_median": statistics.median(cpu["new"]),
+                                 "today_cpu_ms_per_step_median": statistics.median(cpu["today"])}
+    print(f"demo drive 640x480         : {d_new:7.2f} steps/s   today {d_old:7.2f}  -> x{d_new / d_old:.2f}   "
+          f"CPU ms/step {statistics.median(cpu['new']):.1f} vs today {statistics.median(cpu['today']):.1f}")
     import resource
 
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
