@@ -9,6 +9,11 @@ the SAME views the pipeline used, so the ratio compares implementations, not vie
 Steady state = the second pass over the trajectory (every view it needs already prepared and
 cached); the first (cold) pass, which also reads and prepares views, is reported per frame too.
 
+Each case is also measured with "today" = ``RenderConfig(lod_levels=0, reuse_move_m=0)`` (the
+pipeline before level of detail and temporal reuse) in the same process, measured passes
+alternating with the default config (``--passes``), reported as ``results[...]["today"]``,
+``speedup_vs_today`` (wall) and ``cpu_speedup_vs_today``; ``--no-today`` skips it.
+
 Prints medians of wall ms/frame, frames/s, per-stage wall ms, views per frame, hole fraction, the
 ratio baseline/pipeline, the CPU time per frame (process time summed over threads: on a machine
 shared with other jobs it is the robust number; with NUMBA_NUM_THREADS=1 it equals the wall time
@@ -16,6 +21,7 @@ of an unloaded core), and the peak RSS of the process (numba's allocations bypas
 
     .venv/bin/python benchmarks/bench_render.py                 # synthetic room + apc capture
     .venv/bin/python benchmarks/bench_render.py --scene out/sample --frames 40
+    .venv/bin/python benchmarks/bench_render.py --scene out/apc --sizes 640x480,256x256,128x128 --json out/r.json
 """
 
 from __future__ import annotations
