@@ -9,8 +9,6 @@ from presim.geometry import Intrinsics, look_at
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.testing import rect_scene as S
 
-torch = pytest.importorskip("torch")
-
 
 def _poses():
     return np.stack([look_at((0.1 * k - 0.15, -1.0, 1.25), (0.0, 0.5, 0.4)) for k in range(4)]

@@ -50,6 +50,7 @@ def test_half_intrinsics_places_pooled_points_on_the_surface():
     c = np.zeros((48, 64, 3), np.uint8)
     _, d2, K2 = build_level(c, d, K, 2)
     assert (K2.width, K2.height) == (16, 12) and K2.fx == 25.0
+    assert K2 == half_intrinsics(half_intrinsics(K)) and K2.cx == (31.5 - 0.5) / 2 / 2 - 0.25
     pts, _ = unproject_depth(K2, d2)
     np.testing.assert_allclose(pts[:, 2], 2.0)
     uv, _ = project(K, pts.astype(np.float64))

@@ -23,7 +23,6 @@ after an episode ended resets that env and returns its first observation with re
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -117,7 +116,3 @@ class PointNavVectorEnv(VectorEnv):
     def close_extras(self, **kwargs) -> None:
         for e in self.envs:
             e.close()
-
-
-def _config_with(cfg: PointNavConfig | None, **kw) -> PointNavConfig:  # pragma: no cover - helper for scripts
-    return replace(cfg or PointNavConfig(), **kw)
