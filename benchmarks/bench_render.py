@@ -9,6 +9,11 @@ the SAME views the pipeline used, so the ratio compares implementations, not vie
 Steady state = the second pass over the trajectory (every view it needs already prepared and
 cached); the first (cold) pass, which also reads and prepares views, is reported per frame too.
 
+Each case is also measured with "today" = ``RenderConfig(lod_levels=0, reuse_move_m=0)`` (the
+pipeline before level of detail and temporal reuse) in the same process, measured passes
+alternating with the default config (``--passes``), reported as ``results[...]["today"]``,
+``speedup_vs_today`` (wall) and ``cpu_speedup_vs_today``; ``--no-today`` skips it.
+
 Prints medians of wall ms/frame, frames/s, per-stage wall ms, views per frame, hole fraction, the
 ratio baseline/pipeline, the CPU time per frame (process time summed over threads: on a machine
 shared with other jobs it is the robust number; with NUMBA_NUM_THREADS=1 it equals the wall time
@@ -16,6 +21,7 @@ of an unloaded core), and the peak RSS of the process (numba's allocations bypas
 
     .venv/bin/python benchmarks/bench_render.py                 # synthetic room + apc capture
     .venv/bin/python benchmarks/bench_render.py --scene out/sample --frames 40
+    .venv/bin/python benchmarks/bench_render.py --scene out/apc --sizes 640x480,256x256,128x128 --json out/r.json
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import resource
 import sys
 import time
@@ -76,31 +83,65 @@ def trajectory(scene: Scene, n: int) -> np.ndarray:
     return np.stack(out)
 
 
-def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: RenderConfig) -> dict:
-    r = Renderer(scene, config)
-    # Cold pass: compiles (first case only) and prepares every view the trajectory needs.
-    t0 = time.perf_counter()
-    for T in poses:
-        r.render(T, K)
-    cold_ms = (time.perf_counter() - t0) * 1e3 / len(poses)
-    for T in poses[:warmup]:
-        r.render(T, K)
-    ms, cpu_ms, base_ms, views, holes = [], [], [], [], []
-    stages = {s: [] for s in STAGES + ("upsample",)}
-    frames, base_cpu, used_views = {}, [], []
+def _measure(r: Renderer, K: Intrinsics, poses: np.ndarray, acc: dict) -> None:
+    """One measured pass over ``poses``; appends per-frame numbers to ``acc``."""
     for T in poses:
         t0, c0 = time.perf_counter(), time.process_time()
         out = r.render(T, K)
-        ms.append((time.perf_counter() - t0) * 1e3)
-        cpu_ms.append((time.process_time() - c0) * 1e3)
-        for s in stages:
-            stages[s].append(r.last.ms.get(s, 0.0))
-        views.append(len(r.last.views))
-        holes.append(out.hole_frac_before_fill)
-        used_views.append(list(r.last.views))
+        acc["ms"].append((time.perf_counter() - t0) * 1e3)
+        acc["cpu_ms"].append((time.process_time() - c0) * 1e3)
+        for s in acc["stages"]:
+            acc["stages"][s].append(r.last.ms.get(s, 0.0))
+        acc["views"].append(len(r.last.views))
+        acc["holes"].append(out.hole_frac_before_fill)
+        acc["lods"].extend(r.last.lod_levels)
+        acc["used_views"].append(list(r.last.views))
+
+
+def _new_acc() -> dict:
+    return {"ms": [], "cpu_ms": [], "views": [], "holes": [], "lods": [], "used_views": [],
+            "stages": {s: [] for s in STAGES + ("upsample",)}}
+
+
+def _summary(acc: dict) -> dict:
+    med = float(np.median(acc["ms"]))
+    return {
+        "ms_median": med, "fps_median": 1e3 / med, "ms_p90": float(np.percentile(acc["ms"], 90)),
+        "cpu_ms_median": float(np.median(acc["cpu_ms"])),
+        "stages_ms_median": {s: round(float(np.median(v)), 2) for s, v in acc["stages"].items()},
+        "views_mean": float(np.mean(acc["views"])),
+        "lod_level_mean": float(np.mean(acc["lods"])) if acc["lods"] else 0.0,
+        "hole_frac_mean": float(np.mean(acc["holes"])), "frames": len(acc["ms"]),
+    }
+
+
+def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: RenderConfig,
+          today: RenderConfig | None = None, passes: int = 2) -> dict:
+    """Steady-state numbers of ``config``; with ``today``, the same for that config in the same run,
+    measured passes alternating (config, today, config, today, ...) so load changes hit both."""
+    rs = {"new": Renderer(scene, config)}
+    if today is not None:
+        rs["today"] = Renderer(scene, today)
+    cold = {}
+    for name, r in rs.items():
+        # Cold pass: compiles (first case only) and prepares every view the trajectory needs.
+        t0 = time.perf_counter()
+        for T in poses:
+            r.render(T, K)
+        cold[name] = (time.perf_counter() - t0) * 1e3 / len(poses)
+        for T in poses[:warmup]:
+            r.render(T, K)
+    accs = {name: _new_acc() for name in rs}
+    for _ in range(passes):
+        for name, r in rs.items():
+            _measure(r, K, poses, accs[name])
+    res = _summary(accs["new"])
+    r = rs["new"]
+    res.update({"cache_mb": r.cache_bytes / 2**20, "cold_pass_ms_per_frame": cold["new"]})
     # The baseline in its own pass over the same poses and views (interleaving it with the
     # pipeline frame by frame evicted the pipeline's caches and parked its threads: +50 % per frame here).
-    for T, vs in zip(poses, used_views):
+    frames, base_ms, base_cpu = {}, [], []
+    for T, vs in zip(poses, accs["new"]["used_views"]):
         used = []
         for v in vs:
             if v not in frames:
@@ -110,17 +151,18 @@ def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: R
         naive_zbuffer_ref(used, T, K)
         base_ms.append((time.perf_counter() - t0) * 1e3)
         base_cpu.append((time.process_time() - c0) * 1e3)
-    med = float(np.median(ms))
-    return {
-        "ms_median": med, "fps_median": 1e3 / med, "ms_p90": float(np.percentile(ms, 90)),
+    res.update({
         "baseline_ms_median": float(np.median(base_ms)),
-        "speedup_vs_naive": float(np.median(base_ms) / med),
-        "cpu_ms_median": float(np.median(cpu_ms)), "baseline_cpu_ms_median": float(np.median(base_cpu)),
-        "cpu_speedup_vs_naive": float(np.median(base_cpu) / np.median(cpu_ms)),
-        "stages_ms_median": {s: round(float(np.median(v)), 2) for s, v in stages.items()},
-        "views_mean": float(np.mean(views)), "hole_frac_mean": float(np.mean(holes)),
-        "cache_mb": r.cache_bytes / 2**20, "frames": len(ms), "cold_pass_ms_per_frame": cold_ms,
-    }
+        "speedup_vs_naive": float(np.median(base_ms) / res["ms_median"]),
+        "baseline_cpu_ms_median": float(np.median(base_cpu)),
+        "cpu_speedup_vs_naive": float(np.median(base_cpu) / res["cpu_ms_median"]),
+    })
+    if today is not None:
+        old = _summary(accs["today"])
+        res["today"] = old
+        res["speedup_vs_today"] = old["ms_median"] / res["ms_median"]
+        res["cpu_speedup_vs_today"] = old["cpu_ms_median"] / res["cpu_ms_median"]
+    return res
 
 
 def main() -> int:
@@ -130,10 +172,13 @@ def main() -> int:
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--sizes", default="640x480,1280x720")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--passes", type=int, default=2, help="measured passes per config (alternating)")
+    ap.add_argument("--no-today", action="store_true",
+                    help="skip the same-run pass with the pre-LOD pipeline (lod_levels=0, no selection reuse)")
     args = ap.parse_args()
     import numba
 
-    print(f"numba threads: {numba.get_num_threads()}")
+    print(f"numba threads: {numba.get_num_threads()}  load average at start: {os.getloadavg()}")
     results = {}
     for name, scene in load_scenes(args).items():
         hfov = scene.intrinsics[0].hfov_deg
@@ -141,7 +186,9 @@ def main() -> int:
         for size in args.sizes.split(","):
             w, h = (int(x) for x in size.split("x"))
             K = Intrinsics.from_fov(w, h, hfov)
-            res = bench(scene, K, poses, args.warmup, RenderConfig())
+            # "today": the pipeline before level of detail and temporal reuse, same run, same poses.
+            today = None if args.no_today else RenderConfig(lod_levels=0, reuse_move_m=0.0)
+            res = bench(scene, K, poses, args.warmup, RenderConfig(), today, args.passes)
             results[f"{name} {size}"] = res
             st = " ".join(f"{k}={v:.1f}" for k, v in res["stages_ms_median"].items() if v > 0)
             print(f"{name:26s} {size:9s} {res['ms_median']:7.1f} ms  {res['fps_median']:5.1f} fps  "
@@ -149,11 +196,19 @@ def main() -> int:
                   f"views {res['views_mean']:.1f}  holes {res['hole_frac_mean']:.4f}  | {st}")
             print(f"{'':26s} {'':9s} CPU {res['cpu_ms_median']:7.1f} ms/frame (all threads)  naive CPU "
                   f"{res['baseline_cpu_ms_median']:7.1f} ms  x{res['cpu_speedup_vs_naive']:.1f}  "
-                  f"cold pass {res['cold_pass_ms_per_frame']:.0f} ms/frame  cache {res['cache_mb']:.0f} MB")
+                  f"cold pass {res['cold_pass_ms_per_frame']:.0f} ms/frame  cache {res['cache_mb']:.0f} MB  "
+                  f"lod level {res['lod_level_mean']:.2f}")
+            if "today" in res:
+                old = res["today"]
+                print(f"{'':26s} {'':9s} today (lod_levels=0, no reuse) {old['ms_median']:7.1f} ms "
+                      f"{old['fps_median']:5.1f} fps  CPU {old['cpu_ms_median']:7.1f} ms  -> wall "
+                      f"x{res['speedup_vs_today']:.2f}  CPU x{res['cpu_speedup_vs_today']:.2f}  | " + " ".join(
+                          f"{k}={v:.1f}" for k, v in old["stages_ms_median"].items() if v > 0))
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak RSS: {peak_mb:.0f} MB")
     if args.json:
-        Path(args.json).write_text(json.dumps({"results": results, "peak_rss_mb": peak_mb}, indent=2))
+        Path(args.json).write_text(json.dumps({"results": results, "peak_rss_mb": peak_mb,
+                                               "load_average_end": os.getloadavg()}, indent=2))
     return 0
 
 

@@ -258,9 +258,13 @@ def test_grid_pixels_uses_the_pixel_centre_rule():
 # ---- backend table ----------------------------------------------------------------------------------
 
 def test_backend_table_dispatch():
-    assert BACKENDS == ("numba", "reference", "torch") and tuple(BACKEND_TABLE) == BACKENDS
+    assert BACKENDS == ("numba", "reference", "torch", "torch_batch") and tuple(BACKEND_TABLE) == BACKENDS
     assert get_backend("numba").view_image is view_image_numba
     assert get_backend("reference").view_image is view_image_reference
+    assert get_backend("numba").frame_batch is None
+    from presim.synthesis.batch_torch import synthesize_batch_torch
+
+    assert get_backend("torch_batch").frame_batch is synthesize_batch_torch
     with pytest.raises(ValueError, match="backend must be one of"):
         get_backend("cuda")
 

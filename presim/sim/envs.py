@@ -83,7 +83,8 @@ class PointNavEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
     def __init__(self, scene: str | Path | Scene, discrete: bool = False, width: int = 128, height: int = 96,
-                 config: PointNavConfig | None = None, render_mode: str | None = None):
+                 config: PointNavConfig | None = None, render_mode: str | None = None,
+                 render_camera: bool = True, renderer=None):
         self.cfg = config or PointNavConfig()
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -94,7 +95,12 @@ class PointNavEnv(gym.Env):
         check_render_memory(width, height, what="one observation", size_flag="width/height")
         cam = CameraSpec(name="head_camera", width=width, height=height, hfov_deg=self.cfg.hfov_deg,
                          rate_hz=1.0 / self.cfg.dt_s, noise=DepthNoiseConfig() if self.cfg.depth_noise else None)
-        self.sim = Simulator(_load(scene), default_robot(), SimConfig(dt_s=self.cfg.dt_s, cameras=(cam,)))
+        # render_camera=False: the simulator renders nothing; images come from outside through
+        # set_camera_images() (the vector env renders all its envs in one batch).
+        scene_obj = _load(scene)
+        self.camera_K = cam.intrinsics(scene_obj.intrinsics[0])
+        self.sim = Simulator(scene_obj, default_robot(), SimConfig(dt_s=self.cfg.dt_s, cameras=(cam,) if render_camera else ()),
+                             renderer=renderer)
         self.discrete = discrete
         self.action_space = spaces.Discrete(4) if discrete else spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.observation_space = spaces.Dict({
@@ -138,6 +144,18 @@ class PointNavEnv(gym.Env):
         ok = (d >= self.cfg.min_goal_dist_m) & (d <= self.cfg.max_goal_dist_m)
         cand = xy[ok] if ok.any() else xy[np.argsort(d)[-max(1, len(d) // 10):]]
         return cand[int(self.np_random.integers(len(cand)))]
+
+    def camera_pose(self) -> np.ndarray:
+        """4x4 ``T_world_cam`` of the head camera now (what the observation would be rendered at)."""
+        from presim.geometry import compose
+
+        return compose(self.sim.T_world_base, self.sim.T_base_cam(0))
+
+    def set_camera_images(self, color: np.ndarray, depth_m: np.ndarray) -> dict:
+        """Use an image rendered outside (``render_camera=False``) as the current observation."""
+        self._last_rgb = color
+        self._last_depth = np.clip(depth_m, 0.0, self.cfg.max_depth_m)[..., None].astype(np.float32)
+        return {"rgb": self._last_rgb, "depth": self._last_depth, "goal": self._goal_vector()}
 
     # ---- gymnasium API -------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):

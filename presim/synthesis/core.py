@@ -162,6 +162,9 @@ class SynthesisBackend:
     """``upload(view_points, device)`` -> the view in the form ``view_image`` takes (cached)."""
     resolve_device: Callable[[str | None], Any]
     """``resolve_device(name_or_None)`` -> the device object passed to ``upload``."""
+    frame_batch: Callable[..., Any] | None = None
+    """Optional: renders many frames in one call (``Renderer.render_batch`` uses it), e.g.
+    :func:`presim.synthesis.batch_torch.synthesize_batch_torch`."""
 
 
 def _host_view(view: ViewPoints, device: Any) -> ViewPoints:
@@ -186,10 +189,19 @@ def _torch_backend() -> SynthesisBackend:
     return SynthesisBackend("torch", tb.view_image_torch, tb.to_device, tb.resolve_device)
 
 
+def _torch_batch_backend() -> SynthesisBackend:
+    from presim.synthesis import batch_torch as bt  # torch is imported only when asked for
+    from presim.synthesis import torch_backend as tb
+
+    return SynthesisBackend("torch_batch", tb.view_image_torch, tb.to_device, tb.resolve_device,
+                            bt.synthesize_batch_torch)
+
+
 BACKEND_TABLE: dict[str, Callable[[], SynthesisBackend]] = {
     "numba": _numba_backend,
     "reference": _reference_backend,
     "torch": _torch_backend,
+    "torch_batch": _torch_batch_backend,
 }
 """Backend name -> factory of its :class:`SynthesisBackend` (factories keep torch imports lazy)."""
 
@@ -229,6 +241,8 @@ class FrameConfig:
     """Fill the pixels no view covers (they stay invalid)."""
     fill_method: str = "auto"
     """``"auto"``, ``"telea"`` or ``"pushpull"``."""
+    time_budget_ms: float = 0.0
+    """> 0: the adaptive loop adds no view once the frame has run this long (0 = no budget)."""
 
     def __post_init__(self) -> None:
         if self.fixed_views < 0 or self.max_views < 1:
@@ -308,7 +322,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     stop_px = cfg.stop_hole_frac * H * W
     replace = big = None
     grid_px: dict[int, np.ndarray] = {}
+    t_start = time.perf_counter()
     while pending and len(views) < n_target:
+        if views and adaptive and cfg.time_budget_ms > 0 and (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
+            break  # time budget spent: deliver what we have (the fill closes the rest)
         if views and adaptive:
             # Next view by how many of its sampled grid points land in the big holes; none lands
             # there -> no candidate can help, stop.

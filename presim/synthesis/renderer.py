@@ -37,6 +37,7 @@ from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfi
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_METHODS
+from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view
@@ -106,6 +107,27 @@ class RenderConfig:
     within 0.2 dB of 1.15 and 1.3 at 1/2 to 1/5 of their time."""
     torch_device: str | None = None
     """Torch device (``None``: CUDA when available, else CPU)."""
+    lod_levels: int = 3
+    """Level of detail (:mod:`presim.synthesis.lod`): coarsest pyramid level of a view's points
+    (2x2 depth-aware pooling per level); 0 = always warp every point. A frame uses, per view, the
+    coarsest level whose points still cover at most ``lod_max_footprint`` target pixels: a target
+    sampled like the capture (e.g. 640x480 from 640x480 views) stays at level 0, unchanged."""
+    lod_max_footprint: float = 1.0
+    """Target pixels one point of the chosen level may cover (median over the view's grid)."""
+    lod_depth_tol: float = 0.02
+    """Relative depth band of the front surface pooled together in a 2x2 block."""
+    reuse_move_m: float = 0.01
+    """Temporal coherence: a frame whose camera moved at most this far (and turned at most
+    ``reuse_turn_deg``) from the previous frame, with the same intrinsics, reuses the previous
+    frame's view selection (candidate list); 0 disables."""
+    reuse_turn_deg: float = 1.0
+    """Rotation bound of the selection reuse, degrees."""
+    time_budget_ms: float = 0.0
+    """> 0: the adaptive loop adds no further view once the frame has taken this long (the view
+    budget is ``max_views``); the final fill still runs. 0 = no time budget."""
+    batch_views: int = 3
+    """``backend="torch_batch"``: :meth:`Renderer.render_batch` renders every frame from this many
+    of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -124,6 +146,12 @@ class RenderConfig:
             (self.cache_mb > 0, "cache_mb must be > 0"),
             (self.max_zoom > 0, "max_zoom must be > 0"),
             (0.0 <= self.next_view_fill_frac <= 1.0, "next_view_fill_frac must be in [0, 1]"),
+            (0 <= self.lod_levels <= 8, "lod_levels must be in [0, 8]"),
+            (self.lod_max_footprint > 0, "lod_max_footprint must be > 0"),
+            (self.lod_depth_tol >= 0, "lod_depth_tol must be >= 0"),
+            (self.reuse_move_m >= 0 and self.reuse_turn_deg >= 0, "reuse_move_m / reuse_turn_deg must be >= 0"),
+            (self.time_budget_ms >= 0, "time_budget_ms must be >= 0"),
+            (self.batch_views >= 1, "batch_views must be >= 1"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -137,7 +165,11 @@ class RenderConfig:
             fixed_views=self.fixed_views, max_views=self.max_views, stop_hole_frac=self.stop_hole_frac,
             big_hole_px=self.big_hole_px, hole_dilation_px=self.hole_dilation_px,
             next_view_fill_frac=self.next_view_fill_frac, fill_holes=self.fill_holes,
-            fill_method=self.fill_method)
+            fill_method=self.fill_method, time_budget_ms=self.time_budget_ms)
+
+    def lod_config(self) -> LodConfig:
+        """The level-of-detail knobs (:mod:`presim.synthesis.lod`)."""
+        return LodConfig(self.lod_levels, self.lod_max_footprint, self.lod_depth_tol)
 
 
 @dataclass
@@ -154,6 +186,10 @@ class RenderStats:
     skipped: list[int] = field(default_factory=list)
     """Candidates left when the adaptive loop stopped because none of their grid points lands in a
     big hole."""
+    lod_levels: list[int] = field(default_factory=list)
+    """Pyramid level used for each warped view (0 = all points)."""
+    reused_selection: bool = False
+    """The selection was the previous frame's (temporal coherence)."""
 
 
 class Renderer:
@@ -176,6 +212,10 @@ class Renderer:
         self._workspace = Workspace()  # warp buffers reused across views and frames (numba backend)
         self._backend = get_backend(config.backend)
         self._device = self._backend.resolve_device(config.torch_device)
+        self._lod = config.lod_config()
+        self._src_focal = np.array([np.sqrt(K.fx * K.fy) for K in scene.intrinsics])
+        self._T_cam_world_src: np.ndarray | None = None  # per view, built on first LOD use
+        self._prev: tuple[np.ndarray, Intrinsics, Selection] | None = None  # temporal reuse
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
@@ -213,19 +253,38 @@ class Renderer:
         return prepare_view(color, depth, self.scene.intrinsics[idx], self.scene.T_world_cam[idx],
                             self.config.num_layers)
 
-    def _view(self, idx: int):
-        v = self._views.get(idx)
+    def _view(self, idx: int, level: int = 0):
+        key = idx if level == 0 else (idx, level)
+        v = self._views.get(key)
         if v is not None:
-            self._views.move_to_end(idx)
+            self._views.move_to_end(key)
             return v
-        v = self._backend.upload(self._prepare(idx), self._device)
-        self._views[idx] = v
+        v = self._backend.upload(self._prepare(idx) if level == 0 else self._prepare_level(idx, level),
+                                 self._device)
+        self._views[key] = v
         self._views_bytes += v.nbytes
         limit = self.config.cache_mb * 2**20
         while self._views_bytes > limit and len(self._views) > 1:
             _, old = self._views.popitem(last=False)
             self._views_bytes -= old.nbytes
         return v
+
+    def _prepare_level(self, idx: int, level: int) -> ViewPoints:
+        color, depth = self._load_frame(idx)
+        if idx not in self._grids:
+            self._grids[idx] = self._grid_from_depth(idx, depth)
+        c, d, K = build_level(color, depth, self.scene.intrinsics[idx], level, self.config.lod_depth_tol)
+        return prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers)
+
+    def lod_level(self, idx: int, T_cam_world: np.ndarray, K: Intrinsics) -> int:
+        """Pyramid level of view ``idx`` for a target camera (0 when ``lod_levels`` = 0)."""
+        if self._lod.levels == 0:
+            return 0
+        if self._T_cam_world_src is None:
+            self._T_cam_world_src = np.linalg.inv(self.scene.T_world_cam)
+        r0 = footprint_ratio(self.grid_points(idx), self._T_cam_world_src[idx], float(self._src_focal[idx]),
+                             T_cam_world, float(np.sqrt(K.fx * K.fy)), self.config.near_m)
+        return choose_level(r0, self._lod)
 
     @property
     def cache_bytes(self) -> int:
@@ -258,20 +317,75 @@ class Renderer:
             return RGBD(color, depth, valid, src, K, T_world_cam, float(1.0 - valid.mean()))
         return self._render(T_world_cam, K)
 
+    def _reusable(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection | None:
+        """The previous frame's selection when the camera moved little (temporal coherence)."""
+        cfg = self.config
+        if self._prev is None or cfg.reuse_move_m <= 0:
+            return None
+        T_prev, K_prev, sel = self._prev
+        if K_prev != K or np.linalg.norm(T_world_cam[:3, 3] - T_prev[:3, 3]) > cfg.reuse_move_m:
+            return None
+        cos = (np.trace(T_prev[:3, :3].T @ T_world_cam[:3, :3]) - 1.0) / 2.0
+        if np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) > cfg.reuse_turn_deg:
+            return None
+        return sel
+
     def _render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
         t0 = time.perf_counter()
-        sel = self.select(T_world_cam, K)
+        sel = self._reusable(T_world_cam, K)
+        reused = sel is not None
+        if sel is None:
+            sel = self.select(T_world_cam, K)
+            self._prev = (T_world_cam.copy(), K, sel)
         select_ms = (time.perf_counter() - t0) * 1e3
-        res = synthesize_frame(sel.view_idx, invert(T_world_cam), K, self._frame_config,
-                               self._backend.view_image, self._view, self.grid_points, self._workspace)
+        T_cam_world = invert(T_world_cam)
+        get_view = self._view
+        levels: dict[int, int] = {}
+        if self._lod.levels > 0:
+            def get_view(idx: int):
+                levels[idx] = self.lod_level(idx, T_cam_world, K)
+                return self._view(idx, levels[idx])
+        res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
+                               self._backend.view_image, get_view, self.grid_points, self._workspace)
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
-                                ms=res.ms, skipped=res.skipped)
+                                ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
+                                reused_selection=reused)
         return RGBD(res.color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
 
     def render_batch(self, T_world_cams: np.ndarray, K: Intrinsics) -> list[RGBD]:
-        """Render B poses (B, 4, 4) with the same intrinsics (per-view data is shared)."""
+        """Render B poses (B, 4, 4) with the same intrinsics (per-view data is shared).
+
+        With ``backend="torch_batch"`` all B frames are rendered in one batch on torch (CUDA when
+        present, else CPU; :mod:`presim.synthesis.batch_torch`: ``batch_views`` views per frame, no
+        adaptive loop); other backends render the poses one by one. ``last.ms`` then holds the
+        batch's stage times."""
         T = np.asarray(T_world_cams, dtype=np.float64)
         if T.ndim != 3 or T.shape[1:] != (4, 4):
             raise ValueError(f"T_world_cams must be (B, 4, 4), got {T.shape}")
-        return [self.render(t, K) for t in T]
+        if self._backend.frame_batch is None or len(T) == 0:
+            return [self.render(t, K) for t in T]
+        if not isinstance(K, Intrinsics):
+            raise ValueError(f"K must be presim.geometry.Intrinsics, got {type(K).__name__}")
+        T = np.stack([check_rigid(t, "target pose T_world_cam") for t in T])
+        if self.config.max_zoom * self._focal_px < np.sqrt(K.fx * K.fy):
+            return [self.render(t, K) for t in T]  # zoomed-in targets: per frame (internal size differs)
+        from presim.synthesis.batch_torch import BatchConfig
+
+        cfg = self.config
+        t0 = time.perf_counter()
+        sels = [self.select(t, K) for t in T]
+        T_cw = np.stack([invert(t) for t in T])
+        select_ms = (time.perf_counter() - t0) * 1e3
+
+        def get_view(b: int, idx: int):
+            level = self.lod_level(idx, T_cw[b], K)
+            return (idx, level), self._view(idx, level)
+
+        bcfg = BatchConfig(cfg.batch_views, cfg.near_m, cfg.crack_filter, cfg.crack_kernel_px, cfg.fill_holes,
+                           cfg.fill_method)
+        ms: dict[str, float] = {}
+        frames = self._backend.frame_batch([s.view_idx for s in sels], T_cw, K, bcfg, get_view, ms)
+        ms["select"] = select_ms
+        self.last = RenderStats(views=frames[-1].views, selection=sels[-1], ms=ms)
+        return [RGBD(f.color, f.depth_m, f.valid, f.source_view, K, t, f.hole_frac) for f, t in zip(frames, T)]

@@ -1,0 +1,163 @@
+"""Environment throughput in one run: PointNav single env, PointNav vector env of N, the demo drive.
+
+Every figure is measured beside its baseline in the same run, repeats alternating between the
+configurations (so load changes on a shared machine hit both), medians reported:
+
+- ``pointnav single``: ``PreSim-PointNav-v0`` (``PointNavEnv``, default 128x96 camera) steps/s with
+  random (seeded) actions; baseline = the same env with the pre-LOD renderer
+  (``RenderConfig(lod_levels=0, reuse_move_m=0)``, "today").
+- ``pointnav vector N``: :class:`presim.sim.vector_env.PointNavVectorEnv` env-steps/s (N robots
+  per step), with ``torch_batch`` (one batch per step) and with ``numba`` (frames one by one);
+  ratio to the single env.
+- ``demo drive``: the simulator loop of ``presim demo`` / ``presim drive`` (default robot, one
+  640x480 camera at 10 Hz, dt 0.1 s, the built-in seeded route), steps/s, new vs today.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_pointnav.py --scene out/sample --json out/bench_pointnav.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+TODAY = dict(lod_levels=0, reuse_move_m=0.0)
+
+
+CPU_MS: list[float] = []
+"""CPU ms per step of the last :func:`_steps_per_s` call is appended here (process time, all threads)."""
+
+
+def _steps_per_s(step, n: int) -> float:
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(n):
+        step()
+    CPU_MS.append((time.process_time() - c0) * 1e3 / n)
+    return n / (time.perf_counter() - t0)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", help="saved scene folder with a floor (default: the sample scene, seed 0, "
+                    "30 frames, built once into the temp directory as benchmarks/bench_sim.py does)")
+    ap.add_argument("--steps", type=int, default=20, help="steps per measured repeat")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--num-envs", type=int, default=8)
+    ap.add_argument("--drive-steps", type=int, default=10)
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args()
+    os.environ["PRESIM_NO_PROGRESS"] = "1"
+    from presim.capture.store import load_scene
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.envs import PointNavEnv
+    from presim.sim.robot import default_robot
+    from presim.sim.routes import RouteDriver, ground_route
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.sim.vector_env import PointNavVectorEnv
+    from presim.synthesis.renderer import RenderConfig, Renderer
+
+    if args.scene is None:
+        import tempfile
+
+        from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
+
+        args.scene = str(Path(tempfile.gettempdir()) / "presim_bench_sim_sample_seed0_640x480_30")
+        if not (Path(args.scene) / "scene.json").is_file():
+            build_sample_scene(args.scene, seed=0, config=SampleSceneConfig(num_frames=30), overwrite=True)
+    scene = load_scene(args.scene)
+    print(f"scene {args.scene}  cpus {os.cpu_count()}  load average {os.getloadavg()}", flush=True)
+    res: dict[str, dict] = {}
+
+    # ---- single env: new vs today ------------------------------------------------------------
+    envs = {"new": PointNavEnv(scene),
+            "today": PointNavEnv(scene, renderer=Renderer(scene, RenderConfig(**TODAY)))}
+    rngs = {}
+    for name, env in envs.items():
+        env.reset(seed=0)
+        rngs[name] = np.random.default_rng(0)
+        for _ in range(3):
+            env.step(env.action_space.sample())
+    rates = {name: [] for name in envs}
+    cpu = {name: [] for name in envs}
+    for _ in range(args.repeats):
+        for name, env in envs.items():
+            rng = rngs[name]
+
+            def step(env=env, rng=rng):
+                _, _, te, tr, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+                if te or tr:
+                    env.reset()
+            rates[name].append(_steps_per_s(step, args.steps))
+            cpu[name].append(CPU_MS[-1])
+    single = statistics.median(rates["new"])
+    res["pointnav single"] = {"steps_per_s_median": single, "today_steps_per_s_median": statistics.median(rates["today"]),
+                              "speedup_vs_today": single / statistics.median(rates["today"]),
+                              "runs": rates["new"], "today_runs": rates["today"],
+                              "cpu_ms_per_step_median": statistics.median(cpu["new"]),
+                              "today_cpu_ms_per_step_median": statistics.median(cpu["today"])}
+    r1 = res["pointnav single"]
+    print(f"PointNav single env 128x96 : {single:7.1f} steps/s   today {statistics.median(rates['today']):7.1f}  "
+          f"-> x{r1['speedup_vs_today']:.2f}   CPU ms/step {r1['cpu_ms_per_step_median']:.1f} vs today "
+          f"{r1['today_cpu_ms_per_step_median']:.1f} -> x{r1['today_cpu_ms_per_step_median'] / r1['cpu_ms_per_step_median']:.2f}",
+          flush=True)
+
+    # ---- vector env ----------------------------------------------------------------------------
+    for backend in ("torch_batch", "numba"):
+        venv = PointNavVectorEnv(scene, num_envs=args.num_envs, render=RenderConfig(backend=backend))
+        venv.reset(seed=0)
+        rng = np.random.default_rng(0)
+        for _ in range(2):
+            venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32))
+        rs = [_steps_per_s(lambda: venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32)),
+                           max(2, args.steps // 4)) * args.num_envs for _ in range(args.repeats)]
+        med = statistics.median(rs)
+        cpu_env = statistics.median(CPU_MS[-args.repeats:]) / args.num_envs
+        key = f"pointnav vector {args.num_envs} {backend}"
+        res[key] = {"env_steps_per_s_median": med, "ratio_vs_single": med / single, "runs": rs,
+                    "cpu_ms_per_env_step_median": cpu_env}
+        print(f"PointNav vector env x{args.num_envs} ({backend:11s}): {med:7.1f} env-steps/s  = "
+              f"x{med / single:.2f} the single env   CPU ms/env-step {cpu_env:.1f}", flush=True)
+        venv.close()
+
+    # ---- demo drive: 640x480 camera, built-in route -------------------------------------------
+    sims = {}
+    for name, rc in (("new", RenderConfig()), ("today", RenderConfig(**TODAY))):
+        sim = Simulator(scene, default_robot(), SimConfig(dt_s=0.1, cameras=(CameraSpec(width=640, height=480,
+                                                                                         rate_hz=10.0),), render=rc))
+        sim.reset(0)
+        drv = RouteDriver(ground_route(sim, np.random.default_rng(0)), sim)
+        sim.step(drv.action(sim))
+        sims[name] = (sim, drv)
+    rates = {name: [] for name in sims}
+    cpu = {name: [] for name in sims}
+    for _ in range(args.repeats):
+        for name, (sim, drv) in sims.items():
+            rates[name].append(_steps_per_s(lambda: sim.step(drv.action(sim)), args.drive_steps))
+            cpu[name].append(CPU_MS[-1])
+    d_new, d_old = statistics.median(rates["new"]), statistics.median(rates["today"])
+    res["demo drive 640x480"] = {"steps_per_s_median": d_new, "today_steps_per_s_median": d_old,
+                                 "speedup_vs_today": d_new / d_old, "runs": rates["new"], "today_runs": rates["today"],
+                                 "cpu_ms_per_step_median": statistics.median(cpu["new"]),
+                                 "today_cpu_ms_per_step_median": statistics.median(cpu["today"])}
+    print(f"demo drive 640x480         : {d_new:7.2f} steps/s   today {d_old:7.2f}  -> x{d_new / d_old:.2f}   "
+          f"CPU ms/step {statistics.median(cpu['new']):.1f} vs today {statistics.median(cpu['today']):.1f}")
+    import resource
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak RSS {peak:.0f} MB (all envs of this process)  load average {os.getloadavg()}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"results": res, "peak_rss_mb": peak,
+                                               "load_average_end": os.getloadavg()}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""Level of detail for the per-view point sets: a small pyramid per capture view, one level per frame.
+
+A one-pixel splat costs one projection per source point whatever the target size: a 128x128 frame
+from 640x480 captures would warp ~300 k points per view for 16 k output pixels. Each view therefore
+gets a pyramid of point sets (built lazily, cached by the Renderer beside the full view):
+
+- level 0 = the view's valid pixels (:func:`presim.synthesis.warp.prepare_view`);
+- level k+1 = 2x2 **depth-aware pooling** of level k (:func:`pool_depth_aware`): in each 2x2 block
+  the nearest valid depth ``dmin`` defines the front surface; the block's pixels with
+  ``d <= dmin * (1 + depth_tol)`` (same surface) are averaged — depth and colour together — and the
+  others (background seen past an edge, invalid pixels) are ignored, so colours never mix across a
+  depth edge and no point floats between foreground and background. The pooled point sits at the
+  block centre (intrinsics :func:`half_intrinsics`); the level is then prepared like a full view
+  (back-projection, layers, sort).
+
+Which level a frame uses (:func:`choose_level`) follows the ratio of the source pixel footprint to the
+target pixel footprint: a level-k point of view s seen at source depth ``z_s`` covers
+``r_k = 2^k * (z_s / f_s) / (z_t / f_t)`` target pixels (``z_t`` its depth in the target camera,
+``f`` focal lengths in pixels). The coarsest level with ``r_k <= max_footprint`` (median over the
+view's sub-sampled grid points that land in front of the target) is taken: a point then still
+covers at most about one target pixel, so the switching median closes the cracks as at level 0.
+A 640x480 target from 640x480 captures stays at level 0 (the output is unchanged), 256x256 takes
+level 1 (1/4 of the points), 128x128 level 2 (1/16).
+
+:func:`pool_depth_aware_ref` is the plain numpy reference of the numba kernel (tested equal).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from presim.geometry import Intrinsics, transform_points
+
+__all__ = ["LodConfig", "pool_depth_aware", "pool_depth_aware_ref", "half_intrinsics", "build_level",
+           "footprint_ratio", "choose_level"]
+
+
+@dataclass(frozen=True)
+class LodConfig:
+    """Knobs of the level of detail (``RenderConfig`` fields ``lod_levels``, ``lod_max_footprint``,
+    ``lod_depth_tol``)."""
+
+    levels: int = 3
+    """Coarsest level (0 = no level of detail: always the full view)."""
+    max_footprint: float = 1.0
+    """A level is usable while one of its points covers at most this many target pixels (median)."""
+    depth_tol: float = 0.02
+    """Relative depth band of the front surface in a 2x2 block (pooled together)."""
+
+    def __post_init__(self) -> None:
+        if self.levels < 0 or self.levels > 8:
+            raise ValueError(f"LodConfig: levels must be in [0, 8], got {self.levels}")
+        if not self.max_footprint > 0:
+            raise ValueError("LodConfig: max_footprint must be > 0")
+        if not self.depth_tol >= 0:
+            raise ValueError("LodConfig: depth_tol must be >= 0")
+
+
+def half_intrinsics(K: Intrinsics) -> Intrinsics:
+    """Intrinsics of a 2x2-pooled image (``W // 2`` x ``H // 2``; block (i, j) = source pixels
+    2i..2i+1, its centre at source coordinate 2i + 0.5; pixel (0, 0) is the centre of the top-left pixel)."""
+    return Intrinsics(K.fx / 2.0, K.fy / 2.0, (K.cx - 0.5) / 2.0, (K.cy - 0.5) / 2.0,
+                      K.width // 2, K.height // 2)
+
+
+def pool_depth_aware_ref(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Reference (numpy, per block) of :func:`pool_depth_aware`. Odd last rows/columns are dropped."""
+    H2, W2 = depth_m.shape[0] // 2, depth_m.shape[1] // 2
+    d_out = np.zeros((H2, W2), np.float32)
+    c_out = np.zeros((H2, W2, 3), np.uint8)
+    for i in range(H2):
+        for j in range(W2):
+            d = depth_m[2 * i:2 * i + 2, 2 * j:2 * j + 2].reshape(-1).astype(np.float64)
+            c = color[2 * i:2 * i + 2, 2 * j:2 * j + 2].reshape(-1, 3).astype(np.float64)
+            ok = np.isfinite(d) & (d > 0)
+            if not ok.any():
+                continue
+            dmin = d[ok].min()
+            sel = ok & (d <= dmin * (1.0 + depth_tol))
+            d_out[i, j] = np.float32(d[sel].sum() / sel.sum())
+            c_out[i, j] = np.floor(c[sel].sum(0) / sel.sum() + 0.5).astype(np.uint8)
+    return d_out, c_out
+
+
+@nb.njit(parallel=True, cache=True)
+def _pool_kernel(d, c, tol, dout, cout):  # pragma: no cover
+    H2, W2 = dout.shape
+    for i in nb.prange(H2):
+        for j in range(W2):
+            dmin = np.inf
+            for a in range(2):
+                for b in range(2):
+                    z = d[2 * i + a, 2 * j + b]
+                    if z > 0 and z < dmin:
+                        dmin = z
+            if not (dmin < np.inf):
+                dout[i, j] = 0.0
+                cout[i, j, 0] = 0
+                cout[i, j, 1] = 0
+                cout[i, j, 2] = 0
+                continue
+            lim = np.float64(dmin) * (1.0 + tol)
+            n = 0
+            sd = 0.0
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            for a in range(2):
+                for b in range(2):
+                    z = d[2 * i + a, 2 * j + b]
+                    if z > 0 and z <= lim:
+                        n += 1
+                        sd += np.float64(z)
+                        s0 += np.float64(c[2 * i + a, 2 * j + b, 0])
+                        s1 += np.float64(c[2 * i + a, 2 * j + b, 1])
+                        s2 += np.float64(c[2 * i + a, 2 * j + b, 2])
+            dout[i, j] = np.float32(sd / n)
+            cout[i, j, 0] = np.uint8(np.floor(s0 / n + 0.5))
+            cout[i, j, 1] = np.uint8(np.floor(s1 / n + 0.5))
+            cout[i, j, 2] = np.uint8(np.floor(s2 / n + 0.5))
+
+
+def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """2x2 depth-aware pooling (numba): per block, average depth and colour of the valid pixels within
+    ``depth_tol`` (relative) of the block's nearest depth; 0 where the block has no valid pixel.
+
+    Args:
+        depth_m: float32 (H, W), 0 (or non-finite) = invalid; color: uint8 (H, W, 3).
+    Returns:
+        ``(depth (H//2, W//2) float32, color (H//2, W//2, 3) uint8)``.
+    """
+    d = np.ascontiguousarray(depth_m, np.float32)
+    d = np.where(np.isfinite(d), d, np.float32(0.0)) if not np.isfinite(d).all() else d
+    H2, W2 = d.shape[0] // 2, d.shape[1] // 2
+    dout = np.empty((H2, W2), np.float32)
+    cout = np.empty((H2, W2, 3), np.uint8)
+    _pool_kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
+    return dout, cout
+
+
+def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02
+                ) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
+    """The image of pyramid level ``level`` (0 = the input): ``(color, depth, intrinsics)``."""
+    for _ in range(level):
+        if min(depth_m.shape) < 2:
+            break
+        depth_m, color = pool_depth_aware(depth_m, color, depth_tol)
+        K = half_intrinsics(K)
+    return color, depth_m, K
+
+
+def footprint_ratio(grid_xyz_world: np.ndarray, T_cam_world_src: np.ndarray, f_src_px: float,
+                    T_cam_world_tgt: np.ndarray, f_tgt_px: float, near_m: float = 0.01) -> float:
+    """Median over a view's grid points of (source pixel footprint) / (target pixel footprint) at level 0:
+    ``(z_s / f_s) / (z_t / f_t)``; nan when no grid point is in front of both cameras."""
+    if len(grid_xyz_world) == 0:
+        return float("nan")
+    z_s = transform_points(T_cam_world_src, grid_xyz_world)[:, 2]
+    z_t = transform_points(T_cam_world_tgt, grid_xyz_world)[:, 2]
+    ok = (z_s > near_m) & (z_t > near_m)
+    if not ok.any():
+        return float("nan")
+    return float(np.median(z_s[ok] / z_t[ok]) * f_tgt_px / f_src_px)
+
+
+def choose_level(ratio0: float, config: LodConfig) -> int:
+    """Coarsest level k <= ``config.levels`` with ``2^k * ratio0 <= config.max_footprint`` (0 when
+    ``ratio0`` is not finite or level 0 already exceeds it)."""
+    if not np.isfinite(ratio0) or ratio0 <= 0:
+        return 0
+    k = 0
+    while k < config.levels and (2 ** (k + 1)) * ratio0 <= config.max_footprint:
+        k += 1
+    return k
