@@ -18,6 +18,7 @@ _MODULES = [
     "presim.cli.outputs_cmds",    # ros
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
+    "presim.cli.posenet_cmds",    # pose-train, pose-predict
     "presim.cli.demo_cmd",        # demo
 ]
 
