@@ -242,9 +242,8 @@ def test_augmentation_changes_colour_and_depth_but_not_the_target(bop):
     assert torch.equal(a["target"], b["target"])
 
 
-def test_bad_datasets_give_one_line_errors(bop, tmp_path):
+def test_bad_datasets_give_one_line_errors(bop, tmp_path, capsys):
     from presim.cli import main
-    import subprocess, sys, os
 
     # no depth
     nodepth = tmp_path / "nodepth"
@@ -265,12 +264,12 @@ def test_bad_datasets_give_one_line_errors(bop, tmp_path):
     with pytest.raises(ValueError, match="no scene folders"):
         PoseInstanceDataset(empty, DATA_CFG)
     for ds, msg in ((nodepth, "no depth images"), (nomodel, "obj_000002.ply"), (empty, "no scene folders")):
-        r = subprocess.run([sys.executable, "-m", "presim", "pose-train", "--dataset", str(ds), "--split", "test",
-                            "--model", "cgaf", "--out", str(tmp_path / "run")], capture_output=True, text=True,
-                           env={**os.environ, "PRESIM_NO_PROGRESS": "1"})
-        assert r.returncode == 1
-        lines = r.stderr.strip().splitlines()
+        capsys.readouterr()
+        assert main(["pose-train", "--dataset", str(ds), "--split", "test", "--model", "cgaf",
+                     "--out", str(tmp_path / "run")]) == 1
+        lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and msg in lines[0] and lines[0].startswith("presim pose-train: error:")
+    assert not (tmp_path / "run").exists()  # nothing that looks like a run is left
 
 
 # ---- training ---------------------------------------------------------------------------------
@@ -280,6 +279,7 @@ def _tiny_train_cfg(**kw):
     return replace(TrainConfig(model="densefusion", batch_size=4, lr=2e-3, data=replace(DATA_CFG, augment=False)), **kw)
 
 
+@pytest.mark.slow
 def test_one_object_overfit_reaches_1cm(bop, monkeypatch):
     """One instance, tiny network: the most confident pose reaches ADD < 1 cm within 300 steps."""
     from presim.pose.nets import train as tr
@@ -304,6 +304,7 @@ def test_one_object_overfit_reaches_1cm(bop, monkeypatch):
     assert best < 0.01, f"ADD after {step + 1} steps: {best:.4f} m"
 
 
+@pytest.mark.slow
 def test_train_resume_metrics_and_nan_stop(bop, tmp_path, monkeypatch):
     from presim.pose.nets import train as tr
 
@@ -330,6 +331,7 @@ def test_train_resume_metrics_and_nan_stop(bop, tmp_path, monkeypatch):
     assert (run / tr.CHECKPOINT).read_bytes() == before
 
 
+@pytest.mark.slow
 def test_predict_round_trips_through_pose_eval(bop, tmp_path, monkeypatch):
     from presim.pose.evaluate import EvalConfig, evaluate_files
     from presim.pose.nets import train as tr
@@ -352,3 +354,35 @@ def test_predict_round_trips_through_pose_eval(bop, tmp_path, monkeypatch):
     rep = evaluate_files(bop, csv, EvalConfig(split="test", vsd="off"))
     assert rep.overall["n_targets"] == 8 and rep.overall["n_estimated"] == 8
     assert rep.overall["n_rejected_rows"] == 0
+
+
+@pytest.mark.slow
+def test_segmentation_train_predict_and_iou(bop, tmp_path, capsys):
+    """Segmentation run -> pose-predict on its masks (CLI) -> BOP CSV pose-eval reads; IoU per object."""
+    from presim.cli import main
+    from presim.pose.nets import train as tr
+    from presim.pose.nets.segmentation import load_seg_net, segment, segmentation_iou
+    from presim.pose.results import read_bop_results
+
+    seg_run, pose_run = tmp_path / "seg", tmp_path / "pose"
+    tr.train(bop, seg_run, _tiny_train_cfg(model="segmentation", epochs=2, lr=5e-3), show_progress=False)
+    assert "miou_objects" in (seg_run / "metrics.csv").read_text().splitlines()[0]
+    net, cfg = load_seg_net(seg_run)
+    lab = segment(net, cfg, np.zeros((H, W, 3), np.uint8))
+    assert lab.shape == (H, W) and lab.dtype == np.int64 and lab.max() <= 2
+    iou = segmentation_iou(bop, seg_run, "test")
+    assert set(iou) == {1, 2} and all(0.0 <= v <= 1.0 for v in iou.values())
+    # a pose run (tiny) through the CLI with the segmentation in front
+    rc = main(["pose-train", "--dataset", str(bop), "--split", "test", "--model", "densefusion", "--out",
+               str(pose_run), "--epochs", "1", "--points", "32", "--batch-size", "4"])
+    assert rc == 0
+    out = tmp_path / "seg.csv"
+    assert main(["pose-predict", "--dataset", str(bop), "--checkpoint", str(pose_run), "--segmentation",
+                 str(seg_run), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "segmentation IoU per object: 1:" in text
+    res = read_bop_results(out, strict=True)
+    assert all(e.obj_id in (1, 2) for e in res.estimates)
+    # wrong kind of run for each flag: one-line errors
+    assert main(["pose-predict", "--dataset", str(bop), "--checkpoint", str(seg_run), "--out", str(out)]) == 1
+    assert "is a segmentation run" in capsys.readouterr().err

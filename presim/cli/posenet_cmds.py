@@ -91,6 +91,11 @@ def _predict(args: argparse.Namespace) -> int:
                   PredictConfig(split=args.split, device=args.device, refine_iters=args.refine_iters),
                   segmentation=args.segmentation)
     write_bop_results(args.out, est)
+    if args.segmentation is not None:
+        from presim.pose.nets.segmentation import segmentation_iou
+        iou = segmentation_iou(args.dataset, args.segmentation, args.split, args.device)
+        print("segmentation IoU per object: " + "  ".join(f"{o}: {v:.3f}" for o, v in iou.items())
+              + f"  (mean {sum(iou.values()) / len(iou):.3f})")
     n_img = len({(e.scene_id, e.im_id) for e in est})
     if est:
         ms = 1000 * sum({(e.scene_id, e.im_id): e.time_s for e in est}.values()) / len(est)
