@@ -48,8 +48,8 @@ class TrainConfig:
 
     model: str = "cgaf"
     """``densefusion`` | ``cgaf`` | ``cgaf-noatt`` | ``segmentation``."""
-    epochs: int = 8
-    """Passes over the training instances."""
+    epochs: int = 2
+    """Passes over the training instances (quick recipe: 2, the refiner trained in the second)."""
     batch_size: int = 8
     """Instances per step."""
     lr: float = 1e-3
@@ -64,7 +64,7 @@ class TrainConfig:
     """Epoch (0-based) from which the refiner is trained too; -1 = the second half of the epochs."""
     max_instances: int = 0
     """Use at most this many training instances (0 = all), evenly spread over the split."""
-    data: PoseDataConfig = field(default_factory=lambda: PoseDataConfig(augment=True))
+    data: PoseDataConfig = field(default_factory=lambda: PoseDataConfig(augment=True, n_points=128))
     """Instances and augmentation."""
     loss: LossConfig = field(default_factory=LossConfig)
     """Loss weights."""
