@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from presim.io_utils import progress
-from presim.pose.nets.data import ObjectTable, PoseDataConfig, PoseInstanceDataset, load_object_table, make_instance
+from presim.pose.nets.data import PoseDataConfig, PoseInstanceDataset, make_instance
 from presim.pose.nets.models import ModelConfig, PoseNet, best_pose
 from presim.pose.nets.train import load_run
 from presim.pose.results import Estimate

@@ -132,7 +132,6 @@ class SegTask:
     """The segmentation network as a :func:`presim.pose.nets.train.train` task."""
 
     def __init__(self, dataset, cfg):
-        from presim.pose.nets.data import load_object_table
         bop = BopDataset(dataset, cfg.data.split)
         self.obj_ids = tuple(sorted(bop.models_info()))
         self.model_cfg = SegConfig(n_classes=len(self.obj_ids) + 1)
