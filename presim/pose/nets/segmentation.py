@@ -38,6 +38,10 @@ class SegConfig:
     """Channels of the first stage (x2 per stage)."""
     scale: float = 0.5
     """Images are resized by this before the network (sides rounded to a multiple of 8)."""
+    background_weight: float = 0.1
+    """Cross-entropy weight of the background class (objects: 1). Objects cover a few % of the
+    pixels; with weight 1 two short epochs on the sample scene predicted background everywhere
+    (object mIoU 0.000 after 74 steps)."""
 
 
 def _size(h: int, w: int, scale: float) -> tuple[int, int]:
@@ -141,7 +145,9 @@ class SegTask:
 
     def step(self, net, batch, epoch):
         logits = net(batch["rgb"])
-        loss = F.cross_entropy(logits, batch["labels"])
+        w = torch.ones(logits.shape[1], device=logits.device)
+        w[0] = self.model_cfg.background_weight
+        loss = F.cross_entropy(logits, batch["labels"], weight=w)
         return loss, {"iou": _iou_counts(logits.argmax(1).detach(), batch["labels"], logits.shape[1])[None]}
 
     def summarise(self, stats):
