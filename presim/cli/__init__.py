@@ -21,6 +21,7 @@ _MODULES = [
     "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
+    "presim.cli.posenet_cmds",    # pose-train, pose-predict
     "presim.cli.demo_cmd",        # demo
 ]
 
