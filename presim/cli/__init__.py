@@ -19,6 +19,7 @@ _MODULES = [
     "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
+    "presim.cli.sim2real_cmd",    # sim2real depth
     "presim.cli.demo_cmd",        # demo
 ]
 
