@@ -72,9 +72,13 @@ class DepthNet(nn.Module):
         self.up = nn.ModuleList([_Up(f + 4 * w, f // 2), _Up(f // 2 + 2 * w, f // 4),
                                  _Up(f // 4 + w, f // 8), _Up(f // 8 + w, f // 16)])
         self.head = nn.Conv2d(f // 16, 1, 3, 1, 1)
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+        for m in [self.stem, self.stages]:
+            for c in m.modules():
+                if isinstance(c, nn.Conv2d):
+                    nn.init.kaiming_normal_(c.weight, mode="fan_out", nonlinearity="relu")
+        # Start near 2 m everywhere with a small spread: a saturated sigmoid would learn nothing.
+        nn.init.normal_(self.head.weight, std=1e-3)
+        nn.init.constant_(self.head.bias, float(torch.logit(torch.tensor(2.0 / max_depth_m))))
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
         x0 = self.stem(rgb - 0.5)             # 1/2
