@@ -158,6 +158,7 @@ def tiny_run(tmp_path_factory):
     return scene, cfg, out, run_depth_experiment(scene, cfg, out)
 
 
+@pytest.mark.slow  # ~10 s each unloaded; the first one pays torch/numba/matplotlib start-up
 def test_three_arms_end_to_end_give_finite_metrics_and_all_outputs(tiny_run):
     _, _, out, summary = tiny_run
     assert set(summary) == {"arms", "bins", "config"}
@@ -175,6 +176,7 @@ def test_three_arms_end_to_end_give_finite_metrics_and_all_outputs(tiny_run):
     assert "| capture+synth |" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow  # ~10 s each unloaded; the first one pays torch/numba/matplotlib start-up
 def test_test_frames_do_not_change_training(tiny_run, tmp_path):
     """End to end: junk test frames give identical training losses in every arm (only the metrics
     differ)."""
@@ -189,6 +191,7 @@ def test_test_frames_do_not_change_training(tiny_run, tmp_path):
         assert a["overall"] != b["overall"]
 
 
+@pytest.mark.slow  # ~10 s each unloaded; the first one pays torch/numba/matplotlib start-up
 def test_resume_recomputes_only_missing_runs(tiny_run):
     scene, cfg, out, summary = tiny_run
     runs = out / "runs"
