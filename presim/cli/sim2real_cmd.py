@@ -22,8 +22,11 @@ def register(sub) -> None:
     p = sub.add_parser("sim2real", help="evidence that synthesized views transfer to real images",
                        description="Sim-to-real experiments (thesis §4.5). See docs/sim2real.md.")
     tasks = p.add_subparsers(dest="sim2real_task", metavar="TASK", title="tasks")
+    from presim.cli import _HelpFormatter
+
     d = tasks.add_parser(
-        "depth", help="monocular depth: capture vs capture+synth vs synth, tested on real held-out frames",
+        "depth", formatter_class=_HelpFormatter,
+        help="monocular depth: capture vs capture+synth vs synth, tested on real held-out frames",
         description="Train a small DenseDepth-style network three ways (capture frames only; the same real "
                     "batches plus synthesized views; synthesized views only) and test each on the scene's "
                     "other real frames, binned by distance to the capture. Resumes per arm and seed.")
@@ -42,6 +45,9 @@ def register(sub) -> None:
     d.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     d.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     d.add_argument("--pose-seed", type=int, default=0, help="seed of the synthesized poses")
+    d.add_argument("--max-memory", default=None, metavar="SIZE",
+                   help="memory the command may plan to use, e.g. 16G (default: half of the memory "
+                        "available at start, or $PRESIM_MAX_MEMORY)")
     d.set_defaults(func=_depth)
 
 
@@ -53,13 +59,24 @@ def _depth(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.scene}: scene folder not found")
     if not is_scene_dir(args.scene):
         raise FileNotFoundError(f"{args.scene}: not a saved scene (no scene.json); import it with `presim import`")
-    if args.width < 1 or args.threads < 1:
-        raise ValueError("--width and --threads must be >= 1")
+    from presim.limits import check_memory, check_positive, check_positive_int
+
+    for flag in ("steps", "width", "batch_real", "batch_synth", "threads", "capture_every"):
+        check_positive_int(getattr(args, flag), "--" + flag.replace("_", "-"), allow_none=False)
+    check_positive(args.lr, "--lr", allow_none=False)
+    w, h = args.size
+    if w > 1280 or h > 960:
+        raise ValueError(f"--size {w}x{h}: at most 1280x960 (the model runs at a reduced size)")
     cfg = DepthExperimentConfig(capture_every=args.capture_every, synth=args.synth, steps=args.steps,
                                 seeds=tuple(dict.fromkeys(args.seeds)), size_wh=tuple(args.size),
                                 batch_real=args.batch_real, batch_synth=args.batch_synth, width=args.width,
                                 lr=args.lr, device=args.device, threads=args.threads, pose_seed=args.pose_seed)
     scene = load_scene(args.scene)
+    # Frames and views at the model size (uint8 RGB + float32 depth, ~2x for copies) plus training
+    # activations (~40 floats per pixel per channel of width, forward + backward).
+    frames = len(scene) + max(args.synth, 0)
+    est = 2 * frames * w * h * 7 + (args.batch_real + args.batch_synth) * w * h * args.width * 160
+    check_memory(est, "--size/--synth", f"sim2real depth at {w}x{h} with {args.synth} views", args.max_memory)
     summary = run_depth_experiment(scene, cfg, args.out, scene_label=str(args.scene))
     for arm, s in summary["arms"].items():
         print(f"{arm:14s} RMS {s['rms']:.3f} ± {s['rms_std']:.3f} m  AbsRel {s['absrel']:.3f}  "
