@@ -149,6 +149,21 @@ def test_training_set_and_renderer_scene_see_capture_frames_only():
     assert (data.synth_depth > 0).mean() > 0.5  # the views were really synthesized
 
 
+@pytest.mark.slow  # refinement kernels compile on first use (minutes on the loaded 2-core VM)
+def test_refined_capture_depth_uses_capture_frames_only(tmp_path):
+    from presim.evaluation.sim2real.experiment import refine_capture
+
+    scene = _toy()
+    split = split_capture(scene.T_world_cam, 2)
+    sub = refine_capture(capture_subscene(scene, split), tmp_path / "a")
+    assert sub.depth_refined.shape == (6, 72, 96)
+    bad = _poisoned(scene, split.test_idx)
+    sub2 = refine_capture(capture_subscene(bad, split_capture(bad.T_world_cam, 2)), tmp_path / "b")
+    assert np.array_equal(np.asarray(sub.depth_refined), np.asarray(sub2.depth_refined))
+    gt = np.stack([scene.frames.load(int(i))[1] for i in split.capture_idx])
+    assert np.median(np.abs(np.asarray(sub.depth_refined) - gt)[gt > 0]) < 0.01  # exact toy depth kept
+
+
 # ---- end to end on a tiny synthetic room --------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):

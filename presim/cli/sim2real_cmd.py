@@ -45,6 +45,9 @@ def register(sub) -> None:
     d.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     d.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     d.add_argument("--pose-seed", type=int, default=0, help="seed of the synthesized poses")
+    d.add_argument("--refine", action="store_true",
+                   help="refine the capture frames' depth from capture frames only and train/render from it "
+                        "(slow on CPU; test labels stay sensor depth)")
     d.add_argument("--max-memory", default=None, metavar="SIZE",
                    help="memory the command may plan to use, e.g. 16G (default: half of the memory "
                         "available at start, or $PRESIM_MAX_MEMORY)")
@@ -70,7 +73,8 @@ def _depth(args: argparse.Namespace) -> int:
     cfg = DepthExperimentConfig(capture_every=args.capture_every, synth=args.synth, steps=args.steps,
                                 seeds=tuple(dict.fromkeys(args.seeds)), size_wh=tuple(args.size),
                                 batch_real=args.batch_real, batch_synth=args.batch_synth, width=args.width,
-                                lr=args.lr, device=args.device, threads=args.threads, pose_seed=args.pose_seed)
+                                lr=args.lr, device=args.device, threads=args.threads, pose_seed=args.pose_seed,
+                                refine=args.refine)
     scene = load_scene(args.scene)
     # Frames and views at the model size (uint8 RGB + float32 depth, ~2x for copies) plus training
     # activations (~40 floats per pixel per channel of width, forward + backward).

@@ -43,7 +43,7 @@ from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_
 from presim.synthesis.renderer import RenderConfig, Renderer
 
 __all__ = ["ARMS", "DepthExperimentConfig", "TestSet", "TrainingSet", "build_training_set", "capture_subscene",
-           "load_test_set", "run_depth_experiment", "train_arm"]
+           "far_gap", "load_test_set", "refine_capture", "run_depth_experiment", "train_arm"]
 
 ARMS = ("capture", "capture+synth", "synth")
 _ARM_FILE = {"capture": "capture", "capture+synth": "capture_synth", "synth": "synth"}
@@ -84,6 +84,9 @@ class DepthExperimentConfig:
     """Seed of the synthesized poses (one set of views shared by all arms and training seeds)."""
     poses: SynthPoseConfig = field(default_factory=SynthPoseConfig)
     """How the synthesized poses are drawn around and between the capture poses."""
+    refine: bool = False
+    """Refine the capture frames' depth (thesis §3.4.1) with capture frames only as references, and
+    use it for the renderer and the capture labels (test labels stay sensor depth). Slow on CPU."""
 
     def __post_init__(self) -> None:
         if self.synth < 1:
@@ -105,6 +108,8 @@ class DepthExperimentConfig:
         d = asdict(self)
         d.pop("seeds")
         d.pop("threads")
+        if not d["refine"]:
+            d.pop("refine")  # runs made before the option existed stay valid
         d["scene"] = [len(scene), scene.frame_ids[0], scene.frame_ids[-1], scene.width, scene.height]
         return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -116,6 +121,18 @@ def capture_subscene(scene: Scene, split: CaptureSplit) -> Scene:
     (references from every frame), the fused point cloud, the floor fit and objects."""
     sub = scene.subset(split.capture_idx)
     return replace(sub, depth_refined=None, points=None, floor=None, objects=[])
+
+
+def refine_capture(capture_scene: Scene, out_dir: Path) -> Scene:
+    """``capture_scene`` with refined depth computed from its own frames only (resumable file
+    ``refined_capture-<key>.npy`` in ``out_dir``)."""
+    from presim.depth.scene_refine import refine_frames_to_file
+
+    key = hashlib.sha1(json.dumps(capture_scene.frame_ids).encode()).hexdigest()[:12]
+    path = Path(out_dir) / f"refined_capture-{key}.npy"
+    if not path.exists():
+        refine_frames_to_file(capture_scene, path, desc="refine capture")
+    return replace(capture_scene, depth_refined=np.load(path, mmap_mode="r"))
 
 
 def _resize(color: np.ndarray, depth: np.ndarray, size_wh: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -159,8 +176,8 @@ def build_training_set(capture_scene: Scene, cfg: DepthExperimentConfig, cache: 
     W, H = cfg.size_wh
     rgb, dep = [], []
     for i in range(len(capture_scene)):
-        c, d = capture_scene.frames.load(i)
-        c, d = _resize(c, d, (W, H))
+        f = capture_scene.frame(i, refined=True)  # refined only when refine_capture added it
+        c, d = _resize(f.color, f.depth_m, (W, H))
         rgb.append(c)
         dep.append(d)
     real_rgb, real_depth = np.stack(rgb), np.stack(dep)
@@ -170,6 +187,7 @@ def build_training_set(capture_scene: Scene, cfg: DepthExperimentConfig, cache: 
     poses = synth_poses(capture_scene.T_world_cam, cfg.synth, cfg.pose_seed,
                         _up_from_poses(capture_scene.T_world_cam), cfg.poses)
     key = hashlib.sha1(json.dumps([capture_scene.frame_ids, poses.round(9).tolist(), [W, H],
+                                   capture_scene.depth_refined is not None,
                                    asdict(render_config)], default=str).encode()).hexdigest()[:16]
     if cache is not None and cache.exists():
         z = np.load(cache)
@@ -336,7 +354,10 @@ def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str 
     (out / "runs").mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
     split = split_capture(scene.T_world_cam, cfg.capture_every)
-    data = build_training_set(capture_subscene(scene, split), cfg, cache=out / "synth.npz")
+    sub = capture_subscene(scene, split)
+    if cfg.refine:
+        sub = refine_capture(sub, out)
+    data = build_training_set(sub, cfg, cache=out / "synth.npz")
     test = load_test_set(scene, split, cfg.size_wh)
     fp = cfg.fingerprint(scene)
     runs: dict[str, list[dict]] = {a: [] for a in ARMS}
@@ -368,8 +389,9 @@ def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str 
                    "n_capture": int(len(split.capture_idx)), "n_test": int(len(split.test_idx)),
                    "synth_valid_frac": float((data.synth_depth > 0).mean()),
                    "real_valid_frac": float((data.real_depth > 0).mean()),
-                   "labels": "capture: sensor depth of the capture frames; synth: rendered depth where "
-                             "synthesized (filled pixels unlabelled); renderer warps the same sensor depth",
+                   "labels": f"capture: {'refined (capture-only references)' if cfg.refine else 'sensor'} "
+                             "depth of the capture frames; synth: rendered depth where synthesized (filled "
+                             "pixels unlabelled) from the same depth; test: sensor depth",
                    "metrics": "pooled over valid test pixels (0 < gt <= max_depth_m) at the model size"})
     summary = {"arms": {a: _aggregate(runs[a]) for a in ARMS}, "bins": bins, "config": config}
     timing = {"synthesize_s": data.synth_seconds, "synth_views": cfg.synth,
