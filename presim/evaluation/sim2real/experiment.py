@@ -326,9 +326,10 @@ def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet, cfg: DepthE
     return result, pred[test.example_rows]
 
 
-def _mean_std(vals: list[float]) -> tuple[float, float]:
+def _mean_std(vals: list[float]) -> tuple[float, float | None]:
+    """Mean and sample standard deviation (None with a single seed: no spread was measured)."""
     a = np.asarray(vals, np.float64)
-    return float(a.mean()), float(a.std(ddof=1)) if len(a) > 1 else 0.0
+    return float(a.mean()), float(a.std(ddof=1)) if len(a) > 1 else None
 
 
 def _aggregate(runs: list[dict]) -> dict:
@@ -411,6 +412,10 @@ def far_gap(summary: dict) -> dict:
             "gap_m": a["rms"] - b["rms"], "std_capture": a["rms_std"], "std_capture_synth": b["rms_std"]}
 
 
+def _pm(mean: float, std: float | None) -> str:
+    return f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}"
+
+
 def _report(summary: dict, timing: dict) -> str:
     c = summary["config"]
     lines = [f"# sim2real depth: {c['scene']}", "",
@@ -419,9 +424,8 @@ def _report(summary: dict, timing: dict) -> str:
              f"size {c['size_wh'][0]}x{c['size_wh'][1]}; batch {c['batch_real']} real + {c['batch_synth']} synth.",
              "", "| arm | RMS (m) | AbsRel | δ<1.25 | RMS near | RMS mid | RMS far |", "|---|---|---|---|---|---|---|"]
     for a, s in summary["arms"].items():
-        cells = [f"{s['rms']:.3f} ± {s['rms_std']:.3f}", f"{s['absrel']:.3f} ± {s['absrel_std']:.3f}",
-                 f"{s['delta1']:.3f} ± {s['delta1_std']:.3f}"]
-        cells += [f"{s['bins'][b]['rms']:.3f} ± {s['bins'][b]['rms_std']:.3f}" for b in BINS]
+        cells = [_pm(s[k], s[f"{k}_std"]) for k in ("rms", "absrel", "delta1")]
+        cells += [_pm(s["bins"][b]["rms"], s["bins"][b]["rms_std"]) for b in BINS]
         lines.append(f"| {a} | " + " | ".join(cells) + " |")
     lines += ["", "| bin | frames | distance | median t (m) | median r (deg) |", "|---|---|---|---|---|"]
     for b in BINS:
@@ -429,9 +433,11 @@ def _report(summary: dict, timing: dict) -> str:
         lines.append(f"| {b} | {d['n_frames']} | {d['dist_min']:.2f}-{d['dist_max']:.2f} | "
                      f"{d['trans_m_median']:.3f} | {d['rot_deg_median']:.1f} |")
     g = far_gap(summary)
-    lines += ["", f"Far bin: capture+synth vs capture RMS {g['rel_change'] * 100:+.1f} % "
-                  f"({g['rms_capture_synth']:.3f} vs {g['rms_capture']:.3f} m; seed std "
-                  f"{g['std_capture_synth']:.3f} / {g['std_capture']:.3f} m).",
+    spread = ("one seed: no spread measured" if g["std_capture"] is None else
+              f"seed std {g['std_capture_synth']:.3f} / {g['std_capture']:.3f} m")
+    lines += ["", ("Values: mean ± sample std over seeds." if len(c["seeds"]) > 1 else "Values: one seed."),
+              f"Far bin: capture+synth vs capture RMS {g['rel_change'] * 100:+.1f} % "
+              f"({g['rms_capture_synth']:.3f} vs {g['rms_capture']:.3f} m; {spread}).",
               f"Synthesizing {timing['synth_views']} views: {timing['synthesize_s']:.1f} s; training per arm "
               f"and seed (s): " + ", ".join(f"{a} {np.mean(v):.0f}" for a, v in timing["train_s"].items()) + ".",
               ""]
@@ -473,7 +479,7 @@ def _write_figures(out: Path, runs: dict, examples: dict, test: TestSet, cfg: De
     for r, row in enumerate(test.example_rows):
         gt = test.depth[row]
         vmax = float(gt[gt > 0].max()) if (gt > 0).any() else cfg.max_depth_m
-        imgs = [test.rgb[row], gt] + [examples[a][r] for a in ARMS]
+        imgs = [test.rgb[row], np.ma.masked_where(gt <= 0, gt)] + [examples[a][r] for a in ARMS]
         for c, img in enumerate(imgs):
             a = ax[r, c]
             a.imshow(img) if c == 0 else a.imshow(img, cmap="turbo", vmin=0, vmax=vmax)
