@@ -18,8 +18,6 @@ from presim.evaluation.sim2real.experiment import (ARMS, DepthExperimentConfig, 
 from presim.geometry import look_at
 from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
-pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-
 TINY = dict(capture_every=2, synth=4, steps=3, seeds=(0,), size_wh=(64, 48), batch_real=2, batch_synth=2,
             width=8, eval_points=1)
 

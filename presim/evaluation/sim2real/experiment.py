@@ -273,7 +273,8 @@ def _evaluate(pred: np.ndarray, test: TestSet, max_depth_m: float) -> dict:
     return {"overall": overall.result(), "bins": {b: s.result() for b, s in per.items()}}
 
 
-def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet, cfg: DepthExperimentConfig) -> tuple[dict, np.ndarray]:
+def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet,
+              cfg: DepthExperimentConfig) -> tuple[dict, np.ndarray]:
     """Train one arm with one seed; returns (result dict, example predictions (3, H, W))."""
     import torch
 
