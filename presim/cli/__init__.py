@@ -22,6 +22,7 @@ _MODULES = [
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
     "presim.cli.posenet_cmds",    # pose-train, pose-predict
+    "presim.cli.sim2real_cmd",    # sim2real depth
     "presim.cli.demo_cmd",        # demo
 ]
 

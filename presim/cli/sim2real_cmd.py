@@ -1,0 +1,90 @@
+"""``presim sim2real depth``: monocular depth trained on the capture vs on synthesized views, tested
+on real frames away from the capture (thesis §4.5, Table 4.3; docs/sim2real.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+__all__ = ["register"]
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--size must be WxH, e.g. 64x48, got {text!r}") from None
+    return w, h
+
+
+def register(sub) -> None:
+    p = sub.add_parser("sim2real", help="evidence that synthesized views transfer to real images",
+                       description="Sim-to-real experiments (thesis §4.5). See docs/sim2real.md.")
+    tasks = p.add_subparsers(dest="sim2real_task", metavar="TASK", title="tasks")
+    from presim.cli import _HelpFormatter
+
+    d = tasks.add_parser(
+        "depth", formatter_class=_HelpFormatter,
+        help="monocular depth: capture vs capture+synth vs synth, tested on real held-out frames",
+        description="Train a small DenseDepth-style network three ways (capture frames only; the same real "
+                    "batches plus synthesized views; synthesized views only) and test each on the scene's "
+                    "other real frames, binned by distance to the capture. Resumes per arm and seed.")
+    d.add_argument("scene", type=Path, help="saved scene folder (presim import / presim sample-scene)")
+    d.add_argument("--capture-every", type=int, required=True, metavar="N",
+                   help="capture = frames 0, N, 2N, ...; all other frames are real test frames")
+    d.add_argument("--synth", type=int, required=True, metavar="M", help="number of synthesized training views")
+    d.add_argument("--out", type=Path, required=True, help="output folder (created; rerun to resume)")
+    d.add_argument("--steps", type=int, default=300, help="optimiser steps per arm and seed")
+    d.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds")
+    d.add_argument("--size", type=_size, default=(64, 48), metavar="WxH", help="model input size (default 64x48)")
+    d.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device")
+    d.add_argument("--width", type=int, default=16, help="encoder channel width (64 = ResNet-18's)")
+    d.add_argument("--batch-real", type=int, default=8, help="real capture frames per step")
+    d.add_argument("--batch-synth", type=int, default=8, help="synthesized views per step")
+    d.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    d.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    d.add_argument("--pose-seed", type=int, default=0, help="seed of the synthesized poses")
+    d.add_argument("--refine", action="store_true",
+                   help="refine the capture frames' depth from capture frames only and train/render from it "
+                        "(slow on CPU; test labels stay sensor depth)")
+    d.add_argument("--max-memory", default=None, metavar="SIZE",
+                   help="memory the command may plan to use, e.g. 16G (default: half of the memory "
+                        "available at start, or $PRESIM_MAX_MEMORY)")
+    d.set_defaults(func=_depth)
+
+
+def _depth(args: argparse.Namespace) -> int:
+    from presim.capture.store import is_scene_dir, load_scene
+    from presim.evaluation.sim2real.experiment import DepthExperimentConfig, far_gap, run_depth_experiment
+
+    if not args.scene.exists():
+        raise FileNotFoundError(f"{args.scene}: scene folder not found")
+    if not is_scene_dir(args.scene):
+        raise FileNotFoundError(f"{args.scene}: not a saved scene (no scene.json); import it with `presim import`")
+    from presim.limits import check_memory, check_positive, check_positive_int
+
+    for flag in ("steps", "width", "batch_real", "batch_synth", "threads", "capture_every"):
+        check_positive_int(getattr(args, flag), "--" + flag.replace("_", "-"), allow_none=False)
+    check_positive(args.lr, "--lr", allow_none=False)
+    w, h = args.size
+    if w > 1280 or h > 960:
+        raise ValueError(f"--size {w}x{h}: at most 1280x960 (the model runs at a reduced size)")
+    cfg = DepthExperimentConfig(capture_every=args.capture_every, synth=args.synth, steps=args.steps,
+                                seeds=tuple(dict.fromkeys(args.seeds)), size_wh=tuple(args.size),
+                                batch_real=args.batch_real, batch_synth=args.batch_synth, width=args.width,
+                                lr=args.lr, device=args.device, threads=args.threads, pose_seed=args.pose_seed,
+                                refine=args.refine)
+    scene = load_scene(args.scene)
+    # Frames and views at the model size (uint8 RGB + float32 depth, ~2x for copies) plus training
+    # activations (~40 floats per pixel per channel of width, forward + backward).
+    frames = len(scene) + max(args.synth, 0)
+    est = 2 * frames * w * h * 7 + (args.batch_real + args.batch_synth) * w * h * args.width * 160
+    check_memory(est, "--size/--synth", f"sim2real depth at {w}x{h} with {args.synth} views", args.max_memory)
+    summary = run_depth_experiment(scene, cfg, args.out, scene_label=str(args.scene))
+    for arm, s in summary["arms"].items():
+        print(f"{arm:14s} RMS {s['rms']:.3f} ± {s['rms_std']:.3f} m  AbsRel {s['absrel']:.3f}  "
+              f"δ1 {s['delta1']:.3f}  far RMS {s['bins']['far']['rms']:.3f} m")
+    print(json.dumps({"far_bin": far_gap(summary)}))
+    print(f"wrote {args.out}/summary.json, report.md, learning_curves.png, examples.png")
+    return 0

@@ -1,0 +1,16 @@
+"""Sim-to-real evidence (thesis §4.5, Table 4.3): does training on PreSim's synthesized views help a
+monocular depth network on real frames the capture did not see?
+
+    split = split_capture(scene, capture_every=10)          # capture / test frames + distance bins
+    poses = synth_poses(split.capture_poses, m=200, seed=0)  # new views around/between capture poses
+    run_depth_experiment(scene, DepthExperimentConfig(...), out_dir)   # three arms, summary.json
+
+See docs/sim2real.md for the protocol, the choices and measured results.
+"""
+
+from presim.evaluation.sim2real.metrics import depth_metrics
+from presim.evaluation.sim2real.split import (BINS, CaptureSplit, SynthPoseConfig, pose_distance,
+                                              split_capture, synth_poses)
+
+__all__ = ["BINS", "CaptureSplit", "SynthPoseConfig", "depth_metrics", "pose_distance", "split_capture",
+           "synth_poses"]

@@ -1,0 +1,494 @@
+"""The sim2real depth experiment (issue 15; thesis §4.5, Table 4.3) as one pure-ish entry function:
+
+    run_depth_experiment(scene, DepthExperimentConfig(capture_every=12, synth=200), out_dir)
+
+1. Split (:func:`split.split_capture`): capture = every N-th frame, test = all others, binned by pose
+   distance to the nearest capture frame.
+2. Capture sub-scene (:func:`capture_subscene`): the capture frames only, without the scene's
+   refined depth, fused point cloud, floor and objects (all of those were computed from every frame).
+   It is the renderer's scene and the only source of training pixels and poses.
+3. Training set (:func:`build_training_set`): capture images + sensor depth at the model size, and M
+   views rendered by ``Renderer.render_batch`` at :func:`split.synth_poses` (from capture poses only),
+   labelled with the rendered depth where it was synthesized (``RGBD.valid``), 0 (no label) where it
+   was filled. Both label sets come from the same data: the capture's sensor depth, which is also
+   what the renderer warps (no refinement: it is the slowest step on 2 cores; see docs/sim2real.md).
+4. Three arms, same model, same seed-initialised weights, same number of optimiser steps; every step
+   draws one real batch and one synthesized batch from seeded streams shared by all arms:
+   ``capture`` trains on the real batch, ``capture+synth`` on both (the same real samples per step
+   plus the synthesized ones), ``synth`` on the synthesized batch only.
+5. Metrics on the real test frames (sensor depth, valid pixels), per bin and overall, then mean ±
+   std over seeds into ``summary.json``, ``report.md``, ``learning_curves.png``, ``examples.png``.
+
+Resume: each (arm, seed) writes ``runs/<arm>-seed<s>.json`` (+ ``.npz`` of example predictions)
+atomically when it finishes; the rendered views are cached in ``synth.npz``. A rerun with the same
+configuration skips what is done; a different configuration recomputes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from presim.capture.scene import Scene
+from presim.evaluation.sim2real.metrics import DepthErrorSums
+from presim.evaluation.sim2real.split import BINS, CaptureSplit, SynthPoseConfig, split_capture, synth_poses
+from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text, progress
+from presim.synthesis.renderer import RenderConfig, Renderer
+
+__all__ = ["ARMS", "DepthExperimentConfig", "TestSet", "TrainingSet", "build_training_set", "capture_subscene",
+           "far_gap", "load_test_set", "refine_capture", "run_depth_experiment", "train_arm"]
+
+ARMS = ("capture", "capture+synth", "synth")
+_ARM_FILE = {"capture": "capture", "capture+synth": "capture_synth", "synth": "synth"}
+
+
+@dataclass(frozen=True)
+class DepthExperimentConfig:
+    """Everything that decides the numbers of one experiment (the quick setting is the default)."""
+
+    capture_every: int
+    """Capture = scene frames 0, N, 2N, ...; all others are real test frames."""
+    synth: int
+    """M: number of synthesized training views."""
+    steps: int = 300
+    """Optimiser steps per arm and seed."""
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """Training seeds (weights init, batch order, flips); the synthesized poses use ``pose_seed``."""
+    size_wh: tuple[int, int] = (64, 48)
+    """Model input/output size (images are resized; intrinsics scaled)."""
+    batch_real: int = 8
+    """Real capture frames per step (arms capture and capture+synth)."""
+    batch_synth: int = 8
+    """Synthesized views per step (arms capture+synth and synth)."""
+    width: int = 16
+    """Encoder channel width (64 = ResNet-18's channels; see model.py)."""
+    lr: float = 1e-3
+    """Adam learning rate (constant)."""
+    device: str = "cpu"
+    """Torch device: ``cpu`` or ``cuda``."""
+    threads: int = 1
+    """Torch CPU threads (1 was fastest on the shared 2-core machine)."""
+    eval_points: int = 4
+    """Test metrics are also measured at this many evenly spaced steps, for the learning curves only
+    (the reported model is always the one after the last step: no early stopping)."""
+    max_depth_m: float = 10.0
+    """Upper end of the output range and of valid ground truth."""
+    pose_seed: int = 0
+    """Seed of the synthesized poses (one set of views shared by all arms and training seeds)."""
+    poses: SynthPoseConfig = field(default_factory=SynthPoseConfig)
+    """How the synthesized poses are drawn around and between the capture poses."""
+    refine: bool = False
+    """Refine the capture frames' depth (thesis §3.4.1) with capture frames only as references, and
+    use it for the renderer and the capture labels (test labels stay sensor depth). Slow on CPU."""
+
+    def __post_init__(self) -> None:
+        if self.synth < 1:
+            raise ValueError(f"--synth must be >= 1 (M = 0 leaves the capture+synth and synth arms "
+                             f"without data), got {self.synth}")
+        if self.steps < 1:
+            raise ValueError(f"--steps must be >= 1, got {self.steps}")
+        if not self.seeds:
+            raise ValueError("--seeds needs at least one seed")
+        w, h = self.size_wh
+        if w < 32 or h < 32:
+            raise ValueError(f"--size must be at least 32x32 (the encoder downsamples 32x), got {w}x{h}")
+        if self.batch_real < 1 or self.batch_synth < 1:
+            raise ValueError("batch sizes must be >= 1")
+        if self.device not in ("cpu", "cuda"):
+            raise ValueError(f"--device must be cpu or cuda, got {self.device}")
+
+    def fingerprint(self, scene: Scene) -> str:
+        d = asdict(self)
+        d.pop("seeds")
+        d.pop("threads")
+        if not d["refine"]:
+            d.pop("refine")  # runs made before the option existed stay valid
+        d["scene"] = [len(scene), scene.frame_ids[0], scene.frame_ids[-1], scene.width, scene.height]
+        return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def capture_subscene(scene: Scene, split: CaptureSplit) -> Scene:
+    """The scene of the capture frames only: the renderer's scene and the only training source.
+
+    Drops what the full scene derived from all frames (test frames included): refined depth
+    (references from every frame), the fused point cloud, the floor fit and objects."""
+    sub = scene.subset(split.capture_idx)
+    return replace(sub, depth_refined=None, points=None, floor=None, objects=[])
+
+
+def refine_capture(capture_scene: Scene, out_dir: Path) -> Scene:
+    """``capture_scene`` with refined depth computed from its own frames only (resumable file
+    ``refined_capture-<key>.npy`` in ``out_dir``)."""
+    from presim.depth.scene_refine import refine_frames_to_file
+
+    key = hashlib.sha1(json.dumps(capture_scene.frame_ids).encode()).hexdigest()[:12]
+    path = Path(out_dir) / f"refined_capture-{key}.npy"
+    if not path.exists():
+        refine_frames_to_file(capture_scene, path, desc="refine capture")
+    return replace(capture_scene, depth_refined=np.load(path, mmap_mode="r"))
+
+
+def _resize(color: np.ndarray, depth: np.ndarray, size_wh: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    if color.shape[1::-1] == tuple(size_wh):
+        return color, depth.astype(np.float32)
+    return (cv2.resize(color, size_wh, interpolation=cv2.INTER_AREA),
+            cv2.resize(depth.astype(np.float32), size_wh, interpolation=cv2.INTER_NEAREST))
+
+
+def _up_from_poses(T_world_cam: np.ndarray) -> np.ndarray:
+    """World 'up' estimated from camera poses only: minus the mean camera y axis (OpenCV y points
+    down in the image, so a roughly upright camera's -y is up)."""
+    up = -T_world_cam[:, :3, 1].mean(axis=0)
+    n = np.linalg.norm(up)
+    return up / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
+
+
+@dataclass
+class TrainingSet:
+    """All a training arm may see: built from the capture sub-scene only."""
+
+    capture_scene: Scene
+    """The capture frames (the renderer's scene)."""
+    real_rgb: np.ndarray
+    """uint8 (C, H, W, 3) capture images at the model size."""
+    real_depth: np.ndarray
+    """float32 (C, H, W) capture sensor depth (0 = no label)."""
+    synth_poses: np.ndarray
+    """(M, 4, 4) poses of the synthesized views."""
+    synth_rgb: np.ndarray
+    """uint8 (M, H, W, 3) synthesized images (holes filled, as a user would get them)."""
+    synth_depth: np.ndarray
+    """float32 (M, H, W) synthesized depth where synthesized, 0 where filled (no label)."""
+    synth_seconds: float
+    """Wall time of rendering the M views."""
+
+
+def build_training_set(capture_scene: Scene, cfg: DepthExperimentConfig, cache: Path | None = None,
+                       render_config: RenderConfig = RenderConfig()) -> TrainingSet:
+    """Capture images/labels and M synthesized views from ``capture_scene`` (nothing else)."""
+    W, H = cfg.size_wh
+    rgb, dep = [], []
+    for i in range(len(capture_scene)):
+        f = capture_scene.frame(i, refined=True)  # refined only when refine_capture added it
+        c, d = _resize(f.color, f.depth_m, (W, H))
+        rgb.append(c)
+        dep.append(d)
+    real_rgb, real_depth = np.stack(rgb), np.stack(dep)
+    if not (real_depth > 0).any():
+        raise ValueError("the scene's capture frames have no depth (all zero): nothing to train or "
+                         "render from")
+    poses = synth_poses(capture_scene.T_world_cam, cfg.synth, cfg.pose_seed,
+                        _up_from_poses(capture_scene.T_world_cam), cfg.poses)
+    key = hashlib.sha1(json.dumps([capture_scene.frame_ids, poses.round(9).tolist(), [W, H],
+                                   capture_scene.depth_refined is not None,
+                                   asdict(render_config)], default=str).encode()).hexdigest()[:16]
+    if cache is not None and cache.exists():
+        z = np.load(cache)
+        if str(z["key"]) == key:
+            return TrainingSet(capture_scene, real_rgb, real_depth, poses, z["rgb"], z["depth"],
+                               float(z["seconds"]))
+    K = capture_scene.intrinsics[0].scaled(W, H)
+    renderer = Renderer(capture_scene, render_config)
+    t0 = time.perf_counter()
+    s_rgb = np.zeros((cfg.synth, H, W, 3), np.uint8)
+    s_dep = np.zeros((cfg.synth, H, W), np.float32)
+    chunk = 16
+    for a in progress(range(0, cfg.synth, chunk), desc="synthesize", unit="chunk"):
+        for k, r in enumerate(renderer.render_batch(poses[a:a + chunk], K)):
+            s_rgb[a + k] = r.color
+            s_dep[a + k] = np.where(r.valid, r.depth_m, 0.0)
+    secs = time.perf_counter() - t0
+    if cache is not None:
+        buf = io.BytesIO()
+        np.savez(buf, key=np.array(key), rgb=s_rgb, depth=s_dep, seconds=np.array(secs))
+        atomic_write_bytes(cache, buf.getvalue())
+    return TrainingSet(capture_scene, real_rgb, real_depth, poses, s_rgb, s_dep, secs)
+
+
+@dataclass
+class TestSet:
+    """Real test frames at the model size (sensor depth as ground truth)."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    bin_of: np.ndarray
+    example_rows: np.ndarray
+    """Rows shown in the example figure: the median-distance frame of each bin."""
+
+
+def load_test_set(scene: Scene, split: CaptureSplit, size_wh: tuple[int, int]) -> TestSet:
+    """The test frames' images and sensor depth. Used only to measure the trained models."""
+    rgb, dep = [], []
+    for i in split.test_idx:
+        c, d = scene.frames.load(int(i))
+        c, d = _resize(c, d, size_wh)
+        rgb.append(c)
+        dep.append(d)
+    depth = np.stack(dep)
+    if not (depth > 0).any():
+        raise ValueError("the scene's test frames have no valid sensor depth: nothing to test against")
+    ex = []
+    for b in range(len(BINS)):
+        rows = np.flatnonzero(split.bin_of == b)
+        ex.append(rows[np.argsort(split.dist[rows], kind="stable")[len(rows) // 2]])
+    return TestSet(np.stack(rgb), depth, split.bin_of, np.array(ex))
+
+
+def _to_tensor(rgb: np.ndarray, depth: np.ndarray, flip: np.ndarray, device):
+    import torch
+
+    rgb = np.where(flip[:, None, None, None], rgb[:, :, ::-1], rgb)
+    depth = np.where(flip[:, None, None], depth[:, :, ::-1], depth)
+    x = torch.from_numpy(np.ascontiguousarray(rgb)).to(device).permute(0, 3, 1, 2).float() / 255.0
+    y = torch.from_numpy(np.ascontiguousarray(depth)).to(device)[:, None]
+    return x, y
+
+
+def _predict(net, rgb: np.ndarray, device, batch: int = 32) -> np.ndarray:
+    import torch
+
+    net.eval()
+    out = []
+    with torch.no_grad():
+        for a in range(0, len(rgb), batch):
+            x = torch.from_numpy(rgb[a:a + batch]).to(device).permute(0, 3, 1, 2).float() / 255.0
+            out.append(net(x)[:, 0].cpu().numpy())
+    net.train()
+    return np.concatenate(out)
+
+
+def _evaluate(pred: np.ndarray, test: TestSet, max_depth_m: float) -> dict:
+    overall = DepthErrorSums()
+    per = {b: DepthErrorSums() for b in BINS}
+    for k in range(len(pred)):
+        overall.add(pred[k], test.depth[k], max_depth_m=max_depth_m)
+        per[BINS[test.bin_of[k]]].add(pred[k], test.depth[k], max_depth_m=max_depth_m)
+    return {"overall": overall.result(), "bins": {b: s.result() for b, s in per.items()}}
+
+
+def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet,
+              cfg: DepthExperimentConfig) -> tuple[dict, np.ndarray]:
+    """Train one arm with one seed; returns (result dict, example predictions (3, H, W))."""
+    import torch
+
+    from presim.evaluation.sim2real.model import DepthNet, depth_loss
+
+    if arm not in ARMS:
+        raise ValueError(f"arm must be one of {ARMS}, got {arm!r}")
+    if cfg.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available here")
+    device = torch.device(cfg.device)
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(seed)  # same initial weights for every arm of a seed
+    net = DepthNet(cfg.width, cfg.max_depth_m).to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    # One stream per kind of draw, identical for all arms: the real batches of "capture" and
+    # "capture+synth" are the same samples (and flips) at every step.
+    rng_real, rng_syn = np.random.default_rng([seed, 1]), np.random.default_rng([seed, 2])
+    use_real, use_syn = arm != "synth", arm != "capture"
+    checkpoints = sorted({int(round(s)) for s in np.linspace(0, cfg.steps, cfg.eval_points + 1)[1:]})
+    losses, curve = [], []
+    t0 = time.perf_counter()
+    for step in progress(range(1, cfg.steps + 1), desc=f"{arm} seed {seed}", unit="step"):
+        ri = rng_real.integers(0, len(data.real_rgb), cfg.batch_real)
+        rf = rng_real.random(cfg.batch_real) < 0.5
+        si = rng_syn.integers(0, len(data.synth_rgb), cfg.batch_synth)
+        sf = rng_syn.random(cfg.batch_synth) < 0.5
+        xs, ys = [], []
+        if use_real:
+            x, y = _to_tensor(data.real_rgb[ri], data.real_depth[ri], rf, device)
+            xs.append(x)
+            ys.append(y)
+        if use_syn:
+            x, y = _to_tensor(data.synth_rgb[si], data.synth_depth[si], sf, device)
+            xs.append(x)
+            ys.append(y)
+        loss = depth_loss(net(torch.cat(xs)), torch.cat(ys))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        if step in checkpoints:
+            m = _evaluate(_predict(net, test.rgb, device), test, cfg.max_depth_m)
+            curve.append({"step": step, "rms": m["overall"]["rms"],
+                          **{f"rms_{b}": m["bins"][b]["rms"] for b in BINS}})
+    train_s = time.perf_counter() - t0
+    pred = _predict(net, test.rgb, device)
+    metrics = _evaluate(pred, test, cfg.max_depth_m)
+    result = {"arm": arm, "seed": seed, **metrics, "train_loss": losses, "test_curve": curve,
+              "train_seconds": train_s, "steps": cfg.steps}
+    return result, pred[test.example_rows]
+
+
+def _mean_std(vals: list[float]) -> tuple[float, float | None]:
+    """Mean and sample standard deviation (None with a single seed: no spread was measured)."""
+    a = np.asarray(vals, np.float64)
+    return float(a.mean()), float(a.std(ddof=1)) if len(a) > 1 else None
+
+
+def _aggregate(runs: list[dict]) -> dict:
+    out: dict = {}
+    for key in ("rms", "absrel", "delta1"):
+        out[key], out[f"{key}_std"] = _mean_std([r["overall"][key] for r in runs])
+    out["bins"] = {}
+    for b in BINS:
+        d = {}
+        for key in ("rms", "absrel", "delta1"):
+            d[key], d[f"{key}_std"] = _mean_std([r["bins"][b][key] for r in runs])
+        out["bins"][b] = d
+    out["seeds"] = {str(r["seed"]): {"overall": r["overall"], "bins": r["bins"]} for r in runs}
+    out["train_seconds"] = [r["train_seconds"] for r in runs]
+    return out
+
+
+def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str | Path,
+                         scene_label: str = "") -> dict:
+    """Run (or resume) all arms and seeds and write DIR/summary.json, report.md, learning_curves.png,
+    examples.png. Returns the summary."""
+    out = Path(out_dir)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    split = split_capture(scene.T_world_cam, cfg.capture_every)
+    sub = capture_subscene(scene, split)
+    if cfg.refine:
+        sub = refine_capture(sub, out)
+    data = build_training_set(sub, cfg, cache=out / "synth.npz")
+    test = load_test_set(scene, split, cfg.size_wh)
+    fp = cfg.fingerprint(scene)
+    runs: dict[str, list[dict]] = {a: [] for a in ARMS}
+    examples: dict[str, np.ndarray] = {}
+    for seed in cfg.seeds:
+        for arm in ARMS:
+            base = out / "runs" / f"{_ARM_FILE[arm]}-seed{seed}"
+            js, npz = base.with_suffix(".json"), base.with_suffix(".npz")
+            res = None
+            if js.exists() and npz.exists():
+                res = json.loads(js.read_text())
+                if res.get("fingerprint") != fp:
+                    res = None
+            if res is None:
+                res, ex = train_arm(arm, seed, data, test, cfg)
+                res["fingerprint"] = fp
+                buf = io.BytesIO()
+                np.save(buf, ex.astype(np.float32))
+                atomic_write_bytes(npz, buf.getvalue())
+                atomic_write_json(js, res, indent=None)  # written last: marks the run complete
+            runs[arm].append(res)
+            if seed == cfg.seeds[0]:
+                examples[arm] = np.load(npz)
+    bins = split.bin_summary()
+    bins["edges"] = {"near_mid": split.bin_edges[0], "mid_far": split.bin_edges[1],
+                     "distance": "t / 0.10 m + r / 10 deg to the nearest capture frame; bins = terciles"}
+    config = asdict(cfg)
+    config.update({"scene": scene_label or str(scene.path or scene.meta.source), "n_frames": len(scene),
+                   "n_capture": int(len(split.capture_idx)), "n_test": int(len(split.test_idx)),
+                   "synth_valid_frac": float((data.synth_depth > 0).mean()),
+                   "real_valid_frac": float((data.real_depth > 0).mean()),
+                   "labels": f"capture: {'refined (capture-only references)' if cfg.refine else 'sensor'} "
+                             "depth of the capture frames; synth: rendered depth where synthesized (filled "
+                             "pixels unlabelled) from the same depth; test: sensor depth",
+                   "metrics": "pooled over valid test pixels (0 < gt <= max_depth_m) at the model size"})
+    summary = {"arms": {a: _aggregate(runs[a]) for a in ARMS}, "bins": bins, "config": config}
+    timing = {"synthesize_s": data.synth_seconds, "synth_views": cfg.synth,
+              "train_s": {a: [r["train_seconds"] for r in runs[a]] for a in ARMS},
+              "this_invocation_s": time.perf_counter() - t_all}
+    _write_figures(out, runs, examples, test, cfg)
+    atomic_write_json(out / "timing.json", timing)
+    atomic_write_text(out / "report.md", _report(summary, timing))
+    atomic_write_json(out / "summary.json", summary)
+    return summary
+
+
+def far_gap(summary: dict) -> dict:
+    """Far-bin RMS of capture+synth vs capture: relative change (negative = better) and seed spreads."""
+    a, b = summary["arms"]["capture"]["bins"]["far"], summary["arms"]["capture+synth"]["bins"]["far"]
+    return {"rms_capture": a["rms"], "rms_capture_synth": b["rms"], "rel_change": b["rms"] / a["rms"] - 1.0,
+            "gap_m": a["rms"] - b["rms"], "std_capture": a["rms_std"], "std_capture_synth": b["rms_std"]}
+
+
+def _pm(mean: float, std: float | None) -> str:
+    return f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}"
+
+
+def _report(summary: dict, timing: dict) -> str:
+    c = summary["config"]
+    lines = [f"# sim2real depth: {c['scene']}", "",
+             f"capture every {c['capture_every']} -> {c['n_capture']} capture / {c['n_test']} test frames; "
+             f"M = {c['synth']} synthesized views; {c['steps']} steps; seeds {list(c['seeds'])}; "
+             f"size {c['size_wh'][0]}x{c['size_wh'][1]}; batch {c['batch_real']} real + {c['batch_synth']} synth.",
+             "", "| arm | RMS (m) | AbsRel | δ<1.25 | RMS near | RMS mid | RMS far |", "|---|---|---|---|---|---|---|"]
+    for a, s in summary["arms"].items():
+        cells = [_pm(s[k], s[f"{k}_std"]) for k in ("rms", "absrel", "delta1")]
+        cells += [_pm(s["bins"][b]["rms"], s["bins"][b]["rms_std"]) for b in BINS]
+        lines.append(f"| {a} | " + " | ".join(cells) + " |")
+    lines += ["", "| bin | frames | distance | median t (m) | median r (deg) |", "|---|---|---|---|---|"]
+    for b in BINS:
+        d = summary["bins"][b]
+        lines.append(f"| {b} | {d['n_frames']} | {d['dist_min']:.2f}-{d['dist_max']:.2f} | "
+                     f"{d['trans_m_median']:.3f} | {d['rot_deg_median']:.1f} |")
+    g = far_gap(summary)
+    spread = ("one seed: no spread measured" if g["std_capture"] is None else
+              f"seed std {g['std_capture_synth']:.3f} / {g['std_capture']:.3f} m")
+    lines += ["", ("Values: mean ± sample std over seeds." if len(c["seeds"]) > 1 else "Values: one seed."),
+              f"Far bin: capture+synth vs capture RMS {g['rel_change'] * 100:+.1f} % "
+              f"({g['rms_capture_synth']:.3f} vs {g['rms_capture']:.3f} m; {spread}).",
+              f"Synthesizing {timing['synth_views']} views: {timing['synthesize_s']:.1f} s; training per arm "
+              f"and seed (s): " + ", ".join(f"{a} {np.mean(v):.0f}" for a, v in timing["train_s"].items()) + ".",
+              ""]
+    return "\n".join(lines)
+
+
+def _save_fig(fig, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _write_figures(out: Path, runs: dict, examples: dict, test: TestSet, cfg: DepthExperimentConfig) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    win = max(1, cfg.steps // 30)
+    for arm, rs in runs.items():
+        L = np.mean([r["train_loss"] for r in rs], axis=0)
+        sm = np.convolve(L, np.ones(win) / win, mode="valid")
+        ax[0].plot(np.arange(len(sm)) + win, sm, label=arm)
+        steps = [p["step"] for p in rs[0]["test_curve"]]
+        rms = np.mean([[p["rms"] for p in r["test_curve"]] for r in rs], axis=0)
+        ax[1].plot(steps, rms, "o-", label=arm)
+    ax[0].set(xlabel="step", ylabel="training loss (mean over seeds, smoothed)", yscale="log")
+    ax[1].set(xlabel="step", ylabel="test RMS (m), all bins")
+    for a in ax:
+        a.legend()
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    _save_fig(fig, out / "learning_curves.png")
+    plt.close(fig)
+
+    cols = ["image", "real depth"] + list(ARMS)
+    fig, ax = plt.subplots(len(BINS), len(cols), figsize=(2.6 * len(cols), 2.2 * len(BINS)), squeeze=False)
+    for r, row in enumerate(test.example_rows):
+        gt = test.depth[row]
+        vmax = float(gt[gt > 0].max()) if (gt > 0).any() else cfg.max_depth_m
+        imgs = [test.rgb[row], np.ma.masked_where(gt <= 0, gt)] + [examples[a][r] for a in ARMS]
+        for c, img in enumerate(imgs):
+            a = ax[r, c]
+            a.imshow(img) if c == 0 else a.imshow(img, cmap="turbo", vmin=0, vmax=vmax)
+            a.set_xticks([])
+            a.set_yticks([])
+            if r == 0:
+                a.set_title(cols[c] + ("" if c < 2 else f" (seed {cfg.seeds[0]})"), fontsize=9)
+        ax[r, 0].set_ylabel(BINS[r])
+    fig.tight_layout()
+    _save_fig(fig, out / "examples.png")
+    plt.close(fig)
