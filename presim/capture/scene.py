@@ -15,11 +15,14 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import TYPE_CHECKING, Protocol, Sequence
 
 import numpy as np
 
 from presim.geometry import Intrinsics, compose, transform_points
+
+if TYPE_CHECKING:
+    from presim.capture.photometric import PhotometricCalib
 
 __all__ = [
     "Frame",
@@ -229,6 +232,9 @@ class Scene:
     """(N, H, W) float32 refined depth (``presim refine``), memory-mapped when loaded; None if absent."""
     path: Path | None = None
     """Folder of the saved scene (None until saved/loaded)."""
+    photometric: "PhotometricCalib | None" = None
+    """Per-frame colour transforms keyed by frame id (``presim photometric``,
+    :mod:`presim.capture.photometric`); None if absent. Subsets keep it (lookups are by id)."""
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)

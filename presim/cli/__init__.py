@@ -13,6 +13,7 @@ _MODULES = [
     "presim.cli.sample_cmd",      # sample-scene
     "presim.cli.capture_cmds",    # import, info
     "presim.cli.refine_eval_cmds",  # refine, eval-views
+    "presim.cli.photometric_cmd",  # photometric
     "presim.cli.render_cmd",      # render
     "presim.cli.sim_cmds",        # drive
     "presim.cli.outputs_cmds",    # ros

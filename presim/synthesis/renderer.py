@@ -37,6 +37,7 @@ from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfi
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_METHODS
+from presim.synthesis.photometric import ViewColorTransform
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view
@@ -106,6 +107,11 @@ class RenderConfig:
     within 0.2 dB of 1.15 and 1.3 at 1/2 to 1/5 of their time."""
     torch_device: str | None = None
     """Torch device (``None``: CUDA when available, else CPU)."""
+    # ---- photometric correction (presim/synthesis/photometric.py, `presim photometric`) ----
+    use_photometric: bool = True
+    """Map every warped view to one output exposure with ``scene.photometric`` when present."""
+    exposure_frame: str | None = None
+    """Output exposure: None = the capture's mean exposure; a frame id = match that frame's."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -176,6 +182,10 @@ class Renderer:
         self._workspace = Workspace()  # warp buffers reused across views and frames (numba backend)
         self._backend = get_backend(config.backend)
         self._device = self._backend.resolve_device(config.torch_device)
+        # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
+        self._color_transform = None
+        if config.use_photometric and getattr(scene, "photometric", None) is not None:
+            self._color_transform = ViewColorTransform(scene.photometric, scene.frame_ids, config.exposure_frame)
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
@@ -263,7 +273,8 @@ class Renderer:
         sel = self.select(T_world_cam, K)
         select_ms = (time.perf_counter() - t0) * 1e3
         res = synthesize_frame(sel.view_idx, invert(T_world_cam), K, self._frame_config,
-                               self._backend.view_image, self._view, self.grid_points, self._workspace)
+                               self._backend.view_image, self._view, self.grid_points, self._workspace,
+                               color_transform=self._color_transform)
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped)
