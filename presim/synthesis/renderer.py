@@ -33,6 +33,7 @@ import numpy as np
 
 from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, unproject_depth
+from presim.synthesis.blend import BlendConfig, blend_frame, front_image_points
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
@@ -112,6 +113,16 @@ class RenderConfig:
     """Map every warped view to one output exposure with ``scene.photometric`` when present."""
     exposure_frame: str | None = None
     """Output exposure: None = the capture's mean exposure; a frame id = match that frame's."""
+    # ---- multi-view blending (presim/synthesis/blend.py) ----
+    blend: bool = False
+    """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
+    seams) instead of keeping the winning view's colour."""
+    blend_views: int = 3
+    """Blend among the first this many views the adaptive loop warped."""
+    blend_depth_tol: float = 0.02
+    """A view is blended at a pixel when its depth is within this fraction of the front surface's."""
+    blend_feather_px: float = 8.0
+    """Views fade in over this many pixels from the border of their coverage."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -130,6 +141,9 @@ class RenderConfig:
             (self.cache_mb > 0, "cache_mb must be > 0"),
             (self.max_zoom > 0, "max_zoom must be > 0"),
             (0.0 <= self.next_view_fill_frac <= 1.0, "next_view_fill_frac must be in [0, 1]"),
+            (self.blend_views >= 1, "blend_views must be >= 1"),
+            (0.0 < self.blend_depth_tol < 1.0, "blend_depth_tol must be in (0, 1)"),
+            (self.blend_feather_px >= 1.0, "blend_feather_px must be >= 1"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -186,6 +200,10 @@ class Renderer:
         self._color_transform = None
         if config.use_photometric and getattr(scene, "photometric", None) is not None:
             self._color_transform = ViewColorTransform(scene.photometric, scene.frame_ids, config.exposure_frame)
+        self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
+                                         feather_px=config.blend_feather_px) if config.blend else None
+        self._blend_buffers: list = [None]
+        self._view_quality = None  # per-view blend factor (sharpness), set by the sharpness step
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
@@ -272,13 +290,34 @@ class Renderer:
         t0 = time.perf_counter()
         sel = self.select(T_world_cam, K)
         select_ms = (time.perf_counter() - t0) * 1e3
-        res = synthesize_frame(sel.view_idx, invert(T_world_cam), K, self._frame_config,
+        T_cam_world = invert(T_world_cam)
+        res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
                                self._backend.view_image, self._view, self.grid_points, self._workspace,
-                               color_transform=self._color_transform)
+                               color_transform=self._color_transform,
+                               blend=self._blend_hook(T_world_cam, T_cam_world, K))
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped)
         return RGBD(res.color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
+
+    def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics):
+        """The core's ``blend`` hook for one target camera (None when blending is off)."""
+        if self._blend_config is None:
+            return None
+        near = self.config.near_m
+
+        def front_image(v: int):
+            view = self._view(v)
+            if isinstance(view, ViewPoints):
+                return front_image_points(view, T_cam_world, K, near, self._blend_buffers)
+            img = self._backend.view_image(view, T_cam_world, K, self._frame_config.view, None, Workspace())
+            return img.depth_m, img.color
+
+        def run(views, color, depth, source):
+            return blend_frame(views, color, depth, source, T_world_cam, K, self._blend_config, front_image,
+                               lambda v: self._centres[v], self._view_quality, self._color_transform)
+
+        return run
 
     def render_batch(self, T_world_cams: np.ndarray, K: Intrinsics) -> list[RGBD]:
         """Render B poses (B, 4, 4) with the same intrinsics (per-view data is shared)."""
