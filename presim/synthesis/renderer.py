@@ -118,11 +118,15 @@ class RenderConfig:
     """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
     seams) instead of keeping the winning view's colour."""
     blend_views: int = 3
-    """Blend among the first this many views the adaptive loop warped."""
+    """Blend among this many views: those the adaptive loop warped, in order, then the remaining
+    selected candidates."""
     blend_depth_tol: float = 0.02
     """A view is blended at a pixel when its depth is within this fraction of the front surface's."""
     blend_feather_px: float = 8.0
     """Views fade in over this many pixels from the border of their coverage."""
+    blend_penalty_eps: float = 0.02
+    """Added to a view's angle + resolution penalty (radians) before inverting it to a weight:
+    larger = more uniform averaging."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -144,6 +148,7 @@ class RenderConfig:
             (self.blend_views >= 1, "blend_views must be >= 1"),
             (0.0 < self.blend_depth_tol < 1.0, "blend_depth_tol must be in (0, 1)"),
             (self.blend_feather_px >= 1.0, "blend_feather_px must be >= 1"),
+            (self.blend_penalty_eps > 0.0, "blend_penalty_eps must be > 0"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -201,8 +206,10 @@ class Renderer:
         if config.use_photometric and getattr(scene, "photometric", None) is not None:
             self._color_transform = ViewColorTransform(scene.photometric, scene.frame_ids, config.exposure_frame)
         self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
+                                         penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
-        self._blend_buffers: list = [None]
+        self._blend_buffers: list = [None]  # warp buffers of the blend's front-surface warps
+        self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
         self._view_quality = None  # per-view blend factor (sharpness), set by the sharpness step
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
@@ -294,14 +301,15 @@ class Renderer:
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
                                self._backend.view_image, self._view, self.grid_points, self._workspace,
                                color_transform=self._color_transform,
-                               blend=self._blend_hook(T_world_cam, T_cam_world, K))
+                               blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx))
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped)
         return RGBD(res.color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
 
-    def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics):
-        """The core's ``blend`` hook for one target camera (None when blending is off)."""
+    def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, candidates):
+        """The core's ``blend`` hook for one target camera (None when blending is off): blends the
+        views the loop warped, then the remaining selected candidates, up to ``blend_views``."""
         if self._blend_config is None:
             return None
         near = self.config.near_m
@@ -314,8 +322,10 @@ class Renderer:
             return img.depth_m, img.color
 
         def run(views, color, depth, source):
+            views = list(views) + [int(v) for v in candidates if int(v) not in views]
             return blend_frame(views, color, depth, source, T_world_cam, K, self._blend_config, front_image,
-                               lambda v: self._centres[v], self._view_quality, self._color_transform)
+                               lambda v: self._centres[v], self._view_quality, self._color_transform,
+                               buffers=self._blend_stacks)
 
         return run
 
