@@ -73,6 +73,10 @@ METHODS: dict[str, tuple[dict, str]] = {
     "photo_mean": ({"use_photometric": True}, "refined"),
     "blend": ({"blend": True}, "refined"),
     "photo_blend": ({"blend": True, "use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
+    "sharp": ({"sharpness": True}, "refined"),
+    "sharp_blend": ({"sharpness": True, "blend": True}, "refined"),
+    "photo_sharp_blend": ({"sharpness": True, "blend": True, "use_photometric": True,
+                           "exposure_frame": TARGET_EXPOSURE}, "refined"),
 }
 DEFAULT_METHODS = tuple(METHODS)
 METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel", "ms_per_frame")

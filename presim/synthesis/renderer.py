@@ -24,6 +24,7 @@ Frames are read from the scene's FrameSource only when a view is first needed.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_METHODS
 from presim.synthesis.photometric import ViewColorTransform
 from presim.synthesis.rgbd import RGBD
+from presim.synthesis.sharpness import ViewSharpness
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view
 
@@ -127,6 +129,14 @@ class RenderConfig:
     blend_penalty_eps: float = 0.02
     """Added to a view's angle + resolution penalty (radians) before inverting it to a weight:
     larger = more uniform averaging."""
+    # ---- sharpness-aware views (presim/synthesis/sharpness.py) ----
+    sharpness: bool = False
+    """Prefer sharp capture frames: blurred candidates move behind sharp ones in the warp order and
+    get lower blend weights (re-blur score, presim/capture/sharpness.py)."""
+    sharpness_gamma: float = 2.0
+    """Blend weight factor ``(score / best candidate's score) ** sharpness_gamma``."""
+    blur_demote_frac: float = 0.85
+    """Candidates scoring below this fraction of the best candidate are warped last."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -149,6 +159,8 @@ class RenderConfig:
             (0.0 < self.blend_depth_tol < 1.0, "blend_depth_tol must be in (0, 1)"),
             (self.blend_feather_px >= 1.0, "blend_feather_px must be >= 1"),
             (self.blend_penalty_eps > 0.0, "blend_penalty_eps must be > 0"),
+            (self.sharpness_gamma >= 0.0, "sharpness_gamma must be >= 0"),
+            (0.0 <= self.blur_demote_frac <= 1.0, "blur_demote_frac must be in [0, 1]"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -210,7 +222,11 @@ class Renderer:
                                          feather_px=config.blend_feather_px) if config.blend else None
         self._blend_buffers: list = [None]  # warp buffers of the blend's front-surface warps
         self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
-        self._view_quality = None  # per-view blend factor (sharpness), set by the sharpness step
+        self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
+        if config.sharpness:
+            self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
+                                            config.blur_demote_frac)
+        self._view_quality = None if self._sharpness is None else self._sharpness.quality  # blend factor
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
@@ -296,6 +312,10 @@ class Renderer:
     def _render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
         t0 = time.perf_counter()
         sel = self.select(T_world_cam, K)
+        if self._sharpness is not None:  # sharp views first (presim/synthesis/sharpness.py)
+            p = self._sharpness.order(sel.view_idx)
+            sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
+                                      angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
         select_ms = (time.perf_counter() - t0) * 1e3
         T_cam_world = invert(T_world_cam)
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
