@@ -72,6 +72,8 @@ METHODS: dict[str, tuple[dict, str]] = {
     "photo": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
     "photo_mean": ({"use_photometric": True}, "refined"),
     "blend": ({"blend": True}, "refined"),
+    "blend_2": ({"blend": True, "blend_views": 2}, "refined"),
+    "blend_6": ({"blend": True, "blend_views": 6}, "refined"),
     "photo_blend": ({"blend": True, "use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
     "sharp": ({"sharpness": True}, "refined"),
     "sharp_blend": ({"sharpness": True, "blend": True}, "refined"),

@@ -119,14 +119,14 @@ class RenderConfig:
     blend: bool = False
     """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
     seams) instead of keeping the winning view's colour."""
-    blend_views: int = 3
+    blend_views: int = 4
     """Blend among this many views: those the adaptive loop warped, in order, then the remaining
     selected candidates."""
-    blend_depth_tol: float = 0.02
+    blend_depth_tol: float = 0.05
     """A view is blended at a pixel when its depth is within this fraction of the front surface's."""
     blend_feather_px: float = 8.0
     """Views fade in over this many pixels from the border of their coverage."""
-    blend_penalty_eps: float = 0.02
+    blend_penalty_eps: float = 0.05
     """Added to a view's angle + resolution penalty (radians) before inverting it to a weight:
     larger = more uniform averaging."""
     # ---- sharpness-aware views (presim/synthesis/sharpness.py) ----
