@@ -33,6 +33,8 @@ def register(sub) -> None:
     e.add_argument("--cache-dir", type=Path, default=None,
                    help="where the capture's refined depth is cached (default SCENE/eval_cache)")
     e.add_argument("--workers", type=int, default=1, help="processes for the refinement of the capture")
+    e.add_argument("--no-warmup", action="store_true",
+                   help="render each target once (ms/frame then includes preparing the views; quality is the same)")
     e.set_defaults(func=_eval)
 
 
@@ -58,7 +60,7 @@ def _eval(args) -> int:
     scene = load_scene(args.scene)
     cfg = EvalConfig(stride=args.stride, target_every=args.target_every,
                      methods=tuple(args.methods) if args.methods else DEFAULT_METHODS,
-                     max_targets=args.max_targets, refine_workers=args.workers)
+                     max_targets=args.max_targets, refine_workers=args.workers, warmup=not args.no_warmup)
     res = eval_views(scene, cfg, cache_dir=args.cache_dir, log=lambda s: print(s, file=sys.stderr))
     print(f"{args.scene}: {len(res.target_ids)} targets, stride {args.stride}, target every {args.target_every}")
     print(format_table(res))
