@@ -1,12 +1,13 @@
 """Side-by-side figure for issue 12: real image | today's render | new render, for three targets.
 
     python scripts/photometric_figure.py SCENE --out docs/img/blend_apc.png [--stride 1 --target-every 5]
-        [--targets 25 65 95] [--new blend=1 sharpness=1 ...]
+        [--targets 5 13 21]
 
 Leave-one-out like ``presim eval-views``: each target (scene position) is rendered from the other
 capture frames, on the refined capture depth cached by eval-views (``SCENE/eval_cache``), once with
-``RenderConfig()`` and once with the new options (default: blending + sharpness + photometric
-correction matched to the target's exposure). Labels carry each panel's PSNR / SSIM.
+``RenderConfig()`` ("today", eval-views' ``thesis``) and once with eval-views' ``full`` (photometric
+correction matched to the target's exposure + sharpness-aware views + blending of 6 views). Labels
+carry each panel's PSNR / SSIM.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ sys.path.insert(0, str(ROOT))
 def main() -> int:
     from presim.capture.photometric import calibrate_photometric
     from presim.capture.store import load_scene
-    from presim.evaluation.eval_views import EvalConfig, _refined_capture_depth, capture_and_targets, image_metrics
+    from presim.evaluation.eval_views import (BEST, EvalConfig, _refined_capture_depth, capture_and_targets,
+                                              image_metrics)
     from presim.synthesis.renderer import RenderConfig, Renderer
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -51,8 +53,8 @@ def main() -> int:
         f = cap.frame(k)
         loo = dataclasses.replace(cap, photometric=calib).subset([j for j in range(len(cap)) if j != k])
         old = Renderer(dataclasses.replace(loo, photometric=None), RenderConfig()).render(f.T_world_cam, f.K)
-        new = Renderer(loo, RenderConfig(blend=True, sharpness=True, exposure_frame=cap.frame_ids[k])).render(
-            f.T_world_cam, f.K)
+        best = {**BEST, "exposure_frame": cap.frame_ids[k]}  # eval-views' "full"
+        new = Renderer(loo, RenderConfig(**best)).render(f.T_world_cam, f.K)
         panels = []
         for img, label in ((f.color, f"real {cap.frame_ids[k]}"), (old.color, "today"), (new.color, "new")):
             if label != f"real {cap.frame_ids[k]}":
