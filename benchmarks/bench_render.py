@@ -22,6 +22,12 @@ of an unloaded core), and the peak RSS of the process (numba's allocations bypas
     .venv/bin/python benchmarks/bench_render.py                 # synthetic room + apc capture
     .venv/bin/python benchmarks/bench_render.py --scene out/sample --frames 40
     .venv/bin/python benchmarks/bench_render.py --scene out/apc --sizes 640x480,256x256,128x128 --json out/r.json
+    .venv/bin/python benchmarks/bench_render.py --compare-blend     # + blending/colour correction cost
+
+``--compare-blend`` also renders every case with blending, sharpness-aware views and photometric
+correction (``RenderConfig(blend=True, sharpness=True)`` on the scene with a photometric
+calibration, matching frame 0's exposure) in passes alternating with the default pipeline (base,
+blend, base, blend) and prints the in-run ratio of the medians (blend / base, wall and CPU).
 """
 
 from __future__ import annotations
@@ -165,6 +171,33 @@ def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: R
     return res
 
 
+def compare_blend(name: str, size: str, scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int,
+                  results: dict) -> None:
+    """Default pipeline vs blending + sharpness + photometric correction, alternating passes."""
+    from presim.capture.photometric import calibrate_photometric
+
+    t0 = time.perf_counter()
+    calib = calibrate_photometric(scene, show_progress=False)
+    calib_s = time.perf_counter() - t0
+    photo_scene = dataclasses.replace(scene, photometric=calib)
+    cfg_new = RenderConfig(blend=True, sharpness=True, exposure_frame=scene.frame_ids[0])
+    runs: dict[str, list[dict]] = {"base": [], "blend": []}
+    for _ in range(2):
+        runs["base"].append(bench(scene, K, poses, warmup, RenderConfig()))
+        runs["blend"].append(bench(photo_scene, K, poses, warmup, cfg_new))
+    med = {k: float(np.median([r["ms_median"] for r in v])) for k, v in runs.items()}
+    cpu = {k: float(np.median([r["cpu_ms_median"] for r in v])) for k, v in runs.items()}
+    blend_ms = float(np.median([r["stages_ms_median"]["blend"] for r in runs["blend"]]))
+    results[f"{name} {size}"] = {"base_ms": med["base"], "blend_ms": med["blend"], "ratio_wall": med["blend"] / med["base"],
+                                 "base_cpu_ms": cpu["base"], "blend_cpu_ms": cpu["blend"],
+                                 "ratio_cpu": cpu["blend"] / cpu["base"], "blend_stage_ms": blend_ms,
+                                 "photometric_calibration_s": calib_s, "frames": len(poses)}
+    print(f"{name:26s} {size:9s} base {med['base']:7.1f} ms  blend+sharp+photo {med['blend']:7.1f} ms  "
+          f"ratio {med['blend'] / med['base']:.3f} (CPU {cpu['base']:.1f} -> {cpu['blend']:.1f} ms, "
+          f"ratio {cpu['blend'] / cpu['base']:.3f})  blend stage {blend_ms:.1f} ms  "
+          f"calibration {calib_s:.1f} s for {len(scene)} frames")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", help="saved scene folder (default: synthetic room + apc capture)")
@@ -175,6 +208,8 @@ def main() -> int:
     ap.add_argument("--passes", type=int, default=2, help="measured passes per config (alternating)")
     ap.add_argument("--no-today", action="store_true",
                     help="skip the same-run pass with the pre-LOD pipeline (lod_levels=0, no selection reuse)")
+    ap.add_argument("--compare-blend", action="store_true",
+                    help="also time blending + sharpness + photometric correction against the default, same run")
     args = ap.parse_args()
     import numba
 
@@ -186,6 +221,9 @@ def main() -> int:
         for size in args.sizes.split(","):
             w, h = (int(x) for x in size.split("x"))
             K = Intrinsics.from_fov(w, h, hfov)
+            if args.compare_blend:
+                compare_blend(name, size, scene, K, poses, args.warmup, results)
+                continue
             # "today": the pipeline before level of detail and temporal reuse, same run, same poses.
             today = None if args.no_today else RenderConfig(lod_levels=0, reuse_move_m=0.0)
             res = bench(scene, K, poses, args.warmup, RenderConfig(), today, args.passes)

@@ -144,7 +144,7 @@ def test_eval_views_rejects_bad_requests():
 
 
 def test_all_methods_are_named_like_the_contract():
-    for name in ("full", "DIBR", "DIBR_DR", "LDIBR", "LDIBR_DR", "sel_distance", "sel_angle", "fixed_1",
+    for name in ("full", "thesis", "DIBR", "DIBR_DR", "LDIBR", "LDIBR_DR", "sel_distance", "sel_angle", "fixed_1",
                  "fixed_2", "fixed_3", "median_plain", "depth_guided", "depth_median", "tsdf_mesh",
                  *[f"layers_{k}" for k in range(1, 9)]):
         assert name in METHODS
@@ -176,3 +176,18 @@ def test_cli_eval_views(tmp_path, capsys):
     assert set(data["methods"]["full"]) == set(METRICS)
     assert "| full |" in capsys.readouterr().out
     assert any((tmp_path / "s" / "eval_cache").glob("refined_*.npy"))  # refinement cached
+
+
+def test_issue12_methods_run_and_full_is_the_best_combination():
+    """photo / blend / sharp methods run through eval-views; "full" = photometric + sharpness +
+    blending, "thesis" = RenderConfig() defaults (exact exposure-free views: no loss allowed)."""
+    from presim.evaluation.eval_views import BEST
+
+    assert METHODS["full"][0] == BEST and METHODS["thesis"][0] == {}
+    scene = two_plane_scene()
+    methods = ("thesis", "full", "photo_mean", "blend", "sharp")
+    res = eval_views(scene, EvalConfig(stride=1, target_every=3, methods=methods,
+                                       refine=RefineConfig(median_radius=2)))
+    assert set(res.methods) == set(methods)
+    assert res.methods["full"]["psnr_db"] > res.methods["thesis"]["psnr_db"] - 0.1
+    assert res.methods["full"]["hole_frac"] == res.methods["thesis"]["hole_frac"]  # blending keeps coverage

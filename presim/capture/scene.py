@@ -15,11 +15,14 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import TYPE_CHECKING, Protocol, Sequence
 
 import numpy as np
 
 from presim.geometry import Intrinsics, compose, transform_points
+
+if TYPE_CHECKING:
+    from presim.capture.photometric import PhotometricCalib
 
 __all__ = [
     "Frame",
@@ -234,6 +237,9 @@ class Scene:
     (``presim align``'s, from ``SCENE/poses_refined.json``; see ``store.load_scene(poses=...)``);
     ``"none"`` only between an importer and ``import_capture`` for a capture without poses
     (placeholders, estimated there)."""
+    photometric: "PhotometricCalib | None" = None
+    """Per-frame colour transforms keyed by frame id (``presim photometric``,
+    :mod:`presim.capture.photometric`); None if absent. Subsets keep it (lookups are by id)."""
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)

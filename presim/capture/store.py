@@ -7,6 +7,7 @@ Layout (format ``presim-scene``, version 1; see docs/scene-format.md)::
       color.npy             uint8   (N, H, W, 3)  RGB            -- memory-mapped on load
       depth.npy             float32 (N, H, W)     metres, 0 = invalid (raw, as imported)
       depth_refined.npy     float32 (N, H, W)     optional, written by ``presim refine``
+      photometric.json      per-frame colour transforms, optional, written by ``presim photometric``
       points_xyz.npy        float32 (M, 3)        world-frame colored point cloud
       points_rgb.npy        uint8   (M, 3)
       objects/              object models (PLY/OBJ/xyz), metres, object frame
@@ -32,7 +33,10 @@ from presim.io_utils import atomic_dir, atomic_write_json, progress
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
            "set_has_refined_depth", "open_scene",
-           "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses"]
+           "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses",
+           "PHOTOMETRIC_FILE", "save_photometric"]
+
+PHOTOMETRIC_FILE = "photometric.json"
 
 FORMAT_NAME = "presim-scene"
 FORMAT_VERSION = 1
@@ -136,6 +140,9 @@ def save_scene(scene: Scene, dst: str | Path, overwrite: bool = False,
             ref.flush()
             del ref
 
+        if scene.photometric is not None:
+            atomic_write_json(tmp / PHOTOMETRIC_FILE, scene.photometric.to_json(), indent=1)
+
         saved = load_scene(tmp, _skip_points=True)
         saved = _with_arrays(scene, saved)
         points = scene.points if scene.points is not None else fuse_point_cloud(saved, voxel_m=voxel_m)
@@ -192,6 +199,36 @@ def set_has_refined_depth(path: str | Path) -> None:
     if hdr.get("has_refined_depth") != present:
         hdr["has_refined_depth"] = present
         atomic_write_json(path / "scene.json", hdr, indent=1)
+
+
+def save_photometric(path: str | Path, calib) -> Path:
+    """Write a :class:`~presim.capture.photometric.PhotometricCalib` into the saved scene at ``path``
+    as ``photometric.json`` (atomic; the images are never touched). Its frame ids must be the
+    scene's. Returns the file."""
+    path = Path(path)
+    hdr_path = path / "scene.json"
+    if not hdr_path.is_file():
+        raise SceneError(f"{path}: not a PreSim scene (no scene.json)")
+    ids = [f["frame_id"] for f in json.loads(hdr_path.read_text())["frames"]]
+    if list(calib.frame_ids) != ids:
+        raise SceneError(f"{path}: photometric calibration frame ids do not match the scene's frames")
+    out = path / PHOTOMETRIC_FILE
+    atomic_write_json(out, calib.to_json(), indent=1)
+    return out
+
+
+def _load_photometric(path: Path):
+    from presim.capture.photometric import PhotometricCalib
+
+    f = path / PHOTOMETRIC_FILE
+    if not f.is_file():
+        return None
+    try:
+        return PhotometricCalib.from_json(json.loads(f.read_text()), str(f))
+    except json.JSONDecodeError as e:
+        raise SceneError(f"{f}: corrupt JSON ({e})") from None
+    except ValueError as e:
+        raise SceneError(str(e)) from None
 
 
 def _with_arrays(meta_scene: Scene, array_scene: Scene) -> Scene:
@@ -330,6 +367,7 @@ def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarr
         objects=objects,
         depth_refined=refined,
         path=path,
+        photometric=_load_photometric(path),
     )
 
 

@@ -14,6 +14,7 @@ _MODULES = [
     "presim.cli.capture_cmds",    # import, info
     "presim.cli.align_cmds",      # align, eval-poses
     "presim.cli.refine_eval_cmds",  # refine, eval-views
+    "presim.cli.photometric_cmd",  # photometric
     "presim.cli.render_cmd",      # render
     "presim.cli.sim_cmds",        # drive
     "presim.cli.teleop_cmd",      # teleop

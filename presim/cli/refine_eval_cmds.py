@@ -25,7 +25,9 @@ def register(sub) -> None:
     e.add_argument("--target-every", type=int, default=5, help="targets = capture positions k*E, k >= 1 (default 5)")
     e.add_argument("--methods", nargs="+", default=None,
                    help="methods (default all): full DIBR DIBR_DR LDIBR LDIBR_DR sel_distance sel_angle fixed_1 "
-                        "fixed_2 fixed_3 median_plain depth_guided depth_median layers_1..layers_8 tsdf_mesh")
+                        "fixed_2 fixed_3 median_plain depth_guided depth_median layers_1..layers_8 tsdf_mesh; "
+                        "beyond the thesis: photo photo_mean blend blend_2 blend_6 photo_blend sharp sharp_blend "
+                        "photo_sharp_blend")
     e.add_argument("--json", type=Path, default=None, help="write the metrics as JSON here")
     e.add_argument("--max-targets", type=int, default=None, help="evaluate at most M targets (evenly spread)")
     e.add_argument("--cache-dir", type=Path, default=None,
@@ -34,6 +36,8 @@ def register(sub) -> None:
     e.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
                    help="camera poses of the scene: refined by `presim align` when present (auto, default), "
                         "the capture's given ones, or refined (error when absent)")
+    e.add_argument("--no-warmup", action="store_true",
+                   help="render each target once (ms/frame then includes preparing the views; quality is the same)")
     e.set_defaults(func=_eval)
 
 
@@ -60,7 +64,7 @@ def _eval(args) -> int:
     print(f"{args.scene}: {scene.poses_source} poses", file=sys.stderr)
     cfg = EvalConfig(stride=args.stride, target_every=args.target_every,
                      methods=tuple(args.methods) if args.methods else DEFAULT_METHODS,
-                     max_targets=args.max_targets, refine_workers=args.workers)
+                     max_targets=args.max_targets, refine_workers=args.workers, warmup=not args.no_warmup)
     res = eval_views(scene, cfg, cache_dir=args.cache_dir, log=lambda s: print(s, file=sys.stderr))
     print(f"{args.scene}: {len(res.target_ids)} targets, stride {args.stride}, target every {args.target_every}")
     print(format_table(res))

@@ -46,7 +46,7 @@ __all__ = ["STAGES", "MASKED_MAX_FRAC", "ViewImageConfig", "ViewImage", "Workspa
            "SynthesisBackend", "BACKEND_TABLE", "BACKENDS", "get_backend", "view_image_numba",
            "view_image_reference", "FrameConfig", "FrameResult", "grid_pixels", "synthesize_frame"]
 
-STAGES = ("select", "load", "warp", "crack", "composite", "holes", "fill")
+STAGES = ("select", "load", "warp", "crack", "composite", "holes", "fill", "blend")
 """Keys of the per-stage milliseconds (``FrameResult.ms``, ``RenderStats.ms``)."""
 
 MASKED_MAX_FRAC = 0.12
@@ -288,7 +288,9 @@ def grid_pixels(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
 def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intrinsics, config: FrameConfig,
                      view_image: ViewImageFn, get_view: Callable[[int], Any],
                      get_grid: Callable[[int], np.ndarray], workspace: Workspace | None = None,
-                     color_transform: Callable[[int, np.ndarray], np.ndarray] | None = None) -> FrameResult:
+                     color_transform: Callable[[int, np.ndarray], np.ndarray] | None = None,
+                     blend: Callable[[list[int], np.ndarray, np.ndarray, np.ndarray],
+                                     tuple[np.ndarray, float]] | None = None) -> FrameResult:
     """The adaptive loop (thesis §3.4.2-3.4.4) and the final fill for one target camera.
 
     Args:
@@ -302,6 +304,9 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         workspace: buffers the backend may reuse (a fresh one when None).
         color_transform: optional ``(id, color (H, W, 3) uint8) -> color`` applied to each view's
             image before it is merged (None: colors as warped).
+        blend: optional ``(views, color, depth, source) -> (color, ms)`` run on the merged image
+            before the final fill (multi-view blending, :mod:`presim.synthesis.blend`); None = the
+            winner's colours.
     Returns:
         :class:`FrameResult`.
     """
@@ -370,6 +375,8 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
             break
     valid = acc_d > 0
     hole_frac = float(1.0 - valid.mean())
+    if blend is not None and len(views) > 1:  # ---- blend hook (presim/synthesis/blend.py) ----
+        acc_c, ms["blend"] = blend(views, acc_c, acc_d, acc_src)
     t = time.perf_counter()
     if not views:
         acc_c = np.zeros((H, W, 3), np.uint8)

@@ -24,6 +24,7 @@ Frames are read from the scene's FrameSource only when a view is first needed.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -33,12 +34,15 @@ import numpy as np
 
 from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, unproject_depth
+from presim.synthesis.blend import BlendConfig, blend_frame, front_image_points
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_METHODS
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
+from presim.synthesis.photometric import ViewColorTransform
 from presim.synthesis.rgbd import RGBD
+from presim.synthesis.sharpness import ViewSharpness
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view
 
@@ -128,6 +132,33 @@ class RenderConfig:
     batch_views: int = 3
     """``backend="torch_batch"``: :meth:`Renderer.render_batch` renders every frame from this many
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
+    # ---- photometric correction (presim/synthesis/photometric.py, `presim photometric`) ----
+    use_photometric: bool = True
+    """Map every warped view to one output exposure with ``scene.photometric`` when present."""
+    exposure_frame: str | None = None
+    """Output exposure: None = the capture's mean exposure; a frame id = match that frame's."""
+    # ---- multi-view blending (presim/synthesis/blend.py) ----
+    blend: bool = False
+    """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
+    seams) instead of keeping the winning view's colour."""
+    blend_views: int = 4
+    """Blend among this many views: those the adaptive loop warped, in order, then the remaining
+    selected candidates."""
+    blend_depth_tol: float = 0.05
+    """A view is blended at a pixel when its depth is within this fraction of the front surface's."""
+    blend_feather_px: float = 8.0
+    """Views fade in over this many pixels from the border of their coverage."""
+    blend_penalty_eps: float = 0.05
+    """Added to a view's angle + resolution penalty (radians) before inverting it to a weight:
+    larger = more uniform averaging."""
+    # ---- sharpness-aware views (presim/synthesis/sharpness.py) ----
+    sharpness: bool = False
+    """Prefer sharp capture frames: blurred candidates move behind sharp ones in the warp order and
+    get lower blend weights (re-blur score, presim/capture/sharpness.py)."""
+    sharpness_gamma: float = 2.0
+    """Blend weight factor ``(score / best candidate's score) ** sharpness_gamma``."""
+    blur_demote_frac: float = 0.85
+    """Candidates scoring below this fraction of the best candidate are warped last."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -152,6 +183,12 @@ class RenderConfig:
             (self.reuse_move_m >= 0 and self.reuse_turn_deg >= 0, "reuse_move_m / reuse_turn_deg must be >= 0"),
             (self.time_budget_ms >= 0, "time_budget_ms must be >= 0"),
             (self.batch_views >= 1, "batch_views must be >= 1"),
+            (self.blend_views >= 1, "blend_views must be >= 1"),
+            (0.0 < self.blend_depth_tol < 1.0, "blend_depth_tol must be in (0, 1)"),
+            (self.blend_feather_px >= 1.0, "blend_feather_px must be >= 1"),
+            (self.blend_penalty_eps > 0.0, "blend_penalty_eps must be > 0"),
+            (self.sharpness_gamma >= 0.0, "sharpness_gamma must be >= 0"),
+            (0.0 <= self.blur_demote_frac <= 1.0, "blur_demote_frac must be in [0, 1]"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -216,6 +253,20 @@ class Renderer:
         self._src_focal = np.array([np.sqrt(K.fx * K.fy) for K in scene.intrinsics])
         self._T_cam_world_src: np.ndarray | None = None  # per view, built on first LOD use
         self._prev: tuple[np.ndarray, Intrinsics, Selection] | None = None  # temporal reuse
+        # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
+        self._color_transform = None
+        if config.use_photometric and getattr(scene, "photometric", None) is not None:
+            self._color_transform = ViewColorTransform(scene.photometric, scene.frame_ids, config.exposure_frame)
+        self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
+                                         penalty_eps=config.blend_penalty_eps,
+                                         feather_px=config.blend_feather_px) if config.blend else None
+        self._blend_buffers: list = [None]  # warp buffers of the blend's front-surface warps
+        self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
+        self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
+        if config.sharpness:
+            self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
+                                            config.blur_demote_frac)
+        self._view_quality = None if self._sharpness is None else self._sharpness.quality  # blend factor
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
@@ -336,6 +387,10 @@ class Renderer:
         reused = sel is not None
         if sel is None:
             sel = self.select(T_world_cam, K)
+            if self._sharpness is not None:  # sharp views first (presim/synthesis/sharpness.py)
+                p = self._sharpness.order(sel.view_idx)
+                sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
+                                          angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
             self._prev = (T_world_cam.copy(), K, sel)
         select_ms = (time.perf_counter() - t0) * 1e3
         T_cam_world = invert(T_world_cam)
@@ -346,12 +401,36 @@ class Renderer:
                 levels[idx] = self.lod_level(idx, T_cam_world, K)
                 return self._view(idx, levels[idx])
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
-                               self._backend.view_image, get_view, self.grid_points, self._workspace)
+                               self._backend.view_image, get_view, self.grid_points, self._workspace,
+                               color_transform=self._color_transform,
+                               blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx))
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
                                 reused_selection=reused)
         return RGBD(res.color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
+
+    def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, candidates):
+        """The core's ``blend`` hook for one target camera (None when blending is off): blends the
+        views the loop warped, then the remaining selected candidates, up to ``blend_views``."""
+        if self._blend_config is None:
+            return None
+        near = self.config.near_m
+
+        def front_image(v: int):
+            view = self._view(v)
+            if isinstance(view, ViewPoints):
+                return front_image_points(view, T_cam_world, K, near, self._blend_buffers)
+            img = self._backend.view_image(view, T_cam_world, K, self._frame_config.view, None, Workspace())
+            return img.depth_m, img.color
+
+        def run(views, color, depth, source):
+            views = list(views) + [int(v) for v in candidates if int(v) not in views]
+            return blend_frame(views, color, depth, source, T_world_cam, K, self._blend_config, front_image,
+                               lambda v: self._centres[v], self._view_quality, self._color_transform,
+                               buffers=self._blend_stacks)
+
+        return run
 
     def render_batch(self, T_world_cams: np.ndarray, K: Intrinsics) -> list[RGBD]:
         """Render B poses (B, 4, 4) with the same intrinsics (per-view data is shared).

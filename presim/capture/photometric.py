@@ -1,0 +1,352 @@
+"""Photometric calibration of a capture: one colour transform per frame, solved jointly (beyond the thesis).
+
+Auto-exposure and auto-white-balance change between the frames of a real capture, so a pixel warped
+from one view does not have the colour the same surface has in another. This module estimates, for
+every frame ``i``, a per-channel gain and bias of the forward model
+
+    observed_i(x) = gain_i * radiance(x) + bias_i        (8-bit levels, per channel)
+
+where ``radiance`` is the colour the surface has at the capture's *mean exposure*: the solution is
+anchored so that the mean gain over the frames is 1 and the mean bias is 0 (the overall exposure
+stays where the capture put it; a capture of identical frames gets the identity everywhere).
+
+How (:func:`calibrate_photometric`):
+
+1. **Pairs**: each frame is paired with its ``num_neighbors`` nearest frames by camera centre whose
+   optical axes are within ``max_angle_deg`` (unordered pairs, each once).
+2. **Correspondences by depth reprojection**: every ``stride_px``-th pixel of frame i with depth
+   (refined when the scene has it) is unprojected to the world and projected into frame j
+   (``presim.geometry``), landing on j's nearest pixel (:func:`capture.reprojection.nearest_pixel`);
+   it is kept when j's depth there agrees with the projected depth within ``depth_tol_rel``
+   (occlusion / misregistration test), when no channel is clipped (``<= clip_lo`` or ``>= clip_hi``
+   in either image) and when the local gradient is small (lowest ``keep_gradient_frac`` of the
+   pair's samples: a pose error of a pixel moves a colour edge, not a flat patch). Colours are read
+   from images blurred with a Gaussian of ``blur_sigma_px`` (an exposure change is global, a blur
+   only suppresses misalignment and noise).
+3. **Joint linear least squares** in the inverse model ``radiance = a_i * observed_i + c_i``: every
+   correspondence gives one row ``a_i x_i + c_i - a_j x_j - c_j = 0``; the anchor rows
+   ``mean(a) = 1``, ``mean(c) = 0`` (heavily weighted) and a weak ridge towards the identity (keeps
+   a frame without any correspondence at the identity) complete the system. The normal equations
+   are 2N x 2N per channel, accumulated with ``bincount`` over the samples; ``irls_iters`` rounds of
+   Huber re-weighting (threshold ``huber_k`` x the MAD scale) discount moving objects, specularities
+   and leftover misalignment.
+4. The inverse model is turned back into ``gain = 1/a``, ``bias = -c/a`` and re-anchored exactly
+   (mean gain 1, mean bias 0).
+
+The result (:class:`PhotometricCalib`) is keyed by frame id, so ``Scene.subset`` keeps it valid; it
+is stored with the scene as ``photometric.json`` (:func:`presim.capture.store.save_photometric`)
+and applied at render time by :mod:`presim.synthesis.photometric`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from presim.capture.reprojection import nearest_pixel
+from presim.geometry import invert, project, transform_points, unproject_depth
+from presim.io_utils import progress
+
+__all__ = ["PHOTOMETRIC_MODELS", "PhotometricConfig", "PhotometricCalib", "calibrate_photometric",
+           "photometric_pairs", "pair_correspondences"]
+
+PHOTOMETRIC_MODELS = ("gain_bias", "gain")
+PHOTOMETRIC_FORMAT = "presim-photometric"
+PHOTOMETRIC_VERSION = 1
+
+
+@dataclass(frozen=True)
+class PhotometricConfig:
+    """Knobs of :func:`calibrate_photometric`."""
+
+    model: str = "gain_bias"
+    """``"gain_bias"`` (per-channel gain and bias) or ``"gain"`` (per-channel gain, bias fixed at 0)."""
+    num_neighbors: int = 6
+    """Each frame is paired with this many nearest frames (camera centre distance)."""
+    max_angle_deg: float = 45.0
+    """Pairs whose optical axes differ by more than this are not used."""
+    stride_px: int = 4
+    """Every ``stride_px``-th pixel (both axes) of a frame is a correspondence candidate."""
+    depth_tol_rel: float = 0.03
+    """A reprojected point is kept when the other frame's depth agrees within this fraction."""
+    blur_sigma_px: float = 2.0
+    """Gaussian blur of the images before colours are read (0 = none)."""
+    keep_gradient_frac: float = 0.6
+    """Keep the samples of a pair whose blurred-gradient magnitude is in this lowest fraction."""
+    clip_lo: int = 3
+    """Samples with a channel <= this (crushed blacks) in either image are dropped."""
+    clip_hi: int = 250
+    """Samples with a channel >= this (saturated) in either image are dropped."""
+    max_samples_per_pair: int = 4000
+    """Random subsample of each pair's correspondences (bounds time and memory)."""
+    irls_iters: int = 4
+    """Huber re-weighting rounds after the first least-squares solve."""
+    huber_k: float = 2.0
+    """Huber threshold in units of the robust (MAD) residual scale."""
+    ridge: float = 1e-3
+    """Weight of the pull towards the identity, relative to a frame's number of samples."""
+    use_refined_depth: bool = True
+    """Use ``scene.depth_refined`` for the correspondences when present."""
+    seed: int = 0
+    """Seed of the sample subsampling."""
+
+    def __post_init__(self) -> None:
+        if self.model not in PHOTOMETRIC_MODELS:
+            raise ValueError(f"PhotometricConfig: model must be one of {PHOTOMETRIC_MODELS}")
+        if self.num_neighbors < 1 or self.stride_px < 1:
+            raise ValueError("PhotometricConfig: num_neighbors and stride_px must be >= 1")
+        if not 0.0 < self.keep_gradient_frac <= 1.0:
+            raise ValueError("PhotometricConfig: keep_gradient_frac must be in (0, 1]")
+        if not 0.0 < self.depth_tol_rel < 1.0:
+            raise ValueError("PhotometricConfig: depth_tol_rel must be in (0, 1)")
+
+
+@dataclass(frozen=True)
+class PhotometricCalib:
+    """Per-frame colour transforms of a capture (forward model ``observed = gain * radiance + bias``)."""
+
+    frame_ids: tuple[str, ...]
+    """Frame ids the rows belong to (a render looks transforms up by id)."""
+    gain: np.ndarray
+    """float64 (N, 3) per-channel gain (RGB); mean over frames = 1."""
+    bias: np.ndarray
+    """float64 (N, 3) per-channel bias, 8-bit levels; mean over frames = 0."""
+    model: str = "gain_bias"
+    """Transform family (:data:`PHOTOMETRIC_MODELS`)."""
+    stats: dict = field(default_factory=dict)
+    """How the solve went: pairs, samples, residual RMS before / after (levels), seconds."""
+
+    def __post_init__(self) -> None:
+        n = len(self.frame_ids)
+        if self.gain.shape != (n, 3) or self.bias.shape != (n, 3):
+            raise ValueError(f"PhotometricCalib: gain/bias must be ({n}, 3), got {self.gain.shape}/{self.bias.shape}")
+        if self.model not in PHOTOMETRIC_MODELS:
+            raise ValueError(f"PhotometricCalib: model must be one of {PHOTOMETRIC_MODELS}")
+        if not (np.all(np.isfinite(self.gain)) and np.all(self.gain > 0) and np.all(np.isfinite(self.bias))):
+            raise ValueError("PhotometricCalib: gains must be finite and > 0, biases finite")
+
+    def index(self, frame_id: str) -> int:
+        """Row of ``frame_id`` (KeyError naming it when absent)."""
+        lut = self.__dict__.get("_lut")
+        if lut is None:
+            lut = {f: i for i, f in enumerate(self.frame_ids)}
+            object.__setattr__(self, "_lut", lut)
+        if frame_id not in lut:
+            raise KeyError(f"photometric calibration has no frame {frame_id!r}")
+        return lut[frame_id]
+
+    def to_json(self) -> dict:
+        return {"format": PHOTOMETRIC_FORMAT, "version": PHOTOMETRIC_VERSION, "model": self.model,
+                "stats": self.stats,
+                "frames": [{"frame_id": f, "gain": [float(x) for x in self.gain[i]],
+                            "bias": [float(x) for x in self.bias[i]]} for i, f in enumerate(self.frame_ids)]}
+
+    @classmethod
+    def from_json(cls, d: dict, where: str = "photometric.json") -> "PhotometricCalib":
+        if d.get("format") != PHOTOMETRIC_FORMAT:
+            raise ValueError(f"{where}: unknown format {d.get('format')!r}")
+        if d.get("version") != PHOTOMETRIC_VERSION:
+            raise ValueError(f"{where}: version {d.get('version')} is not supported (reads {PHOTOMETRIC_VERSION})")
+        try:
+            fr = d["frames"]
+            return cls(tuple(str(f["frame_id"]) for f in fr),
+                       np.array([f["gain"] for f in fr], np.float64).reshape(len(fr), 3),
+                       np.array([f["bias"] for f in fr], np.float64).reshape(len(fr), 3),
+                       d.get("model", "gain_bias"), dict(d.get("stats", {})))
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{where}: malformed ({type(e).__name__}: {e})") from None
+
+
+def photometric_pairs(T_world_cam: np.ndarray, num_neighbors: int, max_angle_deg: float) -> list[tuple[int, int]]:
+    """Unordered frame pairs ``(i, j)``, ``i < j``: each frame with its nearest frames by centre
+    distance whose optical axes are within ``max_angle_deg``."""
+    T = np.asarray(T_world_cam, np.float64)
+    c = T[:, :3, 3]
+    z = T[:, :3, 2] / np.linalg.norm(T[:, :3, 2], axis=1, keepdims=True)
+    d = np.linalg.norm(c[:, None] - c[None], axis=2)
+    cos = np.clip(z @ z.T, -1.0, 1.0)
+    d[np.degrees(np.arccos(cos)) > max_angle_deg] = np.inf
+    np.fill_diagonal(d, np.inf)
+    pairs = set()
+    for i in range(len(T)):
+        for j in np.argsort(d[i], kind="stable")[:num_neighbors]:
+            if np.isfinite(d[i, j]):
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    return sorted(pairs)
+
+
+def _blurred(color: np.ndarray, sigma: float) -> np.ndarray:
+    f = color.astype(np.float32)
+    return cv2.GaussianBlur(f, (0, 0), sigma) if sigma > 0 else f
+
+
+def _gradient(img_f: np.ndarray) -> np.ndarray:
+    g = img_f.mean(axis=2)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    return np.sqrt(gx * gx + gy * gy)
+
+
+def pair_correspondences(raw_i: np.ndarray, blur_i: np.ndarray, grad_i: np.ndarray, depth_i: np.ndarray,
+                         raw_j: np.ndarray, blur_j: np.ndarray, grad_j: np.ndarray, depth_j: np.ndarray,
+                         K_i, K_j, T_j_i: np.ndarray, config: PhotometricConfig,
+                         rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Colours ``(x_i, x_j)`` (float32 (m, 3) each, blurred images) of the same surface points seen
+    in frames i and j (step 2 of the module docstring)."""
+    s = config.stride_px
+    pts, mask = unproject_depth(K_i, depth_i, T_j_i, stride=s)
+    if len(pts) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    vv, uu = np.nonzero(mask)
+    vi, ui = vv * s, uu * s
+    uv, z = project(K_j, pts)
+    uj, vj, inside = nearest_pixel(uv, K_j.width, K_j.height)
+    ok = inside & (z > 0)
+    dj = depth_j[vj, uj]
+    ok &= (dj > 0) & (np.abs(dj - z) <= config.depth_tol_rel * z)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    vi, ui, vj, uj, uvj = vi[idx], ui[idx], vj[idx], uj[idx], uv[idx]
+    ri, rj = raw_i[vi, ui], raw_j[vj, uj]
+    ok = ((ri > config.clip_lo) & (ri < config.clip_hi) & (rj > config.clip_lo) & (rj < config.clip_hi)).all(axis=1)
+    vi, ui, vj, uj, uvj = vi[ok], ui[ok], vj[ok], uj[ok], uvj[ok]
+    if len(vi) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    g = np.maximum(grad_i[vi, ui], grad_j[vj, uj])
+    if config.keep_gradient_frac < 1.0 and len(g) > 10:
+        keep = g <= np.quantile(g, config.keep_gradient_frac)
+        vi, ui, uvj = vi[keep], ui[keep], uvj[keep]
+    if len(vi) > config.max_samples_per_pair:
+        sel = rng.choice(len(vi), config.max_samples_per_pair, replace=False)
+        vi, ui, uvj = vi[sel], ui[sel], uvj[sel]
+    return blur_i[vi, ui], _bilinear(blur_j, uvj)
+
+
+def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` (H, W, C) at sub-pixel ``uv`` (m, 2) (pixel centres at integers)."""
+    H, W = img.shape[:2]
+    u = np.clip(uv[:, 0], 0, W - 1.001)
+    v = np.clip(uv[:, 1], 0, H - 1.001)
+    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    fu, fv = (u - u0)[:, None], (v - v0)[:, None]
+    return ((1 - fv) * ((1 - fu) * img[v0, u0] + fu * img[v0, u0 + 1])
+            + fv * ((1 - fu) * img[v0 + 1, u0] + fu * img[v0 + 1, u0 + 1])).astype(np.float32)
+
+
+def _solve_channel(xi: np.ndarray, xj: np.ndarray, pi: np.ndarray, pj: np.ndarray, n: int,
+                   config: PhotometricConfig) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Inverse model ``radiance = a * x + c`` for one channel: returns ``(a, c, rms0, rms1)``."""
+    nv = 2 * n
+    # Row coefficients: +x at a_i, +1 at c_i, -y at a_j, -1 at c_j.
+    cols = np.stack([pi, n + pi, pj, n + pj], axis=1)
+    vals = np.stack([xi, np.ones_like(xi), -xj, -np.ones_like(xj)], axis=1).astype(np.float64)
+    counts = np.bincount(np.concatenate([pi, pj]), minlength=n).astype(np.float64)
+    w = np.ones(len(xi))
+    rms0 = float(np.sqrt(np.mean((xi - xj) ** 2))) if len(xi) else 0.0
+    scale_x = 128.0  # a's coefficients are levels; keep the ridge/anchor on a comparable scale
+    a = np.ones(n)
+    c = np.zeros(n)
+    for it in range(config.irls_iters + 1):
+        AtA = np.zeros((nv, nv))
+        if len(xi):
+            for p in range(4):
+                for q in range(4):
+                    key = cols[:, p] * nv + cols[:, q]
+                    AtA += np.bincount(key, weights=w * vals[:, p] * vals[:, q], minlength=nv * nv).reshape(nv, nv)
+        Atb = np.zeros(nv)
+        # Ridge towards the identity (a = 1, c = 0), relative to each frame's sample count.
+        lam = config.ridge * np.maximum(counts, 1.0)
+        AtA[np.arange(n), np.arange(n)] += lam * scale_x ** 2
+        Atb[:n] += lam * scale_x ** 2
+        AtA[n + np.arange(n), n + np.arange(n)] += lam if config.model == "gain_bias" else 1e6 * np.maximum(counts, 1.0)
+        # Anchor rows: mean(a) = 1 and mean(c) = 0, weighted far above the data.
+        big = 1e3 * max(float(counts.sum()), 1.0)
+        ra = np.zeros(nv)
+        ra[:n] = scale_x / n
+        AtA += big * np.outer(ra, ra)
+        Atb += big * ra * scale_x
+        rc = np.zeros(nv)
+        rc[n:] = 1.0 / n
+        AtA += big * np.outer(rc, rc)
+        sol = np.linalg.solve(AtA, Atb)
+        a, c = sol[:n], sol[n:]
+        if not len(xi) or it == config.irls_iters:
+            break
+        r = a[pi] * xi + c[pi] - a[pj] * xj - c[pj]
+        sigma = 1.4826 * float(np.median(np.abs(r - np.median(r)))) + 1e-6
+        thr = config.huber_k * sigma
+        ar = np.abs(r)
+        w = np.where(ar <= thr, 1.0, thr / np.maximum(ar, 1e-12))
+    rms1 = float(np.sqrt(np.mean((a[pi] * xi + c[pi] - a[pj] * xj - c[pj]) ** 2))) if len(xi) else 0.0
+    return a, c, rms0, rms1
+
+
+def calibrate_photometric(scene, config: PhotometricConfig = PhotometricConfig(),
+                          show_progress: bool = True) -> PhotometricCalib:
+    """Per-frame gain and bias of every frame of ``scene`` (see the module docstring).
+
+    Args:
+        scene: a :class:`presim.capture.scene.Scene` with poses and depth.
+        config: :class:`PhotometricConfig`.
+    Returns:
+        :class:`PhotometricCalib` with one row per frame (mean gain 1, mean bias 0).
+    """
+    t0 = time.perf_counter()
+    n = len(scene)
+    pairs = photometric_pairs(scene.T_world_cam, config.num_neighbors, config.max_angle_deg)
+    rng = np.random.default_rng(config.seed)
+    cache: dict[int, tuple] = {}  # pairs come sorted by i: frames below the current i are done
+
+    def get(k: int):
+        if k not in cache:
+            color, depth = scene.frames.load(k)
+            if config.use_refined_depth and scene.depth_refined is not None:
+                depth = np.asarray(scene.depth_refined[k])
+            b = _blurred(color, config.blur_sigma_px)
+            cache[k] = (np.asarray(color), b, _gradient(b), np.asarray(depth, np.float32))
+        return cache[k]
+
+    xs_i, xs_j, ps_i, ps_j = [], [], [], []
+    T_cam_world = [invert(T) for T in scene.T_world_cam]
+    it = progress(pairs, desc="photometric pairs", unit="pair") if show_progress else pairs
+    for i, j in it:
+        fi, fj = get(i), get(j)
+        T_j_i = T_cam_world[j] @ scene.T_world_cam[i]
+        a, b = pair_correspondences(fi[0], fi[1], fi[2], fi[3], fj[0], fj[1], fj[2], fj[3],
+                                    scene.intrinsics[i], scene.intrinsics[j], T_j_i, config, rng)
+        if len(a):
+            xs_i.append(a)
+            xs_j.append(b)
+            ps_i.append(np.full(len(a), i, np.int64))
+            ps_j.append(np.full(len(a), j, np.int64))
+        for k in [k for k in cache if k < i]:
+            del cache[k]
+    xi = np.concatenate(xs_i) if xs_i else np.zeros((0, 3), np.float32)
+    xj = np.concatenate(xs_j) if xs_j else np.zeros((0, 3), np.float32)
+    pi = np.concatenate(ps_i) if ps_i else np.zeros(0, np.int64)
+    pj = np.concatenate(ps_j) if ps_j else np.zeros(0, np.int64)
+    gain = np.ones((n, 3))
+    bias = np.zeros((n, 3))
+    rms0, rms1 = [], []
+    for ch in range(3):
+        a, c, r0, r1 = _solve_channel(xi[:, ch].astype(np.float64), xj[:, ch].astype(np.float64), pi, pj, n, config)
+        g, b = 1.0 / a, -c / a
+        # Exact re-anchoring: radiance' = s * radiance + t with s = mean(g), t = mean(b).
+        s, t = float(g.mean()), float(b.mean())
+        gain[:, ch] = g / s
+        bias[:, ch] = b - g * t / s
+        rms0.append(r0)
+        rms1.append(r1 * s)  # residuals in observed levels (approximately)
+    covered = np.zeros(n, bool)
+    covered[np.unique(np.concatenate([pi, pj]))] = True
+    stats = {"pairs": len(pairs), "samples": int(len(xi)), "frames_without_samples": int((~covered).sum()),
+             "rms_before": [round(x, 3) for x in rms0], "rms_after": [round(x, 3) for x in rms1],
+             "seconds": round(time.perf_counter() - t0, 2),
+             "config": {k: getattr(config, k) for k in config.__dataclass_fields__}}
+    if config.model == "gain":
+        bias[:] = 0.0
+    return PhotometricCalib(tuple(scene.frame_ids), gain, bias, config.model, stats)

@@ -1,0 +1,154 @@
+"""Photometric calibration (presim/capture/photometric.py), its storage, and its application at render
+time (presim/synthesis/photometric.py, RenderConfig.use_photometric / exposure_frame)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from presim.capture.photometric import (PhotometricCalib, PhotometricConfig, calibrate_photometric,
+                                        photometric_pairs)
+from presim.capture.scene import ArrayFrameSource, SceneError
+from presim.capture.store import PHOTOMETRIC_FILE, load_scene, save_photometric, save_scene
+from presim.geometry import Intrinsics
+from presim.synthesis.photometric import ViewColorTransform, apply_gain_bias, gain_bias_lut
+from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.testing import rect_scene as S
+
+# Known per-frame gains (mean 1 per channel; per-channel white-balance tilt).
+GAINS = np.array([1.0, 0.85, 1.15, 0.9, 1.1, 0.95, 1.05, 1.0])
+GAINS_RGB = np.stack([GAINS, GAINS * 1.02, GAINS * 0.97], axis=1)
+GAINS_RGB /= GAINS_RGB.mean(axis=0)
+
+
+@pytest.fixture(scope="module")
+def room():
+    """8 exact views of the textured room at 320x240 (radiance scaled by 0.75 so no gain clips)."""
+    K = Intrinsics(320.0, 320.0, 159.5, 119.5, 320, 240)
+    sc = S.make_scene(S.room_rects(), S.orbit_poses(8), K)
+    radiance = sc.frames.color.astype(np.float64) * 0.75
+    base = np.clip(np.floor(radiance + 0.5), 0, 255).astype(np.uint8)
+    gained = np.clip(np.floor(radiance * GAINS_RGB[:, None, None, :] + 0.5), 0, 255).astype(np.uint8)
+    return (dataclasses.replace(sc, frames=ArrayFrameSource(base, sc.frames.depth_m)),
+            dataclasses.replace(sc, frames=ArrayFrameSource(gained, sc.frames.depth_m)))
+
+
+@pytest.mark.parametrize("model", ["gain_bias", "gain"])
+def test_known_gains_are_recovered_within_1_percent(room, model):
+    _, gained = room
+    cal = calibrate_photometric(gained, PhotometricConfig(model=model), show_progress=False)
+    assert cal.gain.shape == (8, 3)
+    np.testing.assert_allclose(cal.gain.mean(axis=0), 1.0, atol=1e-9)  # anchored at the mean exposure
+    np.testing.assert_allclose(cal.bias.mean(axis=0), 0.0, atol=1e-6)
+    assert np.abs(cal.gain / GAINS_RGB - 1.0).max() < 0.01
+    assert np.abs(cal.bias).max() < (1.5 if model == "gain_bias" else 1e-12)  # true bias is 0 levels
+    assert cal.stats["rms_after"][0] < cal.stats["rms_before"][0]
+
+
+def test_identical_exposures_give_the_identity(room):
+    base, _ = room
+    # Not exactly the identity: resampling differences at texture edges leave a noise floor (~0.5 %).
+    cal = calibrate_photometric(base, show_progress=False)
+    np.testing.assert_allclose(cal.gain, 1.0, atol=1e-2)
+    np.testing.assert_allclose(cal.bias, 0.0, atol=1.5)
+
+
+def test_pairs_respect_neighbours_and_angle():
+    T = S.orbit_poses(6)
+    pairs = photometric_pairs(T, 1, 90.0)
+    assert all(i < j for i, j in pairs) and (0, 1) in pairs and (4, 5) in pairs
+    assert all(j - i == 1 for i, j in pairs)  # nearest neighbour on a line of poses
+    T2 = T.copy()
+    T2[3, :3, :3] = -T2[3, :3, :3] @ np.diag([1, -1, 1])  # frame 3 looks backwards (still a rotation)
+    assert all(3 not in p for p in photometric_pairs(T2, 2, 45.0))
+
+
+def test_lut_equals_the_float_reference():
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 256, (13, 17, 3), dtype=np.uint8)
+    gv, bv, go, bo = np.array([0.8, 1.1, 1.0]), np.array([3.0, -2.0, 0.5]), np.array([1.2, 0.9, 1.0]), np.zeros(3)
+    import cv2
+
+    assert np.array_equal(cv2.LUT(img, gain_bias_lut(gv, bv, go, bo)), apply_gain_bias(img, gv, bv, go, bo))
+    # Identity transform keeps every level.
+    assert np.array_equal(gain_bias_lut(np.ones(3), np.zeros(3), np.ones(3), np.zeros(3))[0, :, 0], np.arange(256))
+
+
+def test_view_transform_maps_each_frame_to_the_output_exposure(room):
+    base, gained = room
+    cal = PhotometricCalib(tuple(gained.frame_ids), GAINS_RGB.copy(), np.zeros((8, 3)))
+    to_mean = ViewColorTransform(cal, gained.frame_ids)
+    for k in (1, 2):
+        out = to_mean(k, gained.frames.load(k)[0]).astype(int)
+        assert np.abs(out - base.frames.load(k)[0].astype(int)).max() <= 1  # rounding of the two steps
+    to_frame2 = ViewColorTransform(cal, gained.frame_ids, exposure_frame=gained.frame_ids[2])
+    out = to_frame2(1, gained.frames.load(1)[0]).astype(int)
+    want = base.frames.load(1)[0] * GAINS_RGB[2]  # frame 1's view at frame 2's exposure
+    assert np.abs(out - want).max() <= 2
+    with pytest.raises(ValueError, match="exposure_frame"):
+        ViewColorTransform(cal, gained.frame_ids, exposure_frame="nope")
+
+
+def test_renderer_applies_the_calibration_and_matches_a_frame(room):
+    base, gained = room
+    cal = PhotometricCalib(tuple(gained.frame_ids), GAINS_RGB.copy(), np.zeros((8, 3)))
+    sc = dataclasses.replace(gained, photometric=cal)
+    k = 3
+    others = sc.subset([j for j in range(8) if j != k])  # keeps the calibration (lookup by id)
+    assert others.photometric is cal
+    f_base, f_gained = base.frame(k), gained.frame(k)
+
+    def err(cfg, real):
+        out = Renderer(others, cfg).render(f_gained.T_world_cam, f_gained.K)
+        m = out.valid
+        return float(np.abs(out.color[m].astype(float) - real[m].astype(float)).mean())
+
+    off = err(RenderConfig(use_photometric=False), f_gained.color)
+    match = err(RenderConfig(exposure_frame=sc.frame_ids[k]), f_gained.color)
+    mean = err(RenderConfig(), f_base.color)
+    assert match < 0.5 * off and mean < 0.5 * off
+
+
+def test_store_round_trip_and_errors(room, tmp_path):
+    _, gained = room
+    cal = calibrate_photometric(gained, PhotometricConfig(num_neighbors=2), show_progress=False)
+    d = save_scene(gained.subset(range(4)), tmp_path / "s")
+    assert load_scene(d).photometric is None
+    with pytest.raises(SceneError, match="frame ids"):
+        save_photometric(d, cal)  # 8 frames vs the scene's 4
+    sub = PhotometricCalib(cal.frame_ids[:4], cal.gain[:4], cal.bias[:4], cal.model, cal.stats)
+    before = np.load(d / "color.npy").copy()
+    save_photometric(d, sub)
+    back = load_scene(d).photometric
+    assert back.frame_ids == sub.frame_ids and np.array_equal(back.gain, sub.gain) and np.array_equal(back.bias, sub.bias)
+    assert np.array_equal(np.load(d / "color.npy"), before)  # the given images are never touched
+    # save_scene carries the calibration along.
+    d2 = save_scene(load_scene(d), tmp_path / "s2")
+    assert np.array_equal(load_scene(d2).photometric.gain, sub.gain)
+    (d / PHOTOMETRIC_FILE).write_text("{not json")
+    with pytest.raises(SceneError, match="corrupt JSON"):
+        load_scene(d)
+    (d / PHOTOMETRIC_FILE).write_text(json.dumps({"format": "other"}))
+    with pytest.raises(SceneError, match="unknown format"):
+        load_scene(d)
+
+
+def test_cli_photometric(room, tmp_path, capsys):
+    from presim.cli import main
+
+    _, gained = room
+    d = save_scene(gained.subset(range(5)), tmp_path / "s")
+    assert main(["photometric", str(d)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    cal = load_scene(d).photometric
+    assert np.abs(cal.gain / (GAINS_RGB[:5] / GAINS_RGB[:5].mean(axis=0)) - 1).max() < 0.01
+    assert main(["photometric", str(d)]) == 1  # exists: refuses without --overwrite
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["photometric", str(d), "--overwrite", "--model", "gain"]) == 0
+    assert load_scene(d).photometric.model == "gain"
+    assert main(["photometric", str(tmp_path / "missing")]) == 1
+    err = capsys.readouterr().err
+    assert "error" in err and "Traceback" not in err
