@@ -327,6 +327,16 @@ def test_cli_teleop_bad_port_is_one_line(tmp_path, capsys):
     assert "scene folder not found" in capsys.readouterr().err
 
 
+def test_cli_teleop_render_budget_default_and_refusal(tmp_path, capsys):
+    from presim.cli import build_parser, main
+
+    assert build_parser().parse_args(["teleop", str(tmp_path)]).render_budget_ms == 80.0
+    for bad in ("-1", "nan"):
+        assert main(["teleop", str(tmp_path), "--render-budget-ms", bad]) == 1
+        err = capsys.readouterr().err
+        assert "--render-budget-ms must be >= 0" in err and len(err.strip().splitlines()) == 1
+
+
 # ---- a real browser ---------------------------------------------------------------------------------
 def _canvas_crop(browser, img: np.ndarray, element_id: str) -> np.ndarray:
     r = browser.execute(f"const r = document.getElementById('{element_id}').getBoundingClientRect();"

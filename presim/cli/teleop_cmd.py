@@ -40,6 +40,10 @@ def register(sub) -> None:
     p.add_argument("--rate-hz", type=float, default=10.0, help="camera rate (Hz of sim time)")
     p.add_argument("--hfov-deg", type=float, default=None, help="camera horizontal FOV (default: the capture's)")
     p.add_argument("--tilt-deg", type=float, default=10.0, help="initial head tilt (positive looks down)")
+    p.add_argument("--render-budget-ms", type=float, default=80.0,
+                   help="stop adding capture views to a frame after this many ms (RenderConfig.time_budget_ms; "
+                        "the first view is always warped and the final fill closes what is left); "
+                        "0 = no budget, the full adaptive loop")
     p.add_argument("--jpeg-quality", type=int, default=80, help="JPEG quality of the images sent to the page")
     p.set_defaults(func=run)
 
@@ -53,12 +57,14 @@ def build_simulator(args: argparse.Namespace):
     from presim.sensors.camera import CameraSpec
     from presim.sim.robot import robot_for_scene
     from presim.sim.simulator import SimConfig, Simulator
+    from presim.synthesis.renderer import RenderConfig
 
     scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
     robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
                             camera_link_is_optical=not args.camera_link_body, head_tilt_rad=np.radians(args.tilt_deg))
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz)
-    return Simulator(scene, robot, SimConfig(dt_s=args.dt, cameras=(cam,)))
+    render = RenderConfig(time_budget_ms=args.render_budget_ms)
+    return Simulator(scene, robot, SimConfig(dt_s=args.dt, cameras=(cam,), render=render))
 
 
 def make_recorder(record_dir: Path) -> list:
@@ -83,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--port must be in 0..65535, got {args.port}")
     if args.dt <= 0:
         raise ValueError(f"--dt must be positive, got {args.dt}")
+    if not args.render_budget_ms >= 0:  # also refuses NaN
+        raise ValueError(f"--render-budget-ms must be >= 0, got {args.render_budget_ms}")
     sim = build_simulator(args)
     try:
         import mcap  # noqa: F401
