@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from presim.datasets.bop_reader import BopDataset
 from presim.pose.evaluate import EvalConfig, evaluate, evaluate_files
 from presim.pose.results import Estimate, read_bop_results, write_bop_results
+from presim.testing.boxes import box_mesh, box_surface_points
 
 W, H = 320, 240
 K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
@@ -22,16 +23,11 @@ BOX_MM = np.array([80.0, 50.0, 30.0])
 
 
 def _box_mesh(size):
-    h = np.asarray(size) / 2
-    v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * h
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return v, f
+    return box_mesh(size)
 
 
 def _box_surface_pts(size, n=9):
-    g = np.linspace(-0.5, 0.5, n)
-    return np.array([[x, y, z] for x in g for y in g for z in g if max(abs(x), abs(y), abs(z)) == 0.5]) * size
+    return box_surface_points(size, n)
 
 
 def _write_ply_ascii(path: Path, v, f=None):

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from presim.pose.nets.data import PoseDataConfig, PoseInstanceDataset
 from presim.pose.nets.loss import point_distances, pose_loss, quat_to_R
 from presim.pose.nets.models import ARCHS, EdgeConv, GraphAttention, ModelConfig, PoseNet, best_pose, knn
+from presim.testing.boxes import box_mesh, box_surface_points
 
 W, H = 160, 120
 K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
@@ -26,16 +27,11 @@ TINY = dict(cnn_width=8, emb_dim=16, geo_dims=(16, 16, 16), global_dim=32, fuse_
 
 
 def _box_mesh(size):
-    h = np.asarray(size) / 2
-    v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * h
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return v, f
+    return box_mesh(size)
 
 
 def _box_surface_pts(size, n=7):
-    g = np.linspace(-0.5, 0.5, n)
-    return np.array([[x, y, z] for x in g for y in g for z in g if max(abs(x), abs(y), abs(z)) == 0.5]) * size
+    return box_surface_points(size, n)
 
 
 def _write_ply(path: Path, v, f):
