@@ -37,7 +37,7 @@ from presim.capture.store import model_abspath
 from presim.datasets.objects import ObjectModel, load_model, symmetries_of
 from presim.geometry import check_rigid, compose, invert, make_pose
 
-__all__ = ["PlacedObject", "objects_from_scene", "objects_from_json", "objects_from_bop",
+__all__ = ["PlacedObject", "read_json_items", "objects_from_scene", "objects_from_json", "objects_from_bop",
            "objects_from_ycbv", "resolve_objects"]
 
 
@@ -96,18 +96,25 @@ def _world_from_transforms(scene: Scene) -> np.ndarray:
     return T
 
 
-def objects_from_json(path: str | Path, scene: Scene | None = None) -> list[PlacedObject]:
-    """Objects from a user JSON file (see the module docstring)."""
-    path = Path(path)
+def read_json_items(path: Path, key: str, what: str, noun: str) -> list:
+    """The non-empty list of a user JSON file that is either ``{key: [...]}`` or a bare list;
+    ``FileNotFoundError`` ("<what> not found") / ``ValueError`` naming the file otherwise."""
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: objects JSON not found")
+        raise FileNotFoundError(f"{path}: {what} not found")
     try:
         d = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: invalid JSON ({e})") from None
-    items = d.get("objects") if isinstance(d, dict) else d
+    items = d.get(key) if isinstance(d, dict) else d
     if not isinstance(items, list) or not items:
-        raise ValueError(f"{path}: expected {{'objects': [...]}} with at least one object")
+        raise ValueError(f"{path}: expected {{'{key}': [...]}} with at least one {noun}")
+    return items
+
+
+def objects_from_json(path: str | Path, scene: Scene | None = None) -> list[PlacedObject]:
+    """Objects from a user JSON file (see the module docstring)."""
+    path = Path(path)
+    items = read_json_items(path, "objects", "objects JSON", "object")
     out = []
     for k, it in enumerate(items):
         where = f"{path}: objects[{k}]"

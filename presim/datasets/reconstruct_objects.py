@@ -448,16 +448,10 @@ def read_boxes_json(path: str | Path) -> list[ObjectBox]:
     ``obj_id`` (default: position + 1), ``R``/``yaw_deg`` (default: world axes; yaw about world z)
     and ``symmetric`` are optional. Overlapping boxes are refused.
     """
+    from presim.datasets.object_sources import read_json_items
+
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: boxes file not found")
-    try:
-        d = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: invalid JSON ({e})") from None
-    items = d.get("boxes") if isinstance(d, dict) else d
-    if not isinstance(items, list) or not items:
-        raise ValueError(f"{path}: expected {{'boxes': [...]}} with at least one box")
+    items = read_json_items(path, "boxes", "boxes file", "box")
     boxes = []
     for k, it in enumerate(items):
         where = f"{path}: boxes[{k}]"
