@@ -9,6 +9,28 @@ from pathlib import Path
 import numpy as np
 
 
+def add_robot_arguments(p, drive_help: str) -> None:
+    """--robot, --camera-link, --camera-link-body, --drive: the robot options of `drive` and `teleop`
+    (read back by :func:`robot_from_args`, with --tilt-deg)."""
+    p.add_argument("--robot", default=None,
+                   help="URDF file, 'default' (presim_bot) or 'free' (free-flying camera rig); "
+                        "default: presim_bot, or the free rig when the scene has no floor")
+    p.add_argument("--camera-link", default=None,
+                   help="URDF link of the camera (OpenCV optical frame; default camera_optical_frame)")
+    p.add_argument("--camera-link-body", action="store_true",
+                   help="the --camera-link is a ROS body frame (x forward, z up), not an optical frame")
+    p.add_argument("--drive", choices=["diff", "holonomic"], default="diff", help=drive_help)
+
+
+def robot_from_args(args, scene):
+    """The robot the options of :func:`add_robot_arguments` (and --tilt-deg) name, for ``scene``."""
+    from presim.sim.robot import robot_for_scene
+
+    return robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
+                           camera_link_is_optical=not args.camera_link_body,
+                           head_tilt_rad=float(np.radians(args.tilt_deg)))
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "drive",
@@ -21,15 +43,7 @@ def register(sub) -> None:
         ),
     )
     p.add_argument("scene", type=Path, help="saved scene folder (or a capture folder to import on the fly)")
-    p.add_argument("--robot", default=None,
-                   help="URDF file, 'default' (presim_bot) or 'free' (free-flying camera rig); "
-                        "default: presim_bot, or the free rig when the scene has no floor")
-    p.add_argument("--camera-link", default=None,
-                   help="URDF link of the camera (OpenCV optical frame; default camera_optical_frame)")
-    p.add_argument("--camera-link-body", action="store_true",
-                   help="the --camera-link is a ROS body frame (x forward, z up), not an optical frame")
-    p.add_argument("--drive", choices=["diff", "holonomic"], default="diff",
-                   help="base motion model (diff: vy is clipped to 0)")
+    add_robot_arguments(p, drive_help="base motion model (diff: vy is clipped to 0)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--controller", nargs="+", default=None, metavar="KIND [FILE]",
                    help="keyboard: teleop in this terminal; route: built-in route (default); "
@@ -116,7 +130,6 @@ def run(args: argparse.Namespace) -> int:
     from presim.sensors.odometry import OdometryConfig
     from presim.sim.controllers import KeyboardTeleop
     from presim.sim.drive import DriveConfig, run_drive
-    from presim.sim.robot import robot_for_scene
     from presim.sim.simulator import SimConfig
 
     if args.steps <= 0:
@@ -133,8 +146,7 @@ def run(args: argparse.Namespace) -> int:
     _parse_controller(args)
     scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr),
                        poses=getattr(args, "scene_poses", "auto"))
-    robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
-                            camera_link_is_optical=not args.camera_link_body, head_tilt_rad=np.radians(args.tilt_deg))
+    robot = robot_from_args(args, scene)
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz,
                      noise=DepthNoiseConfig() if args.depth_noise else None)
     sim_config = SimConfig(dt_s=args.dt, cameras=(cam,), odometry=OdometryConfig(drift=args.odom_drift))

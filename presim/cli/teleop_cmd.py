@@ -7,6 +7,9 @@ import sys
 from pathlib import Path
 
 
+from presim.cli.sim_cmds import add_robot_arguments, robot_from_args
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "teleop",
@@ -19,14 +22,7 @@ def register(sub) -> None:
         ),
     )
     p.add_argument("scene", type=Path, help="saved scene folder (or a capture folder to import on the fly)")
-    p.add_argument("--robot", default=None,
-                   help="URDF file, 'default' (presim_bot) or 'free' (free-flying camera rig); "
-                        "default: presim_bot, or the free rig when the scene has no floor")
-    p.add_argument("--camera-link", default=None, help="URDF link of the camera (OpenCV optical frame)")
-    p.add_argument("--camera-link-body", action="store_true",
-                   help="the --camera-link is a ROS body frame (x forward, z up), not an optical frame")
-    p.add_argument("--drive", choices=["diff", "holonomic"], default="diff",
-                   help="base motion model (holonomic: Q/E strafe)")
+    add_robot_arguments(p, drive_help="base motion model (holonomic: Q/E strafe)")
     p.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: a free port)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1; anything else exposes the robot to the network)")
@@ -51,17 +47,13 @@ def register(sub) -> None:
 def build_simulator(args: argparse.Namespace):
     """Scene + robot + simulator exactly as ``presim drive`` builds them (the one place teleop calls
     drive's builders)."""
-    import numpy as np
-
     from presim.capture.store import open_scene
     from presim.sensors.camera import CameraSpec
-    from presim.sim.robot import robot_for_scene
     from presim.sim.simulator import SimConfig, Simulator
     from presim.synthesis.renderer import RenderConfig
 
     scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
-    robot = robot_for_scene(args.robot, scene.floor is not None, drive=args.drive, camera_link=args.camera_link,
-                            camera_link_is_optical=not args.camera_link_body, head_tilt_rad=np.radians(args.tilt_deg))
+    robot = robot_from_args(args, scene)
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz)
     render = RenderConfig(time_budget_ms=args.render_budget_ms)
     return Simulator(scene, robot, SimConfig(dt_s=args.dt, cameras=(cam,), render=render))
