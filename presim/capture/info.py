@@ -63,6 +63,7 @@ def scene_info(scene: Scene, max_sample_frames: int = 50) -> dict:
                      "position_m": [round(float(x), 4) for x in np.asarray(o.T_world_obj)[:3, 3]],
                      "model": o.model_path} for o in scene.objects],
         "refined_depth": scene.has_refined_depth,
+        "fused_depth": scene.has_fused_depth,
         "poses": _poses_info(scene),
         "notes": list(scene.meta.notes),
     }
@@ -135,6 +136,7 @@ def format_info(info: dict) -> str:
         f"\n  {o['obj_id']:>4} {o['name']} at {o['position_m']}" + ("" if o["model"] else " (no model)")
         for o in i["objects"]))
     lines.append(f"refined     {'yes' if i['refined_depth'] else 'no'}")
+    lines.append(f"fused depth {'yes' if i.get('fused_depth') else 'no'}")
     ps = i.get("poses")
     if ps:
         if not ps["refined_available"]:

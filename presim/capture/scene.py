@@ -230,6 +230,9 @@ class Scene:
     objects: list[SceneObject] = field(default_factory=list)
     depth_refined: np.ndarray | None = None
     """(N, H, W) float32 refined depth (``presim refine``), memory-mapped when loaded; None if absent."""
+    depth_fused: np.ndarray | None = None
+    """(N, H, W) float32 sensor depth aligned to and fused with the refined depth (``presim fuse``,
+    thesis §5.3.4), memory-mapped when loaded; None if absent."""
     path: Path | None = None
     """Folder of the saved scene (None until saved/loaded)."""
     poses_source: str = "given"
@@ -290,6 +293,10 @@ class Scene:
     def has_refined_depth(self) -> bool:
         return self.depth_refined is not None
 
+    @property
+    def has_fused_depth(self) -> bool:
+        return self.depth_fused is not None
+
     # ---- derived quantities --------------------------------------------------------------------
     @property
     def camera_centres(self) -> np.ndarray:
@@ -336,6 +343,7 @@ class Scene:
             intrinsics=[self.intrinsics[i] for i in idx],
             frames=_SubsetFrameSource(self.frames, idx),
             depth_refined=None if self.depth_refined is None else _LazyRows(self.depth_refined, idx),
+            depth_fused=None if self.depth_fused is None else _LazyRows(self.depth_fused, idx),
             path=None,
         )
 

@@ -7,6 +7,7 @@ Layout (format ``presim-scene``, version 1; see docs/scene-format.md)::
       color.npy             uint8   (N, H, W, 3)  RGB            -- memory-mapped on load
       depth.npy             float32 (N, H, W)     metres, 0 = invalid (raw, as imported)
       depth_refined.npy     float32 (N, H, W)     optional, written by ``presim refine``
+      depth_fused.npy       float32 (N, H, W)     optional, written by ``presim fuse`` (needs depth_refined)
       photometric.json      per-frame colour transforms, optional, written by ``presim photometric``
       points_xyz.npy        float32 (M, 3)        world-frame colored point cloud
       points_rgb.npy        uint8   (M, 3)
@@ -32,7 +33,7 @@ from presim.geometry import Intrinsics, unproject_depth
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
-           "set_has_refined_depth", "open_scene",
+           "set_has_refined_depth", "set_has_fused_depth", "open_scene",
            "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses",
            "PHOTOMETRIC_FILE", "save_photometric"]
 
@@ -139,6 +140,12 @@ def save_scene(scene: Scene, dst: str | Path, overwrite: bool = False,
                 ref[i] = scene.depth_refined[i]
             ref.flush()
             del ref
+        if scene.depth_fused is not None:
+            fus = np.lib.format.open_memmap(tmp / "depth_fused.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+            for i in range(n):
+                fus[i] = scene.depth_fused[i]
+            fus.flush()
+            del fus
 
         if scene.photometric is not None:
             atomic_write_json(tmp / PHOTOMETRIC_FILE, scene.photometric.to_json(), indent=1)
@@ -180,6 +187,7 @@ def save_scene(scene: Scene, dst: str | Path, overwrite: bool = False,
                 "inlier_frac": scene.floor.inlier_frac},
             "gravity_world": np.asarray(scene.gravity_world, dtype=float).tolist(),
             "has_refined_depth": scene.depth_refined is not None,
+            "has_fused_depth": scene.depth_fused is not None,
             "objects": objects_json,
             "frames": _frames_json(scene),
         }
@@ -198,6 +206,19 @@ def set_has_refined_depth(path: str | Path) -> None:
     present = (path / "depth_refined.npy").is_file()
     if hdr.get("has_refined_depth") != present:
         hdr["has_refined_depth"] = present
+        atomic_write_json(path / "scene.json", hdr, indent=1)
+
+
+def set_has_fused_depth(path: str | Path) -> None:
+    """Update ``scene.json``'s ``has_fused_depth`` to whether ``depth_fused.npy`` exists (``presim
+    fuse`` calls this once the file is in place). Atomic rewrite of scene.json."""
+    import json
+
+    path = Path(path)
+    hdr = json.loads((path / "scene.json").read_text())
+    present = (path / "depth_fused.npy").is_file()
+    if hdr.get("has_fused_depth") != present:
+        hdr["has_fused_depth"] = present
         atomic_write_json(path / "scene.json", hdr, indent=1)
 
 
@@ -345,6 +366,11 @@ def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarr
         refined = _load_array(path / "depth_refined.npy")
         if refined.shape != depth.shape:
             raise SceneError(f"{path / 'depth_refined.npy'}: shape {refined.shape} != depth {depth.shape}")
+    fused = None
+    if (path / "depth_fused.npy").is_file():
+        fused = _load_array(path / "depth_fused.npy")
+        if fused.shape != depth.shape:
+            raise SceneError(f"{path / 'depth_fused.npy'}: shape {fused.shape} != depth {depth.shape}")
     points = PointCloud(_load_array(path / "points_xyz.npy", mmap=False), _load_array(path / "points_rgb.npy", mmap=False))
     fl = hdr.get("floor")
     floor = None if fl is None else FloorPlane(tuple(fl["normal"]), fl["offset"], fl.get("inlier_frac", 0.0))
@@ -366,6 +392,7 @@ def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarr
         gravity_world=np.asarray(hdr.get("gravity_world", [0, 0, -1]), dtype=np.float64),
         objects=objects,
         depth_refined=refined,
+        depth_fused=fused,
         path=path,
         photometric=_load_photometric(path),
     )

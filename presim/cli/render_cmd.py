@@ -32,6 +32,8 @@ def register(sub) -> None:
     p.add_argument("--layers", type=int, default=4, help="number of depth layers L (1 = plain DIBR)")
     p.add_argument("--no-fill", action="store_true", help="leave uncovered pixels empty (black, depth 0)")
     p.add_argument("--raw-depth", action="store_true", help="ignore the scene's refined depth")
+    p.add_argument("--fused-depth", action="store_true",
+                   help="use the scene's fused depth (presim fuse) instead of the refined depth")
     p.add_argument("--backend", default="numba", choices=("numba", "torch", "reference"),
                    help="kernel backend (default numba)")
     p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
@@ -69,8 +71,13 @@ def _main(args: argparse.Namespace) -> int:
         stamps = scene.stamps_s[args.frame:args.frame + 1]
     if args.layers < 1:
         raise ValueError(f"--layers must be >= 1, got {args.layers}")
+    if args.fused_depth and args.raw_depth:
+        raise ValueError("--fused-depth and --raw-depth exclude each other")
+    if args.fused_depth and scene.depth_fused is None:
+        raise ValueError(f"--fused-depth: {args.scene} has no depth_fused.npy (run `presim fuse {args.scene}`)")
     config = RenderConfig(num_layers=args.layers, fill_holes=not args.no_fill,
-                          use_refined_depth=not args.raw_depth, backend=args.backend)
+                          use_refined_depth=not args.raw_depth, backend=args.backend,
+                          use_fused_depth=args.fused_depth)
     K = output_intrinsics(scene.intrinsics[0], args.width, args.height, args.fx, args.fy, args.cx, args.cy)
     from presim.limits import check_render_memory
 

@@ -50,7 +50,8 @@ TARGET_EXPOSURE = "<target>"
 
 # Method name -> (RenderConfig overrides, depth variant). Depth variant: "refined" (the scene's
 # refinement), "raw" (sensor depth), "guided" / "median" (filters of the raw depth used in place of
-# the refinement), or "tsdf" (the mesh baseline, no Renderer).
+# the refinement), "fused" (sensor depth aligned to and fused with the refinement, thesis §5.3.4,
+# presim.depth.scene_fuse), or "tsdf" (the mesh baseline, no Renderer).
 # "full" is the best measured combination (issue 12: photometric correction matched to the target's
 # exposure + sharpness-aware views + blending of 6 views; docs/evaluation.md); "thesis" is the
 # thesis pipeline (RenderConfig() defaults), the "full" of earlier tables.
@@ -85,6 +86,9 @@ METHODS: dict[str, tuple[dict, str]] = {
     "photo_sharp_blend": ({"sharpness": True, "blend": True, "use_photometric": True,
                            "exposure_frame": TARGET_EXPOSURE}, "refined"),
     "photo_sharp_blend_6": (BEST, "refined"),
+    # Depth alignment + fusion (§5.3.4) in place of the refined depth.
+    "fused": ({}, "fused"),
+    "full_fused": (BEST, "fused"),
 }
 DEFAULT_METHODS = tuple(METHODS)
 METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel", "ms_per_frame")
@@ -246,6 +250,16 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
     if variants & {"refined"}:
         depth_sets["refined"] = _refined_capture_depth(scene, capture, config,
                                                        None if cache_dir is None else Path(cache_dir))
+    if "fused" in variants:
+        from presim.depth.scene_fuse import fuse_frames
+
+        if depth_sets.get("refined") is None:
+            depth_sets["refined"] = _refined_capture_depth(scene, capture, config,
+                                                           None if cache_dir is None else Path(cache_dir))
+        t1 = time.perf_counter()
+        depth_sets["fused"] = fuse_frames(cap, depth_sets["refined"], desc="fuse capture depth")
+        if log is not None:
+            log(f"depth alignment + fusion of the capture: {(time.perf_counter() - t1) / len(cap) * 1e3:.0f} ms/frame")
     refine_s = time.perf_counter() - t0
     if "guided" in variants or "median" in variants:
         raws = [cap.frame(k) for k in range(len(cap))]

@@ -68,6 +68,9 @@ class RenderConfig:
     """Big holes are dilated by this radius before the next view fills them (ghost contours)."""
     use_refined_depth: bool = True
     """Use ``scene.depth_refined`` (``presim refine``) when present, else the raw depth."""
+    use_fused_depth: bool = False
+    """Use ``scene.depth_fused`` (``presim fuse``: sensor depth aligned to and fused with the refined
+    depth, thesis §5.3.4) when present; it takes precedence over ``use_refined_depth``."""
     fill_holes: bool = True
     """Fill pixels no view covers (they stay False in ``RGBD.valid``); False leaves them 0."""
     backend: str = "numba"
@@ -241,6 +244,7 @@ class Renderer:
         self._hfov_deg = np.array([K.hfov_deg for K in scene.intrinsics])
         self._focal_px = float(np.median([np.sqrt(K.fx * K.fy) for K in scene.intrinsics]))
         self._use_refined = bool(config.use_refined_depth and scene.depth_refined is not None)
+        self._use_fused = bool(config.use_fused_depth and getattr(scene, "depth_fused", None) is not None)
         self._views: OrderedDict[int, object] = OrderedDict()
         self._views_bytes = 0
         self._grids: dict[int, np.ndarray] = {}
@@ -271,7 +275,9 @@ class Renderer:
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
         color, depth = self.scene.frames.load(idx)
-        if self._use_refined:
+        if self._use_fused:
+            depth = np.asarray(self.scene.depth_fused[idx])
+        elif self._use_refined:
             depth = np.asarray(self.scene.depth_refined[idx])
         K = self.scene.intrinsics[idx]
         if depth.shape != (K.height, K.width) or depth.dtype != np.float32:
