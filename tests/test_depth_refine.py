@@ -109,3 +109,53 @@ def test_bad_inputs_raise_clear_errors():
         refine_depth(color, gt[:-1], K, poses[0], refs)
     with pytest.raises(ValueError, match="patch_size"):
         RefineConfig(patch_size=4)
+
+
+# ---- blurred references are down-weighted (issue 12, item 4) -------------------------------------
+
+def test_blurred_reference_gets_a_lower_weight():
+    import cv2
+
+    from presim.depth.refine import reference_weights
+
+    _, _, views, _ = _views(160, 120, 4)
+    colors = [c for c, _ in views[1:]]
+    colors[1] = cv2.GaussianBlur(colors[1], (0, 0), 1.5)
+    w = reference_weights(colors, gamma=2.0)
+    assert max(w) == 1.0 and int(np.argmin(w)) == 1
+    assert w[1] < min(w[0], w[2]) - 0.1  # blur sigma 1.5 px: score ~8 % lower, weight (ratio)^2
+    assert reference_weights(colors, gamma=0.0) == [1.0, 1.0, 1.0]  # gamma 0 = the thesis' plain mean
+
+
+def test_zero_weight_reference_is_ignored_and_weights_match_reference_backend():
+    import dataclasses
+
+    K, poses, views, refs = _views(28, 20, 4, baseline_m=0.05)
+    color, gt = views[0]
+    raw = _corrupt(gt, seed=1)
+    cfg = RefineConfig(median_radius=2)
+    # A reference whose colours are garbage, with weight 0, changes nothing at all.
+    junk = dataclasses.replace(refs[0], color=np.random.default_rng(0).integers(0, 256, refs[0].color.shape, np.uint8),
+                               weight=0.0)
+    a = refine_depth(color, raw, K, poses[0], refs, cfg)
+    b = refine_depth(color, raw, K, poses[0], [junk] + list(refs), cfg)
+    np.testing.assert_array_equal(a.depth_m, b.depth_m)
+    np.testing.assert_array_equal(a.cost, b.cost)
+    # Non-uniform weights: numba and the reference agree (same weighted mean).
+    wrefs = [dataclasses.replace(r, weight=w) for r, w in zip(refs, (1.0, 0.3, 0.6))]
+    fast = refine_depth(color, raw, K, poses[0], wrefs, cfg)
+    slow = refine_depth(color, raw, K, poses[0], wrefs, dataclasses.replace(cfg, backend="reference"))
+    finite = np.isfinite(fast.cost) & np.isfinite(slow.cost)
+    assert np.array_equal(np.isfinite(fast.cost), np.isfinite(slow.cost))
+    assert np.allclose(fast.cost[finite], slow.cost[finite], atol=1e-5)
+    assert np.isclose(fast.depth_m, slow.depth_m, rtol=0, atol=1e-5).mean() >= 0.99
+    # Weights do change the costs where references disagree.
+    assert not np.allclose(fast.cost[finite], a.cost[finite])
+
+
+def test_sharp_refs_off_keeps_cache_keys():
+    from presim.depth.scene_refine import config_key
+
+    assert config_key(RefineConfig()) == config_key(RefineConfig(sharp_refs_gamma=3.0))
+    assert "sharp_refs" not in config_key(RefineConfig())
+    assert config_key(RefineConfig(sharp_refs=True)) != config_key(RefineConfig())

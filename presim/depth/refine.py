@@ -47,7 +47,7 @@ import numpy as np
 from presim.geometry import Intrinsics, compose, invert
 
 __all__ = ["RefineConfig", "RefView", "RefinedDepth", "refine_depth", "select_reference_views",
-           "prepare_image"]
+           "prepare_image", "reference_weights"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,14 @@ class RefineConfig:
     """Confidence weight exp(-C / cost_sigma) of each depth in the weighted median."""
     median_min_support: float = 0.5
     """A missing pixel is filled by the median only when valid pixels carry this weight fraction."""
+    sharp_refs: bool = False
+    """Down-weight blurred references in C_pixel (beyond the thesis): each reference's cost counts
+    with weight ``(score / best score of the references) ** sharp_refs_gamma`` (re-blur sharpness,
+    :func:`presim.capture.sharpness.sharpness_score`), so a motion-blurred neighbour, whose colours
+    and gradients are smeared, outvotes the sharp ones less. Set by the scene-level refinement
+    (:func:`reference_weights`); :func:`refine_depth` itself uses ``RefView.weight``."""
+    sharp_refs_gamma: float = 2.0
+    """Exponent of the sharpness weight."""
     backend: str = "numba"
     """``"numba"`` (fast) or ``"reference"`` (slow, plain Python; tests on tiny inputs)."""
 
@@ -118,6 +126,21 @@ class RefView:
     K: Intrinsics
     T_world_cam: np.ndarray
     """4x4 camera-to-world."""
+    weight: float = 1.0
+    """Weight of this reference's cost in the mean over references (C_pixel); 1 = the thesis'
+    plain mean. :func:`reference_weights` gives sharpness weights."""
+
+
+def reference_weights(colors: Sequence[np.ndarray], gamma: float = 2.0) -> list[float]:
+    """Sharpness weights of reference images: ``(score / max score) ** gamma`` in (0, 1], the
+    sharpest reference 1 (re-blur score, :func:`presim.capture.sharpness.sharpness_score`)."""
+    from presim.capture.sharpness import sharpness_score
+
+    sc = np.array([sharpness_score(c) for c in colors], dtype=np.float64)
+    if len(sc) == 0:
+        return []
+    best = max(float(sc.max()), 1e-6)
+    return [float(max(s / best, 1e-3) ** gamma) for s in sc]
 
 
 @dataclass(frozen=True)
@@ -224,8 +247,9 @@ def _pixel_cost_nb(u, v, d, fx, fy, cx, cy, img_t, grad_t, R_rt, t_rt, kr, img_r
                    lam, trunc, occ_tol, unseen):
     x = (u - cx) / fx * d
     y = (v - cy) / fy * d
+    # kr[r] = (fx, fy, cx, cy, weight) of reference r; the cost is the weighted mean over references.
     acc = 0.0
-    n = 0
+    n = 0.0
     Hr = img_r.shape[1]
     Wr = img_r.shape[2]
     for r in range(R_rt.shape[0]):
@@ -247,9 +271,9 @@ def _pixel_cost_nb(u, v, d, fx, fy, cx, cy, img_t, grad_t, R_rt, t_rt, kr, img_r
         c = lam * cc + (1.0 - lam) * cg
         if c > trunc:
             c = trunc
-        acc += c
-        n += 1
-    if n == 0:
+        acc += kr[r, 4] * c
+        n += kr[r, 4]
+    if n <= 0.0:
         return unseen
     return acc / n
 
@@ -465,7 +489,7 @@ def _weighted_median_nb(D, C, img, grad, r, lam, csig, ssig, costsig, min_suppor
 def _ref_pixel_cost(u, v, d, K: Intrinsics, img, grad, refs, cfg: RefineConfig) -> float:
     X = np.array([(u - K.cx) / K.fx * d, (v - K.cy) / K.fy * d, d])
     costs = []
-    for (R, t, Kr, img_r, grad_r, dep_r) in refs:
+    for (R, t, Kr, img_r, grad_r, dep_r, w) in refs:
         P = R @ X + t
         if P[2] <= 1e-6:
             continue
@@ -477,13 +501,14 @@ def _ref_pixel_cost(u, v, d, K: Intrinsics, img, grad, refs, cfg: RefineConfig) 
             continue
         cc = np.abs(img[v, u] - img_r[iv, iu]).sum() / 3.0
         cg = np.abs(grad[v, u] - grad_r[iv, iu]).sum() / 2.0
-        costs.append(min(cfg.lam * cc + (1 - cfg.lam) * cg, cfg.truncation))
-    if not costs:
+        costs.append((min(cfg.lam * cc + (1 - cfg.lam) * cg, cfg.truncation), w))
+    acc = wsum = 0.0
+    for c, w in costs:
+        acc += w * c
+        wsum += w
+    if wsum <= 0.0:
         return cfg.unseen_cost
-    acc = 0.0
-    for c in costs:
-        acc += c
-    return acc / len(costs)
+    return acc / wsum
 
 
 def _ref_diff(img, grad, a, b, lam) -> float:
@@ -615,7 +640,8 @@ def refine_depth(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
         for r in ref_views:
             T_rt = compose(invert(r.T_world_cam), np.asarray(T_world_cam, dtype=np.float64))
             ir, gr = prepare_image(np.asarray(r.color))
-            refs.append((T_rt[:3, :3], T_rt[:3, 3], r.K, ir, gr, np.asarray(r.depth_m, dtype=np.float64)))
+            refs.append((T_rt[:3, :3], T_rt[:3, 3], r.K, ir, gr, np.asarray(r.depth_m, dtype=np.float64),
+                         float(r.weight)))
         out, C = _ref_refine(D, K, img, grad, refs, cfg)
     else:
         R_n = len(ref_views)
@@ -628,11 +654,11 @@ def refine_depth(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
         dep_r = np.zeros((R_n, Hr, Wr))
         R_rt = np.zeros((R_n, 3, 3))
         t_rt = np.zeros((R_n, 3))
-        kr = np.zeros((R_n, 4))
+        kr = np.zeros((R_n, 5))
         for i, r in enumerate(ref_views):
             T_rt = compose(invert(r.T_world_cam), np.asarray(T_world_cam, dtype=np.float64))
             R_rt[i], t_rt[i] = T_rt[:3, :3], T_rt[:3, 3]
-            kr[i] = (r.K.fx, r.K.fy, r.K.cx, r.K.cy)
+            kr[i] = (r.K.fx, r.K.fy, r.K.cx, r.K.cy, float(r.weight))
             img_r[i], grad_r[i] = prepare_image(np.asarray(r.color))
             dep_r[i] = np.asarray(r.depth_m, dtype=np.float64)
         p, q = _kernel_params(cfg)

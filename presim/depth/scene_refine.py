@@ -22,20 +22,33 @@ from typing import Sequence
 import numpy as np
 
 from presim.capture.scene import Scene
-from presim.depth.refine import RefineConfig, RefView, refine_depth, select_reference_views
+from presim.depth.refine import RefineConfig, RefView, refine_depth, reference_weights, select_reference_views
 from presim.io_utils import atomic_write_json, progress
 
-__all__ = ["refine_frames_to_file", "refine_scene", "refine_one_frame"]
+__all__ = ["refine_frames_to_file", "refine_scene", "refine_one_frame", "config_key"]
+
+
+def config_key(config: RefineConfig) -> dict:
+    """The fields of ``config`` that change the result (for fingerprints and cache keys): without
+    ``backend``, and without the sharpness-reference fields while ``sharp_refs`` is off (so results
+    computed before those fields existed keep their keys)."""
+    d = dataclasses.asdict(config)
+    d.pop("backend", None)
+    if not d.get("sharp_refs"):
+        d.pop("sharp_refs", None)
+        d.pop("sharp_refs_gamma", None)
+    return d
 
 
 def refine_one_frame(scene: Scene, idx: int, ref_pool: Sequence[int], config: RefineConfig) -> np.ndarray:
     """Refined depth (float32 (H, W)) of frame ``idx`` with references chosen from ``ref_pool``."""
     refs = select_reference_views(scene.T_world_cam, idx, ref_pool, config.num_refs, config.max_ref_angle_deg)
     f = scene.frame(idx)
-    views = []
-    for j in refs:
-        c, d = scene.frames.load(j)
-        views.append(RefView(c, d, scene.intrinsics[j], scene.T_world_cam[j]))
+    loaded = [scene.frames.load(j) for j in refs]
+    weights = (reference_weights([c for c, _ in loaded], config.sharp_refs_gamma) if config.sharp_refs
+               else [1.0] * len(refs))
+    views = [RefView(c, d, scene.intrinsics[j], scene.T_world_cam[j], w)
+             for j, (c, d), w in zip(refs, loaded, weights)]
     return refine_depth(f.color, f.depth_m, f.K, f.T_world_cam, views, config).depth_m
 
 
@@ -71,7 +84,7 @@ def _write_row(partial: Path, done: Path, row: int, depth: np.ndarray) -> None:
 def _fingerprint(scene: Scene, indices: list[int], ref_pool: list[int], config: RefineConfig) -> str:
     d = {"config": dataclasses.asdict(config), "indices": indices, "ref_pool": ref_pool,
          "frames": list(scene.frame_ids), "shape": [len(indices), scene.height, scene.width]}
-    d["config"].pop("backend", None)
+    d["config"] = config_key(config)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

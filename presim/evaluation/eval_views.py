@@ -204,7 +204,7 @@ def _refined_capture_depth(scene: Scene, capture: list[int], cfg: EvalConfig,
         pool = list(range(len(capture)))
         return np.stack([refine_one_frame(sub, k, pool, cfg.refine) for k in
                          progress(range(len(capture)), desc="refine capture", unit="frame")])
-    key = {"refine": dataclasses.asdict(cfg.refine), "capture": capture,
+    key = {"refine": _refine_key(cfg.refine), "capture": capture,
            "frames": list(scene.frame_ids), "src": str(scene.path)}
     if scene.poses_source != "given":  # refined depth depends on the poses (given keys stay as before)
         key["poses"] = hashlib.sha256(np.ascontiguousarray(scene.T_world_cam).tobytes()).hexdigest()[:16]
@@ -220,6 +220,15 @@ def _refined_capture_depth(scene: Scene, capture: list[int], cfg: EvalConfig,
         raise ValueError(f"{out}: cached refinement has shape {arr.shape}, expected "
                          f"{(len(capture), scene.height, scene.width)}; delete it")
     return arr
+
+
+def _refine_key(refine: RefineConfig) -> dict:
+    # As before the sharpness-reference fields existed while they are off (keeps existing caches).
+    d = dataclasses.asdict(refine)
+    if not d.get("sharp_refs"):
+        d.pop("sharp_refs", None)
+        d.pop("sharp_refs_gamma", None)
+    return d
 
 
 def _spread(items: list[int], n: int | None) -> list[int]:
