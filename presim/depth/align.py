@@ -228,6 +228,8 @@ def _align_nb(Dc, De, Nc, Ne, agree, cos_max, unmatched, pen, max_off, max_passe
                 if De[v, u] <= 0.0 or Dc[v, u] <= 0.0:
                     continue
                 bc = C[v, u]
+                if bc <= 0.0:
+                    continue  # a perfect match (cost 0 at offset 0): no candidate can be lower
                 bx = O[v, u, 0]
                 by = O[v, u, 1]
                 for k in range(3):
@@ -305,6 +307,8 @@ def _ref_align(Dc, De, Nc, Ne, cfg: AlignConfig):
                 if De[v, u] <= 0 or Dc[v, u] <= 0:
                     continue
                 best = (C[v, u], int(O[v, u, 0]), int(O[v, u, 1]))
+                if best[0] <= 0:
+                    continue
                 seeds = [(int(O[v, u, 0]), int(O[v, u, 1]))]
                 if 0 <= u + sgn < W:
                     seeds.append((int(O[v, u + sgn, 0]), int(O[v, u + sgn, 1])))
