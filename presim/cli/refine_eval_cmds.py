@@ -16,6 +16,8 @@ def register(sub) -> None:
     p.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument("--overwrite", action="store_true", help="recompute an existing depth_refined.npy")
     p.add_argument("--num-refs", type=int, default=10, help="reference views per frame (thesis: 10)")
+    p.add_argument("--sharp-refs", action="store_true",
+                   help="down-weight blurred reference frames in the photo-consistency cost (sharpness score)")
     p.set_defaults(func=_refine)
 
     f = sub.add_parser("fuse", help="align the sensor depth to the refined depth and fuse them (thesis §5.3.4)",
@@ -51,6 +53,8 @@ def register(sub) -> None:
     e.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
                    help="camera poses of the scene: refined by `presim align` when present (auto, default), "
                         "the capture's given ones, or refined (error when absent)")
+    e.add_argument("--sharp-refs", action="store_true",
+                   help="refine the capture's depth with blurred references down-weighted (cached separately)")
     e.add_argument("--no-warmup", action="store_true",
                    help="render each target once (ms/frame then includes preparing the views; quality is the same)")
     e.set_defaults(func=_eval)
@@ -65,7 +69,7 @@ def _refine(args) -> int:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     scene = load_scene(args.scene)
     out = refine_scene(scene, workers=args.workers, overwrite=args.overwrite,
-                       config=RefineConfig(num_refs=args.num_refs))
+                       config=RefineConfig(num_refs=args.num_refs, sharp_refs=args.sharp_refs))
     print(f"wrote {out}")
     return 0
 
@@ -95,13 +99,15 @@ def _fuse(args) -> int:
 def _eval(args) -> int:
     from presim.capture.store import load_scene
     from presim.io_utils import atomic_write_json
+    from presim.depth.refine import RefineConfig
     from presim.evaluation.eval_views import DEFAULT_METHODS, EvalConfig, eval_views, format_table
 
     scene = load_scene(args.scene, poses=args.scene_poses)
     print(f"{args.scene}: {scene.poses_source} poses", file=sys.stderr)
     cfg = EvalConfig(stride=args.stride, target_every=args.target_every,
                      methods=tuple(args.methods) if args.methods else DEFAULT_METHODS,
-                     max_targets=args.max_targets, refine_workers=args.workers, warmup=not args.no_warmup)
+                     max_targets=args.max_targets, refine_workers=args.workers, warmup=not args.no_warmup,
+                     refine=RefineConfig(sharp_refs=args.sharp_refs))
     res = eval_views(scene, cfg, cache_dir=args.cache_dir, log=lambda s: print(s, file=sys.stderr))
     print(f"{args.scene}: {len(res.target_ids)} targets, stride {args.stride}, target every {args.target_every}")
     print(format_table(res))
