@@ -118,3 +118,76 @@ def test_disagreement_at_an_edge_takes_the_estimate_and_away_from_edges_the_sens
 def test_sensor_reliability_eq_5_7():
     r = sensor_reliability(np.array([0.1, 1.0, 3.0, 5.0]), 0.5, 4.0)
     np.testing.assert_allclose(r, [0.0, (16 - 1) / (16 - 0.25), (16 - 9) / (16 - 0.25), 0.0], rtol=1e-6)
+
+
+# ---- scene level: presim fuse, info, renderer, eval-views --------------------------------------------
+
+def _saved_two_plane_scene(tmp_path, with_refined: bool):
+    from presim.capture.scene import ArrayFrameSource, Scene, SceneMeta
+    from presim.capture.store import save_scene
+    from presim.testing.two_planes import render_two_planes, two_plane_poses
+
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    poses = two_plane_poses(4, 0.05)
+    views = [render_two_planes(T, K) for T in poses]
+    truth = np.stack([d for _, d in views])
+    raw = np.roll(truth, 2, axis=2)                  # sensor depth 2 px off the colour edges
+    raw[:, :, :8] = 0                                # and a dead band on the left
+    scene = Scene([f"f{i}" for i in range(4)], np.arange(4.0), poses, [K] * 4,
+                  ArrayFrameSource(np.stack([c for c, _ in views]), raw), SceneMeta("two planes", "synthetic"),
+                  depth_refined=truth if with_refined else None)
+    return save_scene(scene, tmp_path / "s"), truth, raw
+
+
+def test_cli_fuse_writes_depth_fused_and_info_shows_it(tmp_path, capsys, monkeypatch):
+    import json
+
+    from presim.capture.store import load_scene
+    from presim.cli import main
+    from presim.synthesis.renderer import RenderConfig, Renderer
+
+    monkeypatch.setenv("PRESIM_NO_PROGRESS", "1")
+    path, truth, raw = _saved_two_plane_scene(tmp_path, with_refined=True)
+    assert main(["info", str(path)]) == 0
+    assert "fused depth no" in capsys.readouterr().out
+    assert main(["fuse", str(path)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    fused = np.load(path / "depth_fused.npy")
+    # Edges moved back onto the colour edges and the dead band filled: the fused depth is the truth.
+    np.testing.assert_allclose(fused, truth, rtol=1e-6)
+    np.testing.assert_array_equal(np.load(path / "depth.npy"), raw)           # never overwritten
+    np.testing.assert_array_equal(np.load(path / "depth_refined.npy"), truth)
+    assert not (path / "depth_fused.npy.partial").exists()
+    assert json.loads((path / "scene.json").read_text())["has_fused_depth"] is True
+    assert main(["info", str(path)]) == 0
+    assert "fused depth yes" in capsys.readouterr().out
+    assert main(["fuse", str(path)]) == 1                                     # exists: needs --overwrite
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["fuse", str(path), "--overwrite"]) == 0
+    scene = load_scene(path)
+    assert scene.has_fused_depth and scene.subset([2, 1]).depth_fused[0].shape == (48, 64)
+    r = Renderer(scene, RenderConfig(use_fused_depth=True))
+    np.testing.assert_array_equal(r._load_frame(1)[1], fused[1])
+
+
+def test_cli_fuse_needs_refined_depth(tmp_path, capsys):
+    from presim.cli import main
+
+    path, _, _ = _saved_two_plane_scene(tmp_path, with_refined=False)
+    assert main(["fuse", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "presim refine" in err and "Traceback" not in err
+    assert not (path / "depth_fused.npy").exists()
+
+
+def test_eval_views_fused_method_runs(tmp_path, monkeypatch):
+    from presim.capture.store import load_scene
+    from presim.depth.refine import RefineConfig
+    from presim.evaluation.eval_views import EvalConfig, eval_views
+
+    monkeypatch.setenv("PRESIM_NO_PROGRESS", "1")
+    path, _, _ = _saved_two_plane_scene(tmp_path, with_refined=False)
+    res = eval_views(load_scene(path), EvalConfig(stride=1, target_every=2, methods=("thesis", "fused"),
+                                                  refine=RefineConfig(median_radius=2)))
+    assert set(res.methods) == {"thesis", "fused"}
+    assert np.isfinite(res.methods["fused"]["psnr_db"])
