@@ -100,6 +100,10 @@ def test_constant_offset_plane_keeps_sensor_values():
     fu = fuse_depth(align_depth(cap, est, _K(30, 20), AlignConfig(fit_scale=False)).depth_m, est)
     np.testing.assert_array_equal(fu.depth_m, cap)
     assert np.all(fu.source == SOURCE_SENSOR)
+    # agree_value="estimate" takes the estimate where both agree.
+    np.testing.assert_array_equal(fuse_depth(cap, est, FuseConfig(agree_value="estimate")).depth_m, est)
+    with pytest.raises(ValueError, match="agree_value"):
+        FuseConfig(agree_value="mean")
 
 
 def test_disagreement_at_an_edge_takes_the_estimate_and_away_from_edges_the_sensor():

@@ -32,6 +32,9 @@ def register(sub) -> None:
     f.add_argument("--max-offset", type=int, default=8, help="largest alignment offset per axis, pixels (default 8)")
     f.add_argument("--max-range", type=float, default=8.0,
                    help="farthest depth the sensor measures, metres (MaxD of eq. 5.7; default 8.0)")
+    f.add_argument("--agree-value", choices=("sensor", "estimate"), default="sensor",
+                   help="where sensor and refined depth agree (within 3 %%), keep the sensor's value (default) or "
+                        "the refined one")
     f.set_defaults(func=_fuse)
 
     e = sub.add_parser("eval-views", help="leave-one-out view synthesis evaluation with ablations and a TSDF baseline",
@@ -44,7 +47,7 @@ def register(sub) -> None:
                    help="methods (default all): full DIBR DIBR_DR LDIBR LDIBR_DR sel_distance sel_angle fixed_1 "
                         "fixed_2 fixed_3 median_plain depth_guided depth_median layers_1..layers_8 tsdf_mesh; "
                         "beyond the thesis: photo photo_mean blend blend_2 blend_6 photo_blend sharp sharp_blend "
-                        "photo_sharp_blend photo_sharp_blend_6 fused full_fused")
+                        "photo_sharp_blend photo_sharp_blend_6 fused full_fused fused_est")
     e.add_argument("--json", type=Path, default=None, help="write the metrics as JSON here")
     e.add_argument("--max-targets", type=int, default=None, help="evaluate at most M targets (evenly spread)")
     e.add_argument("--cache-dir", type=Path, default=None,
@@ -89,7 +92,7 @@ def _fuse(args) -> int:
     scene = open_scene(args.scene)
     t0, c0 = time.perf_counter(), time.process_time()
     out = fuse_scene(scene, overwrite=args.overwrite, align=AlignConfig(max_offset_px=args.max_offset),
-                     fuse=FuseConfig(max_range_m=args.max_range))
+                     fuse=FuseConfig(max_range_m=args.max_range, agree_value=args.agree_value))
     n = len(scene)
     print(f"wrote {out}: {n} frames, {(time.perf_counter() - t0) / n * 1e3:.0f} ms wall / "
           f"{(time.process_time() - c0) / n * 1e3:.0f} ms CPU per frame")

@@ -10,7 +10,9 @@ estimate reliability (eq. 5.8) compares COLMAP's photometric and geometric stage
 have. Our rule, a decision list over the two candidates ``{a, e}``:
 
 1. both valid and agreeing (``|a - e| <= agree_rel * e``): **a** (the sensor's metric value; a
-   constant offset within the tolerance is kept, never averaged away);
+   constant offset within the tolerance is kept, never averaged away); with
+   ``agree_value="estimate"``: **e** (the refined depth's colour-guided median has removed part of
+   the sensor noise there);
 2. both valid, disagreeing, within ``edge_band_px`` of a depth discontinuity of ``e``: **e** (edges
    follow the colour image; the alignment leaves a residual band at occlusion boundaries);
 3. both valid, disagreeing, away from edges: **a** when the sensor reliability ``r_c`` (eq. 5.7 with
@@ -48,10 +50,15 @@ class FuseConfig:
     """MaxD of eq. 5.7: farthest depth the sensor measures."""
     min_sensor_reliability: float = 0.25
     """Away from edges a disagreeing sensor value is kept when ``r_c`` is at least this (rule 3)."""
+    agree_value: str = "sensor"
+    """Where sensor and estimate agree (rule 1): ``"sensor"`` keeps the sensor's value, ``"estimate"``
+    takes the estimate's (denoised when the estimate is the refined depth)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.min_range_m < self.max_range_m:
             raise ValueError(f"need 0 < min_range_m < max_range_m, got {self.min_range_m}, {self.max_range_m}")
+        if self.agree_value not in ("sensor", "estimate"):
+            raise ValueError(f"agree_value must be 'sensor' or 'estimate', got {self.agree_value!r}")
         if self.edge_band_px < 0:
             raise ValueError(f"edge_band_px must be >= 0, got {self.edge_band_px}")
 
@@ -111,7 +118,7 @@ def fuse_depth(aligned_m: np.ndarray, estimated_m: np.ndarray, config: FuseConfi
     both = va & ve
     agree = both & (np.abs(a - e) <= cfg.agree_rel * e)
     near_edge = _edge_band(e, cfg.edge_rel, cfg.edge_band_px)
-    take_a = agree | (both & ~agree & ~near_edge & (r_c >= cfg.min_sensor_reliability)) | (va & ~ve & (r_c > 0))
+    take_a = (agree if cfg.agree_value == "sensor" else np.zeros_like(agree)) | (both & ~agree & ~near_edge & (r_c >= cfg.min_sensor_reliability)) | (va & ~ve & (r_c > 0))
     take_e = ve & ~take_a
     out = np.where(take_a, a, np.where(take_e, e, 0.0)).astype(np.float32)
     src = np.where(take_a, SOURCE_SENSOR, np.where(take_e, SOURCE_ESTIMATE, SOURCE_NONE)).astype(np.uint8)

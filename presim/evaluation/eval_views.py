@@ -89,6 +89,7 @@ METHODS: dict[str, tuple[dict, str]] = {
     # Depth alignment + fusion (§5.3.4) in place of the refined depth.
     "fused": ({}, "fused"),
     "full_fused": (BEST, "fused"),
+    "fused_est": ({}, "fused_est"),  # fusion taking the refined value where both agree
 }
 DEFAULT_METHODS = tuple(METHODS)
 METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel", "ms_per_frame")
@@ -259,14 +260,18 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
     if variants & {"refined"}:
         depth_sets["refined"] = _refined_capture_depth(scene, capture, config,
                                                        None if cache_dir is None else Path(cache_dir))
-    if "fused" in variants:
+    if variants & {"fused", "fused_est"}:
+        from presim.depth.fuse import FuseConfig
         from presim.depth.scene_fuse import fuse_frames
 
         if depth_sets.get("refined") is None:
             depth_sets["refined"] = _refined_capture_depth(scene, capture, config,
                                                            None if cache_dir is None else Path(cache_dir))
         t1 = time.perf_counter()
-        depth_sets["fused"] = fuse_frames(cap, depth_sets["refined"], desc="fuse capture depth")
+        for v, agree_value in (("fused", "sensor"), ("fused_est", "estimate")):
+            if v in variants:
+                depth_sets[v] = fuse_frames(cap, depth_sets["refined"], fuse=FuseConfig(agree_value=agree_value),
+                                            desc="fuse capture depth")
         if log is not None:
             log(f"depth alignment + fusion of the capture: {(time.perf_counter() - t1) / len(cap) * 1e3:.0f} ms/frame")
     refine_s = time.perf_counter() - t0
