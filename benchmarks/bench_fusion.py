@@ -4,7 +4,8 @@
 
 Uses the refined depth that ``presim eval-views`` caches for the same capture (``SCENE/eval_cache``;
 computed if missing), so the numbers are those of the depth the ``fused`` method renders with.
-Per capture frame: AbsRel of the raw / refined / aligned / fused depth against the sensor depth
+Per capture frame: AbsRel of the raw / refined / aligned / fused depth (and ``fused_est``: the
+fusion with ``agree_value="estimate"``) against the sensor depth
 (pixels where the sensor and the variant both have depth), the coverage of each, and, when the scene
 has ``ground_truth/depth_clean.npy`` (the sample scene), AbsRel and coverage against the true depth.
 Also the wall and CPU time of alignment + fusion per frame (median over frames, after one warm-up).
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from presim.capture.store import load_scene
+from presim.depth.fuse import FuseConfig, fuse_depth
 from presim.depth.scene_fuse import fuse_one_frame
 from presim.evaluation.eval_views import EvalConfig, _refined_capture_depth, capture_and_targets
 
@@ -47,7 +49,7 @@ def main() -> None:
     ks = list(range(len(capture)))
     if args.max_frames:
         ks = ks[:: max(1, len(ks) // args.max_frames)][: args.max_frames]
-    names = ("raw", "refined", "aligned", "fused")
+    names = ("raw", "refined", "aligned", "fused", "fused_est")
     vs_sensor = {n: [] for n in names}
     vs_gt = {n: [] for n in names}
     cover = {n: [] for n in names}
@@ -63,7 +65,8 @@ def main() -> None:
         cpu.append(time.process_time() - c0)
         moved.append(float(np.any(al.offsets != 0, axis=2).mean()))
         src_est.append(float((fu.source == 2).mean()))
-        for n, d in zip(names, (raw, est, al.depth_m, fu.depth_m)):
+        fe = fuse_depth(al.depth_m, est, FuseConfig(agree_value="estimate"), al.scale).depth_m
+        for n, d in zip(names, (raw, est, al.depth_m, fu.depth_m, fe)):
             vs_sensor[n].append(_absrel(d, raw)[0])
             cover[n].append(float((d > 0).mean()))
             if gt_all is not None:
