@@ -172,6 +172,10 @@ def test_cli_fuse_writes_depth_fused_and_info_shows_it(tmp_path, capsys, monkeyp
     assert scene.has_fused_depth and scene.subset([2, 1]).depth_fused[0].shape == (48, 64)
     r = Renderer(scene, RenderConfig(use_fused_depth=True))
     np.testing.assert_array_equal(r._load_frame(1)[1], fused[1])
+    assert main(["render", str(path), "--frame", "1", "--fused-depth", "--out", str(tmp_path / "r")]) == 0
+    capsys.readouterr()
+    assert main(["render", str(path), "--frame", "1", "--fused-depth", "--raw-depth", "--out", str(tmp_path / "x")]) == 1
+    assert "exclude each other" in capsys.readouterr().err
 
 
 def test_cli_fuse_needs_refined_depth(tmp_path, capsys):
