@@ -39,7 +39,7 @@ from presim.synthesis import kernels_reference as ref
 from presim.synthesis.composite import (PACKED_MAX_LAYERS, analyse_holes, composite_layers, filtered_composite,
                                         filtered_composite_masked, filtered_composite_packed, merge_view)
 from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
-from presim.synthesis.fill import FILL_METHODS, fill_holes
+from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS, fill_holes
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "MASKED_MAX_FRAC", "ViewImageConfig", "ViewImage", "Workspace", "ViewImageFn",
@@ -251,6 +251,8 @@ class FrameConfig:
     """Fill the pixels no view covers (they stay invalid)."""
     fill_method: str = "auto"
     """``"auto"``, ``"telea"`` or ``"pushpull"``."""
+    fill_kernel: str = "numba"
+    """Pull-push implementation: ``"numba"`` or ``"opencv"`` (:data:`presim.synthesis.fill.FILL_KERNELS`)."""
     time_budget_ms: float = 0.0
     """> 0: the adaptive loop adds no view once the frame has run this long (0 = no budget)."""
 
@@ -259,6 +261,8 @@ class FrameConfig:
             raise ValueError("FrameConfig: fixed_views must be >= 0 and max_views >= 1")
         if self.fill_method not in FILL_METHODS:
             raise ValueError(f"FrameConfig: fill_method must be one of {FILL_METHODS}")
+        if self.fill_kernel not in FILL_KERNELS:
+            raise ValueError(f"FrameConfig: fill_kernel must be one of {FILL_KERNELS}")
 
 
 @dataclass(frozen=True)
@@ -391,6 +395,6 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     if not views:
         acc_c = np.zeros((H, W, 3), np.uint8)
     if cfg.fill_holes and hole_frac > 0:
-        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method)
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, kernel=cfg.fill_kernel)
     ms["fill"] = (time.perf_counter() - t) * 1e3
     return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, views, hole_fracs, skipped, ms)

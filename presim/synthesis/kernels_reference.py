@@ -184,3 +184,55 @@ def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.n
         out[lin[closer]] = cc[closer]
     depth = np.where(np.isfinite(zbuf), zbuf, 0).astype(np.float32)
     return out.reshape(H, W, 3), depth.reshape(H, W)
+
+
+def pushpull_ref(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Pull-push fill of ``values`` (H, W, C) float where ``known`` (H, W) is False (the rules the
+    numba :func:`presim.synthesis.fill.pushpull_rgbd` follows).
+
+    - Pull: level k+1 has ``ceil(h/2) x ceil(w/2)`` cells; a cell's weight and premultiplied value
+      are the means over its 2 x 2 children that lie inside level k (level 0: weight = known, value
+      = value x known). Levels are built until every weight is > 0 or a side is 1.
+    - Top estimate = value / weight (0 where the weight is 0).
+    - Push: going down, a level's estimate is ``value / weight * a + up * (1 - a)`` with
+      ``a = weight`` (in [0, 1]) and ``up`` the bilinear sample of the coarser estimate at
+      ``((i + 0.5) / 2 - 0.5, (j + 0.5) / 2 - 0.5)``, edges clamped.
+    - Level 0: known pixels keep their value, the others take ``up`` from level 1.
+    """
+    v = np.asarray(values, np.float64)
+    k0 = np.asarray(known, bool)
+    H, W, C = v.shape
+    accs = [v * k0[..., None]]
+    ws = [k0.astype(np.float64)]
+    while min(ws[-1].shape) > 1 and not (len(ws) > 1 and (ws[-1] > 0).all()):
+        a, w = accs[-1], ws[-1]
+        h, ww = w.shape
+        h2, w2 = (h + 1) // 2, (ww + 1) // 2
+        sa = np.zeros((h2, w2, C))
+        sw = np.zeros((h2, w2))
+        n = np.zeros((h2, w2))
+        for dy in (0, 1):
+            for dx in (0, 1):
+                ys, xs = np.arange(dy, h, 2), np.arange(dx, ww, 2)
+                sa[np.ix_(ys // 2, xs // 2)] += a[np.ix_(ys, xs)]
+                sw[np.ix_(ys // 2, xs // 2)] += w[np.ix_(ys, xs)]
+                n[np.ix_(ys // 2, xs // 2)] += 1
+        accs.append(sa / n[..., None])
+        ws.append(sw / n)
+    w = ws[-1]
+    est = np.where(w[..., None] > 0, accs[-1] / np.maximum(w, 1e-300)[..., None], 0.0)
+    for lev in range(len(ws) - 2, -1, -1):
+        h, ww = ws[lev].shape
+        hc, wc = est.shape[:2]
+        y = np.clip((np.arange(h) + 0.5) / 2 - 0.5, 0, hc - 1)
+        x = np.clip((np.arange(ww) + 0.5) / 2 - 0.5, 0, wc - 1)
+        y0, x0 = np.floor(y).astype(int), np.floor(x).astype(int)
+        y1, x1 = np.minimum(y0 + 1, hc - 1), np.minimum(x0 + 1, wc - 1)
+        fy, fx = (y - y0)[:, None, None], (x - x0)[None, :, None]
+        up = ((est[np.ix_(y0, x0)] * (1 - fx) + est[np.ix_(y0, x1)] * fx) * (1 - fy)
+              + (est[np.ix_(y1, x0)] * (1 - fx) + est[np.ix_(y1, x1)] * fx) * fy)
+        if lev == 0:
+            return np.where(k0[..., None], v, up)
+        a = ws[lev][..., None]
+        est = np.where(a > 0, accs[lev] / np.maximum(a, 1e-300), 0.0) * a + up * (1 - a)
+    return v.copy()  # a 1 x 1 image: nothing to push
