@@ -382,3 +382,24 @@ def test_numba_and_opencv_pushpull_agree_on_a_ramp():
     holes = ~valid
     assert np.abs(cn[holes].astype(int) - co[holes]).max() <= 1
     assert np.abs(dn[holes] - do[holes]).max() < 1e-3
+
+
+@pytest.mark.parametrize("seed,hole_frac", [(0, 0.1), (1, 0.45), (2, 0.7)])
+def test_analyse_holes_matches_scipy_labelling(seed, hole_frac):
+    """Largest hole, big mask and replace mask against scipy's 8-connected labelling + dilation."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    holes = ndimage.binary_opening(rng.random((H, W)) < hole_frac) | (rng.random((H, W)) < 0.02)
+    valid = ~holes
+    hs = analyse_holes(valid, big_hole_px=16, hole_dilation_px=2)
+    lab, n = ndimage.label(holes, structure=np.ones((3, 3)))
+    areas = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+    assert hs.largest_hole_px == areas.max()
+    big = np.isin(lab, 1 + np.flatnonzero(areas >= 16))
+    np.testing.assert_array_equal(hs.big, big)
+    disk = np.ones((5, 5), bool)  # OpenCV's 5x5 ellipse: the full square without 4 corner pairs
+    disk[[0, 0, 4, 4], [0, 1, 0, 1]] = disk[[0, 0, 4, 4], [3, 4, 3, 4]] = False
+    np.testing.assert_array_equal(hs.replace, holes | ndimage.binary_dilation(big, disk))
+    last = analyse_holes(valid, want_replace=False, want_largest=False)
+    assert last.hole_frac == hs.hole_frac and last.replace is None

@@ -102,8 +102,27 @@ class HoleStats:
     """bool (H, W): pixels of holes of at least ``big_hole_px`` (None if not asked)."""
 
 
+@nb.njit(cache=True)
+def _areas_kernel(labels, n):  # pragma: no cover
+    # Pixel count per label (label 0 = background is counted too, and ignored by the caller).
+    areas = np.zeros(n, np.int64)
+    H, W = labels.shape
+    for v in range(H):
+        for u in range(W):
+            areas[labels[v, u]] += 1
+    return areas
+
+
+@nb.njit(parallel=True, cache=True)
+def _big_kernel(labels, big_lut, big):  # pragma: no cover
+    H, W = labels.shape
+    for v in nb.prange(H):
+        for u in range(W):
+            big[v, u] = big_lut[labels[v, u]]
+
+
 def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
-                  want_replace: bool = True, stop_px: float = 0.0) -> HoleStats:
+                  want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
     """Hole statistics of a coverage mask, and the mask of pixels the next view may replace.
 
     Args:
@@ -114,27 +133,36 @@ def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: in
         stop_px: when all holes together have at most this many pixels the largest one does too:
             the components are not computed (``largest_hole_px`` is then that upper bound and
             ``replace`` / ``big`` are None) — the adaptive loop stops there anyway.
+        want_largest: False (with ``want_replace`` False): only the hole fraction is wanted (the
+            last view of a frame); ``largest_hole_px`` is then the total hole area, an upper bound.
+
+    Components come from OpenCV's labelling without its per-component statistics (those cost
+    ~3x the labelling at 640x480); areas are one counting pass over the labels, 16-bit labels while
+    the hole pixels (an upper bound of the component count) fit.
     """
     holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
-    n_hole = int(holes.sum())
+    n_hole = cv2.countNonZero(holes)
     H, W = valid.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
-    if n_hole <= stop_px:
+    if n_hole <= stop_px or not (want_largest or want_replace):
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=8)
-    areas = stats[1:, cv2.CC_STAT_AREA]
+    ltype = cv2.CV_16U if n_hole < 65535 else cv2.CV_32S
+    n, labels = cv2.connectedComponents(holes, connectivity=8, ltype=ltype)
+    areas = _areas_kernel(labels, n)[1:]
     largest = int(areas.max()) if len(areas) else 0
     replace = big = None
     if want_replace:
-        replace = holes.astype(bool)
         big_lut = np.zeros(n, np.uint8)
         big_lut[1:] = areas >= big_hole_px
-        big = big_lut[labels]
+        big = np.empty((H, W), np.uint8)
+        _big_kernel(labels, big_lut, big)
         if hole_dilation_px > 0 and big_lut.any():
             k = 2 * hole_dilation_px + 1
-            grown = cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-            replace |= grown.astype(bool)
+            replace = cv2.bitwise_or(holes, cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))))
+        else:
+            replace = holes.copy()
+        replace = replace.view(bool)
         big = big.view(bool)
     return HoleStats(n_hole / float(H * W), largest, replace, big)
 

@@ -381,7 +381,7 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         views.append(vi)
         last = len(views) == n_target or not pending
         hs = analyse_holes(acc_d > 0, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
-                           stop_px=stop_px if adaptive else 0.0)
+                           stop_px=stop_px if adaptive else 0.0, want_largest=not last)
         hole_fracs.append(hs.hole_frac)
         replace, big = hs.replace, hs.big
         ms["holes"] += (time.perf_counter() - t) * 1e3
