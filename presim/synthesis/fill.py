@@ -9,10 +9,9 @@ Methods:
 - ``"pushpull"``: pull-push pyramid interpolation (Gortler et al. 1996): average the known pixels
   down a 2x pyramid, then blend coarse estimates back up into the unknown pixels. A fixed cost per
   pixel whatever the hole size, smooth (blurry) inside large holes. ``kernel="numba"`` (default,
-  :func:`pushpull_rgbd`, rules in :func:`presim.synthesis.kernels_reference.pushpull_ref`) reads
-  the uint8 colour and the depth directly and writes only the unknown pixels at full size;
-  ``kernel="opencv"`` is the earlier :func:`pushpull_fill` (OpenCV resizes; float copies of the
-  whole image first, ~5x the CPU time at 640x480).
+  :func:`pushpull_rgbd`) does the two full-size steps in numba, reading the uint8 colour and the
+  depth directly and writing only the unknown pixels; ``kernel="opencv"`` is :func:`pushpull_fill`
+  alone (float copies of the whole image first). Both give the same result up to float rounding.
 - ``"auto"`` (default): telea while holes are below ``telea_max_hole_frac`` of the image, else
   pushpull, so a pose far outside the capture never stalls the frame loop.
 
@@ -99,49 +98,12 @@ def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
             w[i, j] = sw * inv
 
 
-@nb.njit(parallel=True, cache=True)
-def _pull_kernel(acc, w, acc2, w2):  # pragma: no cover
-    h, ww, C = acc.shape
-    h2, wc = w2.shape
-    for i in nb.prange(h2):
-        for j in range(wc):
-            n = 0
-            sw = np.float32(0.0)
-            for ch in range(C):
-                acc2[i, j, ch] = 0.0
-            for y in range(2 * i, min(2 * i + 2, h)):
-                for x in range(2 * j, min(2 * j + 2, ww)):
-                    n += 1
-                    sw += w[y, x]
-                    for ch in range(C):
-                        acc2[i, j, ch] += acc[y, x, ch]
-            for ch in range(C):
-                acc2[i, j, ch] /= n
-            w2[i, j] = sw / n
-
-
 @nb.njit(cache=True, inline="always")
 def _taps(i, n_coarse):  # pragma: no cover
     # Bilinear taps of fine index i in the coarser level: coordinate (i + 0.5) / 2 - 0.5, clamped.
     y = min(max((i + 0.5) * 0.5 - 0.5, 0.0), n_coarse - 1.0)
     y0 = int(y)
     return y0, min(y0 + 1, n_coarse - 1), np.float32(y - y0)
-
-
-@nb.njit(parallel=True, cache=True)
-def _push_kernel(acc, w, est_c, est):  # pragma: no cover
-    # est = acc / w * w + up * (1 - w) = acc + up * (1 - w) (acc is premultiplied).
-    h, ww, C = acc.shape
-    hc, wc = est_c.shape[:2]
-    for i in nb.prange(h):
-        y0, y1, fy = _taps(i, hc)
-        for j in range(ww):
-            x0, x1, fx = _taps(j, wc)
-            a = w[i, j]
-            for ch in range(C):
-                up = ((est_c[y0, x0, ch] * (1 - fx) + est_c[y0, x1, ch] * fx) * (1 - fy)
-                      + (est_c[y1, x0, ch] * (1 - fx) + est_c[y1, x1, ch] * fx) * fy)
-                est[i, j, ch] = acc[i, j, ch] + up * (1 - a)
 
 
 @nb.njit(parallel=True, cache=True)
@@ -166,43 +128,50 @@ def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no
 
 def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarray
                   ) -> tuple[np.ndarray | None, np.ndarray]:
-    """Pull-push fill of colour (optional) and depth where ``valid`` is False (numba).
+    """:func:`pushpull_fill` of colour (optional) and depth, with the full-size steps in numba.
 
-    Rules: :func:`presim.synthesis.kernels_reference.pushpull_ref` (colour rounded to nearest and
-    clipped to uint8). Cost: one pass over the image, 1/3 of it again over the coarser levels, and
-    the unknown pixels at full size.
+    The two steps that touch every pixel — pooling level 0 into level 1 and sampling level 1 back
+    into the unknown pixels — are numba kernels that read the uint8 colour and the depth directly
+    (no float copy of the image) and write only the unknown pixels; the coarser levels (a quarter
+    of the pixels and less) are :func:`pushpull_fill`'s OpenCV resizes. For even H and W this
+    equals :func:`pushpull_fill` up to float rounding (tested); odd sizes use :func:`pushpull_fill`.
 
     Args:
         color: uint8 (H, W, 3) or None (depth only); depth_m: float32 (H, W); valid: bool (H, W).
     Returns:
-        New ``(color or None, depth_m)``; known pixels unchanged.
+        New ``(color or None, depth_m)``; known pixels unchanged, colour rounded to nearest.
     """
     H, W = valid.shape
+    with_color = color is not None
+    if H % 2 or W % 2 or min(H, W) < 2:
+        vals = depth_m[..., None] if not with_color else np.concatenate(
+            [color.astype(np.float32), depth_m[..., None]], axis=-1)
+        both = pushpull_fill(vals, valid)
+        out_c = np.clip(both[..., :3] + 0.5, 0, 255).astype(np.uint8) if with_color else None
+        return out_c, np.ascontiguousarray(both[..., -1])
     known = np.ascontiguousarray(valid, np.bool_)
     depth_m = np.ascontiguousarray(depth_m, np.float32)
-    with_color = color is not None
     col = np.ascontiguousarray(color, np.uint8) if with_color else np.zeros((1, 1, 3), np.uint8)
-    out_c = col.copy() if with_color else None
-    out_d = depth_m.copy()
-    if min(H, W) <= 1:
-        return out_c, out_d
     C = 4 if with_color else 1
-    acc = np.empty(((H + 1) // 2, (W + 1) // 2, C), np.float32)
+    acc = np.empty((H // 2, W // 2, C), np.float32)
     w = np.empty(acc.shape[:2], np.float32)
     _pull0_kernel(col, depth_m, known, with_color, acc, w)
-    levels = [(acc, w)]
-    while min(w.shape) > 1 and not (w > 0).all():
-        acc2 = np.empty(((acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2, C), np.float32)
-        w2 = np.empty(acc2.shape[:2], np.float32)
-        _pull_kernel(acc, w, acc2, w2)
-        acc, w = acc2, w2
+    # Coarser levels exactly as pushpull_fill (OpenCV area pooling, bilinear push).
+    levels = []
+    while not (w > 0).all() and min(w.shape) > 1:
         levels.append((acc, w))
-    est = np.where(w[..., None] > 0, acc / np.maximum(w, 1e-30)[..., None], 0).astype(np.float32)
-    for acc_l, w_l in reversed(levels[:-1]):
-        nxt = np.empty_like(acc_l)
-        _push_kernel(acc_l, w_l, est, nxt)
-        est = nxt
-    _push0_kernel(known, with_color, est, out_c if with_color else col, out_d)
+        h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
+        acc = cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, C)
+        w = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
+    est = acc / np.maximum(w, 1e-12)[..., None]
+    for acc_l, w_l in reversed(levels):
+        h, ww = w_l.shape
+        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
+        alpha = np.clip(w_l, 0.0, 1.0)[..., None]
+        est = acc_l / np.maximum(w_l, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+    out_c = col.copy() if with_color else None
+    out_d = depth_m.copy()
+    _push0_kernel(known, with_color, np.ascontiguousarray(est, np.float32), out_c if with_color else col, out_d)
     return out_c, out_d
 
 
