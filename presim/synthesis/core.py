@@ -68,9 +68,6 @@ class ViewImageConfig:
     masked_max_frac: float = MASKED_MAX_FRAC
     """numba backend: masked filter/composite while the replaceable pixels are below this fraction
     (the column-count kernels, i.e. when ``packed_cracks`` is off or does not apply)."""
-    fill_splat: bool = False
-    """numba backend: points also cover the 2 x 2 pixels around their projection where no point
-    landed (experimental, see ``RenderConfig.fill_splat``)."""
     packed_cracks: bool = True
     """numba backend, 3 x 3 switching median, <= 8 layers: crack mask first (packed per-layer
     occupancy counts; a window is read only where a median is taken), same output as the
@@ -118,8 +115,7 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     switching median, only the replaceable pixels are computed (the rest is undefined).
     """
     t0 = time.perf_counter()
-    lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers,
-                                         config.fill_splat)
+    lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers)
     t1 = time.perf_counter()
     mode, kpx = config.crack_filter, config.crack_kernel_px
     if (config.packed_cracks and mode == "switching_median" and kpx == 3

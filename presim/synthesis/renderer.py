@@ -83,11 +83,6 @@ class RenderConfig:
     """Holes of at least this many pixels count as big and are dilated by ``hole_dilation_px``."""
     crack_kernel_px: int = 3
     """N of the N x N (switching) median window."""
-    fill_splat: bool = False
-    """numba backend, experimental: after the one-pixel splat, each point also covers the 2 x 2
-    pixels around its projection where no point landed (nearest z wins there), so most cracks are
-    closed before the switching median (fewer windows to sort). Changes the image: rims grow by up
-    to one pixel; measured in docs/synthesis.md ("Cheaper cracks, holes and fill")."""
     packed_cracks: bool = True
     """numba backend, 3 x 3 switching median, <= 8 layers: find the cracks first from packed
     per-layer occupancy counts and read a window only where a median is taken (same output as
@@ -214,8 +209,7 @@ class RenderConfig:
         """The knobs of the per-frame core (:func:`presim.synthesis.core.synthesize_frame`)."""
         return FrameConfig(
             view=ViewImageConfig(near_m=self.near_m, crack_filter=self.crack_filter,
-                                 crack_kernel_px=self.crack_kernel_px, packed_cracks=self.packed_cracks,
-                                 fill_splat=self.fill_splat),
+                                 crack_kernel_px=self.crack_kernel_px, packed_cracks=self.packed_cracks),
             fixed_views=self.fixed_views, max_views=self.max_views, stop_hole_frac=self.stop_hole_frac,
             big_hole_px=self.big_hole_px, hole_dilation_px=self.hole_dilation_px,
             next_view_fill_frac=self.next_view_fill_frac, fill_holes=self.fill_holes,

@@ -108,7 +108,7 @@ _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
 @nb.njit(parallel=True, fastmath=_FASTMATH, cache=True)
-def _warp_layers_kernel(xyz, rgb, layer_start, M, fx, fy, cx, cy, near, zbuf, cbuf, fill2):  # pragma: no cover
+def _warp_layers_kernel(xyz, rgb, layer_start, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
     L, H, W = zbuf.shape
     for l in nb.prange(L):
         # Clear this layer (buffers are reused across calls: cheaper than fresh zero pages).
@@ -136,41 +136,10 @@ def _warp_layers_kernel(xyz, rgb, layer_start, M, fx, fy, cx, cy, near, zbuf, cb
                 cbuf[l, vi, ui, 0] = rgb[i, 0]
                 cbuf[l, vi, ui, 1] = rgb[i, 1]
                 cbuf[l, vi, ui, 2] = rgb[i, 2]
-        if not fill2:
-            continue
-        # Second pass: each point also covers the 4 pixels around its projection, but only pixels
-        # no point landed on (cracks, rims); among those the nearest z wins (stored negated).
-        for i in range(layer_start[l], layer_start[l + 1]):
-            x = xyz[i, 0]
-            y = xyz[i, 1]
-            z = xyz[i, 2]
-            zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-            if not (zc > near):
-                continue
-            xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
-            yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
-            uf = fx * xc / zc + cx
-            vf = fy * yc / zc + cy
-            if not (uf >= -1.0 and uf < W and vf >= -1.0 and vf < H):
-                continue
-            u0 = int(uf + 1.0) - 1  # floor for uf >= -1
-            v0 = int(vf + 1.0) - 1
-            for vv in range(max(v0, 0), min(v0 + 2, H)):
-                for uu in range(max(u0, 0), min(u0 + 2, W)):
-                    cur = zbuf[l, vv, uu]
-                    if cur == 0.0 or (cur < 0.0 and zc < -cur):
-                        zbuf[l, vv, uu] = -zc
-                        cbuf[l, vv, uu, 0] = rgb[i, 0]
-                        cbuf[l, vv, uu, 1] = rgb[i, 1]
-                        cbuf[l, vv, uu, 2] = rgb[i, 2]
-        for vv in range(H):
-            for uu in range(W):
-                if zbuf[l, vv, uu] < 0.0:
-                    zbuf[l, vv, uu] = -zbuf[l, vv, uu]
 
 
 def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
-                out: LayeredImage | None = None, fill_splat: bool = False) -> LayeredImage:
+                out: LayeredImage | None = None) -> LayeredImage:
     """Warp a prepared view into the target camera, one z-buffered image per layer (numba).
 
     Args:
@@ -180,9 +149,6 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         near_m: points closer than this to the target camera are dropped.
         out: buffers of shape (L, H, W) / (L, H, W, 3) to overwrite (the Renderer reuses them);
             new ones are allocated when None or of another shape.
-        fill_splat: also let each point cover the 2 x 2 pixels around its projection where no
-            point landed (nearest z wins there): closes most cracks before the median filter
-            (experimental, ``RenderConfig.fill_splat``).
     Returns:
         LayeredImage with depth 0 / color 0 where a layer received no point.
     """
@@ -193,5 +159,5 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, M, np.float32(K.fx),
                         np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m),
-                        out.depth_m, out.color, bool(fill_splat))
+                        out.depth_m, out.color)
     return out
