@@ -13,6 +13,9 @@ Each case is also measured with "today" = ``RenderConfig(lod_levels=0, reuse_mov
 pipeline before level of detail and temporal reuse) in the same process, measured passes
 alternating with the default config (``--passes``), reported as ``results[...]["today"]``,
 ``speedup_vs_today`` (wall) and ``cpu_speedup_vs_today``; ``--no-today`` skips it.
+``--kernels-before`` adds, the same way, the default pipeline with the crack and fill kernels as
+they were before issue 13 item 2 (``RenderConfig(packed_cracks=False, fill_kernel="opencv")``; the
+hole analysis has no switch): ``results[...]["kernels_before"]`` and ``cpu_speedup_vs_kernels_before``.
 
 Prints medians of wall ms/frame, frames/s, per-stage wall ms, views per frame, hole fraction, the
 ratio baseline/pipeline, the CPU time per frame (process time summed over threads: on a machine
@@ -122,12 +125,15 @@ def _summary(acc: dict) -> dict:
 
 
 def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: RenderConfig,
-          today: RenderConfig | None = None, passes: int = 2) -> dict:
-    """Steady-state numbers of ``config``; with ``today``, the same for that config in the same run,
-    measured passes alternating (config, today, config, today, ...) so load changes hit both."""
+          today: RenderConfig | None = None, passes: int = 2, kernels_before: RenderConfig | None = None) -> dict:
+    """Steady-state numbers of ``config``; with ``today`` (and ``kernels_before``), the same for that
+    config in the same run, measured passes alternating (config, today, config, today, ...) so load
+    changes hit both."""
     rs = {"new": Renderer(scene, config)}
     if today is not None:
         rs["today"] = Renderer(scene, today)
+    if kernels_before is not None:
+        rs["kernels_before"] = Renderer(scene, kernels_before)
     cold = {}
     for name, r in rs.items():
         # Cold pass: compiles (first case only) and prepares every view the trajectory needs.
@@ -168,6 +174,11 @@ def bench(scene: Scene, K: Intrinsics, poses: np.ndarray, warmup: int, config: R
         res["today"] = old
         res["speedup_vs_today"] = old["ms_median"] / res["ms_median"]
         res["cpu_speedup_vs_today"] = old["cpu_ms_median"] / res["cpu_ms_median"]
+    if kernels_before is not None:
+        kb = _summary(accs["kernels_before"])
+        res["kernels_before"] = kb
+        res["speedup_vs_kernels_before"] = kb["ms_median"] / res["ms_median"]
+        res["cpu_speedup_vs_kernels_before"] = kb["cpu_ms_median"] / res["cpu_ms_median"]
     return res
 
 
@@ -208,6 +219,8 @@ def main() -> int:
     ap.add_argument("--passes", type=int, default=2, help="measured passes per config (alternating)")
     ap.add_argument("--no-today", action="store_true",
                     help="skip the same-run pass with the pre-LOD pipeline (lod_levels=0, no selection reuse)")
+    ap.add_argument("--kernels-before", action="store_true",
+                    help="also time the default pipeline with the crack/fill kernels before issue 13 item 2, same run")
     ap.add_argument("--compare-blend", action="store_true",
                     help="also time blending + sharpness + photometric correction against the default, same run")
     args = ap.parse_args()
@@ -226,7 +239,8 @@ def main() -> int:
                 continue
             # "today": the pipeline before level of detail and temporal reuse, same run, same poses.
             today = None if args.no_today else RenderConfig(lod_levels=0, reuse_move_m=0.0)
-            res = bench(scene, K, poses, args.warmup, RenderConfig(), today, args.passes)
+            kb = RenderConfig(packed_cracks=False, fill_kernel="opencv") if args.kernels_before else None
+            res = bench(scene, K, poses, args.warmup, RenderConfig(), today, args.passes, kb)
             results[f"{name} {size}"] = res
             st = " ".join(f"{k}={v:.1f}" for k, v in res["stages_ms_median"].items() if v > 0)
             print(f"{name:26s} {size:9s} {res['ms_median']:7.1f} ms  {res['fps_median']:5.1f} fps  "
@@ -242,6 +256,12 @@ def main() -> int:
                       f"{old['fps_median']:5.1f} fps  CPU {old['cpu_ms_median']:7.1f} ms  -> wall "
                       f"x{res['speedup_vs_today']:.2f}  CPU x{res['cpu_speedup_vs_today']:.2f}  | " + " ".join(
                           f"{k}={v:.1f}" for k, v in old["stages_ms_median"].items() if v > 0))
+            if "kernels_before" in res:
+                kb = res["kernels_before"]
+                print(f"{'':26s} {'':9s} kernels before (packed_cracks=False, fill_kernel=opencv) {kb['ms_median']:7.1f} ms "
+                      f"{kb['fps_median']:5.1f} fps  CPU {kb['cpu_ms_median']:7.1f} ms  -> wall "
+                      f"x{res['speedup_vs_kernels_before']:.2f}  CPU x{res['cpu_speedup_vs_kernels_before']:.2f}  | " + " ".join(
+                          f"{k}={v:.1f}" for k, v in kb["stages_ms_median"].items() if v > 0))
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak RSS: {peak_mb:.0f} MB")
     if args.json:

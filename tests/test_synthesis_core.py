@@ -344,3 +344,62 @@ def test_synthesis_imports_nothing_above_capture():
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('presim.'))))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out and not [m for m in out if m.split(".")[1] not in ("capture", "geometry", "synthesis")], out
+
+
+@pytest.mark.parametrize("shape,known_frac", [((8, 10), 0.3), ((30, 42), 0.05), ((48, 64), 0.9), ((31, 41), 0.4)])
+def test_numba_pushpull_matches_opencv_pushpull(shape, known_frac):
+    """The numba full-size steps against pushpull_fill (the OpenCV version, the reference): sparse
+    and dense known pixels; an odd size takes pushpull_fill itself."""
+    from presim.synthesis.fill import pushpull_fill, pushpull_rgbd
+
+    rng = np.random.default_rng(shape[0])
+    color = rng.integers(0, 256, shape + (3,), dtype=np.uint8)
+    depth = rng.uniform(1, 2, shape).astype(np.float32)
+    valid = rng.random(shape) < known_frac
+    valid.flat[0] = True
+    c, d = pushpull_rgbd(color, depth, valid)
+    ref = pushpull_fill(np.concatenate([color.astype(np.float32), depth[..., None]], -1), valid)
+    np.testing.assert_array_equal(c[valid], color[valid])
+    np.testing.assert_array_equal(d[valid], depth[valid])
+    # float32 bilinear weights computed differently: measured <= 1e-6 m; colour rounding may flip
+    # one level where a value sits within float error of .5.
+    assert np.abs(d - ref[..., 3]).max() < 1e-5
+    ref_c = np.clip(ref[..., :3] + 0.5, 0, 255).astype(np.uint8)
+    assert np.abs(c.astype(int) - ref_c).max() <= 1
+    assert np.mean(c != ref_c) < 0.01
+    _, d_only = pushpull_rgbd(None, depth, valid)
+    assert np.abs(d_only - d).max() < 1e-5
+
+
+def test_numba_and_opencv_pushpull_agree_on_a_ramp():
+    """Both kernels reproduce a linear ramp inside a hole (the pyramids differ only at odd sizes)."""
+    u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
+    color = np.stack([2 * u, 200 - u, np.full_like(u, 77)], -1).astype(np.uint8)
+    depth = (1.0 + 0.01 * u).astype(np.float32)
+    valid = _hole(20, 26, 30, 36)
+    cn, dn = fill_holes(color, depth, valid, "pushpull", kernel="numba")
+    co, do = fill_holes(color, depth, valid, "pushpull", kernel="opencv")
+    holes = ~valid
+    assert np.abs(cn[holes].astype(int) - co[holes]).max() <= 1
+    assert np.abs(dn[holes] - do[holes]).max() < 1e-3
+
+
+@pytest.mark.parametrize("seed,hole_frac", [(0, 0.1), (1, 0.45), (2, 0.7)])
+def test_analyse_holes_matches_scipy_labelling(seed, hole_frac):
+    """Largest hole, big mask and replace mask against scipy's 8-connected labelling + dilation."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    holes = ndimage.binary_opening(rng.random((H, W)) < hole_frac) | (rng.random((H, W)) < 0.02)
+    valid = ~holes
+    hs = analyse_holes(valid, big_hole_px=16, hole_dilation_px=2)
+    lab, n = ndimage.label(holes, structure=np.ones((3, 3)))
+    areas = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+    assert hs.largest_hole_px == areas.max()
+    big = np.isin(lab, 1 + np.flatnonzero(areas >= 16))
+    np.testing.assert_array_equal(hs.big, big)
+    disk = np.ones((5, 5), bool)  # OpenCV's 5x5 ellipse: the full square without 4 corner pairs
+    disk[[0, 0, 4, 4], [0, 1, 0, 1]] = disk[[0, 0, 4, 4], [3, 4, 3, 4]] = False
+    np.testing.assert_array_equal(hs.replace, holes | ndimage.binary_dilation(big, disk))
+    last = analyse_holes(valid, want_replace=False, want_largest=False)
+    assert last.hole_frac == hs.hole_frac and last.replace is None

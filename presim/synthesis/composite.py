@@ -23,8 +23,8 @@ import numpy as np
 
 from presim.synthesis.crack_filter import gather_window, sort_window
 
-__all__ = ["HoleStats", "composite_layers", "filtered_composite", "filtered_composite_masked", "merge_view",
-           "analyse_holes"]
+__all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
+           "filtered_composite_packed", "merge_view", "analyse_holes"]
 
 
 @nb.njit(parallel=True, cache=True)
@@ -102,8 +102,27 @@ class HoleStats:
     """bool (H, W): pixels of holes of at least ``big_hole_px`` (None if not asked)."""
 
 
+@nb.njit(cache=True)
+def _areas_kernel(labels, n):  # pragma: no cover
+    # Pixel count per label (label 0 = background is counted too, and ignored by the caller).
+    areas = np.zeros(n, np.int64)
+    H, W = labels.shape
+    for v in range(H):
+        for u in range(W):
+            areas[labels[v, u]] += 1
+    return areas
+
+
+@nb.njit(parallel=True, cache=True)
+def _big_kernel(labels, big_lut, big):  # pragma: no cover
+    H, W = labels.shape
+    for v in nb.prange(H):
+        for u in range(W):
+            big[v, u] = big_lut[labels[v, u]]
+
+
 def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
-                  want_replace: bool = True, stop_px: float = 0.0) -> HoleStats:
+                  want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
     """Hole statistics of a coverage mask, and the mask of pixels the next view may replace.
 
     Args:
@@ -114,27 +133,36 @@ def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: in
         stop_px: when all holes together have at most this many pixels the largest one does too:
             the components are not computed (``largest_hole_px`` is then that upper bound and
             ``replace`` / ``big`` are None) — the adaptive loop stops there anyway.
+        want_largest: False (with ``want_replace`` False): only the hole fraction is wanted (the
+            last view of a frame); ``largest_hole_px`` is then the total hole area, an upper bound.
+
+    Components come from OpenCV's labelling without its per-component statistics (those cost
+    ~3x the labelling at 640x480); areas are one counting pass over the labels, 16-bit labels while
+    the hole pixels (an upper bound of the component count) fit.
     """
     holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
-    n_hole = int(holes.sum())
+    n_hole = cv2.countNonZero(holes)
     H, W = valid.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
-    if n_hole <= stop_px:
+    if n_hole <= stop_px or not (want_largest or want_replace):
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=8)
-    areas = stats[1:, cv2.CC_STAT_AREA]
+    ltype = cv2.CV_16U if n_hole < 65535 else cv2.CV_32S
+    n, labels = cv2.connectedComponents(holes, connectivity=8, ltype=ltype)
+    areas = _areas_kernel(labels, n)[1:]
     largest = int(areas.max()) if len(areas) else 0
     replace = big = None
     if want_replace:
-        replace = holes.astype(bool)
         big_lut = np.zeros(n, np.uint8)
         big_lut[1:] = areas >= big_hole_px
-        big = big_lut[labels]
+        big = np.empty((H, W), np.uint8)
+        _big_kernel(labels, big_lut, big)
         if hole_dilation_px > 0 and big_lut.any():
             k = 2 * hole_dilation_px + 1
-            grown = cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-            replace |= grown.astype(bool)
+            replace = cv2.bitwise_or(holes, cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))))
+        else:
+            replace = holes.copy()
+        replace = replace.view(bool)
         big = big.view(bool)
     return HoleStats(n_hole / float(H * W), largest, replace, big)
 
@@ -303,3 +331,196 @@ def filtered_composite(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 
     cout = np.empty((H, W, 3), np.uint8)
     _fused_filter_composite_kernel(depth_m, color, kernel_px // 2, dout, cout)
     return dout, cout
+
+
+# ---- crack mask first: packed occupancy counts (3 x 3 switching median, up to 8 layers) -------
+#
+# A 3 x 3 switching median fills an empty pixel of layer l when at least 5 of its 9 window pixels are
+# non-empty in layer l. Per pixel, one byte holds which layers are non-empty; a lookup table spreads
+# the byte into one 4-bit counter per layer (a uint32 for 8 layers), so the 3 x 3 sums of all layers
+# are 9 integer additions (column sums reused along the row). ``(P + 3) & 8`` per nibble flags the
+# layers whose count is >= 5: only those pixels (the cracks) gather and sort a window; every other
+# pixel takes its nearest non-empty layer with no neighbourhood read at all.
+
+PACKED_MAX_LAYERS = 8
+"""Layers the packed occupancy path supports (4-bit counters in a uint32)."""
+
+_SPREAD = np.array([sum(((b >> l) & 1) << (4 * l) for l in range(8)) for b in range(256)], np.uint32)
+_GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's bit 3 (no carry: 9 + 3 < 16)
+_BIT3 = np.uint32(0x88888888)
+
+
+@nb.njit(parallel=True, cache=True)
+def _occupancy_kernel(d, bits):  # pragma: no cover
+    L, H, W = d.shape
+    for v in nb.prange(H):
+        for u in range(W):
+            b = 0
+            for l in range(L):
+                if d[l, v, u] > 0:
+                    b |= 1 << l
+            bits[v, u] = b
+
+
+@nb.njit(cache=True, inline="always")
+def _ce(a, i, j):  # pragma: no cover
+    x = a[i]
+    y = a[j]
+    a[i] = min(x, y)
+    a[j] = max(x, y)
+
+
+@nb.njit(cache=True, inline="always")
+def _sort8(a):  # pragma: no cover
+    # Batcher's odd-even merge sort of 8 values (19 branch-free compare-exchanges).
+    _ce(a, 0, 1)
+    _ce(a, 2, 3)
+    _ce(a, 4, 5)
+    _ce(a, 6, 7)
+    _ce(a, 0, 2)
+    _ce(a, 1, 3)
+    _ce(a, 4, 6)
+    _ce(a, 5, 7)
+    _ce(a, 1, 2)
+    _ce(a, 5, 6)
+    _ce(a, 0, 4)
+    _ce(a, 1, 5)
+    _ce(a, 2, 6)
+    _ce(a, 3, 7)
+    _ce(a, 2, 4)
+    _ce(a, 3, 5)
+    _ce(a, 1, 2)
+    _ce(a, 3, 4)
+    _ce(a, 5, 6)
+
+
+@nb.njit(cache=True, inline="always")
+def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
+    """Lower median (depth, each colour channel) of the non-empty pixels of layer ``l`` in the
+    window, whose centre is empty (so at most 8 values): slots past the count are padded with the
+    largest value, which leaves ranks below the count unchanged. Returns the median's index."""
+    n = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            dd = d[l, y, x]
+            if dd > 0:
+                bd[n] = dd
+                b0[n] = c[l, y, x, 0]
+                b1[n] = c[l, y, x, 1]
+                b2[n] = c[l, y, x, 2]
+                n += 1
+    for i in range(n, 8):
+        bd[i] = np.inf
+        b0[i] = 255
+        b1[i] = 255
+        b2[i] = 255
+    _sort8(bd)
+    _sort8(b0)
+    _sort8(b1)
+    _sort8(b2)
+    return (n - 1) // 2
+
+
+@nb.njit(parallel=True, cache=True)
+def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  # pragma: no cover
+    # Per-layer 3x3 switching median fused with the front-to-back composite, via packed counts.
+    L, H, W = d.shape
+    for v in nb.prange(H):
+        y0 = max(v - 1, 0)
+        y1 = min(v + 2, H)
+        col = np.zeros(W + 2, np.uint32)  # col[u + 1] = packed counts of column u over rows y0..y1-1
+        for y in range(y0, y1):
+            for u in range(W):
+                col[u + 1] += spread[bits[y, u]]
+        bd = np.empty(8, np.float32)
+        b0 = np.empty(8, np.uint8)
+        b1 = np.empty(8, np.uint8)
+        b2 = np.empty(8, np.uint8)
+        for u in range(W):
+            if use_need and not need[v, u]:
+                continue
+            b = np.int64(bits[v, u])
+            flags = (col[u] + col[u + 1] + col[u + 2] + _GE5) & _BIT3
+            dout[v, u] = 0.0
+            cout[v, u, 0] = 0
+            cout[v, u, 1] = 0
+            cout[v, u, 2] = 0
+            if b == 0 and flags == 0:
+                continue
+            for l in range(L):
+                if (b >> l) & 1:
+                    dout[v, u] = d[l, v, u]
+                    cout[v, u, 0] = c[l, v, u, 0]
+                    cout[v, u, 1] = c[l, v, u, 1]
+                    cout[v, u, 2] = c[l, v, u, 2]
+                    break
+                if (flags >> np.uint32(4 * l + 3)) & np.uint32(1):
+                    k = _median8(d, c, l, y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+                    dout[v, u] = bd[k]
+                    cout[v, u, 0] = b0[k]
+                    cout[v, u, 1] = b1[k]
+                    cout[v, u, 2] = b2[k]
+                    break
+
+
+@nb.njit(parallel=True, cache=True)
+def _packed_seam_kernel(d, c, mask, use_mask, dout, cout):  # pragma: no cover
+    # 3x3 switching median of one image (the seam pass); dout / cout arrive as copies of d / c.
+    H, W = d.shape
+    d3 = d.reshape((1, H, W))
+    c3 = c.reshape((1, H, W, 3))
+    for v in nb.prange(H):
+        y0 = max(v - 1, 0)
+        y1 = min(v + 2, H)
+        col = np.zeros(W + 2, np.int32)
+        for y in range(y0, y1):
+            for u in range(W):
+                col[u + 1] += np.int32(d[y, u] > 0)
+        bd = np.empty(8, np.float32)
+        b0 = np.empty(8, np.uint8)
+        b1 = np.empty(8, np.uint8)
+        b2 = np.empty(8, np.uint8)
+        for u in range(W):
+            if col[u] + col[u + 1] + col[u + 2] < 5 or d[v, u] > 0:
+                continue
+            if use_mask and not mask[v, u]:
+                continue
+            k = _median8(d3, c3, 0, y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+            dout[v, u] = bd[k]
+            cout[v, u, 0] = b0[k]
+            cout[v, u, 1] = b1[k]
+            cout[v, u, 2] = b2[k]
+
+
+def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """3 x 3 switching median per layer + front-to-back composite + seam pass, crack mask first.
+
+    Equals ``crack_filter`` (per layer, ``"switching_median"``, 3 x 3) -> :func:`composite_layers` ->
+    ``crack_filter`` (seam pass) exactly, but the window of a pixel is only read where a median is
+    actually taken (packed per-layer occupancy counts decide that, see above).
+
+    Args:
+        depth_m: float32 (L, H, W) warped layers (L <= :data:`PACKED_MAX_LAYERS`), 0 = empty;
+            color: uint8 (L, H, W, 3).
+        replace: optional bool (H, W): only these pixels' final values are wanted (the composite is
+            then evaluated on ``replace`` grown by one pixel, all the seam pass reads); other
+            pixels are UNDEFINED.
+    Returns:
+        ``(depth_m (H, W), color (H, W, 3))``.
+    """
+    L, H, W = depth_m.shape
+    if L > PACKED_MAX_LAYERS:
+        raise ValueError(f"filtered_composite_packed: at most {PACKED_MAX_LAYERS} layers, got {L}")
+    bits = np.empty((H, W), np.uint8)
+    _occupancy_kernel(depth_m, bits)
+    use = replace is not None
+    need = replace if not use else cv2.dilate(replace.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    dummy = np.zeros((1, 1), np.bool_)
+    # Pixels outside ``need`` are never written: zero depth keeps them empty for the seam counts.
+    comp_d = np.zeros((H, W), np.float32) if use else np.empty((H, W), np.float32)
+    comp_c = np.empty((H, W, 3), np.uint8)
+    _packed_composite_kernel(depth_m, color, bits, _SPREAD, need if use else dummy, use, comp_d, comp_c)
+    out_d, out_c = comp_d.copy(), comp_c.copy()
+    _packed_seam_kernel(comp_d, comp_c, replace if use else dummy, use, out_d, out_c)
+    return out_d, out_c

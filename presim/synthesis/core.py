@@ -36,10 +36,10 @@ import numpy as np
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis import kernels_reference as ref
-from presim.synthesis.composite import (analyse_holes, composite_layers, filtered_composite,
-                                        filtered_composite_masked, merge_view)
+from presim.synthesis.composite import (PACKED_MAX_LAYERS, analyse_holes, composite_layers, filtered_composite,
+                                        filtered_composite_masked, filtered_composite_packed, merge_view)
 from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
-from presim.synthesis.fill import FILL_METHODS, fill_holes
+from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS, fill_holes
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "MASKED_MAX_FRAC", "ViewImageConfig", "ViewImage", "Workspace", "ViewImageFn",
@@ -66,7 +66,12 @@ class ViewImageConfig:
     crack_kernel_px: int = 3
     """N of the N x N (switching) median window."""
     masked_max_frac: float = MASKED_MAX_FRAC
-    """numba backend: masked filter/composite while the replaceable pixels are below this fraction."""
+    """numba backend: masked filter/composite while the replaceable pixels are below this fraction
+    (the column-count kernels, i.e. when ``packed_cracks`` is off or does not apply)."""
+    packed_cracks: bool = True
+    """numba backend, 3 x 3 switching median, <= 8 layers: crack mask first (packed per-layer
+    occupancy counts; a window is read only where a median is taken), same output as the
+    column-count kernels."""
 
     def __post_init__(self) -> None:
         if self.crack_filter not in CRACK_FILTERS:
@@ -113,6 +118,11 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers)
     t1 = time.perf_counter()
     mode, kpx = config.crack_filter, config.crack_kernel_px
+    if (config.packed_cracks and mode == "switching_median" and kpx == 3
+            and lay.depth_m.shape[0] <= PACKED_MAX_LAYERS):
+        # Filter + composite + seam pass in one call; later views only on their replaceable pixels.
+        d, c = filtered_composite_packed(lay.depth_m, lay.color, replace)
+        return ViewImage(d, c, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3, 0.0)
     if replace is not None and mode == "switching_median" and replace.mean() < config.masked_max_frac:
         # Later views only write into the replaceable region: filter/composite just there.
         d, c = filtered_composite_masked(lay.depth_m, lay.color, replace, kpx, seam_pass=True)
@@ -241,6 +251,8 @@ class FrameConfig:
     """Fill the pixels no view covers (they stay invalid)."""
     fill_method: str = "auto"
     """``"auto"``, ``"telea"`` or ``"pushpull"``."""
+    fill_kernel: str = "numba"
+    """Pull-push implementation: ``"numba"`` or ``"opencv"`` (:data:`presim.synthesis.fill.FILL_KERNELS`)."""
     time_budget_ms: float = 0.0
     """> 0: the adaptive loop adds no view once the frame has run this long (0 = no budget)."""
 
@@ -249,6 +261,8 @@ class FrameConfig:
             raise ValueError("FrameConfig: fixed_views must be >= 0 and max_views >= 1")
         if self.fill_method not in FILL_METHODS:
             raise ValueError(f"FrameConfig: fill_method must be one of {FILL_METHODS}")
+        if self.fill_kernel not in FILL_KERNELS:
+            raise ValueError(f"FrameConfig: fill_kernel must be one of {FILL_KERNELS}")
 
 
 @dataclass(frozen=True)
@@ -367,7 +381,7 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         views.append(vi)
         last = len(views) == n_target or not pending
         hs = analyse_holes(acc_d > 0, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
-                           stop_px=stop_px if adaptive else 0.0)
+                           stop_px=stop_px if adaptive else 0.0, want_largest=not last)
         hole_fracs.append(hs.hole_frac)
         replace, big = hs.replace, hs.big
         ms["holes"] += (time.perf_counter() - t) * 1e3
@@ -381,6 +395,6 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     if not views:
         acc_c = np.zeros((H, W, 3), np.uint8)
     if cfg.fill_holes and hole_frac > 0:
-        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method)
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, kernel=cfg.fill_kernel)
     ms["fill"] = (time.perf_counter() - t) * 1e3
     return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, views, hole_fracs, skipped, ms)

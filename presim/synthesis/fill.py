@@ -7,8 +7,11 @@ Methods:
 - ``"telea"``: OpenCV's fast-marching inpainting (Telea 2004) of the color, radius 3 px. Best on
   small and thin holes (sharp continuation of edges), but its cost grows with the hole area.
 - ``"pushpull"``: pull-push pyramid interpolation (Gortler et al. 1996): average the known pixels
-  down a 2x pyramid, then blend coarse estimates back up into the unknown pixels. O(H W) whatever
-  the hole size (~3 ms at 640x480), smooth (blurry) inside large holes.
+  down a 2x pyramid, then blend coarse estimates back up into the unknown pixels. A fixed cost per
+  pixel whatever the hole size, smooth (blurry) inside large holes. ``kernel="numba"`` (default,
+  :func:`pushpull_rgbd`) does the two full-size steps in numba, reading the uint8 colour and the
+  depth directly and writing only the unknown pixels; ``kernel="opencv"`` is :func:`pushpull_fill`
+  alone (float copies of the whole image first). Both give the same result up to float rounding.
 - ``"auto"`` (default): telea while holes are below ``telea_max_hole_frac`` of the image, else
   pushpull, so a pose far outside the capture never stalls the frame loop.
 
@@ -19,11 +22,13 @@ simulated sensor, never ground truth, which is why those pixels stay invalid.
 from __future__ import annotations
 
 import cv2
+import numba as nb
 import numpy as np
 
-__all__ = ["FILL_METHODS", "pushpull_fill", "fill_holes"]
+__all__ = ["FILL_METHODS", "FILL_KERNELS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
 
 FILL_METHODS = ("auto", "telea", "pushpull")
+FILL_KERNELS = ("numba", "opencv")
 
 
 def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -60,19 +65,132 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out[..., 0] if squeeze else out
 
 
+@nb.njit(parallel=True, cache=True)
+def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
+    # Level 0 -> 1: means over the in-image 2x2 children (premultiplied values, 0/1 weights).
+    H, W = known.shape
+    h2, w2 = w.shape
+    C = acc.shape[2]
+    for i in nb.prange(h2):
+        ny = min(2 * i + 2, H) - 2 * i
+        for j in range(w2):
+            nx = min(2 * j + 2, W) - 2 * j
+            s0 = np.float32(0.0)
+            s1 = np.float32(0.0)
+            s2 = np.float32(0.0)
+            sd = np.float32(0.0)
+            sw = np.float32(0.0)
+            for y in range(2 * i, 2 * i + ny):
+                for x in range(2 * j, 2 * j + nx):
+                    if known[y, x]:
+                        sw += 1.0
+                        sd += depth[y, x]
+                        if with_color:
+                            s0 += color[y, x, 0]
+                            s1 += color[y, x, 1]
+                            s2 += color[y, x, 2]
+            inv = np.float32(1.0) / np.float32(ny * nx)
+            if with_color:
+                acc[i, j, 0] = s0 * inv
+                acc[i, j, 1] = s1 * inv
+                acc[i, j, 2] = s2 * inv
+            acc[i, j, C - 1] = sd * inv
+            w[i, j] = sw * inv
+
+
+@nb.njit(cache=True, inline="always")
+def _taps(i, n_coarse):  # pragma: no cover
+    # Bilinear taps of fine index i in the coarser level: coordinate (i + 0.5) / 2 - 0.5, clamped.
+    y = min(max((i + 0.5) * 0.5 - 0.5, 0.0), n_coarse - 1.0)
+    y0 = int(y)
+    return y0, min(y0 + 1, n_coarse - 1), np.float32(y - y0)
+
+
+@nb.njit(parallel=True, cache=True)
+def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no cover
+    # Level 0: only the unknown pixels are written (outputs arrive as copies of the inputs).
+    H, W = known.shape
+    hc, wc, C = est_c.shape
+    for i in nb.prange(H):
+        y0, y1, fy = _taps(i, hc)
+        for j in range(W):
+            if known[i, j]:
+                continue
+            x0, x1, fx = _taps(j, wc)
+            for ch in range(C):
+                up = ((est_c[y0, x0, ch] * (1 - fx) + est_c[y0, x1, ch] * fx) * (1 - fy)
+                      + (est_c[y1, x0, ch] * (1 - fx) + est_c[y1, x1, ch] * fx) * fy)
+                if ch == C - 1:
+                    depth_out[i, j] = up
+                elif with_color:
+                    color_out[i, j, ch] = np.uint8(min(max(up + 0.5, 0.0), 255.0))
+
+
+def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarray
+                  ) -> tuple[np.ndarray | None, np.ndarray]:
+    """:func:`pushpull_fill` of colour (optional) and depth, with the full-size steps in numba.
+
+    The two steps that touch every pixel — pooling level 0 into level 1 and sampling level 1 back
+    into the unknown pixels — are numba kernels that read the uint8 colour and the depth directly
+    (no float copy of the image) and write only the unknown pixels; the coarser levels (a quarter
+    of the pixels and less) are :func:`pushpull_fill`'s OpenCV resizes. For even H and W this
+    equals :func:`pushpull_fill` up to float rounding (tested); odd sizes use :func:`pushpull_fill`.
+
+    Args:
+        color: uint8 (H, W, 3) or None (depth only); depth_m: float32 (H, W); valid: bool (H, W).
+    Returns:
+        New ``(color or None, depth_m)``; known pixels unchanged, colour rounded to nearest.
+    """
+    H, W = valid.shape
+    with_color = color is not None
+    if H % 2 or W % 2 or min(H, W) < 2:
+        vals = depth_m[..., None] if not with_color else np.concatenate(
+            [color.astype(np.float32), depth_m[..., None]], axis=-1)
+        both = pushpull_fill(vals, valid)
+        out_c = np.clip(both[..., :3] + 0.5, 0, 255).astype(np.uint8) if with_color else None
+        return out_c, np.ascontiguousarray(both[..., -1])
+    known = np.ascontiguousarray(valid, np.bool_)
+    depth_m = np.ascontiguousarray(depth_m, np.float32)
+    col = np.ascontiguousarray(color, np.uint8) if with_color else np.zeros((1, 1, 3), np.uint8)
+    C = 4 if with_color else 1
+    acc = np.empty((H // 2, W // 2, C), np.float32)
+    w = np.empty(acc.shape[:2], np.float32)
+    _pull0_kernel(col, depth_m, known, with_color, acc, w)
+    # Coarser levels exactly as pushpull_fill (OpenCV area pooling, bilinear push).
+    levels = []
+    while not (w > 0).all() and min(w.shape) > 1:
+        levels.append((acc, w))
+        h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
+        acc = cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, C)
+        w = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
+    est = acc / np.maximum(w, 1e-12)[..., None]
+    for acc_l, w_l in reversed(levels):
+        h, ww = w_l.shape
+        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
+        alpha = np.clip(w_l, 0.0, 1.0)[..., None]
+        est = acc_l / np.maximum(w_l, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+    out_c = col.copy() if with_color else None
+    out_d = depth_m.copy()
+    _push0_kernel(known, with_color, np.ascontiguousarray(est, np.float32), out_c if with_color else col, out_d)
+    return out_c, out_d
+
+
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
-               telea_max_hole_frac: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+               telea_max_hole_frac: float = 0.02, kernel: str = "numba") -> tuple[np.ndarray, np.ndarray]:
     """Fill color and depth where ``valid`` is False.
 
     Args:
         color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W).
         method: one of :data:`FILL_METHODS`.
         telea_max_hole_frac: hole fraction above which ``"auto"`` switches to pull-push.
+        kernel: pull-push implementation, one of :data:`FILL_KERNELS` (see the module doc).
     Returns:
         New ``(color, depth_m)``; unchanged copies when nothing is missing or nothing is known.
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")
+    if kernel not in FILL_KERNELS:
+        raise ValueError(f"fill kernel must be one of {FILL_KERNELS}, got {kernel!r}")
     holes = ~valid
     n_hole = int(holes.sum())
     if n_hole == 0 or n_hole == holes.size:
@@ -81,7 +199,11 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
         method = "telea" if n_hole / holes.size <= telea_max_hole_frac else "pushpull"
     if method == "telea":
         color_f = cv2.inpaint(color, holes.view(np.uint8), 3, cv2.INPAINT_TELEA)
+        if kernel == "numba":
+            return color_f, pushpull_rgbd(None, depth_m, valid)[1]
         return color_f, pushpull_fill(depth_m, valid)
+    if kernel == "numba":
+        return pushpull_rgbd(color, depth_m, valid)
     # One pyramid for color and depth together.
     both = pushpull_fill(np.concatenate([color.astype(np.float32), depth_m[..., None]], axis=-1), valid)
     color_f = np.clip(both[..., :3] + 0.5, 0, 255).astype(np.uint8)

@@ -184,3 +184,4 @@ def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.n
         out[lin[closer]] = cc[closer]
     depth = np.where(np.isfinite(zbuf), zbuf, 0).astype(np.float32)
     return out.reshape(H, W, 3), depth.reshape(H, W)
+
