@@ -228,6 +228,8 @@ class RenderStats:
     """Pyramid level used for each warped view (0 = all points)."""
     reused_selection: bool = False
     """The selection was the previous frame's (temporal coherence)."""
+    batch_views: list[list[int]] = field(default_factory=list)
+    """:meth:`Renderer.render_batch` on a batched backend: the views of every frame of the batch."""
 
 
 class Renderer:
@@ -492,5 +494,6 @@ class Renderer:
         ms: dict[str, float] = {}
         frames = self._backend.frame_batch([s.view_idx for s in sels], T_cw, K, bcfg, get_view, ms)
         ms["select"] = select_ms
-        self.last = RenderStats(views=frames[-1].views, selection=sels[-1], ms=ms)
+        self.last = RenderStats(views=frames[-1].views, selection=sels[-1], ms=ms,
+                                batch_views=[list(f.views) for f in frames])
         return [RGBD(f.color, f.depth_m, f.valid, f.source_view, K, t, f.hole_frac) for f, t in zip(frames, T)]
