@@ -60,7 +60,7 @@ def child(args) -> dict:
     scene = load_scene(args.scene)
     if args.frames and args.frames < len(scene):
         scene = scene.subset(range(args.frames))
-    rcfg = RenderConfig(cache_mb=args.cache_mb) if args.cache_mb else RenderConfig()
+    rcfg = RenderConfig(cache_mb=args.cache_mb) if args.cache_mb else SimConfig().render  # the simulator's default
     out = {"case": args.child, "frames": len(scene), "rss_imported_mb": _status_mb("VmRSS")}
     rng = np.random.default_rng(0)
     anon = [0.0]
