@@ -61,3 +61,35 @@ def test_frame_grids_answers_equal_the_reference_functions():
         got = g.footprint_ratio(v, r._grid_zsrc_of(v), float(r._src_focal[v]), 0.01)
         assert got == pytest.approx(ref, rel=1e-6)
     assert 0.3 < ov.max() <= 1.0
+
+
+def _rss_of_map_kb(path) -> int:
+    """Rss (kB) of the mappings of ``path`` in this process (/proc/self/smaps)."""
+    total, hit = 0, False
+    for line in open("/proc/self/smaps"):
+        if "-" in line.split()[0] and len(line.split()) >= 5:
+            hit = line.rstrip().endswith(str(path))
+        elif hit and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+
+
+def test_unmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path):
+    from presim.synthesis.renderer import _unmap_pages
+
+    path = tmp_path / "a.npy"
+    a = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(8, 256, 256))
+    a[:] = np.arange(8, dtype=np.float32)[:, None, None]
+    a.flush()
+    del a
+    m = np.load(path, mmap_mode="r")
+    frame = np.asarray(m[3])  # what ArrayFrameSource.load returns: a plain view of the map
+    assert float(frame.sum()) == 3.0 * 256 * 256
+    before = _rss_of_map_kb(path)
+    _unmap_pages(frame)
+    after = _rss_of_map_kb(path)
+    assert before >= 256 and after <= before - 200  # the frame's 256 kB left this process's RSS
+    assert float(frame.sum()) == 3.0 * 256 * 256  # read again from the page cache
+    w = np.ones((4, 4), np.float32)
+    _unmap_pages(w)  # in-memory / writable arrays: untouched
+    assert w.sum() == 16

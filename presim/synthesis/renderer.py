@@ -25,6 +25,7 @@ Frames are read from the scene's FrameSource only when a view is first needed.
 from __future__ import annotations
 
 import dataclasses
+import mmap
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -48,6 +49,25 @@ from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, sel
 from presim.synthesis.warp import ViewPoints, prepare_view
 
 __all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
+
+
+def _unmap_pages(arr: np.ndarray) -> None:
+    """Drop this process's mapping of the pages of ``arr`` when it is a slice of a read-only memory map
+    (a saved scene's colour/depth arrays): the prepared view holds copies, so the pages would only sit
+    in the process's RSS (they stay in the page cache; a later read maps them again). No-op otherwise."""
+    mm, b = None, arr
+    while b is not None and mm is None:  # np.asarray(memmap[i]) is a plain view: find the map below
+        mm, b = getattr(b, "_mmap", None), getattr(b, "base", None)
+    if mm is None or arr.flags.writeable or not hasattr(mmap, "MADV_DONTNEED") or arr.nbytes == 0:
+        return
+    try:
+        start = arr.ctypes.data - np.frombuffer(mm, np.uint8).ctypes.data
+        lo = start // mmap.PAGESIZE * mmap.PAGESIZE
+        hi = min(len(mm), -(-(start + arr.nbytes) // mmap.PAGESIZE) * mmap.PAGESIZE)
+        if 0 <= lo < hi:
+            mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
+    except (ValueError, OSError, TypeError):  # closed map, unusual layout: keep the pages
+        pass
 
 
 @dataclass(frozen=True)
@@ -292,8 +312,10 @@ class Renderer:
         """(m, 3) float32 world points of view ``idx``'s sub-sampled valid depth (overlap test)."""
         g = self._grids.get(idx)
         if g is None:
-            _, depth = self._load_frame(idx)
+            color, depth = self._load_frame(idx)
             g = self._grids[idx] = self._grid_from_depth(idx, depth)
+            _unmap_pages(color)
+            _unmap_pages(depth)
         return g
 
     def view_points(self, idx: int) -> ViewPoints:
@@ -305,8 +327,11 @@ class Renderer:
         color, depth = self._load_frame(idx)
         if idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
-        return prepare_view(color, depth, self.scene.intrinsics[idx], self.scene.T_world_cam[idx],
+        view = prepare_view(color, depth, self.scene.intrinsics[idx], self.scene.T_world_cam[idx],
                             self.config.num_layers)
+        _unmap_pages(color)
+        _unmap_pages(depth)
+        return view
 
     def _view(self, idx: int, level: int = 0):
         key = idx if level == 0 else (idx, level)
@@ -329,7 +354,10 @@ class Renderer:
         if idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
         c, d, K = build_level(color, depth, self.scene.intrinsics[idx], level, self.config.lod_depth_tol)
-        return prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers)
+        view = prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers)
+        _unmap_pages(color)
+        _unmap_pages(depth)
+        return view
 
     def lod_level(self, idx: int, T_cam_world: np.ndarray, K: Intrinsics) -> int:
         """Pyramid level of view ``idx`` for a target camera (0 when ``lod_levels`` = 0)."""
