@@ -15,7 +15,29 @@ import os as _os
 # machine and 2.6x slower with one other busy process (benchmarks/bench_render.py, docs/synthesis.md).
 # Sleeping idle threads fix both. Read once when libgomp loads, so it is set before any import that
 # could load it; a value the user set wins.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import sys as _sys
+
+
+def _gomp_loaded() -> bool:
+    """True when a GNU OpenMP runtime is already loaded in this process (e.g. by ``import torch``)."""
+    try:
+        with open("/proc/self/maps") as f:
+            return "libgomp" in f.read()
+    except OSError:  # not Linux: look for the usual importer
+        return "torch" in _sys.modules
+
+
+if "OMP_WAIT_POLICY" not in _os.environ:
+    _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    # Too late when libgomp is already loaded (``import torch`` before ``import presim``): it read
+    # the policy at load time and spins, and numba's OpenMP layer binds to that runtime (measured:
+    # 1.7x the CPU per 640x480 frame, docs/synthesis.md "Threads"). numba's own work queue sleeps
+    # like PASSIVE OpenMP (same CPU per frame measured), so use it then, unless the user chose a
+    # layer. It is safe here: the simulator renders from one thread at a time.
+    if "NUMBA_THREADING_LAYER" not in _os.environ and _gomp_loaded():
+        _os.environ["NUMBA_THREADING_LAYER"] = "workqueue"
+        if "numba" in _sys.modules:  # read at numba's import; takes effect before its first parallel launch
+            _sys.modules["numba"].config.THREADING_LAYER = "workqueue"
 
 import warnings as _warnings
 

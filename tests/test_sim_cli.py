@@ -106,3 +106,26 @@ def test_scripted_drive_free_camera_on_tabletop_capture(shared_data, tmp_path, c
     centres = load_scene(scene).camera_centres
     d = np.linalg.norm(traj[:, None, 1:4] - centres[None], axis=2).min(axis=1)
     assert d.max() < 0.1
+
+
+def test_drive_render_budget_defaults(toy_path, monkeypatch, capsys):
+    """--render-budget-ms: 0 (reproducible images) unless paced to wall time (80 ms); explicit wins;
+    the simulator's point cache is bounded (SIM_RENDER_CACHE_MB)."""
+    import presim.sim.drive as drive
+    from presim.cli.sim_cmds import REALTIME_RENDER_BUDGET_MS
+    from presim.sim.simulator import SIM_RENDER_CACHE_MB
+
+    seen = []
+
+    def fake_run_drive(scene, robot, sim_config, *a, **k):
+        seen.append(sim_config.render)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(drive, "run_drive", fake_run_drive)
+    base = ["drive", str(toy_path), "--steps", "1", "--width", "16", "--height", "12"]
+    for extra, budget in (([], 0.0), (["--realtime"], REALTIME_RENDER_BUDGET_MS),
+                          (["--realtime", "--render-budget-ms", "0"], 0.0), (["--render-budget-ms", "25"], 25.0)):
+        assert main(base + extra) == 1 and "stop here" in capsys.readouterr().err
+        assert seen[-1].time_budget_ms == budget and seen[-1].cache_mb == SIM_RENDER_CACHE_MB
+    assert main(base + ["--render-budget-ms", "-1"]) == 1
+    assert "--render-budget-ms must be >= 0" in capsys.readouterr().err

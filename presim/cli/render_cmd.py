@@ -34,8 +34,12 @@ def register(sub) -> None:
     p.add_argument("--raw-depth", action="store_true", help="ignore the scene's refined depth")
     p.add_argument("--fused-depth", action="store_true",
                    help="use the scene's fused depth (presim fuse) instead of the refined depth")
-    p.add_argument("--backend", default="numba", choices=("numba", "torch", "reference"),
-                   help="kernel backend (default numba)")
+    p.add_argument("--backend", default="numba", choices=("numba", "torch", "torch_batch", "reference"),
+                   help="kernel backend (default numba); torch_batch renders --batch-size poses per call "
+                        "(CUDA when present, else CPU; each frame from its first 3 selected views, no "
+                        "adaptive loop)")
+    p.add_argument("--batch-size", type=int, default=16,
+                   help="poses per batch with --backend torch_batch (default 16)")
     p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
                    help="camera poses of the scene: refined by `presim align` when present (auto, default), "
                         "the capture's given ones, or refined (error when absent)")
@@ -52,6 +56,7 @@ def _main(args: argparse.Namespace) -> int:
 
     check_intrinsics(args.width, args.height, args.fx, args.fy, args.cx, args.cy)
     check_positive_int(args.layers, "--layers", allow_none=False)
+    check_positive_int(args.batch_size, "--batch-size", allow_none=False)
     scene = open_scene(args.scene, poses=args.scene_poses)
     if args.pose is not None:
         vals = args.pose.replace(",", " ").split()
@@ -82,7 +87,7 @@ def _main(args: argparse.Namespace) -> int:
     from presim.limits import check_render_memory
 
     check_render_memory(K.width, K.height, args.layers, args.max_memory)
-    s = render_to_folder(scene, T, stamps, K, args.out, config)
+    s = render_to_folder(scene, T, stamps, K, args.out, config, batch_size=args.batch_size)
     print(f"wrote {s['num_frames']} frame(s) to {args.out} ({K.width}x{K.height}, "
           f"median {s['ms_per_frame_median']:.1f} ms/frame, mean hole fraction before fill "
           f"{np.mean(s['hole_frac_before_fill']):.4f})")

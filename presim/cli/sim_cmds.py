@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
 import numpy as np
+
+REALTIME_RENDER_BUDGET_MS = 80.0
+"""``presim drive``'s default ``--render-budget-ms`` when steps are paced to wall time (as teleop's)."""
 
 
 def add_robot_arguments(p, drive_help: str) -> None:
@@ -71,6 +75,11 @@ def register(sub) -> None:
     p.add_argument("--keep-open", action="store_true",
                    help="with --viewer web: keep serving the web viewer after the drive ends (Ctrl-C stops it)")
     p.add_argument("--realtime", action="store_true", help="pace steps to wall time (always on for keyboard)")
+    p.add_argument("--render-budget-ms", type=float, default=None,
+                   help="stop adding capture views to a camera frame after this many ms "
+                        "(RenderConfig.time_budget_ms; 0 = the full adaptive loop). Default: 80 when steps "
+                        "are paced to wall time (--realtime, keyboard), else 0 so that a seed gives the "
+                        "same images on any machine")
     p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
                    help="camera poses of the scene: refined by `presim align` when present (auto, default), "
                         "the capture's given ones, or refined (error when absent)")
@@ -149,9 +158,15 @@ def run(args: argparse.Namespace) -> int:
     robot = robot_from_args(args, scene)
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz,
                      noise=DepthNoiseConfig() if args.depth_noise else None)
-    sim_config = SimConfig(dt_s=args.dt, cameras=(cam,), odometry=OdometryConfig(drift=args.odom_drift))
     controller = _controller(args)
     keyboard = controller.kind == "keyboard"
+    budget = args.render_budget_ms
+    if budget is None:
+        budget = REALTIME_RENDER_BUDGET_MS if (args.realtime or keyboard) else 0.0
+    if not budget >= 0:  # also refuses NaN
+        raise ValueError(f"--render-budget-ms must be >= 0, got {args.render_budget_ms}")
+    sim_config = SimConfig(dt_s=args.dt, cameras=(cam,), odometry=OdometryConfig(drift=args.odom_drift))
+    sim_config = dataclasses.replace(sim_config, render=dataclasses.replace(sim_config.render, time_budget_ms=budget))
     if keyboard:
         if not sys.stdin.isatty():
             print("keyboard: stdin is not a terminal; reading keys from it anyway", file=sys.stderr)

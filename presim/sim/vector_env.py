@@ -31,6 +31,7 @@ from gymnasium.vector.utils import batch_space
 
 from presim.capture.scene import Scene
 from presim.sim.envs import PointNavConfig, PointNavEnv, _load
+from presim.sim.simulator import SIM_RENDER_CACHE_MB
 from presim.synthesis.renderer import RenderConfig, Renderer
 
 __all__ = ["default_batch_backend", "PointNavVectorEnv"]
@@ -60,7 +61,7 @@ class PointNavVectorEnv(VectorEnv):
         if cfg.depth_noise:
             raise ValueError("PointNavVectorEnv: depth_noise is not supported (use PointNavEnv)")
         scene_obj = _load(scene)
-        rcfg = render or RenderConfig(backend=default_batch_backend())
+        rcfg = render or RenderConfig(backend=default_batch_backend(), cache_mb=SIM_RENDER_CACHE_MB)
         self.renderer = Renderer(scene_obj, rcfg)
         self.envs = [PointNavEnv(scene_obj, discrete, width, height, cfg, render_camera=False,
                                  renderer=self.renderer) for _ in range(num_envs)]

@@ -304,7 +304,8 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
                      get_grid: Callable[[int], np.ndarray], workspace: Workspace | None = None,
                      color_transform: Callable[[int, np.ndarray], np.ndarray] | None = None,
                      blend: Callable[[list[int], np.ndarray, np.ndarray, np.ndarray],
-                                     tuple[np.ndarray, float]] | None = None) -> FrameResult:
+                                     tuple[np.ndarray, float]] | None = None,
+                     grid_px: Callable[[int], np.ndarray] | None = None) -> FrameResult:
     """The adaptive loop (thesis §3.4.2-3.4.4) and the final fill for one target camera.
 
     Args:
@@ -321,6 +322,9 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         blend: optional ``(views, color, depth, source) -> (color, ms)`` run on the merged image
             before the final fill (multi-view blending, :mod:`presim.synthesis.blend`); None = the
             winner's colours.
+        grid_px: optional fast path: ``grid_px(id)`` -> the flat target pixels of the view's grid
+            (= :func:`grid_pixels` of ``get_grid(id)``; the Renderer projects all candidates' grids
+            once per frame, :class:`presim.synthesis.grids.FrameGrids`).
     Returns:
         :class:`FrameResult`.
     """
@@ -340,7 +344,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     skipped: list[int] = []
     stop_px = cfg.stop_hole_frac * H * W
     replace = big = None
-    grid_px: dict[int, np.ndarray] = {}
+    if grid_px is None:
+        def grid_px(v: int) -> np.ndarray:
+            return grid_pixels(get_grid(v), T_cam_world, K, cfg.view.near_m)
+    px_of: dict[int, np.ndarray] = {}
     t_start = time.perf_counter()
     while pending and len(views) < n_target:
         if views and adaptive and cfg.time_budget_ms > 0 and (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
@@ -350,9 +357,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
             # there -> no candidate can help, stop.
             t = time.perf_counter()
             for v in pending:  # each candidate's grid is projected once per frame
-                if v not in grid_px:
-                    grid_px[v] = grid_pixels(get_grid(v), T_cam_world, K, cfg.view.near_m)
-            counts = [int(np.count_nonzero(big.reshape(-1)[grid_px[v]])) for v in pending]
+                if v not in px_of:
+                    px_of[v] = grid_px(v)
+            big_flat = big.reshape(-1)
+            counts = [int(np.count_nonzero(big_flat[px_of[v]])) for v in pending]
             ms["select"] += (time.perf_counter() - t) * 1e3
             cmax = max(counts)
             if cmax == 0:

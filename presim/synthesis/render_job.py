@@ -41,9 +41,12 @@ def output_intrinsics(K: Intrinsics, width: int | None = None, height: int | Non
 
 
 def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarray, K: Intrinsics, out: Path,
-                     config: RenderConfig) -> dict:
+                     config: RenderConfig, batch_size: int = 16) -> dict:
     """Render every pose ``T_world_cams`` (B, 4, 4) with intrinsics ``K`` into the folder ``out``
     (created), each file atomically; ``stamps_s`` (B,) go to the timestamps and TUM files.
+
+    With ``config.backend == "torch_batch"`` the poses are rendered ``batch_size`` at a time through
+    :meth:`Renderer.render_batch` (``ms_per_frame_median`` is then the median of batch time / frames).
 
     Depth PNGs are uint16 millimetres (0 = unknown; filled pixels keep their filled depth, the valid
     mask tells them apart; depths that do not fit are written 0 and counted in ``depth_clipped_px``).
@@ -53,15 +56,29 @@ def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarra
     out.mkdir(parents=True, exist_ok=True)
     r = Renderer(scene, config)
     writer = KinfuFolderWriter(out)
+    if batch_size < 1:
+        raise ValueError(f"batch size must be >= 1, got {batch_size}")
     holes, views, ms = [], [], []
-    for i in progress(range(len(T_world_cams)), desc="render", unit="frame"):
+    batched = config.backend == "torch_batch"
+    step = batch_size if batched else 1
+    bar = progress(total=len(T_world_cams), desc="render", unit="frame")
+    for i0 in range(0, len(T_world_cams), step):
+        T = np.asarray(T_world_cams[i0:i0 + step], np.float64)
         t0 = time.perf_counter()
-        rgbd = r.render(T_world_cams[i], K)
-        ms.append((time.perf_counter() - t0) * 1e3)
-        writer.write_frame(rgbd.color, rgbd.depth_m, T_world_cams[i], K, float(stamps_s[i]),
-                           extra_images={"valid": rgbd.valid})
-        holes.append(rgbd.hole_frac_before_fill)
-        views.append(len(r.last.views))
+        if batched:
+            frames = r.render_batch(T, K)
+            used = r.last.batch_views or [r.last.views] * len(frames)
+        else:
+            frames = [r.render(T[0], K)]
+            used = [r.last.views]
+        ms.extend([(time.perf_counter() - t0) * 1e3 / len(frames)] * len(frames))
+        for j, rgbd in enumerate(frames):
+            writer.write_frame(rgbd.color, rgbd.depth_m, T[j], K, float(stamps_s[i0 + j]),
+                               extra_images={"valid": rgbd.valid})
+            holes.append(rgbd.hole_frac_before_fill)
+            views.append(len(used[j]))
+        bar.update(len(frames))
+    bar.close()
     writer.close()
     summary = {
         "scene": str(scene.path) if scene.path else None, "num_frames": len(T_world_cams),

@@ -25,6 +25,7 @@ Frames are read from the scene's FrameSource only when a view is first needed.
 from __future__ import annotations
 
 import dataclasses
+import mmap
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -33,12 +34,13 @@ import cv2
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
-from presim.geometry import Intrinsics, check_rigid, invert, unproject_depth
+from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
 from presim.synthesis.blend import BlendConfig, blend_frame, front_image_points
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS
+from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
 from presim.synthesis.photometric import ViewColorTransform
 from presim.synthesis.rgbd import RGBD
@@ -47,6 +49,25 @@ from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, sel
 from presim.synthesis.warp import ViewPoints, prepare_view
 
 __all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
+
+
+def _unmap_pages(arr: np.ndarray) -> None:
+    """Drop this process's mapping of the pages of ``arr`` when it is a slice of a read-only memory map
+    (a saved scene's colour/depth arrays): the prepared view holds copies, so the pages would only sit
+    in the process's RSS (they stay in the page cache; a later read maps them again). No-op otherwise."""
+    mm, b = None, arr
+    while b is not None and mm is None:  # np.asarray(memmap[i]) is a plain view: find the map below
+        mm, b = getattr(b, "_mmap", None), getattr(b, "base", None)
+    if mm is None or arr.flags.writeable or not hasattr(mmap, "MADV_DONTNEED") or arr.nbytes == 0:
+        return
+    try:
+        start = arr.ctypes.data - np.frombuffer(mm, np.uint8).ctypes.data
+        lo = start // mmap.PAGESIZE * mmap.PAGESIZE
+        hi = min(len(mm), -(-(start + arr.nbytes) // mmap.PAGESIZE) * mmap.PAGESIZE)
+        if 0 <= lo < hi:
+            mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
+    except (ValueError, OSError, TypeError):  # closed map, unusual layout: keep the pages
+        pass
 
 
 @dataclass(frozen=True)
@@ -241,6 +262,8 @@ class RenderStats:
     """Pyramid level used for each warped view (0 = all points)."""
     reused_selection: bool = False
     """The selection was the previous frame's (temporal coherence)."""
+    batch_views: list[list[int]] = field(default_factory=list)
+    """:meth:`Renderer.render_batch` on a batched backend: the views of every frame of the batch."""
 
 
 class Renderer:
@@ -259,6 +282,7 @@ class Renderer:
         self._views: OrderedDict[int, object] = OrderedDict()
         self._views_bytes = 0
         self._grids: dict[int, np.ndarray] = {}
+        self._grid_zsrc: dict[int, np.ndarray] = {}  # per view: its grid points' depth in the view (LOD)
         self.last = RenderStats()
         self._frame_config = config.frame_config()
         self._workspace = Workspace()  # warp buffers reused across views and frames (numba backend)
@@ -305,8 +329,10 @@ class Renderer:
         """(m, 3) float32 world points of view ``idx``'s sub-sampled valid depth (overlap test)."""
         g = self._grids.get(idx)
         if g is None:
-            _, depth = self._load_frame(idx)
+            color, depth = self._load_frame(idx)
             g = self._grids[idx] = self._grid_from_depth(idx, depth)
+            _unmap_pages(color)
+            _unmap_pages(depth)
         return g
 
     def view_points(self, idx: int) -> ViewPoints:
@@ -318,8 +344,11 @@ class Renderer:
         color, depth = self._load_frame(idx)
         if idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
-        return prepare_view(color, depth, self.scene.intrinsics[idx], self.scene.T_world_cam[idx],
+        view = prepare_view(color, depth, self.scene.intrinsics[idx], self.scene.T_world_cam[idx],
                             self.config.num_layers)
+        _unmap_pages(color)
+        _unmap_pages(depth)
+        return view
 
     def _view(self, idx: int, level: int = 0):
         key = idx if level == 0 else (idx, level)
@@ -342,7 +371,10 @@ class Renderer:
         if idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
         c, d, K = build_level(color, depth, self.scene.intrinsics[idx], level, self.config.lod_depth_tol)
-        return prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers)
+        view = prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers)
+        _unmap_pages(color)
+        _unmap_pages(depth)
+        return view
 
     def lod_level(self, idx: int, T_cam_world: np.ndarray, K: Intrinsics) -> int:
         """Pyramid level of view ``idx`` for a target camera (0 when ``lod_levels`` = 0)."""
@@ -354,17 +386,37 @@ class Renderer:
                              T_cam_world, float(np.sqrt(K.fx * K.fy)), self.config.near_m)
         return choose_level(r0, self._lod)
 
+    def _grid_zsrc_of(self, idx: int) -> np.ndarray:
+        """float32 (m,) depth of view ``idx``'s grid points in the view itself (constant per view)."""
+        z = self._grid_zsrc.get(idx)
+        if z is None:
+            if self._T_cam_world_src is None:
+                self._T_cam_world_src = np.linalg.inv(self.scene.T_world_cam)
+            z = transform_points(self._T_cam_world_src[idx], self.grid_points(idx))[:, 2]
+            self._grid_zsrc[idx] = z = np.ascontiguousarray(z)
+        return z
+
+    def _lod_level_fast(self, idx: int, grids: FrameGrids) -> int:
+        """:meth:`lod_level` from the frame's one projection of the grids (same result)."""
+        if self._lod.levels == 0:
+            return 0
+        r0 = grids.footprint_ratio(idx, self._grid_zsrc_of(idx), float(self._src_focal[idx]), self.config.near_m)
+        return choose_level(r0, self._lod)
+
     @property
     def cache_bytes(self) -> int:
         """Bytes held by the per-view point cache."""
         return self._views_bytes
 
     # ---- public API ----------------------------------------------------------------------------
-    def select(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection:
-        """The ordered candidate views for a target camera (before the adaptive loop)."""
+    def select(self, T_world_cam: np.ndarray, K: Intrinsics, grids: FrameGrids | None = None) -> Selection:
+        """The ordered candidate views for a target camera (before the adaptive loop). ``grids``:
+        the frame's grid projections to reuse (:class:`~presim.synthesis.grids.FrameGrids`)."""
         cfg = self.config
+        if grids is None:
+            grids = FrameGrids(invert(T_world_cam), K, self.grid_points)
         return select_views(T_world_cam, K, self._centres, self._dirs, self._hfov_deg, self.grid_points,
-                            cfg.selection, cfg.max_candidates, cfg.view_order)
+                            cfg.selection, cfg.max_candidates, cfg.view_order, overlaps=grids.overlaps)
 
     def render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
         """Synthesize color + depth at camera pose ``T_world_cam`` (4x4) with intrinsics ``K``."""
@@ -400,27 +452,30 @@ class Renderer:
 
     def _render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
         t0 = time.perf_counter()
+        T_cam_world = invert(T_world_cam)
+        grids = FrameGrids(T_cam_world, K, self.grid_points)  # each grid projected once this frame
         sel = self._reusable(T_world_cam, K)
         reused = sel is not None
         if sel is None:
-            sel = self.select(T_world_cam, K)
+            sel = self.select(T_world_cam, K, grids)
             if self._sharpness is not None:  # sharp views first (presim/synthesis/sharpness.py)
                 p = self._sharpness.order(sel.view_idx)
                 sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
                                           angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
             self._prev = (T_world_cam.copy(), K, sel)
         select_ms = (time.perf_counter() - t0) * 1e3
-        T_cam_world = invert(T_world_cam)
         get_view = self._view
         levels: dict[int, int] = {}
         if self._lod.levels > 0:
             def get_view(idx: int):
-                levels[idx] = self.lod_level(idx, T_cam_world, K)
+                levels[idx] = self._lod_level_fast(idx, grids)
                 return self._view(idx, levels[idx])
+        near = self.config.near_m
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
                                self._backend.view_image, get_view, self.grid_points, self._workspace,
                                color_transform=self._color_transform,
-                               blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx))
+                               blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx),
+                               grid_px=lambda v: grids.pixels(v, near))
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
@@ -470,12 +525,13 @@ class Renderer:
 
         cfg = self.config
         t0 = time.perf_counter()
-        sels = [self.select(t, K) for t in T]
         T_cw = np.stack([invert(t) for t in T])
+        grids = [FrameGrids(t, K, self.grid_points) for t in T_cw]
+        sels = [self.select(t, K, g) for t, g in zip(T, grids)]
         select_ms = (time.perf_counter() - t0) * 1e3
 
         def get_view(b: int, idx: int):
-            level = self.lod_level(idx, T_cw[b], K)
+            level = self._lod_level_fast(idx, grids[b])
             return (idx, level), self._view(idx, level)
 
         bcfg = BatchConfig(cfg.batch_views, cfg.near_m, cfg.crack_filter, cfg.crack_kernel_px, cfg.fill_holes,
@@ -483,5 +539,6 @@ class Renderer:
         ms: dict[str, float] = {}
         frames = self._backend.frame_batch([s.view_idx for s in sels], T_cw, K, bcfg, get_view, ms)
         ms["select"] = select_ms
-        self.last = RenderStats(views=frames[-1].views, selection=sels[-1], ms=ms)
+        self.last = RenderStats(views=frames[-1].views, selection=sels[-1], ms=ms,
+                                batch_views=[list(f.views) for f in frames])
         return [RGBD(f.color, f.depth_m, f.valid, f.source_view, K, t, f.hole_frac) for f, t in zip(frames, T)]

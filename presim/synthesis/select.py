@@ -64,7 +64,8 @@ def view_overlap(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrins
 def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarray,
                  directions_world: np.ndarray, hfov_deg: np.ndarray,
                  grid_points: Callable[[int], np.ndarray], mode: str = "adaptive",
-                 max_candidates: int = 10, order: str = "distance") -> Selection:
+                 max_candidates: int = 10, order: str = "distance",
+                 overlaps: Callable[[np.ndarray], np.ndarray] | None = None) -> Selection:
     """Select and order the input views for a target camera.
 
     Args:
@@ -76,6 +77,9 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
         mode: ``"adaptive"`` (thesis), ``"distance"`` or ``"angle"``.
         max_candidates: size of the local group.
         order: ``"distance"`` or ``"overlap"`` (thesis mode only).
+        overlaps: optional fast path: ``overlaps(idx)`` -> (k,) :func:`view_overlap` of each view of
+            ``idx`` in the target (the Renderer projects all grids in one call,
+            :class:`presim.synthesis.grids.FrameGrids`); None = :func:`view_overlap` per view.
     """
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")
@@ -97,12 +101,15 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
         return Selection(idx, dist[idx], angle[idx], np.full(len(idx), np.nan))
     idx = idx[angle[idx] <= hfov_deg[idx]]
     T_cam_world = invert(T_world_cam)
-    ov = np.array([view_overlap(grid_points(int(i)), T_cam_world, K) for i in idx])
+    if overlaps is None:
+        def overlaps(ids: np.ndarray) -> np.ndarray:
+            return np.array([view_overlap(grid_points(int(i)), T_cam_world, K) for i in ids], np.float64)
+    ov = np.asarray(overlaps(idx), np.float64).reshape(len(idx))
     keep = ov > 0.0
     idx, ov = idx[keep], ov[keep]
     if len(idx) == 0:  # fallback (step 4): the views looking most like the target, any distance
         idx = np.lexsort((dist, angle))[:k]
-        ov = np.array([view_overlap(grid_points(int(i)), T_cam_world, K) for i in idx])
+        ov = np.asarray(overlaps(idx), np.float64).reshape(len(idx))
         o = np.argsort(-ov, kind="stable")
         idx, ov = idx[o], ov[o]
         keep = ov > 0.0

@@ -20,7 +20,7 @@ import numpy as np
 
 from presim.geometry import Intrinsics, unproject_depth
 
-__all__ = ["ViewPoints", "LayeredImage", "assign_layers", "prepare_view", "warp_layers"]
+__all__ = ["ViewPoints", "LayeredImage", "assign_layers", "prepare_view", "prepare_view_ref", "warp_layers"]
 
 
 @dataclass(frozen=True)
@@ -80,9 +80,9 @@ def assign_layers(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tup
     return layer, (lo, hi)
 
 
-def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
+def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
                  num_layers: int) -> ViewPoints:
-    """Back-project the valid pixels of one RGB-D view, assign layers and sort by layer.
+    """Reference (numpy, via geometry.py) of :func:`prepare_view`.
 
     Args:
         color: uint8 (h, w, 3); depth_m: float32 (h, w), 0 = invalid; K: the view's intrinsics.
@@ -101,6 +101,79 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
     start[1:] = np.cumsum(counts)
     return ViewPoints(np.ascontiguousarray(pts[order], np.float32),
                       np.ascontiguousarray(color[mask][order], np.uint8), start, rng)
+
+
+@nb.njit(cache=True)
+def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no cover
+    H, W = depth.shape
+    n = 0
+    lo = np.inf
+    hi = -np.inf
+    for v in range(H):
+        for u in range(W):
+            d = depth[v, u]
+            if np.isfinite(d) and d > 0:
+                n += 1
+                dd = np.float64(d)
+                lo = min(lo, dd)
+                hi = max(hi, dd)
+    counts = np.zeros(num_layers, np.int64)
+    span = hi - lo
+    if n:
+        for v in range(H):
+            for u in range(W):
+                d = depth[v, u]
+                if np.isfinite(d) and d > 0:
+                    layer = 0
+                    if span > 0:
+                        layer = min(np.int64((np.float64(d) - lo) / span * num_layers), num_layers - 1)
+                    counts[layer] += 1
+    start = np.zeros(num_layers + 1, np.int64)
+    for layer in range(num_layers):
+        start[layer + 1] = start[layer] + counts[layer]
+    pos = start[:num_layers].copy()
+    xyz = np.empty((n, 3), np.float32)
+    rgb = np.empty((n, 3), np.uint8)
+    for v in range(H):
+        for u in range(W):
+            d = depth[v, u]
+            if not (np.isfinite(d) and d > 0):
+                continue
+            z = np.float64(d)
+            layer = 0
+            if span > 0:
+                layer = min(np.int64((z - lo) / span * num_layers), num_layers - 1)
+            x = (np.float64(u) - cx) / fx * z
+            y = (np.float64(v) - cy) / fy * z
+            i = pos[layer]
+            pos[layer] = i + 1
+            for k in range(3):
+                xyz[i, k] = np.float32(x * T[k, 0] + y * T[k, 1] + z * T[k, 2] + T[k, 3])
+                rgb[i, k] = color[v, u, k]
+    return xyz, rgb, start, lo, hi
+
+
+def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
+                 num_layers: int) -> ViewPoints:
+    """Back-project the valid pixels of one RGB-D view, assign layers and sort by layer (numba, one
+    pass per step; :func:`prepare_view_ref` is the numpy reference, tested equal).
+
+    Args:
+        color: uint8 (h, w, 3); depth_m: float32 (h, w), 0 = invalid; K: the view's intrinsics.
+        T_world_cam: 4x4 pose of the view.
+    """
+    if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
+        raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
+    depth = np.asarray(depth_m)
+    if depth.shape != (K.height, K.width):
+        raise ValueError(f"depth shape {depth.shape} != intrinsics {K.height}x{K.width}")
+    if num_layers < 1:
+        raise ValueError(f"num_layers must be >= 1, got {num_layers}")
+    xyz, rgb, start, lo, hi = _prepare_kernel(
+        np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(color), float(K.fx), float(K.fy),
+        float(K.cx), float(K.cy), np.ascontiguousarray(np.asarray(T_world_cam, np.float64)), int(num_layers))
+    rng = (float(lo), float(hi)) if len(xyz) else (0.0, 0.0)
+    return ViewPoints(xyz, rgb, start, rng)
 
 
 # fastmath without "nnan"/"ninf": the kernel relies on comparisons that must stay IEEE-exact.

@@ -1,0 +1,142 @@
+"""Per-frame projection of the views' sub-sampled grids into the target camera, done once per frame.
+
+Three per-frame questions are answered from each candidate view's sub-sampled grid of valid depth
+points (``RenderConfig.overlap_stride_px``, prepared once per view by the Renderer):
+
+- the **overlap** of the view with the target (selection, :func:`presim.synthesis.select.view_overlap`);
+- the **target pixels** the grid lands on (the adaptive loop's "can this view fill a big hole" test,
+  :func:`presim.synthesis.core.grid_pixels`);
+- the **footprint ratio** that picks the level of detail (:func:`presim.synthesis.lod.footprint_ratio`).
+
+The reference functions each transform and project the grid again (numpy, float64 temporaries).
+:class:`FrameGrids` projects every asked view's grid once per target camera, all views in one call
+of a small single-threaded numba kernel (:func:`project_grid`; a parallel region's start costs more
+than the ~50 k points of ten grids), and answers the three questions from that one projection.
+:func:`project_grid_ref` is the numpy reference (geometry.py's ``transform_points`` / ``project``
+and the pixel-centre rule of ``nearest_pixel``), tested equal.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numba as nb
+import numpy as np
+
+from presim.capture.reprojection import nearest_pixel
+from presim.geometry import Intrinsics, project, transform_points
+
+__all__ = ["project_grid", "project_grid_ref", "FrameGrids"]
+
+
+def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of :func:`project_grid` (numpy, via geometry.py)."""
+    p = transform_points(T_cam_world, np.asarray(xyz_world, np.float32))
+    uv, z = project(K, p)
+    u, v, inb = nearest_pixel(uv, K.width, K.height)
+    pix = np.where(inb, v * K.width + u, -1).astype(np.int64)
+    return pix, np.asarray(z, np.float32)
+
+
+@nb.njit(cache=True)
+def _project_grid_kernel(xyz, M, fx, fy, cx, cy, W, H, pix, z_out):  # pragma: no cover
+    for i in range(xyz.shape[0]):
+        x = np.float64(xyz[i, 0])
+        y = np.float64(xyz[i, 1])
+        z = np.float64(xyz[i, 2])
+        # float32 camera coordinates, as transform_points returns for float32 points.
+        zc = np.float32(x * M[2, 0] + y * M[2, 1] + z * M[2, 2] + M[2, 3])
+        z_out[i] = zc
+        pix[i] = -1
+        if not (zc > 0.0):
+            continue
+        xc = np.float32(x * M[0, 0] + y * M[0, 1] + z * M[0, 2] + M[0, 3])
+        yc = np.float32(x * M[1, 0] + y * M[1, 1] + z * M[1, 2] + M[1, 3])
+        uf = np.floor(fx * np.float64(xc) / np.float64(zc) + cx + 0.5)
+        vf = np.floor(fy * np.float64(yc) / np.float64(zc) + cy + 0.5)
+        if uf >= 0 and uf < W and vf >= 0 and vf < H:
+            pix[i] = np.int64(vf) * W + np.int64(uf)
+
+
+def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points (n, 3) into a target camera (numba, one thread).
+
+    Returns:
+        ``(pix, z)``: int64 (n,) flat target pixel ``v * W + u`` by the pixel-centre rule
+        (``floor(u + 0.5)``), -1 when the point is behind the camera or outside the image; float32
+        (n,) z-depth in the target camera (any sign).
+    """
+    xyz = np.ascontiguousarray(xyz_world, np.float32)
+    n = xyz.shape[0]
+    pix = np.empty(n, np.int64)
+    z = np.empty(n, np.float32)
+    if n:
+        M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4])
+        _project_grid_kernel(xyz, M, float(K.fx), float(K.fy), float(K.cx), float(K.cy), int(K.width),
+                             int(K.height), pix, z)
+    return pix, z
+
+
+class FrameGrids:
+    """The views' grids projected into one target camera, each view at most once (see module doc).
+
+    Args:
+        T_cam_world: 4x4 world -> target camera; K: target intrinsics.
+        grid_points: ``grid_points(id)`` -> (m, 3) float32 world grid of view ``id`` (cached by the caller).
+    """
+
+    def __init__(self, T_cam_world: np.ndarray, K: Intrinsics, grid_points: Callable[[int], np.ndarray]):
+        self.T_cam_world, self.K = T_cam_world, K
+        self._grid_points = grid_points
+        self._proj: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._px: dict[tuple[int, float], np.ndarray] = {}
+
+    def project(self, ids: Sequence[int]) -> None:
+        """Project the grids of the views ``ids`` not projected yet, all in one kernel call."""
+        missing = [int(v) for v in ids if int(v) not in self._proj]
+        if not missing:
+            return
+        grids = [self._grid_points(v) for v in missing]
+        xyz = grids[0] if len(grids) == 1 else np.concatenate(grids)
+        pix, z = project_grid(xyz, self.T_cam_world, self.K)
+        o = 0
+        for v, g in zip(missing, grids):
+            self._proj[v] = (pix[o:o + len(g)], z[o:o + len(g)])
+            o += len(g)
+
+    def projection(self, v: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(pix, z)`` of view ``v``'s grid (see :func:`project_grid`)."""
+        v = int(v)
+        if v not in self._proj:
+            self.project([v])
+        return self._proj[v]
+
+    def overlaps(self, ids: Sequence[int], near_m: float = 1e-3) -> np.ndarray:
+        """(k,) overlap of each view = :func:`presim.synthesis.select.view_overlap`."""
+        self.project(ids)
+        out = np.zeros(len(ids))
+        for i, v in enumerate(ids):
+            pix, z = self._proj[int(v)]
+            if len(pix):
+                out[i] = np.count_nonzero((pix >= 0) & (z > near_m)) / len(pix)
+        return out
+
+    def pixels(self, v: int, near_m: float) -> np.ndarray:
+        """Flat target pixels of view ``v``'s grid points = :func:`presim.synthesis.core.grid_pixels`."""
+        key = (int(v), float(near_m))
+        px = self._px.get(key)
+        if px is None:
+            pix, z = self.projection(v)
+            px = self._px[key] = pix[(pix >= 0) & (z > near_m)]
+        return px
+
+    def footprint_ratio(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float) -> float:
+        """= :func:`presim.synthesis.lod.footprint_ratio` from the view's cached source depths ``z_src``."""
+        _, z_t = self.projection(v)
+        if len(z_t) == 0:
+            return float("nan")
+        ok = (z_src > near_m) & (z_t > near_m)
+        if not ok.any():
+            return float("nan")
+        return float(np.median(z_src[ok] / z_t[ok]) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)

@@ -1,0 +1,95 @@
+"""The per-frame grid projection (presim/synthesis/grids.py) against its numpy references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from presim.geometry import Intrinsics, invert, look_at
+from presim.synthesis.core import grid_pixels
+from presim.synthesis.grids import FrameGrids, project_grid, project_grid_ref
+from presim.synthesis.lod import footprint_ratio
+from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.select import view_overlap
+from presim.testing import rect_scene as S
+
+
+def test_project_grid_known_pixels():
+    """Points on the optical axis and one pixel right of it, one behind the camera, one outside."""
+    K = Intrinsics(100.0, 100.0, 3.5, 2.5, 8, 6)
+    pts = np.array([[0.0, 0.0, 2.0],  # principal point (3.5, 2.5) -> floor(+0.5) = (4, 3)
+                    [0.03, 0.0, 2.0],  # u = 1.5 + 3.5 = 5 -> floor(5.5) = 5
+                    [0.0, 0.0, -1.0],  # behind
+                    [1.0, 0.0, 1.0]], np.float32)  # u = 103.5: outside
+    pix, z = project_grid(pts, np.eye(4), K)
+    assert pix.tolist() == [3 * 8 + 4, 3 * 8 + 5, -1, -1]
+    np.testing.assert_array_equal(z, [2.0, 2.0, -1.0, 1.0])
+    assert project_grid(np.zeros((0, 3), np.float32), np.eye(4), K)[0].shape == (0,)
+
+
+def test_project_grid_matches_reference():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-3, 3, (20000, 3)).astype(np.float32)
+    T = look_at([0.3, -0.2, -4.0], [0.0, 0.1, 0.0])
+    K = Intrinsics.from_fov(160, 120, 70.0)
+    a_pix, a_z = project_grid(pts, invert(T), K)
+    b_pix, b_z = project_grid_ref(pts, invert(T), K)
+    np.testing.assert_array_equal(a_z, b_z)
+    assert (a_pix == b_pix).mean() > 0.9995  # float64 summation order may move a boundary point
+    assert (a_pix >= 0).sum() > 1000 and (a_pix == -1).sum() > 1000  # both branches exercised
+
+
+def test_frame_grids_answers_equal_the_reference_functions():
+    """Overlap, hole-test pixels and LOD footprint from one projection = the per-question references."""
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(6, span_m=1.2), K)
+    r = Renderer(scene, RenderConfig(overlap_stride_px=4))
+    T = scene.T_world_cam[2].copy()
+    T[:3, 3] += [0.05, 0.0, 0.1]
+    T_cw = invert(T)
+    Kt = Intrinsics.from_fov(40, 30, 60.0)
+    g = FrameGrids(T_cw, Kt, r.grid_points)
+    ids = list(range(len(scene)))
+    ov = g.overlaps(ids)
+    for i, v in enumerate(ids):
+        grid = r.grid_points(v)
+        assert ov[i] == pytest.approx(view_overlap(grid, T_cw, Kt), abs=1e-9)
+        np.testing.assert_array_equal(g.pixels(v, 0.01), grid_pixels(grid, T_cw, Kt, 0.01))
+        assert r._lod_level_fast(v, g) == r.lod_level(v, T_cw, Kt)
+        ref = footprint_ratio(grid, invert(scene.T_world_cam[v]), float(r._src_focal[v]), T_cw,
+                              float(np.sqrt(Kt.fx * Kt.fy)), 0.01)
+        got = g.footprint_ratio(v, r._grid_zsrc_of(v), float(r._src_focal[v]), 0.01)
+        assert got == pytest.approx(ref, rel=1e-6)
+    assert 0.3 < ov.max() <= 1.0
+
+
+def _rss_of_map_kb(path) -> int:
+    """Rss (kB) of the mappings of ``path`` in this process (/proc/self/smaps)."""
+    total, hit = 0, False
+    for line in open("/proc/self/smaps"):
+        if "-" in line.split()[0] and len(line.split()) >= 5:
+            hit = line.rstrip().endswith(str(path))
+        elif hit and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+
+
+def test_unmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path):
+    from presim.synthesis.renderer import _unmap_pages
+
+    path = tmp_path / "a.npy"
+    a = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(8, 256, 256))
+    a[:] = np.arange(8, dtype=np.float32)[:, None, None]
+    a.flush()
+    del a
+    m = np.load(path, mmap_mode="r")
+    frame = np.asarray(m[3])  # what ArrayFrameSource.load returns: a plain view of the map
+    assert float(frame.sum()) == 3.0 * 256 * 256
+    before = _rss_of_map_kb(path)
+    _unmap_pages(frame)
+    after = _rss_of_map_kb(path)
+    assert before >= 256 and after <= before - 200  # the frame's 256 kB left this process's RSS
+    assert float(frame.sum()) == 3.0 * 256 * 256  # read again from the page cache
+    w = np.ones((4, 4), np.float32)
+    _unmap_pages(w)  # in-memory / writable arrays: untouched
+    assert w.sum() == 16
