@@ -253,3 +253,87 @@ def test_cli_scene_without_depth_is_one_line(saved_toy, tmp_path, capsys):
     assert main(["sim2real", "depth", str(tmp_path / "missing"), "--capture-every", "2", "--synth", "4",
                  "--out", str(tmp_path / "o")]) == 1
     assert "not found" in capsys.readouterr().err
+
+
+# ---- schedule, batches, labels, fingerprint (issue 15, convergence round) -----------------------
+def test_lr_factor_warmup_then_cosine_known_answers():
+    from presim.evaluation.sim2real.experiment import lr_factor
+
+    cfg = DepthExperimentConfig(capture_every=2, synth=4, steps=105, warmup_frac=5 / 105, min_lr_frac=0.01)
+    # 5 warm-up steps: 1/5 .. 5/5; then cosine over steps 5..104 (span 99) from 1 down to 0.01
+    assert [lr_factor(k, cfg) for k in range(5)] == pytest.approx([0.2, 0.4, 0.6, 0.8, 1.0])
+    assert lr_factor(5, cfg) == pytest.approx(1.0)
+    assert lr_factor(104, cfg) == pytest.approx(0.01)
+    mid = 5 + 99 / 2  # half way: 0.01 + 0.99 * 0.5 * (1 + cos(pi / 2)) = 0.505
+    assert lr_factor(int(mid), cfg) == pytest.approx(0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * 49 / 99)))
+    assert lr_factor(60, dataclasses.replace(cfg, schedule="constant")) == 1.0
+    with pytest.raises(ValueError, match="--schedule"):
+        dataclasses.replace(cfg, schedule="step")
+
+
+def test_batch_rows_share_real_samples_and_flips_across_arms():
+    from presim.evaluation.sim2real.experiment import batch_rows
+
+    cfg = DepthExperimentConfig(capture_every=2, synth=4, steps=50, batch_real=3, batch_synth=2)
+    a = batch_rows("capture", 7, 5, 11, cfg)
+    b = batch_rows("capture+synth", 7, 5, 11, cfg)
+    c = batch_rows("synth", 7, 5, 11, cfg)
+    assert a.shape == (50, 3) and b.shape == (50, 5) and c.shape == (50, 2)
+    assert np.array_equal(b, np.concatenate([a, c], axis=1))  # (b) = (a)'s real batch + (c)'s
+    assert a.min() >= 0 and a.max() < 10  # pool rows: real 0..4, real flipped 5..9
+    assert c.min() >= 10 and c.max() < 10 + 22  # synth 10..20, synth flipped 21..31
+    assert (a >= 5).any() and (a < 5).any() and (c >= 21).any() and (c < 21).any()  # both flips drawn
+    assert not np.array_equal(a, batch_rows("capture", 8, 5, 11, cfg))
+
+
+def test_capture_labels_rendered_or_sensor():
+    scene = _toy()
+    split = split_capture(scene.T_world_cam, 2)
+    sub = capture_subscene(scene, split)
+    cfg = DepthExperimentConfig(**TINY)
+    ren = build_training_set(sub, cfg)
+    sen = build_training_set(sub, dataclasses.replace(cfg, real_labels="sensor"))
+    assert np.array_equal(sen.real_depth, sen.sensor_depth)  # sensor labels: the resized sensor depth
+    assert np.array_equal(ren.sensor_depth, sen.sensor_depth)
+    # rendered at the capture frame's own pose: the toy depth is exact, so the labels agree with the
+    # sensor where both exist, and cover about as much of the image as the synthesized labels
+    both = (ren.real_depth > 0) & (sen.real_depth > 0)
+    assert both.mean() > 0.5
+    assert np.median(np.abs(ren.real_depth - sen.real_depth)[both]) < 0.02
+    assert abs((ren.real_depth > 0).mean() - (ren.synth_depth > 0).mean()) < 0.2
+
+
+def test_out_dir_of_another_configuration_or_code_is_refused(tmp_path, monkeypatch):
+    import presim.evaluation.sim2real.experiment as ex
+
+    scene = _toy()
+    cfg = DepthExperimentConfig(**TINY)
+    fp = cfg.fingerprint(scene)
+    assert fp == dataclasses.replace(cfg, seeds=(0, 1), threads=2).fingerprint(scene)  # seeds/threads resume
+    assert fp != dataclasses.replace(cfg, lr=2e-3).fingerprint(scene)
+    monkeypatch.setattr(ex, "EXPERIMENT_VERSION", ex.EXPERIMENT_VERSION + 1)
+    assert fp != cfg.fingerprint(scene)  # a new code version never resumes into old results
+    monkeypatch.undo()
+    moved = dataclasses.replace(scene, T_world_cam=scene.T_world_cam.copy())
+    moved.T_world_cam[0, 0, 3] += 0.01
+    assert fp != cfg.fingerprint(moved)  # other poses (e.g. --scene-poses refined)
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "runs").mkdir()
+    (out / "runs" / "capture-seed0.json").write_text("{}")
+    (out / "experiment.json").write_text(json.dumps({"fingerprint": "0123456789abcdef"}))
+    with pytest.raises(ex.ExperimentMismatch, match="another configuration"):
+        run_depth_experiment(scene, cfg, out)
+    assert (out / "runs" / "capture-seed0.json").exists()  # refused: nothing deleted
+    ex._claim_dir(out, cfg, fp, restart=True)
+    assert not (out / "runs" / "capture-seed0.json").exists()
+    assert json.loads((out / "experiment.json").read_text())["fingerprint"] == fp
+    ex._claim_dir(out, cfg, fp, restart=False)  # same fingerprint: accepted (resume)
+
+
+def test_cli_scene_poses_default_given(saved_toy, tmp_path, capsys):
+    good, _ = saved_toy
+    rc = main(["sim2real", "depth", str(good), "--capture-every", "2", "--synth", "4", "--scene-poses", "refined",
+               "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and "no refined poses" in err and "\n" not in err

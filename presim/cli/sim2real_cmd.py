@@ -35,14 +35,25 @@ def register(sub) -> None:
                    help="capture = frames 0, N, 2N, ...; all other frames are real test frames")
     d.add_argument("--synth", type=int, required=True, metavar="M", help="number of synthesized training views")
     d.add_argument("--out", type=Path, required=True, help="output folder (created; rerun to resume)")
-    d.add_argument("--steps", type=int, default=300, help="optimiser steps per arm and seed")
+    d.add_argument("--steps", type=int, default=1000, help="optimiser steps per arm and seed")
     d.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds")
     d.add_argument("--size", type=_size, default=(64, 48), metavar="WxH", help="model input size (default 64x48)")
     d.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device")
     d.add_argument("--width", type=int, default=16, help="encoder channel width (64 = ResNet-18's)")
     d.add_argument("--batch-real", type=int, default=8, help="real capture frames per step")
     d.add_argument("--batch-synth", type=int, default=8, help="synthesized views per step")
-    d.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    d.add_argument("--lr", type=float, default=1e-3, help="Adam peak learning rate")
+    d.add_argument("--schedule", default="cosine", choices=("cosine", "constant"),
+                   help="learning-rate schedule: cosine = 5%% linear warm-up, then cosine decay to 1%% of --lr")
+    d.add_argument("--real-labels", default="rendered", choices=("rendered", "sensor"),
+                   help="capture-frame labels: the renderer's depth at the capture pose (same density as the "
+                        "synthesized labels) or the sensor depth resized; test labels are always sensor depth")
+    d.add_argument("--scene-poses", choices=("given", "refined", "auto"), default="given",
+                   help="camera poses: the capture's given ones (default; `presim align` refines with every "
+                        "frame, test frames included), refined (error when absent) or auto")
+    d.add_argument("--restart", action="store_true",
+                   help="delete results in --out made with another configuration or code version and start "
+                        "over (without it such a folder is refused)")
     d.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     d.add_argument("--pose-seed", type=int, default=0, help="seed of the synthesized poses")
     d.add_argument("--refine", action="store_true",
@@ -74,16 +85,17 @@ def _depth(args: argparse.Namespace) -> int:
                                 seeds=tuple(dict.fromkeys(args.seeds)), size_wh=tuple(args.size),
                                 batch_real=args.batch_real, batch_synth=args.batch_synth, width=args.width,
                                 lr=args.lr, device=args.device, threads=args.threads, pose_seed=args.pose_seed,
-                                refine=args.refine)
-    scene = load_scene(args.scene)
+                                refine=args.refine, schedule=args.schedule, real_labels=args.real_labels)
+    scene = load_scene(args.scene, poses=args.scene_poses)
     # Frames and views at the model size (uint8 RGB + float32 depth, ~2x for copies) plus training
     # activations (~40 floats per pixel per channel of width, forward + backward).
     frames = len(scene) + max(args.synth, 0)
     est = 2 * frames * w * h * 7 + (args.batch_real + args.batch_synth) * w * h * args.width * 160
     check_memory(est, "--size/--synth", f"sim2real depth at {w}x{h} with {args.synth} views", args.max_memory)
-    summary = run_depth_experiment(scene, cfg, args.out, scene_label=str(args.scene))
+    summary = run_depth_experiment(scene, cfg, args.out, scene_label=str(args.scene), restart=args.restart)
     for arm, s in summary["arms"].items():
-        print(f"{arm:14s} RMS {s['rms']:.3f} ± {s['rms_std']:.3f} m  AbsRel {s['absrel']:.3f}  "
+        sd = "" if s["rms_std"] is None else f" ± {s['rms_std']:.3f}"
+        print(f"{arm:14s} RMS {s['rms']:.3f}{sd} m  AbsRel {s['absrel']:.3f}  "
               f"δ1 {s['delta1']:.3f}  far RMS {s['bins']['far']['rms']:.3f} m")
     print(json.dumps({"far_bin": far_gap(summary)}))
     print(f"wrote {args.out}/summary.json, report.md, learning_curves.png, examples.png")

@@ -29,6 +29,9 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
+import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -42,10 +45,14 @@ from presim.evaluation.sim2real.split import BINS, CaptureSplit, SynthPoseConfig
 from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text, progress
 from presim.synthesis.renderer import RenderConfig, Renderer
 
-__all__ = ["ARMS", "DepthExperimentConfig", "TestSet", "TrainingSet", "build_training_set", "capture_subscene",
+__all__ = ["ARMS", "DepthExperimentConfig", "ExperimentMismatch", "code_version", "lr_factor", "TestSet", "TrainingSet", "build_training_set", "capture_subscene",
            "far_gap", "load_test_set", "refine_capture", "run_depth_experiment", "train_arm"]
 
 ARMS = ("capture", "capture+synth", "synth")
+SCHEDULES = ("cosine", "constant")
+REAL_LABELS = ("rendered", "sensor")
+EXPERIMENT_VERSION = 2
+"""Bumped when the protocol changes (2: cosine schedule, rendered capture labels, pre-built batches)."""
 _ARM_FILE = {"capture": "capture", "capture+synth": "capture_synth", "synth": "synth"}
 
 
@@ -57,8 +64,8 @@ class DepthExperimentConfig:
     """Capture = scene frames 0, N, 2N, ...; all others are real test frames."""
     synth: int
     """M: number of synthesized training views."""
-    steps: int = 300
-    """Optimiser steps per arm and seed."""
+    steps: int = 1000
+    """Optimiser steps per arm and seed (the quick setting; docs/sim2real.md)."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Training seeds (weights init, batch order, flips); the synthesized poses use ``pose_seed``."""
     size_wh: tuple[int, int] = (64, 48)
@@ -70,12 +77,25 @@ class DepthExperimentConfig:
     width: int = 16
     """Encoder channel width (64 = ResNet-18's channels; see model.py)."""
     lr: float = 1e-3
-    """Adam learning rate (constant)."""
+    """Adam peak learning rate."""
+    schedule: str = "cosine"
+    """Learning-rate schedule: ``cosine`` (linear warm-up over ``warmup_frac`` of the steps, then cosine
+    decay to ``min_lr_frac * lr`` at the last step) or ``constant``."""
+    warmup_frac: float = 0.05
+    """Fraction of the steps spent warming the learning rate up linearly from ~0 (cosine schedule)."""
+    min_lr_frac: float = 0.01
+    """Final learning rate as a fraction of ``lr`` (cosine schedule)."""
+    real_labels: str = "rendered"
+    """Labels of the capture frames: ``rendered`` = the renderer's depth at the capture frame's own pose
+    where it is synthesized (the same warp, splat and crack filter as the synthesized views' labels,
+    so real and synthesized labels have the same density and style); ``sensor`` = the capture's
+    sensor depth resized nearest-neighbour (sparser than the rendered labels at the model size).
+    Test labels are always the sensor depth."""
     device: str = "cpu"
     """Torch device: ``cpu`` or ``cuda``."""
     threads: int = 1
     """Torch CPU threads (1 was fastest on the shared 2-core machine)."""
-    eval_points: int = 4
+    eval_points: int = 8
     """Test metrics are also measured at this many evenly spaced steps, for the learning curves only
     (the reported model is always the one after the last step: no early stopping)."""
     max_depth_m: float = 10.0
@@ -103,15 +123,47 @@ class DepthExperimentConfig:
             raise ValueError("batch sizes must be >= 1")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"--device must be cpu or cuda, got {self.device}")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"--schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        if self.real_labels not in REAL_LABELS:
+            raise ValueError(f"--real-labels must be one of {', '.join(REAL_LABELS)}, got {self.real_labels!r}")
+        if not 0.0 <= self.warmup_frac < 1.0 or not 0.0 <= self.min_lr_frac <= 1.0:
+            raise ValueError("warmup_frac must be in [0, 1) and min_lr_frac in [0, 1]")
 
     def fingerprint(self, scene: Scene) -> str:
+        """Hash of every setting that decides the numbers (not the seed list or threads), the scene
+        (frames, size, the poses in use) and the experiment code (:func:`code_version`)."""
         d = asdict(self)
         d.pop("seeds")
         d.pop("threads")
-        if not d["refine"]:
-            d.pop("refine")  # runs made before the option existed stay valid
-        d["scene"] = [len(scene), scene.frame_ids[0], scene.frame_ids[-1], scene.width, scene.height]
+        T = np.ascontiguousarray(np.asarray(scene.T_world_cam, np.float64).round(9))
+        d["scene"] = [len(scene), scene.frame_ids[0], scene.frame_ids[-1], scene.width, scene.height,
+                      hashlib.sha1(T.tobytes()).hexdigest()[:16]]
+        d["code"] = code_version()
         return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def code_version() -> str:
+    """``EXPERIMENT_VERSION`` plus a hash of the sources that decide the numbers (this module, the
+    model and loss, the split and poses, the metrics): a changed model or loss never resumes into
+    old results."""
+    here = Path(__file__).parent
+    h = hashlib.sha1()
+    for name in ("experiment.py", "model.py", "split.py", "metrics.py"):
+        h.update((here / name).read_bytes())
+    return f"v{EXPERIMENT_VERSION}-{h.hexdigest()[:12]}"
+
+
+def lr_factor(step: int, cfg: DepthExperimentConfig) -> float:
+    """Learning-rate multiplier for optimiser step ``step`` (0-based) of ``cfg.steps``."""
+    if cfg.schedule == "constant":
+        return 1.0
+    warm = int(round(cfg.warmup_frac * cfg.steps))
+    if step < warm:
+        return (step + 1) / warm
+    span = max(1, cfg.steps - 1 - warm)
+    t = min(1.0, (step - warm) / span)
+    return cfg.min_lr_frac + (1.0 - cfg.min_lr_frac) * 0.5 * (1.0 + math.cos(math.pi * t))
 
 
 def capture_subscene(scene: Scene, split: CaptureSplit) -> Scene:
@@ -159,7 +211,8 @@ class TrainingSet:
     real_rgb: np.ndarray
     """uint8 (C, H, W, 3) capture images at the model size."""
     real_depth: np.ndarray
-    """float32 (C, H, W) capture sensor depth (0 = no label)."""
+    """float32 (C, H, W) capture labels (0 = no label): the renderer's depth at the capture pose or
+    the sensor depth (``DepthExperimentConfig.real_labels``)."""
     synth_poses: np.ndarray
     """(M, 4, 4) poses of the synthesized views."""
     synth_rgb: np.ndarray
@@ -167,7 +220,22 @@ class TrainingSet:
     synth_depth: np.ndarray
     """float32 (M, H, W) synthesized depth where synthesized, 0 where filled (no label)."""
     synth_seconds: float
-    """Wall time of rendering the M views."""
+    """Wall time of rendering the M views (and the C capture-pose labels when rendered)."""
+    synth_cpu_seconds: float = float("nan")
+    """CPU time (all threads of this process) of the same rendering."""
+    sensor_depth: np.ndarray | None = None
+    """float32 (C, H, W) the capture's sensor depth at the model size (for the label-density report)."""
+
+
+def _render_views(renderer: Renderer, poses: np.ndarray, K, W: int, H: int, desc: str):
+    rgb = np.zeros((len(poses), H, W, 3), np.uint8)
+    dep = np.zeros((len(poses), H, W), np.float32)
+    chunk = 16
+    for a in progress(range(0, len(poses), chunk), desc=desc, unit="chunk"):
+        for k, r in enumerate(renderer.render_batch(poses[a:a + chunk], K)):
+            rgb[a + k] = r.color
+            dep[a + k] = np.where(r.valid, r.depth_m, 0.0)
+    return rgb, dep
 
 
 def build_training_set(capture_scene: Scene, cfg: DepthExperimentConfig, cache: Path | None = None,
@@ -180,36 +248,39 @@ def build_training_set(capture_scene: Scene, cfg: DepthExperimentConfig, cache: 
         c, d = _resize(f.color, f.depth_m, (W, H))
         rgb.append(c)
         dep.append(d)
-    real_rgb, real_depth = np.stack(rgb), np.stack(dep)
-    if not (real_depth > 0).any():
+    real_rgb, sensor = np.stack(rgb), np.stack(dep)
+    if not (sensor > 0).any():
         raise ValueError("the scene's capture frames have no depth (all zero): nothing to train or "
                          "render from")
     poses = synth_poses(capture_scene.T_world_cam, cfg.synth, cfg.pose_seed,
                         _up_from_poses(capture_scene.T_world_cam), cfg.poses)
+    rendered_labels = cfg.real_labels == "rendered"
     key = hashlib.sha1(json.dumps([capture_scene.frame_ids, poses.round(9).tolist(), [W, H],
-                                   capture_scene.depth_refined is not None,
-                                   asdict(render_config)], default=str).encode()).hexdigest()[:16]
+                                   capture_scene.depth_refined is not None, asdict(render_config),
+                                   rendered_labels,
+                                   np.asarray(capture_scene.T_world_cam).round(9).tolist()],
+                                  default=str).encode()).hexdigest()[:16]
     if cache is not None and cache.exists():
         z = np.load(cache)
         if str(z["key"]) == key:
-            return TrainingSet(capture_scene, real_rgb, real_depth, poses, z["rgb"], z["depth"],
-                               float(z["seconds"]))
+            real = z["real_label"] if rendered_labels else sensor
+            return TrainingSet(capture_scene, real_rgb, real, poses, z["rgb"], z["depth"],
+                               float(z["seconds"]), float(z["cpu_seconds"]), sensor)
     K = capture_scene.intrinsics[0].scaled(W, H)
     renderer = Renderer(capture_scene, render_config)
-    t0 = time.perf_counter()
-    s_rgb = np.zeros((cfg.synth, H, W, 3), np.uint8)
-    s_dep = np.zeros((cfg.synth, H, W), np.float32)
-    chunk = 16
-    for a in progress(range(0, cfg.synth, chunk), desc="synthesize", unit="chunk"):
-        for k, r in enumerate(renderer.render_batch(poses[a:a + chunk], K)):
-            s_rgb[a + k] = r.color
-            s_dep[a + k] = np.where(r.valid, r.depth_m, 0.0)
-    secs = time.perf_counter() - t0
+    t0, c0 = time.perf_counter(), time.process_time()
+    s_rgb, s_dep = _render_views(renderer, poses, K, W, H, "synthesize")
+    real = sensor
+    if rendered_labels:
+        _, real = _render_views(renderer, np.asarray(capture_scene.T_world_cam, np.float64), K, W, H,
+                                "capture labels")
+    secs, cpu = time.perf_counter() - t0, time.process_time() - c0
     if cache is not None:
         buf = io.BytesIO()
-        np.savez(buf, key=np.array(key), rgb=s_rgb, depth=s_dep, seconds=np.array(secs))
+        np.savez(buf, key=np.array(key), rgb=s_rgb, depth=s_dep, real_label=real, seconds=np.array(secs),
+                 cpu_seconds=np.array(cpu))
         atomic_write_bytes(cache, buf.getvalue())
-    return TrainingSet(capture_scene, real_rgb, real_depth, poses, s_rgb, s_dep, secs)
+    return TrainingSet(capture_scene, real_rgb, real, poses, s_rgb, s_dep, secs, cpu, sensor)
 
 
 @dataclass
@@ -241,14 +312,30 @@ def load_test_set(scene: Scene, split: CaptureSplit, size_wh: tuple[int, int]) -
     return TestSet(np.stack(rgb), depth, split.bin_of, np.array(ex))
 
 
-def _to_tensor(rgb: np.ndarray, depth: np.ndarray, flip: np.ndarray, device):
+def _pool(rgb: np.ndarray, depth: np.ndarray, device):
+    """Images (2N, 3, H, W) float in [0, 1], channels-last, and labels (2N, 1, H, W) on ``device``:
+    rows 0..N-1 as given, rows N..2N-1 flipped left-right (a flipped sample is row i + N)."""
     import torch
 
-    rgb = np.where(flip[:, None, None, None], rgb[:, :, ::-1], rgb)
-    depth = np.where(flip[:, None, None], depth[:, :, ::-1], depth)
-    x = torch.from_numpy(np.ascontiguousarray(rgb)).to(device).permute(0, 3, 1, 2).float() / 255.0
-    y = torch.from_numpy(np.ascontiguousarray(depth)).to(device)[:, None]
-    return x, y
+    rgb2 = np.concatenate([rgb, rgb[:, :, ::-1]])
+    dep2 = np.concatenate([depth, depth[:, :, ::-1]])
+    x = torch.from_numpy(np.ascontiguousarray(rgb2)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+    y = torch.from_numpy(np.ascontiguousarray(dep2, dtype=np.float32)).to(device)[:, None]
+    return x.contiguous(memory_format=torch.channels_last), y
+
+
+def batch_rows(arm: str, seed: int, n_real: int, n_synth: int, cfg: DepthExperimentConfig) -> np.ndarray:
+    """(steps, B) rows into the pool ``[real, real flipped, synth, synth flipped]`` for every step of
+    one arm and seed, drawn up front from two seeded streams shared by all arms (so ``capture`` and
+    ``capture+synth`` see the same real samples and flips at every step; ``capture+synth``'s batch
+    is ``capture``'s plus ``synth``'s)."""
+    rng_real, rng_syn = np.random.default_rng([seed, 1]), np.random.default_rng([seed, 2])
+    ri = rng_real.integers(0, n_real, (cfg.steps, cfg.batch_real))
+    ri = ri + n_real * (rng_real.random((cfg.steps, cfg.batch_real)) < 0.5)
+    si = rng_syn.integers(0, n_synth, (cfg.steps, cfg.batch_synth))
+    si = si + n_synth * (rng_syn.random((cfg.steps, cfg.batch_synth)) < 0.5) + 2 * n_real
+    parts = ([ri] if arm != "synth" else []) + ([si] if arm != "capture" else [])
+    return np.concatenate(parts, axis=1)
 
 
 def _predict(net, rgb: np.ndarray, device, batch: int = 32) -> np.ndarray:
@@ -259,6 +346,7 @@ def _predict(net, rgb: np.ndarray, device, batch: int = 32) -> np.ndarray:
     with torch.no_grad():
         for a in range(0, len(rgb), batch):
             x = torch.from_numpy(rgb[a:a + batch]).to(device).permute(0, 3, 1, 2).float() / 255.0
+            x = x.contiguous(memory_format=torch.channels_last)
             out.append(net(x)[:, 0].cpu().numpy())
     net.train()
     return np.concatenate(out)
@@ -287,43 +375,39 @@ def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet,
     device = torch.device(cfg.device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(seed)  # same initial weights for every arm of a seed
-    net = DepthNet(cfg.width, cfg.max_depth_m).to(device)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    # One stream per kind of draw, identical for all arms: the real batches of "capture" and
-    # "capture+synth" are the same samples (and flips) at every step.
-    rng_real, rng_syn = np.random.default_rng([seed, 1]), np.random.default_rng([seed, 2])
-    use_real, use_syn = arm != "synth", arm != "capture"
+    net = DepthNet(cfg.width, cfg.max_depth_m).to(device).to(memory_format=torch.channels_last)
+    try:
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, fused=True)
+    except (RuntimeError, TypeError, ValueError):  # no fused Adam for this device/build
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: lr_factor(k, cfg))
+    # Every sample of every step is decided before training: one pool tensor on the device, one
+    # index tensor per step (no per-step numpy work or host copies).
+    rx, ry = _pool(data.real_rgb, data.real_depth, device)
+    sx, sy = _pool(data.synth_rgb, data.synth_depth, device)
+    pool_x, pool_y = torch.cat([rx, sx]).contiguous(memory_format=torch.channels_last), torch.cat([ry, sy])
+    rows = torch.from_numpy(batch_rows(arm, seed, len(data.real_rgb), len(data.synth_rgb), cfg)).to(device)
     checkpoints = sorted({int(round(s)) for s in np.linspace(0, cfg.steps, cfg.eval_points + 1)[1:]})
-    losses, curve = [], []
-    t0 = time.perf_counter()
+    losses = torch.zeros(cfg.steps, dtype=torch.float64)
+    curve = []
+    t0, c0 = time.perf_counter(), time.process_time()
     for step in progress(range(1, cfg.steps + 1), desc=f"{arm} seed {seed}", unit="step"):
-        ri = rng_real.integers(0, len(data.real_rgb), cfg.batch_real)
-        rf = rng_real.random(cfg.batch_real) < 0.5
-        si = rng_syn.integers(0, len(data.synth_rgb), cfg.batch_synth)
-        sf = rng_syn.random(cfg.batch_synth) < 0.5
-        xs, ys = [], []
-        if use_real:
-            x, y = _to_tensor(data.real_rgb[ri], data.real_depth[ri], rf, device)
-            xs.append(x)
-            ys.append(y)
-        if use_syn:
-            x, y = _to_tensor(data.synth_rgb[si], data.synth_depth[si], sf, device)
-            xs.append(x)
-            ys.append(y)
-        loss = depth_loss(net(torch.cat(xs)), torch.cat(ys))
+        r = rows[step - 1]
+        loss = depth_loss(net(pool_x.index_select(0, r)), pool_y.index_select(0, r))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        losses.append(float(loss.detach()))
+        sched.step()
+        losses[step - 1] = loss.detach().to("cpu", torch.float64)
         if step in checkpoints:
             m = _evaluate(_predict(net, test.rgb, device), test, cfg.max_depth_m)
-            curve.append({"step": step, "rms": m["overall"]["rms"],
+            curve.append({"step": step, "rms": m["overall"]["rms"], "lr": opt.param_groups[0]["lr"],
                           **{f"rms_{b}": m["bins"][b]["rms"] for b in BINS}})
-    train_s = time.perf_counter() - t0
+    train_s, train_cpu = time.perf_counter() - t0, time.process_time() - c0
     pred = _predict(net, test.rgb, device)
     metrics = _evaluate(pred, test, cfg.max_depth_m)
-    result = {"arm": arm, "seed": seed, **metrics, "train_loss": losses, "test_curve": curve,
-              "train_seconds": train_s, "steps": cfg.steps}
+    result = {"arm": arm, "seed": seed, **metrics, "train_loss": losses.tolist(), "test_curve": curve,
+              "train_seconds": train_s, "train_cpu_seconds": train_cpu, "steps": cfg.steps}
     return result, pred[test.example_rows]
 
 
@@ -348,20 +432,58 @@ def _aggregate(runs: list[dict]) -> dict:
     return out
 
 
-def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str | Path,
-                         scene_label: str = "") -> dict:
-    """Run (or resume) all arms and seeds and write DIR/summary.json, report.md, learning_curves.png,
-    examples.png. Returns the summary."""
-    out = Path(out_dir)
+class ExperimentMismatch(ValueError):
+    """DIR holds results of another configuration, scene or code version."""
+
+
+_RESULT_FILES = ("summary.json", "report.md", "learning_curves.png", "examples.png", "timing.json")
+
+
+def _claim_dir(out: Path, cfg: DepthExperimentConfig, fp: str, restart: bool) -> None:
+    """Record the fingerprint in DIR/experiment.json; refuse a DIR made with another one (or, with
+    ``restart``, delete its results first)."""
+    marker = out / "experiment.json"
+    if marker.exists():
+        try:
+            old = json.loads(marker.read_text()).get("fingerprint")
+        except (json.JSONDecodeError, AttributeError):
+            old = None
+        if old != fp:
+            if not restart:
+                raise ExperimentMismatch(
+                    f"{out}: holds results of another configuration, scene or code version (fingerprint "
+                    f"{old} vs {fp}); use a new --out, or --restart to delete them")
+            shutil.rmtree(out / "runs", ignore_errors=True)
+            for f in _RESULT_FILES:
+                (out / f).unlink(missing_ok=True)
+    elif restart:
+        shutil.rmtree(out / "runs", ignore_errors=True)
     (out / "runs").mkdir(parents=True, exist_ok=True)
-    t_all = time.perf_counter()
+    d = asdict(cfg)
+    d.pop("seeds")
+    d.pop("threads")
+    atomic_write_json(marker, {"fingerprint": fp, "code": code_version(), "config": d})
+
+
+def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str | Path,
+                         scene_label: str = "", restart: bool = False) -> dict:
+    """Run (or resume) all arms and seeds and write DIR/summary.json, report.md, learning_curves.png,
+    examples.png. Returns the summary.
+
+    A DIR made with another fingerprint (settings but seeds/threads, scene and poses, code version)
+    raises :class:`ExperimentMismatch`; ``restart=True`` deletes its results and starts over (the
+    rendered-view cache has its own key and is reused when it still matches)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fp = cfg.fingerprint(scene)
+    _claim_dir(out, cfg, fp, restart)
+    t_all, c_all, load0 = time.perf_counter(), time.process_time(), os.getloadavg()
     split = split_capture(scene.T_world_cam, cfg.capture_every)
     sub = capture_subscene(scene, split)
     if cfg.refine:
         sub = refine_capture(sub, out)
     data = build_training_set(sub, cfg, cache=out / "synth.npz")
     test = load_test_set(scene, split, cfg.size_wh)
-    fp = cfg.fingerprint(scene)
     runs: dict[str, list[dict]] = {a: [] for a in ARMS}
     examples: dict[str, np.ndarray] = {}
     for seed in cfg.seeds:
@@ -371,8 +493,8 @@ def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str 
             res = None
             if js.exists() and npz.exists():
                 res = json.loads(js.read_text())
-                if res.get("fingerprint") != fp:
-                    res = None
+                if res.get("fingerprint") != fp:  # cannot happen after _claim_dir unless edited by hand
+                    raise ExperimentMismatch(f"{js}: made with another fingerprint than {fp}; use --restart")
             if res is None:
                 res, ex = train_arm(arm, seed, data, test, cfg)
                 res["fingerprint"] = fp
@@ -391,14 +513,23 @@ def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str 
                    "n_capture": int(len(split.capture_idx)), "n_test": int(len(split.test_idx)),
                    "synth_valid_frac": float((data.synth_depth > 0).mean()),
                    "real_valid_frac": float((data.real_depth > 0).mean()),
-                   "labels": f"capture: {'refined (capture-only references)' if cfg.refine else 'sensor'} "
-                             "depth of the capture frames; synth: rendered depth where synthesized (filled "
-                             "pixels unlabelled) from the same depth; test: sensor depth",
+                   "sensor_valid_frac": (float((data.sensor_depth > 0).mean())
+                                         if data.sensor_depth is not None else None),
+                   "poses": getattr(scene, "poses_source", "given"), "code": code_version(),
+                   "labels": ("capture: " + ("the renderer's depth at each capture pose where synthesized"
+                                             if cfg.real_labels == "rendered" else "the depth") + " of the "
+                              f"capture frames' {'refined (capture-only references)' if cfg.refine else 'sensor'} "
+                              "depth; synth: rendered depth where synthesized (filled pixels unlabelled) from "
+                              "the same depth; test: sensor depth"),
                    "metrics": "pooled over valid test pixels (0 < gt <= max_depth_m) at the model size"})
     summary = {"arms": {a: _aggregate(runs[a]) for a in ARMS}, "bins": bins, "config": config}
-    timing = {"synthesize_s": data.synth_seconds, "synth_views": cfg.synth,
+    timing = {"synthesize_s": data.synth_seconds, "synthesize_cpu_s": data.synth_cpu_seconds,
+              "synth_views": cfg.synth,
               "train_s": {a: [r["train_seconds"] for r in runs[a]] for a in ARMS},
-              "this_invocation_s": time.perf_counter() - t_all}
+              "train_cpu_s": {a: [r.get("train_cpu_seconds") for r in runs[a]] for a in ARMS},
+              "this_invocation_s": time.perf_counter() - t_all,
+              "this_invocation_cpu_s": time.process_time() - c_all,
+              "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg())}
     _write_figures(out, runs, examples, test, cfg)
     atomic_write_json(out / "timing.json", timing)
     atomic_write_text(out / "report.md", _report(summary, timing))
@@ -439,8 +570,12 @@ def _report(summary: dict, timing: dict) -> str:
     lines += ["", ("Values: mean ± sample std over seeds." if len(c["seeds"]) > 1 else "Values: one seed."),
               f"Far bin: capture+synth vs capture RMS {g['rel_change'] * 100:+.1f} % "
               f"({g['rms_capture_synth']:.3f} vs {g['rms_capture']:.3f} m; {spread}).",
-              f"Synthesizing {timing['synth_views']} views: {timing['synthesize_s']:.1f} s; training per arm "
-              f"and seed (s): " + ", ".join(f"{a} {np.mean(v):.0f}" for a, v in timing["train_s"].items()) + ".",
+              f"Synthesizing {timing['synth_views']} views (+ capture-pose labels when rendered): "
+              f"{timing['synthesize_s']:.1f} s wall, {timing['synthesize_cpu_s']:.1f} s CPU; training per arm "
+              f"and seed (s wall): " + ", ".join(f"{a} {np.mean(v):.0f}" for a, v in timing["train_s"].items())
+              + f"; this invocation {timing['this_invocation_s']:.0f} s wall, "
+              f"{timing['this_invocation_cpu_s']:.0f} s CPU (load average at start "
+              f"{timing['loadavg_start'][0]:.1f}, end {timing['loadavg_end'][0]:.1f}).",
               ""]
     return "\n".join(lines)
 
