@@ -41,9 +41,10 @@ import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics
+from presim.synthesis.warp import _FASTMATH as _WARP_FASTMATH
 
-__all__ = ["BlendConfig", "BlendInput", "feather_map", "front_image_points", "blend_reference", "blend_numba",
-           "blend_frame"]
+__all__ = ["BlendConfig", "BlendInput", "feather_map", "front_image_points", "front_of_layers", "blend_reference",
+           "blend_numba", "blend_frame"]
 
 
 @dataclass(frozen=True)
@@ -111,18 +112,74 @@ def feather_map(depth_m: np.ndarray, feather_px: float) -> np.ndarray:
 
 
 def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
-                       buffers: list) -> tuple[np.ndarray, np.ndarray]:
+                       depth_out: np.ndarray, color_out: np.ndarray) -> None:
     """Front-most surface of a prepared view (:class:`~presim.synthesis.warp.ViewPoints`) in the
-    target: all its points z-buffered as one layer (the project's warp kernel, nearest pixel,
-    smallest z), no crack filter. ``buffers`` is a one-element list holding the reusable warp
-    buffers (None at first)."""
-    from dataclasses import replace
+    target, written into ``depth_out`` (float32 (H, W)) / ``color_out`` (uint8 (H, W, 3)): all its
+    points z-buffered as one layer (nearest pixel, smallest z, the projection of the warp kernel),
+    no crack filter."""
+    M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
+    _front_warp_kernel(view.xyz_world, view.rgb, M, np.float32(K.fx), np.float32(K.fy), np.float32(K.cx),
+                       np.float32(K.cy), np.float32(near_m), depth_out, color_out)
 
-    from presim.synthesis.warp import warp_layers
 
-    one = replace(view, layer_start=np.array([0, view.layer_start[-1]], np.int64))
-    lay = buffers[0] = warp_layers(one, T_cam_world, K, near_m, buffers[0])
-    return lay.depth_m[0], lay.color[0]  # views of the buffers: valid until the next call
+@nb.njit(fastmath=_WARP_FASTMATH, cache=True)  # the warp kernel's flags: bit-equal projections
+def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
+    # Same arithmetic as presim.synthesis.warp._warp_layers_kernel with one layer (tested equal).
+    H, W = zbuf.shape
+    zbuf[:] = 0.0
+    cbuf[:] = 0
+    for i in range(xyz.shape[0]):
+        x = xyz[i, 0]
+        y = xyz[i, 1]
+        z = xyz[i, 2]
+        zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
+        if not (zc > near):
+            continue
+        xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
+        yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
+        uf = fx * xc / zc + cx + np.float32(0.5)
+        vf = fy * yc / zc + cy + np.float32(0.5)
+        if not (uf >= 0.0 and uf < W and vf >= 0.0 and vf < H):
+            continue
+        ui = int(uf)
+        vi = int(vf)
+        cur = zbuf[vi, ui]
+        if cur == 0.0 or zc < cur:
+            zbuf[vi, ui] = zc
+            cbuf[vi, ui, 0] = rgb[i, 0]
+            cbuf[vi, ui, 1] = rgb[i, 1]
+            cbuf[vi, ui, 2] = rgb[i, 2]
+
+
+def front_of_layers(layer_depth_m: np.ndarray, layer_color: np.ndarray, depth_out: np.ndarray,
+                    color_out: np.ndarray) -> None:
+    """Front-most surface of an already warped view (the loop's (L, H, W) z-buffered layers): per
+    pixel the smallest depth over the layers, written into ``depth_out`` / ``color_out`` (the same
+    surface :func:`front_image_points` z-buffers, without warping the view again)."""
+    _front_of_layers_kernel(layer_depth_m, layer_color, depth_out, color_out)
+
+
+@nb.njit(parallel=True, cache=True)
+def _front_of_layers_kernel(ld, lc, zout, cout):  # pragma: no cover
+    L, H, W = ld.shape
+    for v in nb.prange(H):
+        for u in range(W):
+            best = 0.0
+            bl = -1
+            for l in range(L):
+                z = ld[l, v, u]
+                if z > 0.0 and (bl < 0 or z < best):
+                    best = z
+                    bl = l
+            zout[v, u] = best
+            if bl < 0:
+                cout[v, u, 0] = 0
+                cout[v, u, 1] = 0
+                cout[v, u, 2] = 0
+            else:
+                cout[v, u, 0] = lc[bl, v, u, 0]
+                cout[v, u, 1] = lc[bl, v, u, 1]
+                cout[v, u, 2] = lc[bl, v, u, 2]
 
 
 def _world_points(K: Intrinsics, T_world_cam: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
@@ -182,6 +239,18 @@ def _blend_kernel(color, depth, source, ids, vdepth, vcolor, feather, centres, q
             d = np.float64(depth[v, u])
             if d <= 0.0:
                 continue
+            src = source[v, u]
+            # Cheap pass first: most pixels have a single agreeing view and keep the winner's colour.
+            cnt = 0
+            for k in range(n):
+                if src == ids[k]:
+                    cnt += 1
+                else:
+                    dk = np.float64(vdepth[k, v, u])
+                    if dk > 0.0 and abs(dk - d) <= tol * d:
+                        cnt += 1
+            if cnt < 2:
+                continue
             xc = (u - cx) / fx * d
             yc = (v - cy) / fy * d
             X0 = M[0, 0] * xc + M[0, 1] * yc + M[0, 2] * d + ctx
@@ -189,12 +258,10 @@ def _blend_kernel(color, depth, source, ids, vdepth, vcolor, feather, centres, q
             X2 = M[2, 0] * xc + M[2, 1] * yc + M[2, 2] * d + ctz
             t0, t1, t2 = X0 - ctx, X1 - cty, X2 - ctz
             lt = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-            src = source[v, u]
             s0 = 0.0
             s1 = 0.0
             s2 = 0.0
             den = 0.0
-            cnt = 0
             for k in range(n):
                 win = src == ids[k]
                 if not win:
@@ -219,8 +286,7 @@ def _blend_kernel(color, depth, source, ids, vdepth, vcolor, feather, centres, q
                     s1 += w * vcolor[k, v, u, 1]
                     s2 += w * vcolor[k, v, u, 2]
                 den += w
-                cnt += 1
-            if cnt >= 2 and den > 0.0:
+            if den > 0.0:
                 out[v, u, 0] = np.uint8(min(255.0, max(0.0, np.floor(s0 / den + 0.5))))
                 out[v, u, 1] = np.uint8(min(255.0, max(0.0, np.floor(s1 / den + 0.5))))
                 out[v, u, 2] = np.uint8(min(255.0, max(0.0, np.floor(s2 / den + 0.5))))
@@ -239,7 +305,7 @@ def blend_numba(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
 
 def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, source: np.ndarray,
                 T_world_cam: np.ndarray, K: Intrinsics, config: BlendConfig,
-                front_image: Callable[[int], tuple[np.ndarray, np.ndarray]],
+                front_image: Callable[[int, np.ndarray, np.ndarray], None],
                 centre_of: Callable[[int], np.ndarray], quality_of: Callable[[int], float] | None = None,
                 color_transform: Callable[[int, np.ndarray], np.ndarray] | None = None,
                 use_reference: bool = False, buffers: dict | None = None) -> tuple[np.ndarray, float]:
@@ -248,8 +314,10 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
     Args:
         views: the views the loop warped, in order; color / depth_m / source: its merged result.
         T_world_cam, K: target camera.
-        front_image: ``front_image(id) -> (depth (H, W) float32, color (H, W, 3) uint8)``, the view's
-            front-most warped surface in the target (a plain z-buffer warp is enough).
+        front_image: ``front_image(id, depth_out, color_out)`` writes the view's front-most warped
+            surface in the target into ``depth_out`` (float32 (H, W)) and ``color_out`` (uint8
+            (H, W, 3)) (a plain z-buffer warp, :func:`front_image_points`, or the loop's own warp,
+            :func:`front_of_layers`).
         centre_of: ``centre_of(id)`` -> (3,) camera centre, world.
         quality_of: per-view factor (sharpness); None = 1.
         color_transform: the frame's per-view photometric correction (the core's hook), or None.
@@ -272,10 +340,10 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
         buf["f"] = np.empty((config.max_views, H, W), np.float32)
     vd, vc, fe = buf["d"][:n], buf["c"][:n], buf["f"][:n]
     for i, v in enumerate(use):
-        d, c = front_image(v)
-        vd[i] = d
-        vc[i] = c if color_transform is None else color_transform(v, c)
-        fe[i] = feather_map(d, config.feather_px)
+        front_image(v, vd[i], vc[i])
+        if color_transform is not None:
+            vc[i] = color_transform(v, vc[i])
+        fe[i] = feather_map(vd[i], config.feather_px)
     inp = BlendInput(color, depth_m, source, np.asarray(use, np.int32), vd, vc, fe,
                      np.stack([np.asarray(centre_of(v), np.float64) for v in use]),
                      np.array([1.0 if quality_of is None else float(quality_of(v)) for v in use]))

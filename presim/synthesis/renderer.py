@@ -34,7 +34,7 @@ import numpy as np
 
 from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, unproject_depth
-from presim.synthesis.blend import BlendConfig, blend_frame, front_image_points
+from presim.synthesis.blend import BlendConfig, blend_frame, front_image_points, front_of_layers
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
@@ -44,7 +44,7 @@ from presim.synthesis.photometric import ViewColorTransform
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
-from presim.synthesis.warp import ViewPoints, prepare_view
+from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
 
 __all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
 
@@ -260,7 +260,6 @@ class Renderer:
         self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
-        self._blend_buffers: list = [None]  # warp buffers of the blend's front-surface warps
         self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
@@ -416,15 +415,26 @@ class Renderer:
         if self._blend_config is None:
             return None
         near = self.config.near_m
+        ws = self._workspace
+        loop_views: list[int] = []
 
-        def front_image(v: int):
-            view = self._view(v)
+        def front_image(v: int, depth_out: np.ndarray, color_out: np.ndarray) -> None:
+            lay = getattr(ws, "layers", None)
+            if loop_views and v == loop_views[-1] and isinstance(lay, LayeredImage) \
+                    and lay.depth_m.shape[1:] == depth_out.shape:
+                # The loop's last warp is still in the workspace: its front surface, no re-warp.
+                front_of_layers(lay.depth_m, lay.color, depth_out, color_out)
+                return
+            view = self._view(v, self.lod_level(v, T_cam_world, K) if self._lod.levels > 0 else 0)
             if isinstance(view, ViewPoints):
-                return front_image_points(view, T_cam_world, K, near, self._blend_buffers)
+                front_image_points(view, T_cam_world, K, near, depth_out, color_out)
+                return
             img = self._backend.view_image(view, T_cam_world, K, self._frame_config.view, None, Workspace())
-            return img.depth_m, img.color
+            depth_out[:] = img.depth_m
+            color_out[:] = img.color
 
         def run(views, color, depth, source):
+            loop_views[:] = [int(v) for v in views]
             views = list(views) + [int(v) for v in candidates if int(v) not in views]
             return blend_frame(views, color, depth, source, T_world_cam, K, self._blend_config, front_image,
                                lambda v: self._centres[v], self._view_quality, self._color_transform,
