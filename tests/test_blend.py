@@ -128,9 +128,9 @@ def test_front_surface_kernels_match_their_references():
     assert np.array_equal(d2, d) and np.array_equal(c2, c)
 
 
-def test_blend_reuses_the_loops_last_warp_and_gives_the_same_image():
-    """With the numba backend the last view the loop warped is taken from the workspace (no
-    re-warp); the blended image equals the one with every view re-warped."""
+def test_blend_reuses_the_loops_warps_and_gives_the_same_image():
+    """With the numba backend the views the loop warped are taken from its warps (no re-warp); the
+    blended image equals the one with every view warped again by the blend."""
     poses = S.orbit_poses(5, span_m=0.4)
     sc = S.make_scene(S.room_rects(), poses, K)
     others = sc.subset([0, 1, 3, 4])
@@ -148,4 +148,5 @@ def test_blend_reuses_the_loops_last_warp_and_gives_the_same_image():
 
             r._backend = dataclasses.replace(r._backend, view_image=no_layers)
         outs.append(r.render(poses[2], K).color)
+        assert r._warp_capture.get(r.last.views[0]) is not None or not reuse
     assert np.array_equal(outs[0], outs[1])

@@ -210,3 +210,39 @@ def test_known_vignetting_is_recovered_within_1_percent(room):
     # residual is larger.
     plain = calibrate_photometric(sc, PhotometricConfig(model="gain"), show_progress=False)
     assert np.mean(cal.stats["rms_after"]) < np.mean(plain.stats["rms_after"])
+
+
+def test_renderer_applies_affine_and_vignetting_at_the_source(room):
+    """A calibration with known 3x3 transforms and vignetting maps every frame back to the radiance
+    (mean exposure, no vignetting); matching a frame puts its transform and vignetting back."""
+    from presim.capture.photometric import vignetting_radius_sq
+    from presim.synthesis.photometric import SourceColorCorrection, correct_colors, vignetting_gain_map
+
+    base, _ = room
+    A, b = _known_affine()
+    K = base.intrinsics[0]
+    Wmap = vignetting_gain_map(K, (0.3, 0.0))
+    u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
+    r2 = vignetting_radius_sq(np.stack([u.ravel(), v.ravel()], 1), K).reshape(K.height, K.width)
+    np.testing.assert_allclose(Wmap, 1.0 + 0.3 * r2, rtol=1e-6)
+    radiance = base.frames.color.astype(np.float64)
+    obs = np.einsum("kab,khwb->khwa", A, radiance / Wmap[None, :, :, None]) + b[:, None, None, :]
+    obs8 = np.clip(np.floor(obs + 0.5), 0, 255).astype(np.uint8)
+    cal = PhotometricCalib(tuple(base.frame_ids), np.diagonal(A, axis1=1, axis2=2).copy(), b, "affine", {}, A, (0.3, 0.0))
+    assert not cal.per_channel
+    corr = SourceColorCorrection(cal, base.frame_ids, base.intrinsics)
+    back = corr(2, obs8[2]).astype(int)
+    assert np.abs(back - base.frames.color[2].astype(int)).max() <= 2  # two roundings, W <= 1.3
+    assert np.array_equal(corr(2, obs8[2]), correct_colors(obs8[2], A[2], b[2], np.eye(3), np.zeros(3), Wmap))
+    sc = dataclasses.replace(base, frames=ArrayFrameSource(obs8, base.frames.depth_m), photometric=cal)
+    k = 3
+    others = sc.subset([j for j in range(8) if j != k])
+    f = sc.frame(k)
+
+    def err(cfg, real):
+        out = Renderer(others, cfg).render(f.T_world_cam, f.K)
+        return float(np.abs(out.color[out.valid].astype(float) - real[out.valid].astype(float)).mean())
+
+    off = err(RenderConfig(use_photometric=False), f.color)
+    assert err(RenderConfig(exposure_frame=sc.frame_ids[k]), f.color) < 0.5 * off
+    assert err(RenderConfig(), base.frames.color[k]) < 0.5 * off

@@ -40,7 +40,7 @@ from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfi
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_METHODS
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
-from presim.synthesis.photometric import ViewColorTransform
+from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, ViewColorTransform
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
@@ -229,6 +229,49 @@ class RenderStats:
     """The selection was the previous frame's (temporal coherence)."""
 
 
+class _WarpCapture:
+    """Front surface of every view the adaptive loop warps, kept for blending so that blending
+    does not warp those views again (numba backend: taken from the workspace's warped layers right
+    after each warp, :func:`~presim.synthesis.blend.front_of_layers`, ~1 ms; other backends keep no
+    layers and blending warps the view itself)."""
+
+    def __init__(self) -> None:
+        self._pool: list[tuple[np.ndarray, np.ndarray]] = []
+        self._ids: list[int] = []
+
+    def wrap(self, get_view, view_image, max_views: int):
+        """``(get_view, view_image)`` for one frame's loop that record the front surfaces of the
+        first ``max_views`` warped views (the loop calls ``get_view(id)`` right before warping it)."""
+        self._ids = []
+        current: list[int] = []
+
+        def get_view_rec(idx: int):
+            current[:] = [int(idx)]
+            return get_view(idx)
+
+        def view_image_rec(view, T_cam_world, K, config, replace, workspace):
+            img = view_image(view, T_cam_world, K, config, replace, workspace)
+            lay, n = getattr(workspace, "layers", None), len(self._ids)
+            if current and n < max_views and isinstance(lay, LayeredImage):
+                shape = lay.depth_m.shape[1:]
+                if len(self._pool) <= n or self._pool[n][0].shape != shape:
+                    buf = (np.empty(shape, np.float32), np.empty(shape + (3,), np.uint8))
+                    self._pool[n:n + 1] = [buf]
+                front_of_layers(lay.depth_m, lay.color, *self._pool[n])
+                self._ids.append(current[0])
+            current.clear()
+            return img
+
+        return get_view_rec, view_image_rec
+
+    def get(self, view_id: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The recorded ``(depth, color)`` of ``view_id`` in this frame, or None."""
+        try:
+            return self._pool[self._ids.index(int(view_id))]
+        except ValueError:
+            return None
+
+
 class Renderer:
     """Renders RGB-D images of a scene at arbitrary poses and intrinsics from its captured views."""
 
@@ -254,13 +297,21 @@ class Renderer:
         self._T_cam_world_src: np.ndarray | None = None  # per view, built on first LOD use
         self._prev: tuple[np.ndarray, Intrinsics, Selection] | None = None  # temporal reuse
         # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
-        self._color_transform = None
-        if config.use_photometric and getattr(scene, "photometric", None) is not None:
-            self._color_transform = ViewColorTransform(scene.photometric, scene.frame_ids, config.exposure_frame)
+        # Affine / vignetting calibrations are applied to the source pixels when a view is prepared.
+        self._color_transform = self._source_correction = self._output_vignetting = None
+        calib = getattr(scene, "photometric", None) if config.use_photometric else None
+        if calib is not None and calib.per_channel:
+            self._color_transform = ViewColorTransform(calib, scene.frame_ids, config.exposure_frame)
+        elif calib is not None:
+            self._source_correction = SourceColorCorrection(calib, scene.frame_ids, scene.intrinsics,
+                                                            config.exposure_frame)
+            if calib.vignetting is not None and config.exposure_frame is not None:
+                self._output_vignetting = OutputVignetting(calib, config.exposure_frame)
         self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
         self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
+        self._warp_capture = _WarpCapture()  # front surfaces of the loop's warps, for blending
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
@@ -268,8 +319,10 @@ class Renderer:
         self._view_quality = None if self._sharpness is None else self._sharpness.quality  # blend factor
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
-    def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
+    def _load_frame(self, idx: int, with_color: bool = True) -> tuple[np.ndarray, np.ndarray]:
         color, depth = self.scene.frames.load(idx)
+        if self._source_correction is not None and with_color:  # affine / vignetting photometric model
+            color = self._source_correction(idx, color)
         if self._use_refined:
             depth = np.asarray(self.scene.depth_refined[idx])
         K = self.scene.intrinsics[idx]
@@ -287,7 +340,7 @@ class Renderer:
         """(m, 3) float32 world points of view ``idx``'s sub-sampled valid depth (overlap test)."""
         g = self._grids.get(idx)
         if g is None:
-            _, depth = self._load_frame(idx)
+            _, depth = self._load_frame(idx, with_color=False)
             g = self._grids[idx] = self._grid_from_depth(idx, depth)
         return g
 
@@ -399,15 +452,19 @@ class Renderer:
             def get_view(idx: int):
                 levels[idx] = self.lod_level(idx, T_cam_world, K)
                 return self._view(idx, levels[idx])
+        view_image = self._backend.view_image
+        if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
+            get_view, view_image = self._warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
-                               self._backend.view_image, get_view, self.grid_points, self._workspace,
+                               view_image, get_view, self.grid_points, self._workspace,
                                color_transform=self._color_transform,
                                blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx))
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
                                 reused_selection=reused)
-        return RGBD(res.color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
+        color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
+        return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
 
     def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, candidates):
         """The core's ``blend`` hook for one target camera (None when blending is off): blends the
@@ -415,15 +472,12 @@ class Renderer:
         if self._blend_config is None:
             return None
         near = self.config.near_m
-        ws = self._workspace
-        loop_views: list[int] = []
 
         def front_image(v: int, depth_out: np.ndarray, color_out: np.ndarray) -> None:
-            lay = getattr(ws, "layers", None)
-            if loop_views and v == loop_views[-1] and isinstance(lay, LayeredImage) \
-                    and lay.depth_m.shape[1:] == depth_out.shape:
-                # The loop's last warp is still in the workspace: its front surface, no re-warp.
-                front_of_layers(lay.depth_m, lay.color, depth_out, color_out)
+            got = self._warp_capture.get(v)
+            if got is not None:  # the loop warped it already
+                np.copyto(depth_out, got[0])
+                np.copyto(color_out, got[1])
                 return
             view = self._view(v, self.lod_level(v, T_cam_world, K) if self._lod.levels > 0 else 0)
             if isinstance(view, ViewPoints):
@@ -434,7 +488,6 @@ class Renderer:
             color_out[:] = img.color
 
         def run(views, color, depth, source):
-            loop_views[:] = [int(v) for v in views]
             views = list(views) + [int(v) for v in candidates if int(v) not in views]
             return blend_frame(views, color, depth, source, T_world_cam, K, self._blend_config, front_image,
                                lambda v: self._centres[v], self._view_quality, self._color_transform,
