@@ -137,8 +137,12 @@ class SourceColorCorrection:
         self.intrinsics = intrinsics
         self.A_o, self.b_o = output_transform(calib, exposure_frame)
         self._maps: dict = {}
+        # Per-channel gain and bias without vignetting: the per-view lookup tables (exact, fast).
+        self._lut = ViewColorTransform(calib, frame_ids, exposure_frame) if calib.per_channel else None
 
     def __call__(self, view_idx: int, color: np.ndarray) -> np.ndarray:
+        if self._lut is not None:
+            return self._lut(view_idx, color)
         try:
             r = self.calib.index(self.frame_ids[view_idx])
         except KeyError:

@@ -34,13 +34,13 @@ import numpy as np
 
 from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, unproject_depth
-from presim.synthesis.blend import BlendConfig, blend_frame, front_image_points, front_of_layers
+from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points, front_of_layers
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_METHODS
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
-from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, ViewColorTransform
+from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
@@ -235,13 +235,14 @@ class _WarpCapture:
     after each warp, :func:`~presim.synthesis.blend.front_of_layers`, ~1 ms; other backends keep no
     layers and blending warps the view itself)."""
 
-    def __init__(self) -> None:
-        self._pool: list[tuple[np.ndarray, np.ndarray]] = []
+    def __init__(self, stacks: dict) -> None:
+        self._stacks = stacks  # the blend's per-view stacks: slot i = the i-th warped view
         self._ids: list[int] = []
 
     def wrap(self, get_view, view_image, max_views: int):
         """``(get_view, view_image)`` for one frame's loop that record the front surfaces of the
-        first ``max_views`` warped views (the loop calls ``get_view(id)`` right before warping it)."""
+        first ``max_views`` warped views (the loop calls ``get_view(id)`` right before warping it)
+        straight into the blend's stacks (:func:`~presim.synthesis.blend.blend_stacks`)."""
         self._ids = []
         current: list[int] = []
 
@@ -253,11 +254,8 @@ class _WarpCapture:
             img = view_image(view, T_cam_world, K, config, replace, workspace)
             lay, n = getattr(workspace, "layers", None), len(self._ids)
             if current and n < max_views and isinstance(lay, LayeredImage):
-                shape = lay.depth_m.shape[1:]
-                if len(self._pool) <= n or self._pool[n][0].shape != shape:
-                    buf = (np.empty(shape, np.float32), np.empty(shape + (3,), np.uint8))
-                    self._pool[n:n + 1] = [buf]
-                front_of_layers(lay.depth_m, lay.color, *self._pool[n])
+                d, c, _ = blend_stacks(self._stacks, max_views, *lay.depth_m.shape[1:])
+                front_of_layers(lay.depth_m, lay.color, d[n], c[n])
                 self._ids.append(current[0])
             current.clear()
             return img
@@ -267,9 +265,10 @@ class _WarpCapture:
     def get(self, view_id: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The recorded ``(depth, color)`` of ``view_id`` in this frame, or None."""
         try:
-            return self._pool[self._ids.index(int(view_id))]
+            n = self._ids.index(int(view_id))
         except ValueError:
             return None
+        return self._stacks["d"][n], self._stacks["c"][n]
 
 
 class Renderer:
@@ -297,12 +296,11 @@ class Renderer:
         self._T_cam_world_src: np.ndarray | None = None  # per view, built on first LOD use
         self._prev: tuple[np.ndarray, Intrinsics, Selection] | None = None  # temporal reuse
         # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
-        # Affine / vignetting calibrations are applied to the source pixels when a view is prepared.
+        # Applied to each capture frame's pixels when its view is prepared (cached with the view: no
+        # per-frame cost); the core's per-view color_transform hook is left free.
         self._color_transform = self._source_correction = self._output_vignetting = None
         calib = getattr(scene, "photometric", None) if config.use_photometric else None
-        if calib is not None and calib.per_channel:
-            self._color_transform = ViewColorTransform(calib, scene.frame_ids, config.exposure_frame)
-        elif calib is not None:
+        if calib is not None:
             self._source_correction = SourceColorCorrection(calib, scene.frame_ids, scene.intrinsics,
                                                             config.exposure_frame)
             if calib.vignetting is not None and config.exposure_frame is not None:
@@ -311,7 +309,7 @@ class Renderer:
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
         self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
-        self._warp_capture = _WarpCapture()  # front surfaces of the loop's warps, for blending
+        self._warp_capture = _WarpCapture(self._blend_stacks)  # the loop's warps, for blending
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
@@ -321,7 +319,7 @@ class Renderer:
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
     def _load_frame(self, idx: int, with_color: bool = True) -> tuple[np.ndarray, np.ndarray]:
         color, depth = self.scene.frames.load(idx)
-        if self._source_correction is not None and with_color:  # affine / vignetting photometric model
+        if self._source_correction is not None and with_color:  # photometric calibration
             color = self._source_correction(idx, color)
         if self._use_refined:
             depth = np.asarray(self.scene.depth_refined[idx])
@@ -475,9 +473,10 @@ class Renderer:
 
         def front_image(v: int, depth_out: np.ndarray, color_out: np.ndarray) -> None:
             got = self._warp_capture.get(v)
-            if got is not None:  # the loop warped it already
-                np.copyto(depth_out, got[0])
-                np.copyto(color_out, got[1])
+            if got is not None:  # the loop warped it already (usually into this very slot)
+                if not np.shares_memory(got[0], depth_out):
+                    np.copyto(depth_out, got[0])
+                    np.copyto(color_out, got[1])
                 return
             view = self._view(v, self.lod_level(v, T_cam_world, K) if self._lod.levels > 0 else 0)
             if isinstance(view, ViewPoints):
