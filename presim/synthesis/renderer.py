@@ -134,13 +134,19 @@ class RenderConfig:
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
     # ---- photometric correction (presim/synthesis/photometric.py, `presim photometric`) ----
     use_photometric: bool = True
-    """Map every warped view to one output exposure with ``scene.photometric`` when present."""
+    """Map every capture frame to one output exposure with ``scene.photometric`` when present
+    (applied to the frame's pixels when its view is prepared and cached with it: no per-frame cost;
+    any model: gain/bias, 3x3 affine, vignetting)."""
     exposure_frame: str | None = None
-    """Output exposure: None = the capture's mean exposure; a frame id = match that frame's."""
+    """Output exposure: None = the capture's mean exposure (vignetting removed); a frame id = match
+    that frame's (its transform, and its vignetting put back on the output when calibrated)."""
     # ---- multi-view blending (presim/synthesis/blend.py) ----
     blend: bool = False
     """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
-    seams) instead of keeping the winning view's colour."""
+    seams) instead of keeping the winning view's colour. Off by default: it costs more than the
+    20 % per frame the issue allows on cheap frames (``benchmarks/bench_render.py
+    --compare-blend``, docs/evaluation.md). The views the adaptive loop warped are reused, not
+    warped again (numba backend)."""
     blend_views: int = 4
     """Blend among this many views: those the adaptive loop warped, in order, then the remaining
     selected candidates."""
