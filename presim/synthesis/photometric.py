@@ -8,19 +8,20 @@ to the output exposure ``(gain_o, bias_o)``::
 
 with ``(gain_o, bias_o) = (1, 0)`` for the scene's mean exposure (default) or a frame's own
 transform to match that frame (``RenderConfig.exposure_frame``). The map is per channel and its
-input is 8-bit, so it is applied as a 256-entry lookup table per channel (``cv2.LUT``, ~0.3 ms per
-640x480 view image), built once per view and cached: the per-frame cost is one LUT pass per
-warped view. :func:`apply_gain_bias` is the float reference the tables are tested against.
+input is 8-bit, so it is a 256-entry lookup table per channel (``cv2.LUT``, ~0.3 ms per 640x480
+image), built once per view (:class:`ViewColorTransform`). :func:`apply_gain_bias` is the float
+reference the tables are tested against.
 
-The Renderer passes :class:`ViewColorTransform` to the core's ``color_transform`` hook
-(:func:`presim.synthesis.core.synthesize_frame`); frames missing from the calibration are left as
-they are.
+The Renderer applies the calibration to each capture frame's pixels when it prepares the view
+(:class:`SourceColorCorrection`; the prepared view is cached, so there is no per-frame cost).
+Warping, the crack filter's lower median and the merge only move pixels, so for a per-channel
+monotone table this equals correcting every warped view image (the core's ``color_transform``
+hook, which :class:`ViewColorTransform` also fits); frames missing from the calibration are left
+as they are.
 
 **3x3 affine model and vignetting** (``presim photometric --model affine`` / ``--vignetting``): a
 colour matrix mixes channels, so it is no per-channel table, and vignetting depends on where a
-pixel was in its *own* frame, which warping forgets. Such calibrations are applied to the capture
-frame's pixels when the Renderer prepares the view (:class:`SourceColorCorrection`, once per view,
-cached with the view; no per-frame cost)::
+pixel was in its *own* frame, which warping forgets; applied to the source pixels the same way::
 
     out = A_o (W(r) A_v^-1 (observed_v - b_v)) + b_o,     W(r) = 1 + k1 r^2 + k2 r^4
 
