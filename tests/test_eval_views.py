@@ -185,7 +185,7 @@ def test_issue12_methods_run_and_full_is_the_best_combination():
 
     assert METHODS["full"][0] == BEST and METHODS["thesis"][0] == {}
     scene = two_plane_scene()
-    methods = ("thesis", "full", "photo_mean", "blend", "sharp")
+    methods = ("thesis", "full", "photo_mean", "blend", "sharp", "photo_affine_vig")
     res = eval_views(scene, EvalConfig(stride=1, target_every=3, methods=methods,
                                        refine=RefineConfig(median_radius=2)))
     assert set(res.methods) == set(methods)

@@ -152,3 +152,97 @@ def test_cli_photometric(room, tmp_path, capsys):
     assert main(["photometric", str(tmp_path / "missing")]) == 1
     err = capsys.readouterr().err
     assert "error" in err and "Traceback" not in err
+
+
+def _known_affine() -> tuple[np.ndarray, np.ndarray]:
+    """8 forward colour matrices (white-balance tilt + cross-talk up to 8 %) and biases, mean = identity / 0."""
+    rng = np.random.default_rng(3)
+    A = np.stack([np.diag(GAINS_RGB[k]) + rng.uniform(-0.08, 0.08, (3, 3)) * (1 - np.eye(3)) for k in range(8)])
+    A = A @ np.linalg.inv(A.mean(axis=0))
+    b = rng.uniform(-6.0, 6.0, (8, 3))
+    return A, b - b.mean(axis=0)
+
+
+@pytest.mark.slow
+def test_known_3x3_colour_transforms_are_recovered_within_1_percent(room):
+    base, _ = room
+    A, b = _known_affine()
+    radiance = base.frames.color.astype(np.float64)  # = 0.75 x the texture (nothing clips)
+    obs = np.einsum("kab,khwb->khwa", A, radiance) + b[:, None, None, :]
+    sc = dataclasses.replace(base, frames=ArrayFrameSource(np.clip(np.floor(obs + 0.5), 0, 255).astype(np.uint8),
+                                                           base.frames.depth_m))
+    cal = calibrate_photometric(sc, PhotometricConfig(model="affine"), show_progress=False)
+    assert cal.model == "affine" and cal.matrix.shape == (8, 3, 3) and cal.vignetting is None
+    np.testing.assert_allclose(cal.matrix.mean(axis=0), np.eye(3), atol=1e-9)  # anchored
+    # Within 1 %: the recovered transforms predict every frame's colours of the scene's radiance to
+    # 1 % of full scale (2.55 levels), and the matrix entries to 0.015 (cross-talk terms are only as
+    # well determined as the texture's colours are spread: the room's palette is small).
+    pred = np.einsum("kab,khwb->khwa", cal.matrix, radiance) + cal.bias[:, None, None, :]
+    print("max colour error (levels)", np.abs(pred - obs).max(), "max entry error", np.abs(cal.matrix - A).max())
+    assert np.abs(pred - obs).max() < 2.55
+    assert np.abs(cal.matrix - A).max() < 0.015
+    np.testing.assert_allclose(cal.gain, np.diagonal(cal.matrix, axis1=1, axis2=2))
+    # Round trip through JSON keeps the model.
+    back = PhotometricCalib.from_json(json.loads(json.dumps(cal.to_json())))
+    assert back.model == "affine" and np.array_equal(back.matrix, cal.matrix)
+
+
+@pytest.mark.slow
+def test_known_vignetting_is_recovered_within_1_percent(room):
+    from presim.capture.photometric import vignetting_radius_sq
+
+    base, _ = room
+    K = base.intrinsics[0]
+    u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
+    r2 = vignetting_radius_sq(np.stack([u.ravel(), v.ravel()], 1), K).reshape(K.height, K.width)
+    k1, k2 = 0.35, -0.1  # 25 % fall-off at the corners
+    fall = 1.0 / (1.0 + k1 * r2 + k2 * r2 ** 2)
+    obs = base.frames.color.astype(np.float64) * fall[None, :, :, None] * GAINS_RGB[:, None, None, :]
+    sc = dataclasses.replace(base, frames=ArrayFrameSource(np.clip(np.floor(obs + 0.5), 0, 255).astype(np.uint8),
+                                                           base.frames.depth_m))
+    cal = calibrate_photometric(sc, PhotometricConfig(model="gain", vignetting=True), show_progress=False)
+    rr = np.linspace(0.0, 1.0, 21) ** 2
+    got = 1.0 / (1.0 + cal.vignetting[0] * rr + cal.vignetting[1] * rr ** 2)
+    want = 1.0 / (1.0 + k1 * rr + k2 * rr ** 2)
+    assert np.abs(got / want - 1.0).max() < 0.01, cal.vignetting
+    assert np.abs(cal.gain / GAINS_RGB - 1.0).max() < 0.01
+    # Without the vignetting term the gains still come out (it is shared by all frames) but the
+    # residual is larger.
+    plain = calibrate_photometric(sc, PhotometricConfig(model="gain"), show_progress=False)
+    assert np.mean(cal.stats["rms_after"]) < np.mean(plain.stats["rms_after"])
+
+
+def test_renderer_applies_affine_and_vignetting_at_the_source(room):
+    """A calibration with known 3x3 transforms and vignetting maps every frame back to the radiance
+    (mean exposure, no vignetting); matching a frame puts its transform and vignetting back."""
+    from presim.capture.photometric import vignetting_radius_sq
+    from presim.synthesis.photometric import SourceColorCorrection, correct_colors, vignetting_gain_map
+
+    base, _ = room
+    A, b = _known_affine()
+    K = base.intrinsics[0]
+    Wmap = vignetting_gain_map(K, (0.3, 0.0))
+    u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
+    r2 = vignetting_radius_sq(np.stack([u.ravel(), v.ravel()], 1), K).reshape(K.height, K.width)
+    np.testing.assert_allclose(Wmap, 1.0 + 0.3 * r2, rtol=1e-6)
+    radiance = base.frames.color.astype(np.float64)
+    obs = np.einsum("kab,khwb->khwa", A, radiance / Wmap[None, :, :, None]) + b[:, None, None, :]
+    obs8 = np.clip(np.floor(obs + 0.5), 0, 255).astype(np.uint8)
+    cal = PhotometricCalib(tuple(base.frame_ids), np.diagonal(A, axis1=1, axis2=2).copy(), b, "affine", {}, A, (0.3, 0.0))
+    assert not cal.per_channel
+    corr = SourceColorCorrection(cal, base.frame_ids, base.intrinsics)
+    back = corr(2, obs8[2]).astype(int)
+    assert np.abs(back - base.frames.color[2].astype(int)).max() <= 2  # two roundings, W <= 1.3
+    assert np.array_equal(corr(2, obs8[2]), correct_colors(obs8[2], A[2], b[2], np.eye(3), np.zeros(3), Wmap))
+    sc = dataclasses.replace(base, frames=ArrayFrameSource(obs8, base.frames.depth_m), photometric=cal)
+    k = 3
+    others = sc.subset([j for j in range(8) if j != k])
+    f = sc.frame(k)
+
+    def err(cfg, real):
+        out = Renderer(others, cfg).render(f.T_world_cam, f.K)
+        return float(np.abs(out.color[out.valid].astype(float) - real[out.valid].astype(float)).mean())
+
+    off = err(RenderConfig(use_photometric=False), f.color)
+    assert err(RenderConfig(exposure_frame=sc.frame_ids[k]), f.color) < 0.5 * off
+    assert err(RenderConfig(), base.frames.color[k]) < 0.5 * off

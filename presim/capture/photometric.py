@@ -51,9 +51,9 @@ from presim.geometry import invert, project, transform_points, unproject_depth
 from presim.io_utils import progress
 
 __all__ = ["PHOTOMETRIC_MODELS", "PhotometricConfig", "PhotometricCalib", "calibrate_photometric",
-           "photometric_pairs", "pair_correspondences"]
+           "photometric_pairs", "pair_correspondences", "vignetting_radius_sq"]
 
-PHOTOMETRIC_MODELS = ("gain_bias", "gain")
+PHOTOMETRIC_MODELS = ("gain_bias", "gain", "affine")
 PHOTOMETRIC_FORMAT = "presim-photometric"
 PHOTOMETRIC_VERSION = 1
 
@@ -63,7 +63,13 @@ class PhotometricConfig:
     """Knobs of :func:`calibrate_photometric`."""
 
     model: str = "gain_bias"
-    """``"gain_bias"`` (per-channel gain and bias) or ``"gain"`` (per-channel gain, bias fixed at 0)."""
+    """``"gain_bias"`` (per-channel gain and bias), ``"gain"`` (per-channel gain, bias fixed at 0) or
+    ``"affine"`` (a 3x3 colour matrix and a bias per frame: white balance / colour mixing)."""
+    vignetting: bool = False
+    """Also solve one radial vignetting term shared by all frames (:class:`PhotometricCalib`
+    ``vignetting``), jointly with the per-frame transforms (alternating rounds)."""
+    vignetting_rounds: int = 6
+    """Alternations between the per-frame transforms and the shared vignetting term."""
     num_neighbors: int = 6
     """Each frame is paired with this many nearest frames (camera centre distance)."""
     max_angle_deg: float = 45.0
@@ -96,6 +102,8 @@ class PhotometricConfig:
     def __post_init__(self) -> None:
         if self.model not in PHOTOMETRIC_MODELS:
             raise ValueError(f"PhotometricConfig: model must be one of {PHOTOMETRIC_MODELS}")
+        if self.vignetting_rounds < 1:
+            raise ValueError("PhotometricConfig: vignetting_rounds must be >= 1")
         if self.num_neighbors < 1 or self.stride_px < 1:
             raise ValueError("PhotometricConfig: num_neighbors and stride_px must be >= 1")
         if not 0.0 < self.keep_gradient_frac <= 1.0:
@@ -118,6 +126,13 @@ class PhotometricCalib:
     """Transform family (:data:`PHOTOMETRIC_MODELS`)."""
     stats: dict = field(default_factory=dict)
     """How the solve went: pairs, samples, residual RMS before / after (levels), seconds."""
+    matrix: np.ndarray | None = None
+    """Model ``"affine"``: float64 (N, 3, 3) forward colour matrices ``A`` (``observed = A @
+    radiance + bias``; ``gain`` is their diagonal; mean over frames = identity). None otherwise."""
+    vignetting: tuple[float, float] | None = None
+    """Shared radial vignetting ``(k1, k2)``: a pixel at normalised radius ``r`` (distance to the
+    principal point / half the image diagonal) records ``radiance / (1 + k1 r^2 + k2 r^4)`` before
+    the frame's colour transform; None = no vignetting term."""
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)
@@ -125,6 +140,24 @@ class PhotometricCalib:
             raise ValueError(f"PhotometricCalib: gain/bias must be ({n}, 3), got {self.gain.shape}/{self.bias.shape}")
         if self.model not in PHOTOMETRIC_MODELS:
             raise ValueError(f"PhotometricCalib: model must be one of {PHOTOMETRIC_MODELS}")
+        if (self.model == "affine") != (self.matrix is not None):
+            raise ValueError("PhotometricCalib: matrix is given exactly for model 'affine'")
+        if self.matrix is not None and (np.shape(self.matrix) != (n, 3, 3) or not np.all(np.isfinite(self.matrix))
+                                        or np.any(np.abs(np.linalg.det(self.matrix)) < 1e-6)):
+            raise ValueError(f"PhotometricCalib: matrix must be ({n}, 3, 3), finite and invertible")
+        if self.vignetting is not None and (len(self.vignetting) != 2 or not np.all(np.isfinite(self.vignetting))):
+            raise ValueError("PhotometricCalib: vignetting must be two finite numbers (k1, k2)")
+
+    @property
+    def per_channel(self) -> bool:
+        """True when the transform is a per-channel gain and bias with no vignetting (a lookup table
+        per view applies it after warping); False: applied to the source pixels (affine / vignetting)."""
+        return self.matrix is None and self.vignetting is None
+
+    def forward(self, row: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(A (3, 3), b (3,))`` of frame row ``row``: ``observed = A @ radiance + b``."""
+        A = self.matrix[row] if self.matrix is not None else np.diag(self.gain[row])
+        return np.asarray(A, np.float64), np.asarray(self.bias[row], np.float64)
         if not (np.all(np.isfinite(self.gain)) and np.all(self.gain > 0) and np.all(np.isfinite(self.bias))):
             raise ValueError("PhotometricCalib: gains must be finite and > 0, biases finite")
 
@@ -139,10 +172,16 @@ class PhotometricCalib:
         return lut[frame_id]
 
     def to_json(self) -> dict:
-        return {"format": PHOTOMETRIC_FORMAT, "version": PHOTOMETRIC_VERSION, "model": self.model,
-                "stats": self.stats,
-                "frames": [{"frame_id": f, "gain": [float(x) for x in self.gain[i]],
-                            "bias": [float(x) for x in self.bias[i]]} for i, f in enumerate(self.frame_ids)]}
+        frames = [{"frame_id": f, "gain": [float(x) for x in self.gain[i]], "bias": [float(x) for x in self.bias[i]]}
+                  for i, f in enumerate(self.frame_ids)]
+        if self.matrix is not None:
+            for i, fr in enumerate(frames):
+                fr["matrix"] = [[float(x) for x in row] for row in self.matrix[i]]
+        d = {"format": PHOTOMETRIC_FORMAT, "version": PHOTOMETRIC_VERSION, "model": self.model, "stats": self.stats}
+        if self.vignetting is not None:
+            d["vignetting"] = [float(x) for x in self.vignetting]
+        d["frames"] = frames
+        return d
 
     @classmethod
     def from_json(cls, d: dict, where: str = "photometric.json") -> "PhotometricCalib":
@@ -152,10 +191,15 @@ class PhotometricCalib:
             raise ValueError(f"{where}: version {d.get('version')} is not supported (reads {PHOTOMETRIC_VERSION})")
         try:
             fr = d["frames"]
+            model = d.get("model", "gain_bias")
+            matrix = (np.array([f["matrix"] for f in fr], np.float64).reshape(len(fr), 3, 3)
+                      if model == "affine" else None)
+            vig = d.get("vignetting")
             return cls(tuple(str(f["frame_id"]) for f in fr),
                        np.array([f["gain"] for f in fr], np.float64).reshape(len(fr), 3),
                        np.array([f["bias"] for f in fr], np.float64).reshape(len(fr), 3),
-                       d.get("model", "gain_bias"), dict(d.get("stats", {})))
+                       model, dict(d.get("stats", {})), matrix,
+                       None if vig is None else (float(vig[0]), float(vig[1])))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{where}: malformed ({type(e).__name__}: {e})") from None
 
@@ -193,13 +237,18 @@ def _gradient(img_f: np.ndarray) -> np.ndarray:
 def pair_correspondences(raw_i: np.ndarray, blur_i: np.ndarray, grad_i: np.ndarray, depth_i: np.ndarray,
                          raw_j: np.ndarray, blur_j: np.ndarray, grad_j: np.ndarray, depth_j: np.ndarray,
                          K_i, K_j, T_j_i: np.ndarray, config: PhotometricConfig,
-                         rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                         rng: np.random.Generator, with_pixels: bool = False) -> tuple[np.ndarray, ...]:
     """Colours ``(x_i, x_j)`` (float32 (m, 3) each, blurred images) of the same surface points seen
-    in frames i and j (step 2 of the module docstring)."""
+    in frames i and j (step 2 of the module docstring); ``with_pixels`` adds their pixel positions
+    ``(uv_i, uv_j)`` (float64 (m, 2) each)."""
+    def empty():
+        e = np.zeros((0, 3), np.float32)
+        return (e, e, np.zeros((0, 2)), np.zeros((0, 2))) if with_pixels else (e, e)
+
     s = config.stride_px
     pts, mask = unproject_depth(K_i, depth_i, T_j_i, stride=s)
     if len(pts) == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+        return empty()
     vv, uu = np.nonzero(mask)
     vi, ui = vv * s, uu * s
     uv, z = project(K_j, pts)
@@ -209,13 +258,13 @@ def pair_correspondences(raw_i: np.ndarray, blur_i: np.ndarray, grad_i: np.ndarr
     ok &= (dj > 0) & (np.abs(dj - z) <= config.depth_tol_rel * z)
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+        return empty()
     vi, ui, vj, uj, uvj = vi[idx], ui[idx], vj[idx], uj[idx], uv[idx]
     ri, rj = raw_i[vi, ui], raw_j[vj, uj]
     ok = ((ri > config.clip_lo) & (ri < config.clip_hi) & (rj > config.clip_lo) & (rj < config.clip_hi)).all(axis=1)
     vi, ui, vj, uj, uvj = vi[ok], ui[ok], vj[ok], uj[ok], uvj[ok]
     if len(vi) == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+        return empty()
     g = np.maximum(grad_i[vi, ui], grad_j[vj, uj])
     if config.keep_gradient_frac < 1.0 and len(g) > 10:
         keep = g <= np.quantile(g, config.keep_gradient_frac)
@@ -223,7 +272,10 @@ def pair_correspondences(raw_i: np.ndarray, blur_i: np.ndarray, grad_i: np.ndarr
     if len(vi) > config.max_samples_per_pair:
         sel = rng.choice(len(vi), config.max_samples_per_pair, replace=False)
         vi, ui, uvj = vi[sel], ui[sel], uvj[sel]
-    return blur_i[vi, ui], _bilinear(blur_j, uvj)
+    xi, xj = blur_i[vi, ui], _bilinear(blur_j, uvj)
+    if with_pixels:
+        return xi, xj, np.stack([ui, vi], axis=1).astype(np.float64), np.asarray(uvj, np.float64)
+    return xi, xj
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -285,6 +337,111 @@ def _solve_channel(xi: np.ndarray, xj: np.ndarray, pi: np.ndarray, pj: np.ndarra
     return a, c, rms0, rms1
 
 
+def vignetting_radius_sq(uv: np.ndarray, K) -> np.ndarray:
+    """Squared normalised radius ``r^2`` of pixels ``uv`` (m, 2) under intrinsics ``K``: distance to
+    the principal point over half the image diagonal (``r`` = 1 at a corner of a centred image)."""
+    uv = np.asarray(uv, np.float64)
+    return ((uv[:, 0] - K.cx) ** 2 + (uv[:, 1] - K.cy) ** 2) / (0.25 * (K.width ** 2 + K.height ** 2))
+
+
+def _solve_general(Fi: np.ndarray, Fj: np.ndarray, pi: np.ndarray, pj: np.ndarray, segs: list, n: int,
+                   ident: np.ndarray, bias_fixed: bool, config: PhotometricConfig) -> tuple[np.ndarray, np.ndarray]:
+    """One output channel of the inverse model ``radiance = theta_k . F`` (features ``F`` (m, p): the
+    colour terms, last the bias term), rows ``theta_i . F_i - theta_j . F_j = 0`` with the anchor
+    ``mean_k theta_k = ident``, a ridge towards ``ident`` and Huber IRLS (as :func:`_solve_channel`).
+    The normal equations are accumulated per pair (``segs``: ``(start, end, i, j)`` sample ranges).
+    Returns ``(theta (n, p), final sample weights (m,))``."""
+    p = Fi.shape[1]
+    nv = n * p
+    scale = np.full(p, 128.0)  # colour-term parameters multiply levels; keep ridge/anchor comparable
+    scale[-1] = 1.0
+    counts = np.bincount(np.concatenate([pi, pj]), minlength=n).astype(np.float64)
+    w = np.ones(len(Fi))
+    ar = np.arange(p)
+    theta = np.tile(ident, (n, 1))
+    for it in range(config.irls_iters + 1):
+        AtA = np.zeros((nv, nv))
+        for s0, s1, i, j in segs:
+            X = np.concatenate([Fi[s0:s1], -Fj[s0:s1]], axis=1)
+            ii = np.concatenate([i * p + ar, j * p + ar])
+            AtA[np.ix_(ii, ii)] += X.T @ (X * w[s0:s1, None])
+        Atb = np.zeros(nv)
+        lam = config.ridge * np.maximum(counts, 1.0)
+        big = 1e3 * max(float(counts.sum()), 1.0)
+        for q in range(p):
+            idx = np.arange(n) * p + q
+            fixed = bias_fixed and q == p - 1
+            AtA[idx, idx] += 1e6 * np.maximum(counts, 1.0) if fixed else lam * scale[q] ** 2
+            Atb[idx] += 0.0 if fixed else lam * scale[q] ** 2 * ident[q]
+            ra = np.zeros(nv)
+            ra[idx] = scale[q] / n
+            AtA += big * np.outer(ra, ra)
+            Atb += big * ra * scale[q] * ident[q]
+        theta = np.linalg.solve(AtA, Atb).reshape(n, p)
+        if not len(Fi) or it == config.irls_iters:
+            break
+        r = np.sum(theta[pi] * Fi, axis=1) - np.sum(theta[pj] * Fj, axis=1)
+        sigma = 1.4826 * float(np.median(np.abs(r - np.median(r)))) + 1e-6
+        thr = config.huber_k * sigma
+        w = np.where(np.abs(r) <= thr, 1.0, thr / np.maximum(np.abs(r), 1e-12))
+    return theta, w
+
+
+def _calibrate_general(xi, xj, pi, pj, r2i, r2j, segs, n, config: PhotometricConfig):
+    """Affine and/or vignetting models (step 3 generalised): alternates the per-frame inverse
+    transforms ``radiance = W(r) (M_k x + c_k)`` (``W = 1 + k1 r^2 + k2 r^4``, linear in ``M, c``
+    for fixed ``W``) and the shared ``(k1, k2)`` (linear for fixed ``M, c``). Returns forward
+    ``(A (n, 3, 3), b (n, 3), (k1, k2), rms_after (3,))``."""
+    affine = config.model == "affine"
+    k1 = k2 = 0.0
+    M = np.tile(np.eye(3), (n, 1, 1))
+    c = np.zeros((n, 3))
+    rounds = config.vignetting_rounds if config.vignetting else 1
+    ones = np.ones((len(xi), 1))
+    for rd in range(rounds):
+        Wi = (1.0 + k1 * r2i + k2 * r2i ** 2)[:, None]
+        Wj = (1.0 + k1 * r2j + k2 * r2j ** 2)[:, None]
+        weights = []
+        for ch in range(3):
+            if affine:
+                Fi, Fj = np.concatenate([xi * Wi, Wi], 1), np.concatenate([xj * Wj, Wj], 1)
+                ident = np.r_[np.eye(3)[ch], 0.0]
+            else:
+                Fi, Fj = np.concatenate([xi[:, ch:ch + 1] * Wi, Wi], 1), np.concatenate([xj[:, ch:ch + 1] * Wj, Wj], 1)
+                ident = np.array([1.0, 0.0])
+            theta, w = _solve_general(Fi, Fj, pi, pj, segs, n, ident, config.model == "gain", config)
+            if affine:
+                M[:, ch, :] = theta[:, :3]
+            else:
+                M[:, ch, ch] = theta[:, 0]
+            c[:, ch] = theta[:, -1]
+            weights.append(w)
+        if not config.vignetting or rd == rounds - 1 or not len(xi):
+            break
+        # Shared vignetting for fixed transforms: y_i W_i - y_j W_j = 0, linear in (k1, k2).
+        yi = np.einsum("mab,mb->ma", M[pi], xi) + c[pi]
+        yj = np.einsum("mab,mb->ma", M[pj], xj) + c[pj]
+        B = np.stack([yi * r2i[:, None] - yj * r2j[:, None], yi * r2i[:, None] ** 2 - yj * r2j[:, None] ** 2], -1)
+        rhs = -(yi - yj)
+        wt = np.stack(weights, 1)
+        BtB = np.einsum("mck,mc,mcl->kl", B, wt, B)
+        Btr = np.einsum("mck,mc,mc->k", B, wt, rhs)
+        k1, k2 = np.linalg.solve(BtB + 1e-9 * np.eye(2) * max(np.trace(BtB), 1.0), Btr)
+    Wi = (1.0 + k1 * r2i + k2 * r2i ** 2)[:, None]
+    Wj = (1.0 + k1 * r2j + k2 * r2j ** 2)[:, None]
+    res = Wi * (np.einsum("mab,mb->ma", M[pi], xi) + c[pi]) - Wj * (np.einsum("mab,mb->ma", M[pj], xj) + c[pj])
+    rms1 = np.sqrt(np.mean(res ** 2, axis=0)) if len(xi) else np.zeros(3)
+    A = np.linalg.inv(M)
+    b = -np.einsum("nab,nb->na", A, c)
+    # Exact re-anchoring (radiance' = S radiance [+ t]): mean A = I (and mean b = 0 without
+    # vignetting; with it a shift is not a per-frame affine map, the anchor rows keep it near 0).
+    S = A.mean(axis=0)
+    A = A @ np.linalg.inv(S)
+    if not config.vignetting:
+        b = b - A @ b.mean(axis=0)
+    return A, b, (float(k1), float(k2)), rms1
+
+
 def calibrate_photometric(scene, config: PhotometricConfig = PhotometricConfig(),
                           show_progress: bool = True) -> PhotometricCalib:
     """Per-frame gain and bias of every frame of ``scene`` (see the module docstring).
@@ -310,15 +467,23 @@ def calibrate_photometric(scene, config: PhotometricConfig = PhotometricConfig()
             cache[k] = (np.asarray(color), b, _gradient(b), np.asarray(depth, np.float32))
         return cache[k]
 
-    xs_i, xs_j, ps_i, ps_j = [], [], [], []
+    general = config.model == "affine" or config.vignetting
+    xs_i, xs_j, ps_i, ps_j, r2s_i, r2s_j, segs = [], [], [], [], [], [], []
+    m = 0
     T_cam_world = [invert(T) for T in scene.T_world_cam]
     it = progress(pairs, desc="photometric pairs", unit="pair") if show_progress else pairs
     for i, j in it:
         fi, fj = get(i), get(j)
         T_j_i = T_cam_world[j] @ scene.T_world_cam[i]
-        a, b = pair_correspondences(fi[0], fi[1], fi[2], fi[3], fj[0], fj[1], fj[2], fj[3],
-                                    scene.intrinsics[i], scene.intrinsics[j], T_j_i, config, rng)
+        got = pair_correspondences(fi[0], fi[1], fi[2], fi[3], fj[0], fj[1], fj[2], fj[3],
+                                   scene.intrinsics[i], scene.intrinsics[j], T_j_i, config, rng, with_pixels=general)
+        a, b = got[0], got[1]
         if len(a):
+            if general:
+                r2s_i.append(vignetting_radius_sq(got[2], scene.intrinsics[i]))
+                r2s_j.append(vignetting_radius_sq(got[3], scene.intrinsics[j]))
+                segs.append((m, m + len(a), i, j))
+                m += len(a)
             xs_i.append(a)
             xs_j.append(b)
             ps_i.append(np.full(len(a), i, np.int64))
@@ -332,7 +497,18 @@ def calibrate_photometric(scene, config: PhotometricConfig = PhotometricConfig()
     gain = np.ones((n, 3))
     bias = np.zeros((n, 3))
     rms0, rms1 = [], []
-    for ch in range(3):
+    matrix, vig = None, None
+    if general:
+        r2i = np.concatenate(r2s_i) if r2s_i else np.zeros(0)
+        r2j = np.concatenate(r2s_j) if r2s_j else np.zeros(0)
+        A, bias, k, r1 = _calibrate_general(xi.astype(np.float64), xj.astype(np.float64), pi, pj, r2i, r2j,
+                                            segs, n, config)
+        gain = np.ascontiguousarray(np.diagonal(A, axis1=1, axis2=2))
+        matrix = A if config.model == "affine" else None
+        vig = k if config.vignetting else None
+        rms0 = [float(np.sqrt(np.mean((xi[:, ch] - xj[:, ch]) ** 2))) if len(xi) else 0.0 for ch in range(3)]
+        rms1 = [float(x) for x in r1]
+    for ch in range(3 if not general else 0):
         a, c, r0, r1 = _solve_channel(xi[:, ch].astype(np.float64), xj[:, ch].astype(np.float64), pi, pj, n, config)
         g, b = 1.0 / a, -c / a
         # Exact re-anchoring: radiance' = s * radiance + t with s = mean(g), t = mean(b).
@@ -349,4 +525,4 @@ def calibrate_photometric(scene, config: PhotometricConfig = PhotometricConfig()
              "config": {k: getattr(config, k) for k in config.__dataclass_fields__}}
     if config.model == "gain":
         bias[:] = 0.0
-    return PhotometricCalib(tuple(scene.frame_ids), gain, bias, config.model, stats)
+    return PhotometricCalib(tuple(scene.frame_ids), gain, bias, config.model, stats, matrix, vig)

@@ -16,7 +16,10 @@ def register(sub) -> None:
                                    "The renderer applies it (RenderConfig.use_photometric, exposure_frame).")
     p.add_argument("scene", type=Path, help="saved scene folder")
     p.add_argument("--model", choices=PHOTOMETRIC_MODELS, default="gain_bias",
-                   help="gain_bias: per-channel gain and bias; gain: per-channel gain only")
+                   help="gain_bias: per-channel gain and bias; gain: per-channel gain only; "
+                        "affine: 3x3 colour matrix and bias")
+    p.add_argument("--vignetting", action="store_true",
+                   help="also solve one radial vignetting term shared by all frames")
     p.add_argument("--neighbors", type=int, default=6, help="frames paired with each frame (default 6)")
     p.add_argument("--raw-depth", action="store_true", help="use the raw depth even when refined depth exists")
     p.add_argument("--overwrite", action="store_true", help="replace an existing photometric.json")
@@ -34,7 +37,8 @@ def _cmd_photometric(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     if (args.scene / PHOTOMETRIC_FILE).exists() and not args.overwrite:
         raise FileExistsError(f"{args.scene / PHOTOMETRIC_FILE}: already exists (pass --overwrite to replace it)")
-    cfg = PhotometricConfig(model=args.model, num_neighbors=args.neighbors, use_refined_depth=not args.raw_depth)
+    cfg = PhotometricConfig(model=args.model, vignetting=args.vignetting, num_neighbors=args.neighbors,
+                            use_refined_depth=not args.raw_depth)
     calib = calibrate_photometric(scene, cfg)
     out = save_photometric(args.scene, calib)
     st = calib.stats
@@ -45,4 +49,7 @@ def _cmd_photometric(args: argparse.Namespace) -> int:
           f"residual RMS {np.mean(st['rms_before']):.2f} -> {np.mean(st['rms_after']):.2f} levels"
           + (f"; {st['frames_without_samples']} frames without correspondences (identity)"
              if st["frames_without_samples"] else ""))
+    if calib.vignetting is not None:
+        k1, k2 = calib.vignetting
+        print(f"vignetting: k1 {k1:.4f} k2 {k2:.4f} (fall-off at the image corner {1 / (1 + k1 + k2):.3f})")
     return 0

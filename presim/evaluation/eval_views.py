@@ -77,6 +77,14 @@ METHODS: dict[str, tuple[dict, str]] = {
     # (presim.capture.photometric, refined depth); exposure_frame "<target>" = the target's own.
     "photo": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
     "photo_mean": ({"use_photometric": True}, "refined"),
+    # The same with the other colour models of `presim photometric` (the "photometric_*" keys pick
+    # the calibration, not a RenderConfig field).
+    "photo_affine": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE, "photometric_model": "affine"},
+                     "refined"),
+    "photo_vig": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE, "photometric_vignetting": True},
+                  "refined"),
+    "photo_affine_vig": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE, "photometric_model": "affine",
+                          "photometric_vignetting": True}, "refined"),
     "blend": ({"blend": True}, "refined"),
     "blend_2": ({"blend": True, "blend_views": 2}, "refined"),
     "blend_6": ({"blend": True, "blend_views": 6}, "refined"),
@@ -91,7 +99,8 @@ METHODS: dict[str, tuple[dict, str]] = {
     "full_fused": (BEST, "fused"),
     "fused_est": ({}, "fused_est"),  # fusion taking the refined value where both agree
 }
-DEFAULT_METHODS = tuple(METHODS)
+DEFAULT_METHODS = tuple(m for m in METHODS if not m.startswith("photo_affine") and m != "photo_vig")
+"""Every method but the colour-model variants of ``photo`` (each needs its own calibration)."""
 METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel", "ms_per_frame")
 
 
@@ -172,6 +181,12 @@ def image_metrics(out: RGBD, real_color: np.ndarray, real_depth_m: np.ndarray,
         "hole_frac": float(out.hole_frac_before_fill),
         "depth_absrel": absrel,
     }
+
+
+def _photometric_key(overrides: dict, base) -> tuple[str, bool]:
+    """(model, vignetting) of the photometric calibration a method uses."""
+    return (overrides.get("photometric_model", base.model),
+            bool(overrides.get("photometric_vignetting", base.vignetting)))
 
 
 def _render_config(overrides: dict, use_refined: bool):
@@ -282,17 +297,22 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
         if "median" in variants:
             depth_sets["median"] = np.stack([median_filter_depth(f.depth_m) for f in raws])
         del raws
-    photo_calib = None
-    if any(METHODS[m][0].get("use_photometric") for m in config.methods):
+    photo_calibs: dict[tuple, object] = {}  # (model, vignetting) -> calibration of the capture
+    for m in config.methods:
+        ov = METHODS[m][0]
+        key = _photometric_key(ov, config.photometric)
+        if not ov.get("use_photometric") or key in photo_calibs:
+            continue
         from presim.capture.photometric import calibrate_photometric
 
         t1 = time.perf_counter()
         ref_cap = cap if depth_sets.get("refined") is None else dataclasses.replace(cap, depth_refined=depth_sets["refined"])
-        photo_calib = calibrate_photometric(ref_cap, config.photometric)
+        pc = photo_calibs[key] = calibrate_photometric(
+            ref_cap, dataclasses.replace(config.photometric, model=key[0], vignetting=key[1]))
         if log is not None:
-            log(f"photometric calibration of the capture: {time.perf_counter() - t1:.1f} s, "
-                f"residual RMS {np.mean(photo_calib.stats['rms_before']):.2f} -> "
-                f"{np.mean(photo_calib.stats['rms_after']):.2f} levels")
+            log(f"photometric calibration of the capture ({key[0]}{', vignetting' if key[1] else ''}): "
+                f"{time.perf_counter() - t1:.1f} s, residual RMS {np.mean(pc.stats['rms_before']):.2f} -> "
+                f"{np.mean(pc.stats['rms_after']):.2f} levels")
     if "tsdf" in variants:
         deps = np.stack([cap.depth(k, refined=False) for k in range(0, len(cap), max(1, len(cap) // 10))])
         med = float(np.median(deps[deps > 0])) if (deps > 0).any() else 1.0
@@ -322,6 +342,8 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
             else:
                 if overrides.get("exposure_frame") == TARGET_EXPOSURE:
                     overrides = {**overrides, "exposure_frame": cap.frame_ids[k]}
+                photo_calib = photo_calibs.get(_photometric_key(overrides, config.photometric))
+                overrides = {o: x for o, x in overrides.items() if not o.startswith("photometric_")}
                 rc, why = _render_config(overrides, use_refined=variant != "raw")
                 if rc is None:
                     skipped[name] = why

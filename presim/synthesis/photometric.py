@@ -8,13 +8,27 @@ to the output exposure ``(gain_o, bias_o)``::
 
 with ``(gain_o, bias_o) = (1, 0)`` for the scene's mean exposure (default) or a frame's own
 transform to match that frame (``RenderConfig.exposure_frame``). The map is per channel and its
-input is 8-bit, so it is applied as a 256-entry lookup table per channel (``cv2.LUT``, ~0.3 ms per
-640x480 view image), built once per view and cached: the per-frame cost is one LUT pass per
-warped view. :func:`apply_gain_bias` is the float reference the tables are tested against.
+input is 8-bit, so it is a 256-entry lookup table per channel (``cv2.LUT``, ~0.3 ms per 640x480
+image), built once per view (:class:`ViewColorTransform`). :func:`apply_gain_bias` is the float
+reference the tables are tested against.
 
-The Renderer passes :class:`ViewColorTransform` to the core's ``color_transform`` hook
-(:func:`presim.synthesis.core.synthesize_frame`); frames missing from the calibration are left as
-they are.
+The Renderer applies the calibration to each capture frame's pixels when it prepares the view
+(:class:`SourceColorCorrection`; the prepared view is cached, so there is no per-frame cost).
+Warping, the crack filter's lower median and the merge only move pixels, so for a per-channel
+monotone table this equals correcting every warped view image (the core's ``color_transform``
+hook, which :class:`ViewColorTransform` also fits); frames missing from the calibration are left
+as they are.
+
+**3x3 affine model and vignetting** (``presim photometric --model affine`` / ``--vignetting``): a
+colour matrix mixes channels, so it is no per-channel table, and vignetting depends on where a
+pixel was in its *own* frame, which warping forgets; applied to the source pixels the same way::
+
+    out = A_o (W(r) A_v^-1 (observed_v - b_v)) + b_o,     W(r) = 1 + k1 r^2 + k2 r^4
+
+``W`` undoes the vignetting (the output is vignetting-free at the scene's mean exposure). When the
+output matches a frame (``exposure_frame``), that frame's vignetting is put back on the rendered
+image, per target pixel (:class:`OutputVignetting`: ``out = (c - b_o) / W(r) + b_o``), so the output
+looks like that frame. :func:`correct_colors` is the float reference of both.
 """
 
 from __future__ import annotations
@@ -22,7 +36,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["apply_gain_bias", "gain_bias_lut", "ViewColorTransform", "output_exposure"]
+__all__ = ["apply_gain_bias", "gain_bias_lut", "ViewColorTransform", "output_exposure", "output_transform",
+           "vignetting_gain_map", "correct_colors", "SourceColorCorrection", "OutputVignetting"]
 
 
 def apply_gain_bias(color: np.ndarray, gain_v: np.ndarray, bias_v: np.ndarray, gain_o: np.ndarray,
@@ -76,3 +91,82 @@ class ViewColorTransform:
         if lut is None:
             return color
         return cv2.LUT(np.ascontiguousarray(color), lut)
+
+
+def output_transform(calib, exposure_frame: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(A_o (3, 3), b_o (3,))`` of the output: the scene mean (identity) or frame ``exposure_frame``'s."""
+    if exposure_frame is None:
+        return np.eye(3), np.zeros(3)
+    try:
+        i = calib.index(exposure_frame)
+    except KeyError:
+        raise ValueError(f"exposure_frame {exposure_frame!r} is not a frame of the photometric calibration") from None
+    return calib.forward(i)
+
+
+def vignetting_gain_map(K, vignetting: tuple[float, float] | None) -> np.ndarray | None:
+    """float32 (H, W) ``W(r) = 1 + k1 r^2 + k2 r^4`` of every pixel of a camera (None: no term)."""
+    if vignetting is None:
+        return None
+    from presim.capture.photometric import vignetting_radius_sq
+
+    u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
+    r2 = vignetting_radius_sq(np.stack([u.ravel(), v.ravel()], axis=1), K).reshape(K.height, K.width)
+    return (1.0 + vignetting[0] * r2 + vignetting[1] * r2 ** 2).astype(np.float32)
+
+
+def correct_colors(color: np.ndarray, A_v: np.ndarray, b_v: np.ndarray, A_o: np.ndarray, b_o: np.ndarray,
+                   gain_map: np.ndarray | None = None) -> np.ndarray:
+    """Reference: ``round(clip(A_o (g A_v^-1 (color - b_v)) + b_o))`` per pixel, ``g`` = ``gain_map``
+    (H, W) or 1; uint8 (H, W, 3)."""
+    x = np.asarray(color, np.float64) - np.asarray(b_v, np.float64)
+    rad = x @ np.linalg.inv(np.asarray(A_v, np.float64)).T
+    if gain_map is not None:
+        rad = rad * np.asarray(gain_map, np.float64)[..., None]
+    y = rad @ np.asarray(A_o, np.float64).T + np.asarray(b_o, np.float64)
+    return np.clip(np.floor(y + 0.5), 0, 255).astype(np.uint8)
+
+
+class SourceColorCorrection:
+    """``(view_idx, color) -> color`` on a capture frame's own pixels (before warping): the
+    calibration's affine transform and vignetting, mapped to the output exposure; the Renderer
+    applies it when it prepares a view (frames missing from the calibration are left as they are)."""
+
+    def __init__(self, calib, frame_ids: list[str], intrinsics, exposure_frame: str | None = None):
+        self.calib = calib
+        self.frame_ids = list(frame_ids)
+        self.intrinsics = intrinsics
+        self.A_o, self.b_o = output_transform(calib, exposure_frame)
+        self._maps: dict = {}
+        # Per-channel gain and bias without vignetting: the per-view lookup tables (exact, fast).
+        self._lut = ViewColorTransform(calib, frame_ids, exposure_frame) if calib.per_channel else None
+
+    def __call__(self, view_idx: int, color: np.ndarray) -> np.ndarray:
+        if self._lut is not None:
+            return self._lut(view_idx, color)
+        try:
+            r = self.calib.index(self.frame_ids[view_idx])
+        except KeyError:
+            return color
+        K = self.intrinsics[view_idx]
+        key = (K.width, K.height, K.cx, K.cy)
+        if key not in self._maps:
+            self._maps[key] = vignetting_gain_map(K, self.calib.vignetting)
+        A_v, b_v = self.calib.forward(r)
+        return correct_colors(color, A_v, b_v, self.A_o, self.b_o, self._maps[key])
+
+
+class OutputVignetting:
+    """Puts the matched frame's vignetting back on a rendered image: ``(c - b_o) / W(r) + b_o`` per
+    target pixel (only when the calibration has a vignetting term and the output matches a frame)."""
+
+    def __init__(self, calib, exposure_frame: str):
+        self.vignetting = calib.vignetting
+        self.b_o = output_transform(calib, exposure_frame)[1]
+        self._maps: dict = {}
+
+    def __call__(self, color: np.ndarray, K) -> np.ndarray:
+        key = (K.width, K.height, K.cx, K.cy)
+        if key not in self._maps:
+            self._maps[key] = 1.0 / vignetting_gain_map(K, self.vignetting)
+        return correct_colors(color, np.eye(3), self.b_o, np.eye(3), self.b_o, self._maps[key])

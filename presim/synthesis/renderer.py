@@ -35,18 +35,18 @@ import numpy as np
 
 from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
-from presim.synthesis.blend import BlendConfig, blend_frame, front_image_points
+from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points, front_of_layers
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
-from presim.synthesis.photometric import ViewColorTransform
+from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
-from presim.synthesis.warp import ViewPoints, prepare_view
+from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
 
 __all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
 
@@ -168,13 +168,19 @@ class RenderConfig:
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
     # ---- photometric correction (presim/synthesis/photometric.py, `presim photometric`) ----
     use_photometric: bool = True
-    """Map every warped view to one output exposure with ``scene.photometric`` when present."""
+    """Map every capture frame to one output exposure with ``scene.photometric`` when present
+    (applied to the frame's pixels when its view is prepared and cached with it: no per-frame cost;
+    any model: gain/bias, 3x3 affine, vignetting)."""
     exposure_frame: str | None = None
-    """Output exposure: None = the capture's mean exposure; a frame id = match that frame's."""
+    """Output exposure: None = the capture's mean exposure (vignetting removed); a frame id = match
+    that frame's (its transform, and its vignetting put back on the output when calibrated)."""
     # ---- multi-view blending (presim/synthesis/blend.py) ----
     blend: bool = False
     """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
-    seams) instead of keeping the winning view's colour."""
+    seams) instead of keeping the winning view's colour. Off by default: it costs more than the
+    20 % per frame the issue allows on cheap frames (``benchmarks/bench_render.py
+    --compare-blend``, docs/evaluation.md). The views the adaptive loop warped are reused, not
+    warped again (numba backend)."""
     blend_views: int = 4
     """Blend among this many views: those the adaptive loop warped, in order, then the remaining
     selected candidates."""
@@ -266,6 +272,48 @@ class RenderStats:
     """:meth:`Renderer.render_batch` on a batched backend: the views of every frame of the batch."""
 
 
+class _WarpCapture:
+    """Front surface of every view the adaptive loop warps, kept for blending so that blending
+    does not warp those views again (numba backend: taken from the workspace's warped layers right
+    after each warp, :func:`~presim.synthesis.blend.front_of_layers`, ~1 ms; other backends keep no
+    layers and blending warps the view itself)."""
+
+    def __init__(self, stacks: dict) -> None:
+        self._stacks = stacks  # the blend's per-view stacks: slot i = the i-th warped view
+        self._ids: list[int] = []
+
+    def wrap(self, get_view, view_image, max_views: int):
+        """``(get_view, view_image)`` for one frame's loop that record the front surfaces of the
+        first ``max_views`` warped views (the loop calls ``get_view(id)`` right before warping it)
+        straight into the blend's stacks (:func:`~presim.synthesis.blend.blend_stacks`)."""
+        self._ids = []
+        current: list[int] = []
+
+        def get_view_rec(idx: int):
+            current[:] = [int(idx)]
+            return get_view(idx)
+
+        def view_image_rec(view, T_cam_world, K, config, replace, workspace):
+            img = view_image(view, T_cam_world, K, config, replace, workspace)
+            lay, n = getattr(workspace, "layers", None), len(self._ids)
+            if current and n < max_views and isinstance(lay, LayeredImage):
+                d, c, _ = blend_stacks(self._stacks, max_views, *lay.depth_m.shape[1:])
+                front_of_layers(lay.depth_m, lay.color, d[n], c[n])
+                self._ids.append(current[0])
+            current.clear()
+            return img
+
+        return get_view_rec, view_image_rec
+
+    def get(self, view_id: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The recorded ``(depth, color)`` of ``view_id`` in this frame, or None."""
+        try:
+            n = self._ids.index(int(view_id))
+        except ValueError:
+            return None
+        return self._stacks["d"][n], self._stacks["c"][n]
+
+
 class Renderer:
     """Renders RGB-D images of a scene at arbitrary poses and intrinsics from its captured views."""
 
@@ -293,14 +341,20 @@ class Renderer:
         self._T_cam_world_src: np.ndarray | None = None  # per view, built on first LOD use
         self._prev: tuple[np.ndarray, Intrinsics, Selection] | None = None  # temporal reuse
         # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
-        self._color_transform = None
-        if config.use_photometric and getattr(scene, "photometric", None) is not None:
-            self._color_transform = ViewColorTransform(scene.photometric, scene.frame_ids, config.exposure_frame)
+        # Applied to each capture frame's pixels when its view is prepared (cached with the view: no
+        # per-frame cost); the core's per-view color_transform hook is left free.
+        self._color_transform = self._source_correction = self._output_vignetting = None
+        calib = getattr(scene, "photometric", None) if config.use_photometric else None
+        if calib is not None:
+            self._source_correction = SourceColorCorrection(calib, scene.frame_ids, scene.intrinsics,
+                                                            config.exposure_frame)
+            if calib.vignetting is not None and config.exposure_frame is not None:
+                self._output_vignetting = OutputVignetting(calib, config.exposure_frame)
         self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
-        self._blend_buffers: list = [None]  # warp buffers of the blend's front-surface warps
         self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
+        self._warp_capture = _WarpCapture(self._blend_stacks)  # the loop's warps, for blending
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
@@ -308,8 +362,10 @@ class Renderer:
         self._view_quality = None if self._sharpness is None else self._sharpness.quality  # blend factor
 
     # ---- per-view data (lazy, cached) ----------------------------------------------------------
-    def _load_frame(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
+    def _load_frame(self, idx: int, with_color: bool = True) -> tuple[np.ndarray, np.ndarray]:
         color, depth = self.scene.frames.load(idx)
+        if self._source_correction is not None and with_color:  # photometric calibration
+            color = self._source_correction(idx, color)
         if self._use_fused:
             depth = np.asarray(self.scene.depth_fused[idx])
         elif self._use_refined:
@@ -329,7 +385,7 @@ class Renderer:
         """(m, 3) float32 world points of view ``idx``'s sub-sampled valid depth (overlap test)."""
         g = self._grids.get(idx)
         if g is None:
-            color, depth = self._load_frame(idx)
+            color, depth = self._load_frame(idx, with_color=False)
             g = self._grids[idx] = self._grid_from_depth(idx, depth)
             _unmap_pages(color)
             _unmap_pages(depth)
@@ -471,8 +527,11 @@ class Renderer:
                 levels[idx] = self._lod_level_fast(idx, grids)
                 return self._view(idx, levels[idx])
         near = self.config.near_m
+        view_image = self._backend.view_image
+        if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
+            get_view, view_image = self._warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
-                               self._backend.view_image, get_view, self.grid_points, self._workspace,
+                               view_image, get_view, self.grid_points, self._workspace,
                                color_transform=self._color_transform,
                                blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx),
                                grid_px=lambda v: grids.pixels(v, near))
@@ -480,7 +539,8 @@ class Renderer:
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
                                 reused_selection=reused)
-        return RGBD(res.color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
+        color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
+        return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
 
     def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, candidates):
         """The core's ``blend`` hook for one target camera (None when blending is off): blends the
@@ -489,12 +549,20 @@ class Renderer:
             return None
         near = self.config.near_m
 
-        def front_image(v: int):
-            view = self._view(v)
+        def front_image(v: int, depth_out: np.ndarray, color_out: np.ndarray) -> None:
+            got = self._warp_capture.get(v)
+            if got is not None:  # the loop warped it already (usually into this very slot)
+                if not np.shares_memory(got[0], depth_out):
+                    np.copyto(depth_out, got[0])
+                    np.copyto(color_out, got[1])
+                return
+            view = self._view(v, self.lod_level(v, T_cam_world, K) if self._lod.levels > 0 else 0)
             if isinstance(view, ViewPoints):
-                return front_image_points(view, T_cam_world, K, near, self._blend_buffers)
+                front_image_points(view, T_cam_world, K, near, depth_out, color_out)
+                return
             img = self._backend.view_image(view, T_cam_world, K, self._frame_config.view, None, Workspace())
-            return img.depth_m, img.color
+            depth_out[:] = img.depth_m
+            color_out[:] = img.color
 
         def run(views, color, depth, source):
             views = list(views) + [int(v) for v in candidates if int(v) not in views]
