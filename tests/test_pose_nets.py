@@ -312,7 +312,7 @@ def test_train_resume_metrics_and_nan_stop(bop, tmp_path, monkeypatch):
     r2 = tr.train(bop, run, _tiny_train_cfg(epochs=2), show_progress=False)
     assert r2.resumed_from == 1 and [r["epoch"] for r in r2.rows] == [1, 2]
     lines = (run / "metrics.csv").read_text().strip().splitlines()
-    assert lines[0].startswith("epoch,loss,add_m") and len(lines) == 3
+    assert lines[0].startswith("epoch,step,loss,add_m") and len(lines) == 3
     assert (run / "learning_curve.png").stat().st_size > 1000
     ck = tr.load_checkpoint(run / tr.CHECKPOINT)
     assert ck["epoch"] == 2
