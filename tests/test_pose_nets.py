@@ -337,6 +337,13 @@ def test_bad_datasets_give_one_line_errors(bop, tmp_path, capsys):
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and msg in lines[0] and lines[0].startswith("presim pose-train: error:")
     assert not (tmp_path / "run").exists()  # nothing that looks like a run is left
+    # a refiner phase as long as the whole run
+    capsys.readouterr()
+    assert main(["pose-train", "--dataset", str(bop), "--split", "test", "--model", "cgaf", "--out",
+                 str(tmp_path / "run"), "--steps", "3", "--refine-steps", "3"]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "--refine-steps: 3 is not below the run's 3 optimiser steps" in lines[0]
+    assert not (tmp_path / "run").exists()
 
 
 # ---- training ---------------------------------------------------------------------------------

@@ -261,6 +261,12 @@ def train(dataset: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConf
         task = SegTask(dataset, cfg)
     else:
         task = _PoseTask(dataset, cfg)
+    drop_last = len(task.train_set) > cfg.batch_size
+    spe = max(1, len(task.train_set) // cfg.batch_size if drop_last else 1)
+    total = cfg.total_steps(spe)
+    if cfg.model != "segmentation" and cfg.refine_steps >= total:
+        raise ValueError(f"--refine-steps: {cfg.refine_steps} is not below the run's {total} optimiser steps "
+                         "(the estimator must train first)")
     conf_json = _config_json(cfg, dataset, task.obj_ids, task.model_cfg)
     resumed, rows = 0, []
     net, opt = task.net.to(cfg.device), torch.optim.Adam(task.net.parameters(), lr=cfg.lr)
@@ -273,9 +279,6 @@ def train(dataset: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConf
         rows = [dict(r) for r in ck["rows"]]
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(run_dir / "config.json", conf_json)
-    drop_last = len(task.train_set) > cfg.batch_size
-    spe = max(1, len(task.train_set) // cfg.batch_size if drop_last else 1)
-    total = cfg.total_steps(spe)
     n_epochs = math.ceil(total / spe)
     gstep = int(rows[-1].get("step", resumed * spe)) if rows else 0  # optimiser steps already done
     if resumed < n_epochs and hasattr(task, "prepare"):
