@@ -2,7 +2,9 @@
 
 Baseline: DenseFusion at the same sizes, measured in the same run; C/G-AF and C/G-AF without
 attention are reported as medians and as ratios to it. Random inputs of the recipe's shapes (crop
-64 px, ``--points`` points, batch ``--batch``); each is warmed up, then repeated.
+``--crop`` px, ``--points`` points, batch ``--batch``; defaults: the quick recipe's); each is warmed
+up, then repeated. Wall time: on a shared machine prefer ``benchmarks/bench_posenet_recipe.py``
+(CPU time, real data, data loading included).
 
     .venv/bin/python benchmarks/bench_posenets.py [--points 128] [--full-size] [--device cuda]
 """
@@ -36,13 +38,14 @@ def _median(fn, repeats: int, device: str) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=128)
-    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--crop", type=int, default=32)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--full-size", action="store_true")
     ap.add_argument("--device", default="cpu")
     a = ap.parse_args()
     torch.manual_seed(0)
-    S, N, B, dev = 64, a.points, a.batch, a.device
+    S, N, B, dev = a.crop, a.points, a.batch, a.device
     res = {}
     for arch in ARCHS:
         cfg = ModelConfig.full(arch, 5) if a.full_size else ModelConfig(arch=arch, n_objects=5)
@@ -59,7 +62,7 @@ def main() -> None:
 
         rgb, pts = torch.randn(B, 3, S, S, device=dev), torch.randn(B, N, 3, device=dev) * 0.05 + 0.8
         ch, oi = torch.randint(0, S * S, (B, N), device=dev), torch.zeros(B, dtype=torch.long, device=dev)
-        m = torch.randn(B, 200, 3, device=dev) * 0.05
+        m = torch.randn(B, 100, 3, device=dev) * 0.05
         sym = torch.zeros(B, dtype=torch.bool, device=dev)
         opt = torch.optim.Adam(net.parameters(), lr=1e-4)
 

@@ -16,7 +16,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from presim.pose.nets.data import PoseDataConfig, PoseInstanceDataset
-from presim.pose.nets.loss import point_distances, pose_loss, quat_to_R
+from presim.pose.nets.loss import LossConfig, point_distances, pose_loss, quat_to_R, symmetric_add
 from presim.pose.nets.models import ARCHS, EdgeConv, GraphAttention, ModelConfig, PoseNet, best_pose, knn
 from presim.testing.boxes import box_mesh, box_surface_points
 
@@ -156,6 +156,46 @@ def test_add_s_of_symmetric_flip_is_zero_and_add_is_hand_value():
     assert d_adds.item() == pytest.approx(0.0, abs=1e-7)  # cdist uses |a|^2+|b|^2-2ab: ~1e-9 m rounding
 
 
+def test_symmetric_add_accepts_listed_symmetries_only():
+    """Box declared symmetric under 180 deg about z: that flip costs 0, a 180 deg flip about x (not
+    listed, though ADD-S cannot tell it from the truth) costs its hand-computed ADD."""
+    pts = _box_surface_pts(BOX_MM) * 1e-3
+    R, t = _rot(-20, 10, 0), np.array([0.05, 0.0, 0.7])
+    m, target = _batch(R, t, pts)
+    Tz = np.diag([-1.0, -1.0, 1.0])
+    sym_targets = torch.stack([target[0], torch.as_tensor(pts @ (R @ Tz).T + t)])[None]   # (1, 2, M, 3)
+    R_z = torch.as_tensor(R @ Tz)[None, None]
+    R_x = torch.as_tensor(R @ np.diag([1.0, -1.0, -1.0]))[None, None]
+    tt = torch.as_tensor(t)[None, None]
+    assert symmetric_add(R_z, tt, m, sym_targets).item() == pytest.approx(0.0, abs=1e-12)
+    add_x = float(np.mean(2 * np.hypot(pts[:, 1], pts[:, 2])))  # |R_x(pi) x - x| = 2 hypot(y, z)
+    assert symmetric_add(R_x, tt, m, sym_targets).item() == pytest.approx(add_x, rel=1e-9)
+    assert point_distances(R_x, tt, m, target, torch.tensor([True])).item() == pytest.approx(0.0, abs=1e-7)
+    # one copy (asymmetric object) = plain ADD; the loss uses it with symmetry="transforms"
+    assert symmetric_add(R_z, tt, m, target[:, None]).item() == pytest.approx(
+        point_distances(R_z, tt, m, target, torch.tensor([False])).item(), rel=1e-12)
+    conf = torch.ones(1, 1, dtype=torch.float64)
+    lo = pose_loss(R_x, tt, conf, m, target, torch.tensor([True]), LossConfig(), sym_targets=sym_targets)
+    assert lo.loss.item() == pytest.approx(add_x, rel=1e-9)
+    lo = pose_loss(R_x, tt, conf, m, target, torch.tensor([True]), LossConfig(symmetry="adds"), sym_targets=sym_targets)
+    assert lo.loss.item() == pytest.approx(0.0, abs=1e-7)
+
+
+def test_lr_schedule_warmup_and_cosine_known_values():
+    from presim.pose.nets.train import QUICK_STEPS, TrainConfig
+
+    cfg = TrainConfig(lr=1e-3, warmup_frac=0.1)
+    assert [cfg.lr_at(s, 100) for s in (0, 4, 9)] == pytest.approx([1e-4, 5e-4, 1e-3])
+    assert cfg.lr_at(10, 100) == pytest.approx(1e-3)
+    assert cfg.lr_at(55, 100) == pytest.approx(0.5e-3)           # half-way through the decay: cos(pi/2)
+    assert cfg.lr_at(100, 100) == pytest.approx(0.0, abs=1e-15)
+    assert TrainConfig(lr_schedule="constant").lr_at(7, 100) == 1e-3
+    assert TrainConfig().epochs == 0 and TrainConfig().total_steps(85) == QUICK_STEPS
+    assert TrainConfig(epochs=3).total_steps(85) == 255
+    with pytest.raises(ValueError, match="unknown schedule"):
+        TrainConfig(lr_schedule="step").lr_at(0, 10)
+
+
 # ---- layers -----------------------------------------------------------------------------------
 
 def test_knn_self_first_and_edgeconv_gat_shapes_equivariance():
@@ -175,6 +215,18 @@ def test_knn_self_first_and_edgeconv_gat_shapes_equivariance():
     idx_p = knn(pts[:, perm], k)
     torch.testing.assert_close(ec(feat[..., perm], idx_p), y[..., perm], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(gat(feat[..., perm], idx_p), z[..., perm], rtol=1e-5, atol=1e-6)
+
+
+def test_edgeconv_fast_form_equals_the_edge_tensor_form():
+    torch.manual_seed(0)
+    x, pts = torch.randn(3, 7, 30), torch.rand(3, 30, 3)
+    ec = EdgeConv(7, 16)
+    idx = knn(pts, 10)
+    torch.testing.assert_close(ec(x, idx), ec.forward_reference(x, idx), rtol=1e-5, atol=1e-5)
+    x.requires_grad_(True)
+    g1 = torch.autograd.grad(ec(x, idx).sum(), x)[0]
+    g2 = torch.autograd.grad(ec.forward_reference(x, idx).sum(), x)[0]
+    torch.testing.assert_close(g1, g2, rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("arch", ARCHS)
@@ -228,6 +280,25 @@ def test_dataset_points_lie_on_the_model_at_the_true_pose(bop):
         np.testing.assert_allclose(it["target"].numpy(), it["model_points"].numpy() @ R.T + t, atol=1e-6)
 
 
+def test_cached_instances_equal_uncached_and_symmetry_targets(bop):
+    """The cache (prepared crop + depth pixels) gives the same items as reading the files each time;
+    sym_targets hold the true pose and its listed symmetric copy (object 2: 180 deg about z)."""
+    cfg = replace(DATA_CFG, augment=True)
+    a, b = PoseInstanceDataset(bop, replace(cfg, cache=False)), PoseInstanceDataset(bop, cfg)
+    b.precompute()
+    assert len(b._cache) == len(b)
+    for i in range(len(a)):
+        x, y = a[i], b[i]
+        assert set(x) == set(y)
+        for k in x:
+            assert torch.equal(x[k], y[k]), k
+        st, m = y["sym_targets"].double().numpy(), y["model_points"].double().numpy()
+        R, t = y["R_gt"].double().numpy(), y["t_gt"].double().numpy()
+        np.testing.assert_allclose(st[0], y["target"].numpy(), atol=1e-6)
+        second = m @ (R @ np.diag([-1.0, -1.0, 1.0])).T + t if int(y["obj_id"]) == 2 else m @ R.T + t
+        np.testing.assert_allclose(st[1], second, atol=1e-6)   # object 1: padded with the identity
+
+
 def test_augmentation_changes_colour_and_depth_but_not_the_target(bop):
     a = PoseInstanceDataset(bop, DATA_CFG)[0]
     b = PoseInstanceDataset(bop, replace(DATA_CFG, augment=True, depth_noise_m=0.002))[0]
@@ -266,6 +337,13 @@ def test_bad_datasets_give_one_line_errors(bop, tmp_path, capsys):
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and msg in lines[0] and lines[0].startswith("presim pose-train: error:")
     assert not (tmp_path / "run").exists()  # nothing that looks like a run is left
+    # a refiner phase as long as the whole run
+    capsys.readouterr()
+    assert main(["pose-train", "--dataset", str(bop), "--split", "test", "--model", "cgaf", "--out",
+                 str(tmp_path / "run"), "--steps", "3", "--refine-steps", "3"]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "--refine-steps: 3 is not below the run's 3 optimiser steps" in lines[0]
+    assert not (tmp_path / "run").exists()
 
 
 # ---- training ---------------------------------------------------------------------------------
@@ -273,6 +351,23 @@ def test_bad_datasets_give_one_line_errors(bop, tmp_path, capsys):
 def _tiny_train_cfg(**kw):
     from presim.pose.nets.train import TrainConfig
     return replace(TrainConfig(model="densefusion", batch_size=4, lr=2e-3, data=replace(DATA_CFG, augment=False)), **kw)
+
+
+def test_refiner_phase_trains_the_refiner_alone(bop):
+    """refine=True: the estimator runs without gradient, only the refiner's parameters get one."""
+    from presim.pose.nets import train as tr
+
+    torch.manual_seed(0)
+    cfg = _tiny_train_cfg(model="cgaf")
+    ds = PoseInstanceDataset(bop, cfg.data)
+    batch = {k: torch.stack([ds[i][k] for i in range(2)]) for k in ds[0]}
+    net = PoseNet(ModelConfig(arch="cgaf", n_objects=2, **TINY))
+    loss, st = tr._pose_step(net, batch, cfg, refine=True)
+    loss.backward()
+    ref = {n for n, _ in net.named_parameters() if n.startswith("refiner.")}
+    assert ref and all(p.grad is not None for n, p in net.named_parameters() if n in ref)
+    assert all(p.grad is None for n, p in net.named_parameters() if n not in ref)
+    assert st["add_refined_m"].shape == (2,)
 
 
 @pytest.mark.slow
@@ -312,7 +407,7 @@ def test_train_resume_metrics_and_nan_stop(bop, tmp_path, monkeypatch):
     r2 = tr.train(bop, run, _tiny_train_cfg(epochs=2), show_progress=False)
     assert r2.resumed_from == 1 and [r["epoch"] for r in r2.rows] == [1, 2]
     lines = (run / "metrics.csv").read_text().strip().splitlines()
-    assert lines[0].startswith("epoch,loss,add_m") and len(lines) == 3
+    assert lines[0].startswith("epoch,step,loss,add_m") and len(lines) == 3
     assert (run / "learning_curve.png").stat().st_size > 1000
     ck = tr.load_checkpoint(run / tr.CHECKPOINT)
     assert ck["epoch"] == 2

@@ -21,7 +21,12 @@ def register(sub) -> None:
     p.add_argument("--model", required=True, choices=_MODELS, help="network to train")
     p.add_argument("--out", required=True, type=Path, help="run folder (created; resumed when it holds a run)")
     p.add_argument("--split", default="train", help="split folder (default train)")
-    p.add_argument("--epochs", type=int, default=None, help="epochs (default: the quick recipe's)")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="epochs (default: the quick recipe, a fixed number of optimiser steps, see --steps)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="optimiser steps when --epochs is not given (default: the quick recipe's)")
+    p.add_argument("--refine-steps", type=int, default=None,
+                   help="last steps that train the refiner alone on the frozen estimator (default 0: no refiner)")
     p.add_argument("--batch-size", type=int, default=None, help="instances (images for segmentation) per step")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate")
     p.add_argument("--points", type=int, default=None, help="depth points per instance")
@@ -67,6 +72,14 @@ def _train(args: argparse.Namespace) -> int:
         if args.epochs < 1:
             raise ValueError(f"--epochs: must be >= 1, got {args.epochs}")
         cfg = replace(cfg, epochs=args.epochs)
+    if args.steps is not None:
+        if args.steps < 1:
+            raise ValueError(f"--steps: must be >= 1, got {args.steps}")
+        cfg = replace(cfg, steps=args.steps)
+    if args.refine_steps is not None:
+        if args.refine_steps < 0:
+            raise ValueError(f"--refine-steps: must be >= 0, got {args.refine_steps}")
+        cfg = replace(cfg, refine_steps=args.refine_steps)
     if args.batch_size is not None:
         cfg = replace(cfg, batch_size=args.batch_size)
     if args.lr is not None:
@@ -74,8 +87,8 @@ def _train(args: argparse.Namespace) -> int:
     if args.points is not None:
         cfg = replace(cfg, data=replace(cfg.data, n_points=args.points))
     rep = train(args.dataset, args.out, cfg)
-    if rep.resumed_from and rep.resumed_from >= cfg.epochs:
-        print(f"{args.out}: already trained for {rep.resumed_from} epochs (raise --epochs to continue)")
+    if rep.resumed_from and rep.resumed_from >= len(rep.rows):
+        print(f"{args.out}: already trained for {rep.resumed_from} epochs (raise --epochs or --steps to continue)")
     last = rep.rows[-1] if rep.rows else {}
     print(" ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in last.items()))
     print(f"run: {args.out} (metrics.csv, learning_curve.png, checkpoint_last.pt)")

@@ -38,7 +38,7 @@ class PredictConfig:
     device: str = "cpu"
     """``cpu`` or ``cuda``."""
     refine_iters: int = -1
-    """Refinement iterations (-1 = the run's, 2 by default; 0 = the estimator alone)."""
+    """Refinement iterations (-1 = the run's: 2, or 0 when its refiner was not trained; 0 = the estimator alone)."""
     seed: int = 0
     """Seeds the point sampling."""
 
@@ -84,7 +84,10 @@ def predict(dataset: str | Path, run_dir: str | Path, cfg: PredictConfig = Predi
     if tuple(ds.objects.obj_ids) != tuple(run_cfg["obj_ids"]):
         raise ValueError(f"{dataset}: objects {list(ds.objects.obj_ids)} differ from those the run "
                          f"{run_dir} was trained on {run_cfg['obj_ids']}")
-    iters = net.cfg.refine_iters if cfg.refine_iters < 0 else cfg.refine_iters
+    if cfg.refine_iters >= 0:
+        iters = cfg.refine_iters
+    else:  # the run's: none when its refiner was never trained (refine_steps 0)
+        iters = 0 if run_cfg.get("refine_steps", 1) == 0 else net.cfg.refine_iters
     est_rows: list[tuple] = []
     img_time: dict[tuple[int, int], float] = {}
     if segmentation is None:

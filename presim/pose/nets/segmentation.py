@@ -143,7 +143,7 @@ class SegTask:
         self.train_set = self.dataset
         self.net = SegNet(self.model_cfg)
 
-    def step(self, net, batch, epoch):
+    def step(self, net, batch, step, total):
         logits = net(batch["rgb"])
         w = torch.ones(logits.shape[1], device=logits.device)
         w[0] = self.model_cfg.background_weight
