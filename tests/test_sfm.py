@@ -79,8 +79,9 @@ def test_sfm_recovers_synthetic_poses_and_is_deterministic():
 @pytest.mark.slow
 def test_import_without_poses_too_few_registered_writes_nothing(tmp_path):
     """A KinectFusion folder without poses whose last 6 of 8 frames are blank (no features): SfM
-    registers at most 2, below 80 %: `presim import` exits with one line naming the frames and leaves
-    no scene; with --min-registered lowered the mapper still needs an initial pair, so it fails too."""
+    registers at most 2 (here none: the two textured frames are 4 cm apart, too little parallax for
+    an initial pair), below 80 %: `presim import` exits with one line naming the frames and leaves no
+    scene."""
     from test_capture_writers import SynthFrames, write_kinfu
 
     scene, T = synthetic_scene(8)

@@ -203,20 +203,21 @@ def estimate_poses_sfm(scene: Scene, config: SfmConfig = SfmConfig(),
         models, names, n_pairs, loops, times = _run_colmap(pycolmap, scene, config, log)
     finally:
         pycolmap.logging.minloglevel = level
-    if not models:
-        raise SfmError(f"SfM registered no frames of {n} (no initial pair found: too little texture or overlap?)")
-    sizes = sorted(((m.num_reg_images(), k) for k, m in models.items()), reverse=True)
-    rec = models[sizes[0][1]]
-    name_to_idx = {nm: i for i, nm in enumerate(names)}
     cam_from_world = {}
-    for img in rec.images.values():
-        if img.has_pose:
-            cam_from_world[name_to_idx[img.name]] = img
+    sizes: list[tuple[int, int]] = []
+    if models:
+        sizes = sorted(((m.num_reg_images(), k) for k, m in models.items()), reverse=True)
+        rec = models[sizes[0][1]]
+        name_to_idx = {nm: i for i, nm in enumerate(names)}
+        for img in rec.images.values():
+            if img.has_pose:
+                cam_from_world[name_to_idx[img.name]] = img
     reg = sorted(cam_from_world)
     lost = [i for i in range(n) if i not in cam_from_world]
     if len(reg) < config.min_registered_frac * n:
+        why = "" if models else " (the mapper found no initial pair: too little texture, overlap or parallax?)"
         raise SfmError(f"only {len(reg)} of {n} frames could be registered by SfM (need "
-                       f"{config.min_registered_frac:.0%}); not registered: {_names(scene, lost)}")
+                       f"{config.min_registered_frac:.0%}); not registered: {_names(scene, lost)}{why}")
 
     # metric scale from the sensor depth at the keypoints
     rng = np.random.default_rng(config.seed)
@@ -250,7 +251,7 @@ def estimate_poses_sfm(scene: Scene, config: SfmConfig = SfmConfig(),
     stats = {
         "frames": n, "registered": len(reg), "not_registered": [scene.frame_ids[i] for i in lost],
         "models": [s for s, _ in sizes], "loop_pairs": len(loops),
-        "verified_pairs": n_pairs, "points3d": int(rec.num_points3D()),
+        "matched_pairs": n_pairs, "points3d": int(rec.num_points3D()),
         "mean_reprojection_px": float(rec.compute_mean_reprojection_error()),
         "scale_m_per_unit": scale, "scale_spread_mad_rel": spread, "scale_samples": count,
         "time_s": {"features": times[0], "matching": times[1], "mapping": times[2],
@@ -310,7 +311,7 @@ def _run_colmap(pycolmap, scene: Scene, config: SfmConfig, log: Callable[[str], 
         db.close()
         t_match = time.perf_counter()
         log(f"sfm: {n} frames, features {t_ext - t0:.0f} s, matching {t_match - t_ext:.0f} s "
-            f"({len(loops)} loop pairs), {n_pairs} verified pairs")
+            f"({len(loops)} loop pairs), {n_pairs} pairs with two-view geometry")
         opts = _mapper_options(pycolmap, config)
         models = pycolmap.incremental_mapping(db_path, img_dir, out_dir, options=opts)
         t_map = time.perf_counter()
