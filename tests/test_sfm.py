@@ -65,7 +65,7 @@ def test_sfm_recovers_synthetic_poses_and_is_deterministic():
     ones after a rigid fit within 1 mm / 0.05 deg (measured 0.31 mm / 0.008 deg); the scale spread is
     under 1 %; the same seed gives the same poses bit for bit."""
     scene, T = synthetic_scene(8)
-    cfg = SfmConfig(num_threads=1)
+    cfg = SfmConfig()
     r = estimate_poses_sfm(scene, cfg)
     assert r.registered_idxs == list(range(8))
     assert r.stats["scale_spread_mad_rel"] < 0.01

@@ -38,6 +38,9 @@ def register(sub) -> None:
                         "fraction of the frames (default 0.8)")
     p.add_argument("--sfm-seed", type=int, default=0,
                    help="captures without poses: SfM seed (same seed = same poses; default 0)")
+    p.add_argument("--sfm-threads", type=int, default=1, metavar="N",
+                   help="captures without poses: threads for SIFT extraction and matching (default 1, "
+                        "reproducible; -1 = all cores, faster, reproducibility not tested)")
     p.set_defaults(func=_cmd_import)
 
     q = sub.add_parser("info", help="summarise a scene: frames, resolution, depth coverage, extent, trajectory",
@@ -61,7 +64,8 @@ def _cmd_import(args: argparse.Namespace) -> int:
         raise ValueError(f"--min-registered must be in (0, 1], got {args.min_registered}")
     scene = import_capture(args.src, fmt=args.fmt, every=args.every, max_frames=args.max_frames,
                            gravity=args.gravity, align_floor=not args.no_floor,
-                           sfm_config=SfmConfig(min_registered_frac=args.min_registered, seed=args.sfm_seed))
+                           sfm_config=SfmConfig(min_registered_frac=args.min_registered, seed=args.sfm_seed,
+                                                           num_threads=args.sfm_threads))
     save_scene(scene, args.dst, overwrite=args.overwrite)
     saved = load_scene(args.dst)
     print(format_info(scene_info(saved, max_sample_frames=10)))

@@ -21,8 +21,10 @@ scale from the depth.
    by taking at most ``scale_samples_per_frame`` per frame), and the spread of the ratios (MAD / median)
    is reported. The world frame is the first registered frame's camera.
 
-Deterministic for a seed: pycolmap's global seed and the mapper's seeds are set, and the mapper runs on
-one thread (Ceres sums in thread order otherwise). Matching results do not depend on the thread count.
+Deterministic for a seed: pycolmap's global seed, the RANSAC and mapper seeds are set, and the mapper
+runs on one thread (Ceres sums in thread order otherwise). Extraction and matching run on
+``num_threads`` (default 1: bit-identical poses are tested that way; more threads are faster but their
+reproducibility is not tested).
 
 Needs pycolmap 4.x (``pip install presim[sfm]``); :class:`SfmUnavailable` says so when it is missing.
 """
@@ -74,9 +76,9 @@ class SfmConfig:
     """Fewer registered frames than this fraction of the capture: :class:`SfmError` (nothing written)."""
     scale_samples_per_frame: int = 200
     """Depth ratios per frame used for the metric scale (seeded subset), so frames weigh alike."""
-    num_threads: int = -1
-    """Threads for feature extraction and matching (-1: all cores). The mapper always runs on one
-    thread (determinism)."""
+    num_threads: int = 1
+    """Threads for feature extraction and matching (-1: all cores; 1: the tested deterministic setting).
+    The mapper always runs on one thread (determinism)."""
     seed: int = 0
     """pycolmap's random seed (RANSAC, mapper) and the vocabulary's k-means seed."""
     quiet: bool = True
