@@ -99,3 +99,19 @@ def test_import_without_poses_too_few_registered_writes_nothing(tmp_path):
     assert "frames could be registered by SfM (need 80%)" in last and "frame-000002" in last, r.stderr[-2000:]
     assert "Traceback" not in r.stderr
     assert not dst.exists()
+
+
+def test_kinfu_folder_without_poses_is_detected_with_either_intrinsics_file(tmp_path):
+    """APC-style folders name their intrinsics `intrinsics.K.txt`; without pose files they are still a
+    kinfu capture (poses estimated at import), as `kinfu.read` accepts that name too."""
+    from test_capture_writers import SynthFrames, write_kinfu
+
+    from presim.capture.importers.registry import detect_format
+
+    scene, T = synthetic_scene(2, width=64, height=48)
+    depth_mm = np.round(np.array(scene.frames.depth_m) * 1000).astype(np.uint16)
+    src = write_kinfu(tmp_path / "kf", SynthFrames(scene.intrinsics[0], np.array(scene.frames.color), depth_mm, T),
+                      intrinsics_name="intrinsics.K.txt")
+    for p in src.glob("frame-*.pose.txt"):
+        p.unlink()
+    assert detect_format(src) == "kinfu"
