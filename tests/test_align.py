@@ -209,10 +209,11 @@ def test_interrupted_align_leaves_scene_as_it_was(tmp_path, syn, monkeypatch):
     assert load_scene(dst).poses_source == "given"
 
 
+@pytest.mark.slow
 def test_import_without_poses_estimates_them(tmp_path, syn):
-    """A KinectFusion-layout folder without frame-*.pose.txt: poses estimated at import (sequential
-    PnP + alignment) match the true ones up to a rigid transform within 2 mm / 0.1 deg (depth is
-    stored in whole millimetres)."""
+    """A KinectFusion-layout folder without frame-*.pose.txt: poses estimated at import (pycolmap SfM,
+    scale from the depth, then alignment) match the true ones up to a rigid transform within
+    2 mm / 0.1 deg (depth is stored in whole millimetres). Failure cases: tests/test_sfm.py."""
     from test_capture_writers import SynthFrames, write_kinfu
 
     from presim.capture.importers import import_capture
@@ -225,14 +226,6 @@ def test_import_without_poses_estimates_them(tmp_path, syn):
         p.unlink()
     got = import_capture(src, align_floor=False)
     assert len(got) == 8 and got.poses_source == "given"
-    assert any("poses estimated" in n for n in got.meta.notes)
+    assert any("pycolmap incremental SfM" in n for n in got.meta.notes)
     dt, dr = _errors(T, got.T_world_cam)
     assert dt.max() < 0.002 and dr.max() < 0.1, (dt.max(), dr.max())
-    # an unrelated image among them cannot be registered: too few register -> clear error, nothing made
-    other, _ = synthetic_scene(2, seed=7)
-    from presim.io_utils import write_png
-
-    for i in range(2, 8):
-        write_png(src / f"frame-{i:06d}.color.png", np.array(other.frames.color)[0][::-1].copy())
-    with pytest.raises(ValueError, match="frames could be registered.*frame-000002"):
-        import_capture(src, align_floor=False)

@@ -14,7 +14,15 @@ def register(sub) -> None:
     p = sub.add_parser(
         "import", help="import an RGB-D capture folder (format auto-detected) into a PreSim scene",
         description="Read a capture (KinectFusion/7-Scenes, APC shelf, TUM RGB-D, COLMAP + depth, nerfstudio, "
-                    "BOP, YCB-Video), fuse its point cloud, align the floor (gravity -z, floor z = 0) and save it.")
+                    "BOP, YCB-Video), fuse its point cloud, align the floor (gravity -z, floor z = 0) and save it. "
+                    "A capture without poses (KinectFusion layout without frame-*.pose.txt, TUM folder without "
+                    "groundtruth.txt) gets them by structure from motion: pycolmap (pip install 'presim[sfm]'; "
+                    "there is no other pose estimator) extracts SIFT, matches each frame to its next 10 (plus "
+                    "quadratic jumps) and to its most similar frames by a bag of words built on the capture "
+                    "(loop closure), maps incrementally with the known intrinsics held fixed; the metric scale "
+                    "comes from the sensor depth; then the local-to-global alignment of `presim align` runs. "
+                    "Frames the mapper cannot register are named and left out; if fewer than --min-registered "
+                    "register, nothing is written. See docs/alignment.md.")
     p.add_argument("src", type=Path, help="capture folder (or transforms.json)")
     p.add_argument("dst", type=Path, help="output scene folder")
     p.add_argument("--format", dest="fmt", choices=sorted(FORMATS) + sorted(ALIASES), default=None, metavar="F",
@@ -25,6 +33,14 @@ def register(sub) -> None:
                    help="gravity direction in the capture's world frame (default: from the cameras' up axes)")
     p.add_argument("--no-floor", action="store_true", help="keep the capture's world frame (no floor alignment)")
     p.add_argument("--overwrite", action="store_true", help="replace DST if it exists")
+    p.add_argument("--min-registered", type=float, default=0.8, metavar="FRAC",
+                   help="captures without poses: fail (writing nothing) when SfM registers fewer than this "
+                        "fraction of the frames (default 0.8)")
+    p.add_argument("--sfm-seed", type=int, default=0,
+                   help="captures without poses: SfM seed (same seed = same poses; default 0)")
+    p.add_argument("--sfm-threads", type=int, default=1, metavar="N",
+                   help="captures without poses: threads for SIFT extraction and matching (default 1, "
+                        "reproducible; -1 = all cores, faster, reproducibility not tested)")
     p.set_defaults(func=_cmd_import)
 
     q = sub.add_parser("info", help="summarise a scene: frames, resolution, depth coverage, extent, trajectory",
@@ -40,10 +56,16 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from presim.capture.info import format_info, scene_info
     from presim.capture.store import load_scene, save_scene
 
+    from presim.capture.align.sfm import SfmConfig
+
     if args.dst.exists() and not args.overwrite:
         raise FileExistsError(f"{args.dst}: already exists (pass --overwrite to replace it)")
+    if not 0 < args.min_registered <= 1:
+        raise ValueError(f"--min-registered must be in (0, 1], got {args.min_registered}")
     scene = import_capture(args.src, fmt=args.fmt, every=args.every, max_frames=args.max_frames,
-                           gravity=args.gravity, align_floor=not args.no_floor)
+                           gravity=args.gravity, align_floor=not args.no_floor,
+                           sfm_config=SfmConfig(min_registered_frac=args.min_registered, seed=args.sfm_seed,
+                                                           num_threads=args.sfm_threads))
     save_scene(scene, args.dst, overwrite=args.overwrite)
     saved = load_scene(args.dst)
     print(format_info(scene_info(saved, max_sample_frames=10)))

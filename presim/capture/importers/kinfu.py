@@ -35,11 +35,11 @@ DEFAULT_RATE_HZ = 30.0
 
 def detect(src: Path) -> bool:
     """A folder with ``frame-*.color.*`` and ``frame-*.pose.txt`` files, or (no poses: estimated at
-    import) ``frame-*.color.*`` + ``frame-*.depth.png`` + ``camera-intrinsics.txt``."""
+    import) ``frame-*.color.*`` + ``frame-*.depth.png`` + an intrinsics file (:data:`INTRINSICS_FILES`)."""
     if not (src.is_dir() and any(src.glob("frame-*.color.*"))):
         return False
     return any(src.glob("frame-*.pose.txt")) or (any(src.glob("frame-*.depth.png"))
-                                                  and (src / "camera-intrinsics.txt").is_file())
+                                                  and any((src / f).is_file() for f in INTRINSICS_FILES))
 
 
 def list_frames(src: Path) -> list[tuple[str, int, Path]]:

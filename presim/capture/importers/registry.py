@@ -11,12 +11,16 @@ import importlib
 from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from presim.capture.floor import FloorConfig, align_scene_to_floor, gravity_from_cameras
 from presim.capture.scene import Scene, SceneError
 from presim.capture.store import fuse_point_cloud
+
+if TYPE_CHECKING:
+    from presim.capture.align.sfm import SfmConfig
 
 __all__ = ["FORMATS", "importer", "detect_format", "import_capture"]
 
@@ -61,30 +65,40 @@ def detect_format(src: str | Path) -> str:
         "Pass --format to force one.")
 
 
-def _estimate_poses(scene: Scene) -> Scene:
-    """A capture without poses: sequential PnP registration, then the local-to-global alignment
-    (docs/alignment.md). Unregistered frames are dropped and named in the notes."""
+def _estimate_poses(scene: Scene, sfm_config: "SfmConfig | None") -> Scene:
+    """A capture without poses: incremental SfM (pycolmap) with metric scale from the depth, then the
+    local-to-global alignment (docs/alignment.md). Unregistered frames are dropped and named."""
     import sys
 
     from presim.capture.align import AlignConfig, align_poses
-    from presim.capture.align.initial import estimate_initial_poses
+    from presim.capture.align.sfm import SfmConfig, estimate_poses_sfm
 
-    T0, reg = estimate_initial_poses(scene)
+    def log(s: str) -> None:
+        print(s, file=sys.stderr)
+
+    res = estimate_poses_sfm(scene, sfm_config or SfmConfig(), log=log)
+    reg = res.registered_idxs
     lost = [scene.frame_ids[i] for i in range(len(scene)) if i not in set(reg)]
-    sub = replace(scene.subset(reg), T_world_cam=T0[reg], poses_source="given")
-    res = align_poses(sub, AlignConfig(keep_unmatched=True), log=lambda s: print(s, file=sys.stderr))
-    notes = [f"poses estimated from the images (RGB-D SfM: sequential PnP + local-to-global alignment); "
-             f"{len(reg)} of {len(scene)} frames registered"]
+    sub = replace(scene.subset(reg), T_world_cam=res.T_world_cam[reg], poses_source="given")
+    aligned = align_poses(sub, AlignConfig(keep_unmatched=True), log=log)
+    st = res.stats
+    notes = [f"poses estimated from the images (pycolmap incremental SfM, metric scale "
+             f"{st['scale_m_per_unit']:.4g} m/unit from the depth, spread {st['scale_spread_mad_rel']:.1%} MAD; "
+             f"then local-to-global alignment); {len(reg)} of {len(scene)} frames registered"]
+    if len(st["models"]) > 1:
+        notes.append(f"SfM made {len(st['models'])} models ({st['models']} frames): the largest was kept")
     if lost:
         notes.append(f"not registered (left out): {', '.join(lost)}")
-        print(f"import: {len(lost)} frame(s) could not be registered and were left out: {', '.join(lost[:10])}",
-              file=sys.stderr)
-    return replace(sub, T_world_cam=res.T_world_cam, meta=replace(sub.meta, notes=sub.meta.notes + tuple(notes)))
+        print(f"import: {len(lost)} frame(s) could not be registered and were left out: {', '.join(lost[:10])}"
+              + (f" and {len(lost) - 10} more" if len(lost) > 10 else ""), file=sys.stderr)
+    return replace(sub, T_world_cam=aligned.T_world_cam,
+                   meta=replace(sub.meta, notes=sub.meta.notes + tuple(notes)))
 
 
 def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_frames: int | None = None,
                    gravity: np.ndarray | None = None, align_floor: bool = True,
-                   floor_config: FloorConfig = FloorConfig(), voxel_m: float = 0.01) -> Scene:
+                   floor_config: FloorConfig = FloorConfig(), voxel_m: float = 0.01,
+                   sfm_config: "SfmConfig | None" = None) -> Scene:
     """Read a capture folder into a :class:`Scene` (frames stay on disk, read lazily).
 
     Args:
@@ -95,6 +109,7 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
         align_floor: estimate the floor and move the world to gravity -z / floor z = 0 when found.
         floor_config: floor search thresholds.
         voxel_m: voxel size of the fused point cloud.
+        sfm_config: SfM settings for a capture without poses (default ``SfmConfig()``; needs pycolmap).
 
     Returns:
         The scene, with its point cloud; ``scene.meta.transforms`` lists any change of world frame.
@@ -114,7 +129,7 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
     name = detect_format(src) if fmt is None else importer(fmt).NAME
     scene = importer(name).read(src, every=every, max_frames=max_frames)
     if scene.poses_source == "none":
-        scene = _estimate_poses(scene)
+        scene = _estimate_poses(scene, sfm_config)
     if gravity is not None:
         gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(gravity)) or np.linalg.norm(gravity) < 1e-9:
