@@ -399,16 +399,7 @@ def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     """Lower median (depth, each colour channel) of the non-empty pixels of layer ``l`` in the
     window, whose centre is empty (so at most 8 values): slots past the count are padded with the
     largest value, which leaves ranks below the count unchanged. Returns the median's index."""
-    n = 0
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            dd = d[l, y, x]
-            if dd > 0:
-                bd[n] = dd
-                b0[n] = c[l, y, x, 0]
-                b1[n] = c[l, y, x, 1]
-                b2[n] = c[l, y, x, 2]
-                n += 1
+    n = gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2)
     for i in range(n, 8):
         bd[i] = np.inf
         b0[i] = 255
