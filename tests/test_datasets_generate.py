@@ -264,3 +264,48 @@ def test_full_size_sample_scene_masks(tmp_path):
     ious, pose_err = _gt_ious(sample, out)
     assert np.mean(ious) >= 0.95 and pose_err < 1e-9
     assert validate_bop(out) == []
+
+
+def test_source_frames_restrict_seed_and_source_views(sample, tmp_path):
+    """``GenConfig.source_frames`` (gen-bop --source-frames): with one capture frame allowed, every
+    generated camera lies within max_translation_m of that frame's camera, and a selection that
+    holds no frame is a clear error (Table 4.5 protocol: held-out frames never reach the synthesis)."""
+    from presim.datasets.camera_sampling import seed_views
+    from presim.datasets.generate import FrameGenerator, GenJob
+
+    scene = load_scene(sample)
+    objs = resolve_objects(scene, None)
+    seeds = {o.obj_id: set(seed_views(scene, o.model, o.T_world_obj).tolist()) for o in objs}
+    k = max(range(len(scene)), key=lambda i: sum(i in s for s in seeds.values()))
+    seen = [o for o in objs if k in seeds[o.obj_id]]
+    assert seen
+    cfg = GenConfig(frames=len(seen), width=96, height=72, seed=5, source_frames=(k, k + 1, 1))
+    gen = FrameGenerator(GenJob(str(sample), tuple(seen), cfg))
+    assert gen.scene.frame_ids == [scene.frame_ids[k]] and len(gen.renderer.scene) == 1
+    rep = generate_bop(sample, tmp_path / "bop", seen, cfg)
+    assert rep.complete and rep.frames_written == len(seen)
+    gt = json.loads((tmp_path / "bop/train/000000/scene_gt.json").read_text())
+    by_id = {o.obj_id: o for o in seen}
+    c_k = scene.T_world_cam[k][:3, 3]
+    for anns in gt.values():
+        a = anns[0]
+        T_cam_obj = np.eye(4)
+        T_cam_obj[:3, :3] = np.asarray(a["cam_R_m2c"]).reshape(3, 3)
+        T_cam_obj[:3, 3] = np.asarray(a["cam_t_m2c"]) / 1000.0
+        T_world_cam = compose(by_id[a["obj_id"]].T_world_obj, invert(T_cam_obj))
+        assert np.linalg.norm(T_world_cam[:3, 3] - c_k) <= cfg.sampling.max_translation_m + 1e-4
+    with pytest.raises(ValueError, match="selects no frame"):
+        generate_bop(sample, tmp_path / "none", seen, GenConfig(frames=1, width=96, height=72,
+                                                              source_frames=(500, 600, 1)))
+
+
+def test_frame_range_parsing_and_open_ends():
+    from presim.datasets.real_split import frame_positions, parse_frame_range
+
+    assert frame_positions(parse_frame_range("40:"), 60) == list(range(40, 60))  # open end: no huge list
+    assert frame_positions(parse_frame_range("0:10:4"), 60) == [0, 4, 8]
+    assert frame_positions(None, 3) == [0, 1, 2]
+    with pytest.raises(ValueError, match="--source-frames '1:2:0'"):
+        parse_frame_range("1:2:0", "--source-frames")
+    with pytest.raises(ValueError, match="START and STOP must be >= 0"):
+        parse_frame_range("-5:", "--frames")

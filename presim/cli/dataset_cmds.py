@@ -46,6 +46,9 @@ def register(sub) -> None:
     p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
                    help="camera poses of the scene: refined by `presim align` when present (auto, default), "
                         "the capture's given ones, or refined (error when absent)")
+    p.add_argument("--source-frames", default=None, metavar="START:STOP[:STEP]",
+                   help="capture frames the synthesis may use as seed and source views (Python slice of frame "
+                        "positions, e.g. 0:40; default all): keeps held-out capture frames out of training data")
     p.set_defaults(func=_gen_bop)
 
 
@@ -55,6 +58,7 @@ def _gen_bop(args) -> int:
     from presim.datasets.camera_sampling import CameraSamplingConfig
     from presim.datasets.generate import GenConfig, generate_bop, report_path
     from presim.datasets.object_sources import resolve_objects
+    from presim.datasets.real_split import parse_frame_range
 
     from presim.limits import check_intrinsics, check_positive, check_positive_int, check_render_memory
 
@@ -74,6 +78,8 @@ def _gen_bop(args) -> int:
         sampling=CameraSamplingConfig(max_rotation_deg=args.max_rotation_deg,
                                       max_translation_m=args.max_translation_m, max_roll_deg=args.max_roll_deg),
         annotate=AnnotateConfig(visib_tolerance_m=args.visib_tolerance_m),
+        source_frames=None if args.source_frames is None else parse_frame_range(args.source_frames,
+                                                                                "--source-frames"),
     )
     rep = generate_bop(args.scene, args.out, objects, config, workers=args.workers, ray_address=args.ray,
                        overwrite=args.overwrite, stop_after=args.max_new_frames,

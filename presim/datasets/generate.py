@@ -39,6 +39,7 @@ from presim.datasets.camera_sampling import (
 )
 from presim.datasets.object_sources import PlacedObject
 from presim.datasets.objects import merge_models_dir
+from presim.datasets.real_split import frame_positions
 from presim.geometry import Intrinsics, compose, invert, transform_points
 from presim.io_utils import atomic_write_bytes, atomic_write_json, progress
 
@@ -84,6 +85,10 @@ class GenConfig:
     """Camera pose sampling around seed views."""
     annotate: AnnotateConfig = AnnotateConfig()
     """Mask / visibility / box computation."""
+    source_frames: tuple[int, int, int] | None = None
+    """``(start, stop, step)`` of the capture frame positions the synthesis may use, as seed views and
+    as source views (None = all). Keeps held-out capture frames out of a synthesized training set
+    (the Table 4.5 protocol in docs/pose-networks.md)."""
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -132,6 +137,18 @@ class GenJob:
         return h.hexdigest()[:16]
 
 
+def source_scene(scene_path: str | Path, scene_poses: str, source_frames: tuple[int, int, int] | None):
+    """The scene restricted to the capture frames the synthesis may use (``GenConfig.source_frames``)."""
+    scene = load_scene(scene_path, poses=scene_poses)
+    if source_frames is None:
+        return scene
+    idx = frame_positions(source_frames, len(scene))
+    if not idx:
+        raise ValueError(f"--source-frames {':'.join(map(str, source_frames))} selects no frame of the "
+                         f"{len(scene)} in {scene_path}")
+    return scene.subset(idx)
+
+
 def _config_dict(c: GenConfig) -> dict:
     return asdict(c)
 
@@ -159,7 +176,7 @@ class FrameGenerator:
 
         self.job = job
         self.cfg = job.config
-        self.scene = load_scene(job.scene_path, poses=job.scene_poses)
+        self.scene = source_scene(job.scene_path, job.scene_poses, self.cfg.source_frames)
         self.renderer = Renderer(self.scene, job.render_config if job.render_config is not None else RenderConfig())
         self.K = output_intrinsics(self.scene.intrinsics[0], self.cfg.width, self.cfg.height, self.cfg.hfov_deg)
         self.objects = list(job.objects)
@@ -398,7 +415,7 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
     atomic_write_json(job_file, {"fingerprint": fp, "scene": str(scene_path), "config": _config_dict(config)})
 
     # Dataset-level files are deterministic: (re)writing them on resume changes nothing.
-    scene = load_scene(scene_path, poses=scene_poses)
+    scene = source_scene(scene_path, scene_poses, config.source_frames)
     K = output_intrinsics(scene.intrinsics[0], config.width, config.height, config.hfov_deg)
     _write_dataset_level(out, K, objects, config.depth_scale)
     del scene

@@ -31,7 +31,8 @@ from presim.datasets.objects import merge_models_dir
 from presim.geometry import compose, invert
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
-__all__ = ["RealSplitConfig", "RealSplitReport", "write_real_split", "parse_frame_range"]
+__all__ = ["RealSplitConfig", "RealSplitReport", "write_real_split", "parse_frame_range",
+           "frame_positions"]
 
 
 @dataclass(frozen=True)
@@ -63,21 +64,28 @@ class RealSplitReport:
     seconds: float
 
 
-def parse_frame_range(text: str) -> tuple[int, int, int]:
+def parse_frame_range(text: str, flag: str = "--frames") -> tuple[int, int, int]:
     """``"A:B"`` or ``"A:B:S"`` (Python slice of frame positions; empty = open end)."""
     parts = text.split(":")
     if len(parts) not in (2, 3):
-        raise ValueError(f"--frames {text!r}: expected START:STOP[:STEP], e.g. 0:40 or 40::2")
+        raise ValueError(f"{flag} {text!r}: expected START:STOP[:STEP], e.g. 0:40 or 40::2")
     try:
         vals = [int(p) if p.strip() else None for p in parts]
     except ValueError:
-        raise ValueError(f"--frames {text!r}: START, STOP and STEP must be integers") from None
+        raise ValueError(f"{flag} {text!r}: START, STOP and STEP must be integers") from None
     start = vals[0] or 0
     stop = vals[1] if vals[1] is not None else 1 << 30
     step = vals[2] if len(vals) == 3 and vals[2] is not None else 1
     if step < 1:
-        raise ValueError(f"--frames {text!r}: STEP must be >= 1")
+        raise ValueError(f"{flag} {text!r}: STEP must be >= 1")
+    if start < 0 or stop < 0:
+        raise ValueError(f"{flag} {text!r}: START and STOP must be >= 0")
     return (start, stop, step)
+
+
+def frame_positions(frames: tuple[int, int, int] | None, n: int) -> list[int]:
+    """The positions ``range(n)[start:stop:step]`` of a :func:`parse_frame_range` triple (None = all)."""
+    return list(range(n)) if frames is None else list(range(n)[slice(*frames)])
 
 
 def write_real_split(scene_path: str | Path, out: str | Path, config: RealSplitConfig = RealSplitConfig(),
@@ -95,8 +103,7 @@ def write_real_split(scene_path: str | Path, out: str | Path, config: RealSplitC
     scene = load_scene(scene_path)
     objects = resolve_objects(scene, objects_spec)
     n = len(scene)
-    idx = list(range(n)) if config.frames is None else list(range(*config.frames))[: n]
-    idx = [i for i in idx if 0 <= i < n]
+    idx = frame_positions(config.frames, n)
     if not idx:
         raise ValueError(f"--frames selects no frame of the {n} in {scene_path}")
     out = Path(out)
