@@ -279,7 +279,7 @@ def test_source_frames_restrict_seed_and_source_views(sample, tmp_path):
     k = max(range(len(scene)), key=lambda i: sum(i in s for s in seeds.values()))
     seen = [o for o in objs if k in seeds[o.obj_id]]
     assert seen
-    cfg = GenConfig(frames=len(seen), width=96, height=72, seed=5, source_frames=(k, k + 1, 1))
+    cfg = GenConfig(frames=len(seen), width=96, height=72, seed=5, source_frames=((k, k + 1, 1),))
     gen = FrameGenerator(GenJob(str(sample), tuple(seen), cfg))
     assert gen.scene.frame_ids == [scene.frame_ids[k]] and len(gen.renderer.scene) == 1
     rep = generate_bop(sample, tmp_path / "bop", seen, cfg)
@@ -296,7 +296,7 @@ def test_source_frames_restrict_seed_and_source_views(sample, tmp_path):
         assert np.linalg.norm(T_world_cam[:3, 3] - c_k) <= cfg.sampling.max_translation_m + 1e-4
     with pytest.raises(ValueError, match="selects no frame"):
         generate_bop(sample, tmp_path / "none", seen, GenConfig(frames=1, width=96, height=72,
-                                                              source_frames=(500, 600, 1)))
+                                                              source_frames=((500, 600, 1),)))
 
 
 def test_frame_range_parsing_and_open_ends():
@@ -304,6 +304,8 @@ def test_frame_range_parsing_and_open_ends():
 
     assert frame_positions(parse_frame_range("40:"), 60) == list(range(40, 60))  # open end: no huge list
     assert frame_positions(parse_frame_range("0:10:4"), 60) == [0, 4, 8]
+    assert parse_frame_range("0:3,5:7") == ((0, 3, 1), (5, 7, 1))
+    assert frame_positions(parse_frame_range("0:3,5:7,1:2"), 6) == [0, 1, 2, 5]     # union, no repeats
     assert frame_positions(None, 3) == [0, 1, 2]
     with pytest.raises(ValueError, match="--source-frames '1:2:0'"):
         parse_frame_range("1:2:0", "--source-frames")

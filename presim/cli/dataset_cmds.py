@@ -46,9 +46,9 @@ def register(sub) -> None:
     p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
                    help="camera poses of the scene: refined by `presim align` when present (auto, default), "
                         "the capture's given ones, or refined (error when absent)")
-    p.add_argument("--source-frames", default=None, metavar="START:STOP[:STEP]",
-                   help="capture frames the synthesis may use as seed and source views (Python slice of frame "
-                        "positions, e.g. 0:40; default all): keeps held-out capture frames out of training data")
+    p.add_argument("--source-frames", default=None, metavar="START:STOP[:STEP][,...]",
+                   help="capture frames the synthesis may use as seed and source views (Python slices of frame "
+                        "positions joined by commas, e.g. 0:40 or 0:160,180:200; default all): keeps held-out capture frames out of training data")
     p.set_defaults(func=_gen_bop)
 
 

@@ -38,8 +38,9 @@ def register(sub) -> None:
     q.add_argument("--out", type=Path, required=True, help="BOP dataset root")
     q.add_argument("--split", default="real", help="split folder (default real)")
     q.add_argument("--scene-id", type=int, default=0, help="BOP scene id (default 0)")
-    q.add_argument("--frames", default=None, metavar="START:STOP[:STEP]",
-                   help="frame positions to write (Python slice; default all), e.g. 0:70 for a train part")
+    q.add_argument("--frames", default=None, metavar="START:STOP[:STEP][,...]",
+                   help="frame positions to write (Python slices joined by commas; default all), e.g. 0:70 "
+                        "for a train part, 0:160,180:200 around a held-out block")
     q.add_argument("--objects", default=None, help="objects as gen-bop --objects (default: the scene's own)")
     q.add_argument("--depth-scale", type=float, default=0.1, help="depth PNG unit in mm (default 0.1)")
     q.add_argument("--overwrite", action="store_true", help="replace the split's scene folder")

@@ -39,7 +39,7 @@ from presim.datasets.camera_sampling import (
 )
 from presim.datasets.object_sources import PlacedObject
 from presim.datasets.objects import merge_models_dir
-from presim.datasets.real_split import frame_positions
+from presim.datasets.real_split import FrameRanges, frame_positions
 from presim.geometry import Intrinsics, compose, invert, transform_points
 from presim.io_utils import atomic_write_bytes, atomic_write_json, progress
 
@@ -85,9 +85,9 @@ class GenConfig:
     """Camera pose sampling around seed views."""
     annotate: AnnotateConfig = AnnotateConfig()
     """Mask / visibility / box computation."""
-    source_frames: tuple[int, int, int] | None = None
-    """``(start, stop, step)`` of the capture frame positions the synthesis may use, as seed views and
-    as source views (None = all). Keeps held-out capture frames out of a synthesized training set
+    source_frames: tuple[tuple[int, int, int], ...] | None = None
+    """``((start, stop, step), ...)``: the capture frame positions the synthesis may use, as seed views
+    and as source views (union of Python slices; None = all). Keeps held-out capture frames out of a synthesized training set
     (the Table 4.5 protocol in docs/pose-networks.md)."""
 
     def __post_init__(self) -> None:
@@ -137,14 +137,15 @@ class GenJob:
         return h.hexdigest()[:16]
 
 
-def source_scene(scene_path: str | Path, scene_poses: str, source_frames: tuple[int, int, int] | None):
+def source_scene(scene_path: str | Path, scene_poses: str, source_frames: FrameRanges | None):
     """The scene restricted to the capture frames the synthesis may use (``GenConfig.source_frames``)."""
     scene = load_scene(scene_path, poses=scene_poses)
     if source_frames is None:
         return scene
     idx = frame_positions(source_frames, len(scene))
     if not idx:
-        raise ValueError(f"--source-frames {':'.join(map(str, source_frames))} selects no frame of the "
+        raise ValueError(f"--source-frames {','.join(':'.join(map(str, r)) for r in source_frames)} selects "
+                         f"no frame of the "
                          f"{len(scene)} in {scene_path}")
     return scene.subset(idx)
 

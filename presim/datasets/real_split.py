@@ -32,7 +32,7 @@ from presim.geometry import compose, invert
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
 __all__ = ["RealSplitConfig", "RealSplitReport", "write_real_split", "parse_frame_range",
-           "frame_positions"]
+           "frame_positions", "FrameRanges"]
 
 
 @dataclass(frozen=True)
@@ -43,8 +43,9 @@ class RealSplitConfig:
     """BOP split folder."""
     scene_id: int = 0
     """BOP scene id."""
-    frames: tuple[int, int, int] | None = None
-    """``(start, stop, step)`` of the scene's frame positions (Python slice); None = all frames."""
+    frames: FrameRanges | None = None
+    """``((start, stop, step), ...)``: the scene's frame positions (union of Python slices,
+    :func:`parse_frame_range`); None = all frames."""
     depth_scale: float = bop_writer.DEFAULT_DEPTH_SCALE
     """Depth PNG unit in mm."""
     image_format: str = "png"
@@ -64,28 +65,44 @@ class RealSplitReport:
     seconds: float
 
 
-def parse_frame_range(text: str, flag: str = "--frames") -> tuple[int, int, int]:
-    """``"A:B"`` or ``"A:B:S"`` (Python slice of frame positions; empty = open end)."""
-    parts = text.split(":")
-    if len(parts) not in (2, 3):
-        raise ValueError(f"{flag} {text!r}: expected START:STOP[:STEP], e.g. 0:40 or 40::2")
-    try:
-        vals = [int(p) if p.strip() else None for p in parts]
-    except ValueError:
-        raise ValueError(f"{flag} {text!r}: START, STOP and STEP must be integers") from None
-    start = vals[0] or 0
-    stop = vals[1] if vals[1] is not None else 1 << 30
-    step = vals[2] if len(vals) == 3 and vals[2] is not None else 1
-    if step < 1:
-        raise ValueError(f"{flag} {text!r}: STEP must be >= 1")
-    if start < 0 or stop < 0:
-        raise ValueError(f"{flag} {text!r}: START and STOP must be >= 0")
-    return (start, stop, step)
+FrameRanges = tuple[tuple[int, int, int], ...]
+"""Frame positions as ``((start, stop, step), ...)``: the union of Python slices."""
 
 
-def frame_positions(frames: tuple[int, int, int] | None, n: int) -> list[int]:
-    """The positions ``range(n)[start:stop:step]`` of a :func:`parse_frame_range` triple (None = all)."""
-    return list(range(n)) if frames is None else list(range(n)[slice(*frames)])
+def parse_frame_range(text: str, flag: str = "--frames") -> FrameRanges:
+    """``"A:B"``, ``"A:B:S"`` or several joined by commas (``"0:160,180:200"``): Python slices of frame
+    positions (empty = open end), in the order given."""
+    out = []
+    for part_text in text.split(","):
+        parts = part_text.split(":")
+        if len(parts) not in (2, 3):
+            raise ValueError(f"{flag} {text!r}: expected START:STOP[:STEP][,START:STOP...], e.g. 0:40, 40::2 "
+                             f"or 0:160,180:200")
+        try:
+            vals = [int(p) if p.strip() else None for p in parts]
+        except ValueError:
+            raise ValueError(f"{flag} {text!r}: START, STOP and STEP must be integers") from None
+        start = vals[0] or 0
+        stop = vals[1] if vals[1] is not None else 1 << 30
+        step = vals[2] if len(vals) == 3 and vals[2] is not None else 1
+        if step < 1:
+            raise ValueError(f"{flag} {text!r}: STEP must be >= 1")
+        if start < 0 or stop < 0:
+            raise ValueError(f"{flag} {text!r}: START and STOP must be >= 0")
+        out.append((start, stop, step))
+    return tuple(out)
+
+
+def frame_positions(frames: FrameRanges | None, n: int) -> list[int]:
+    """The positions ``range(n)[start:stop:step]`` of every slice of a :func:`parse_frame_range`
+    result, without repeats, in order of first appearance (None = all ``n``)."""
+    if frames is None:
+        return list(range(n))
+    seen: dict[int, None] = {}
+    for start, stop, step in frames:
+        for i in range(n)[slice(start, stop, step)]:
+            seen.setdefault(i, None)
+    return list(seen)
 
 
 def write_real_split(scene_path: str | Path, out: str | Path, config: RealSplitConfig = RealSplitConfig(),
