@@ -43,7 +43,6 @@ def _inputs(seed: int = 0):
     return BlendInput(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), depth,
                       rng.choice([-1, 4, 7, 9], (H, W)).astype(np.int32), np.array([4, 7, 9], np.int32), vd,
                       rng.integers(0, 256, (n, H, W, 3), dtype=np.uint8),
-                      np.stack([feather_map(d, 4.0) for d in vd]),
                       rng.normal(0, 0.2, (n, 3)), np.array([1.0, 0.5, 2.0])), Intrinsics.from_fov(W, H, 60.0)
 
 
@@ -64,7 +63,7 @@ def test_views_behind_the_front_surface_are_not_blended():
     vd = inp.view_depth_m.copy()
     vd[1:] = inp.depth_m * 1.3  # views 7 and 9 see a surface 30 % farther than the winner (view 4)
     far = BlendInput(inp.color, inp.depth_m, np.full_like(inp.source, 4), inp.view_ids, vd,
-                     inp.view_color, inp.feather, inp.centres, inp.quality)
+                     inp.view_color, inp.centres, inp.quality)
     out = blend_numba(far, Kt, look_at((0.0, 0.0, 0.0), (0.0, 0.0, 2.0)), BlendConfig())
     assert np.array_equal(out, inp.color)
 

@@ -278,8 +278,9 @@ class _WarpCapture:
     after each warp, :func:`~presim.synthesis.blend.front_of_layers`, ~1 ms; other backends keep no
     layers and blending warps the view itself)."""
 
-    def __init__(self, stacks: dict) -> None:
+    def __init__(self, stacks: dict, feather_px: float = 8.0) -> None:
         self._stacks = stacks  # the blend's per-view stacks: slot i = the i-th warped view
+        self._feather_px = feather_px
         self._ids: list[int] = []
 
     def wrap(self, get_view, view_image, max_views: int):
@@ -297,7 +298,7 @@ class _WarpCapture:
             img = view_image(view, T_cam_world, K, config, replace, workspace)
             lay, n = getattr(workspace, "layers", None), len(self._ids)
             if current and n < max_views and isinstance(lay, LayeredImage):
-                d, c, _ = blend_stacks(self._stacks, max_views, *lay.depth_m.shape[1:])
+                d, c, _ = blend_stacks(self._stacks, max_views, *lay.depth_m.shape[1:], self._feather_px)
                 front_of_layers(lay.depth_m, lay.color, d[n], c[n])
                 self._ids.append(current[0])
             current.clear()
@@ -354,7 +355,7 @@ class Renderer:
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
         self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
-        self._warp_capture = _WarpCapture(self._blend_stacks)  # the loop's warps, for blending
+        self._warp_capture = _WarpCapture(self._blend_stacks, config.blend_feather_px)  # the loop's warps, for blending
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
