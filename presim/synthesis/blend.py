@@ -144,12 +144,13 @@ def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: flo
     no crack filter."""
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     _front_warp_kernel(view.xyz_world, view.rgb, M, np.float32(K.fx), np.float32(K.fy), np.float32(K.cx),
-                       np.float32(K.cy), np.float32(near_m), depth_out, color_out)
+                       np.float32(K.cy), np.float32(near_m), depth_out, color_out.transpose(2, 0, 1))
 
 
 @nb.njit(fastmath=_WARP_FASTMATH, cache=True)  # the warp kernel's flags: bit-equal projections
 def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
-    # Same arithmetic as presim.synthesis.warp._warp_layers_kernel with one layer (tested equal).
+    # Same arithmetic as presim.synthesis.warp._warp_layers_kernel with one layer (tested equal);
+    # colours into the planes cbuf (3, H, W).
     H, W = zbuf.shape
     zbuf[:] = 0.0
     cbuf[:] = 0
@@ -171,9 +172,9 @@ def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma
         cur = zbuf[vi, ui]
         if cur == 0.0 or zc < cur:
             zbuf[vi, ui] = zc
-            cbuf[vi, ui, 0] = rgb[i, 0]
-            cbuf[vi, ui, 1] = rgb[i, 1]
-            cbuf[vi, ui, 2] = rgb[i, 2]
+            cbuf[0, vi, ui] = rgb[i, 0]
+            cbuf[1, vi, ui] = rgb[i, 1]
+            cbuf[2, vi, ui] = rgb[i, 2]
 
 
 def front_of_layers(layer_depth_m: np.ndarray, layer_color: np.ndarray, depth_out: np.ndarray,
