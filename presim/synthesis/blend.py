@@ -26,8 +26,10 @@ views agree; depth, validity and source view stay those of the winner. Identical
 give exactly that colour back. :func:`blend_reference` is the plain numpy definition the numba
 kernel is tested against.
 
-Cost: per blended view one plain z-buffer warp + front-to-back composite (no crack filter: cracks
-only mean fewer candidates), one closing + distance transform, and the per-pixel weight kernel.
+Cost per blended view: its front surface (for the views the adaptive loop warped, written by the
+packed crack pass from the reads it makes anyway, ``Workspace.front``; other views: one plain
+z-buffer warp, no crack filter: cracks only mean fewer candidates), one integer box filter of its
+coverage (:func:`coverage_counts`, the feathering), and its share of the per-pixel weight kernel.
 """
 
 from __future__ import annotations

@@ -177,10 +177,11 @@ class RenderConfig:
     # ---- multi-view blending (presim/synthesis/blend.py) ----
     blend: bool = False
     """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
-    seams) instead of keeping the winning view's colour. Off by default: it costs more than the
-    20 % per frame the issue allows on cheap frames (``benchmarks/bench_render.py
-    --compare-blend``, docs/evaluation.md). The views the adaptive loop warped are reused, not
-    warped again (numba backend)."""
+    seams) instead of keeping the winning view's colour. Off by default (it changes the image; the
+    default is the thesis's pipeline); with sharpness and photometric correction it costs +10 to
+    +17 % CPU per frame at 640x480 (``benchmarks/bench_render.py --compare-blend``,
+    docs/evaluation.md). The views the adaptive loop warped are reused, not warped again (numba
+    backend: their front surface comes out of the crack pass, ``Workspace.front``)."""
     blend_views: int = 4
     """Blend among this many views: those the adaptive loop warped, in order, then the remaining
     selected candidates."""
