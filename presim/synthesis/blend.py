@@ -45,7 +45,8 @@ import numpy as np
 from presim.geometry import Intrinsics
 from presim.synthesis.warp import _FASTMATH as _WARP_FASTMATH
 
-__all__ = ["BlendConfig", "BlendInput", "feather_map", "feather_box", "coverage_counts", "front_image_points", "front_of_layers", "blend_reference",
+__all__ = ["BlendConfig", "BlendInput", "feather_map", "feather_box", "coverage_counts",
+           "front_image_points", "front_of_layers", "blend_reference",
            "blend_numba", "blend_stacks", "blend_frame"]
 
 
