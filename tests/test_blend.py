@@ -43,7 +43,6 @@ def _inputs(seed: int = 0):
     return BlendInput(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), depth,
                       rng.choice([-1, 4, 7, 9], (H, W)).astype(np.int32), np.array([4, 7, 9], np.int32), vd,
                       rng.integers(0, 256, (n, H, W, 3), dtype=np.uint8),
-                      np.stack([feather_map(d, 4.0) for d in vd]),
                       rng.normal(0, 0.2, (n, 3)), np.array([1.0, 0.5, 2.0])), Intrinsics.from_fov(W, H, 60.0)
 
 
@@ -64,9 +63,36 @@ def test_views_behind_the_front_surface_are_not_blended():
     vd = inp.view_depth_m.copy()
     vd[1:] = inp.depth_m * 1.3  # views 7 and 9 see a surface 30 % farther than the winner (view 4)
     far = BlendInput(inp.color, inp.depth_m, np.full_like(inp.source, 4), inp.view_ids, vd,
-                     inp.view_color, inp.feather, inp.centres, inp.quality)
+                     inp.view_color, inp.centres, inp.quality)
     out = blend_numba(far, Kt, look_at((0.0, 0.0, 0.0), (0.0, 0.0, 2.0)), BlendConfig())
     assert np.array_equal(out, inp.color)
+
+
+def test_feather_counts_give_feather_map_exactly():
+    """The kernel's feathering (integer box counts, scaled as OpenCV's float box filter scales
+    them) equals feather_map bit for bit, for every box size up to 15 px and at image borders."""
+    from presim.synthesis.blend import coverage_counts, feather_box
+
+    rng = np.random.default_rng(3)
+    depth = np.where(rng.random((50, 70)) < 0.6, rng.uniform(0.5, 2.0, (50, 70)), 0).astype(np.float32)
+    depth[10:30, 20:50] = 1.0  # a solid block: counts from 0 to the full box
+    for px in (1.0, 3.0, 4.0, 8.0, 11.0, 15.0):
+        k = feather_box(px)
+        cnt = coverage_counts(depth, px).astype(np.float64)
+        scale = 1.0 if px <= 1 else 1.0 / (k * k)
+        m = (cnt * scale).astype(np.float32)
+        f = np.where(depth > 0, np.clip(np.float32(2.0) * m - np.float32(1.0), 0.0, 1.0), 0.0).astype(np.float32)
+        assert np.array_equal(f, feather_map(depth, px)), px
+    assert coverage_counts(depth, 8.0).max() == 81
+
+
+def test_numba_planar_and_interleaved_view_colours_agree():
+    inp, Kt = _inputs(2)
+    T = look_at((0.0, 0.0, 0.0), (0.1, 0.0, 2.0))
+    planar = np.ascontiguousarray(inp.view_color.transpose(0, 3, 1, 2)).transpose(0, 2, 3, 1)
+    a = blend_numba(inp, Kt, T, BlendConfig(feather_px=4.0))
+    b = blend_numba(dataclasses.replace(inp, view_color=planar), Kt, T, BlendConfig(feather_px=4.0))
+    assert np.array_equal(a, b)
 
 
 def test_blend_config_and_render_config_checks():
@@ -126,6 +152,16 @@ def test_front_surface_kernels_match_their_references():
     assert np.array_equal(d2, ref_d) and np.array_equal(c2, ref_c)
     # Same surface as the one-layer z-buffer (ties broken towards the nearer layer in both).
     assert np.array_equal(d2, d) and np.array_equal(c2, c)
+    # The crack/composite pass writes the same front surface while it reads the layers (planar
+    # colour memory, as in the blend's stacks), and its own output does not change.
+    from presim.synthesis.composite import filtered_composite_packed
+
+    d3 = np.empty_like(d)
+    c3 = np.empty((3,) + d.shape, np.uint8).transpose(1, 2, 0)
+    plain = filtered_composite_packed(lay.depth_m, lay.color)
+    fused = filtered_composite_packed(lay.depth_m, lay.color, front=(d3, c3))
+    assert np.array_equal(d3, ref_d) and np.array_equal(c3, ref_c)
+    assert all(np.array_equal(a, b) for a, b in zip(plain, fused))
 
 
 def test_blend_reuses_the_loops_warps_and_gives_the_same_image():

@@ -26,8 +26,10 @@ views agree; depth, validity and source view stay those of the winner. Identical
 give exactly that colour back. :func:`blend_reference` is the plain numpy definition the numba
 kernel is tested against.
 
-Cost: per blended view one plain z-buffer warp + front-to-back composite (no crack filter: cracks
-only mean fewer candidates), one closing + distance transform, and the per-pixel weight kernel.
+Cost per blended view: its front surface (for the views the adaptive loop warped, written by the
+packed crack pass from the reads it makes anyway, ``Workspace.front``; other views: one plain
+z-buffer warp, no crack filter: cracks only mean fewer candidates), one integer box filter of its
+coverage (:func:`coverage_counts`, the feathering), and its share of the per-pixel weight kernel.
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ import numpy as np
 from presim.geometry import Intrinsics
 from presim.synthesis.warp import _FASTMATH as _WARP_FASTMATH
 
-__all__ = ["BlendConfig", "BlendInput", "feather_map", "front_image_points", "front_of_layers", "blend_reference",
+__all__ = ["BlendConfig", "BlendInput", "feather_map", "feather_box", "coverage_counts",
+           "front_image_points", "front_of_layers", "blend_reference",
            "blend_numba", "blend_stacks", "blend_frame"]
 
 
@@ -87,13 +90,15 @@ class BlendInput:
     view_depth_m: np.ndarray
     """float32 (n, H, W) each candidate's front-most warped depth, 0 = empty."""
     view_color: np.ndarray
-    """uint8 (n, H, W, 3) their colours (already photometrically corrected)."""
-    feather: np.ndarray
-    """float32 (n, H, W) feathering factor in (0, 1]."""
+    """uint8 (n, H, W, 3) their colours (already photometrically corrected; any strides: the
+    renderer's stacks are planar, ``(n, 3, H, W)`` memory seen through a transposed view)."""
     centres: np.ndarray
     """float64 (n, 3) candidate camera centres, world."""
     quality: np.ndarray
     """float64 (n,) per-view factor (sharpness), > 0."""
+    feather_count: np.ndarray | None = None
+    """Optional (n, H, W) :func:`coverage_counts` of the views (the fast path's feathering input;
+    None = computed from ``view_depth_m``). The reference always uses :func:`feather_map`."""
 
 
 def feather_map(depth_m: np.ndarray, feather_px: float) -> np.ndarray:
@@ -104,11 +109,34 @@ def feather_map(depth_m: np.ndarray, feather_px: float) -> np.ndarray:
     cov = (depth_m > 0).astype(np.float32)
     if feather_px <= 1:
         return cov
-    k = max(3, int(round(feather_px)) | 1)
+    k = feather_box(feather_px)
     m = cv2.blur(cov, (k, k), borderType=cv2.BORDER_REPLICATE)
     f = np.clip(2.0 * m - 1.0, 0.0, 1.0)
     f *= cov
     return f
+
+
+def feather_box(feather_px: float) -> int:
+    """Side of :func:`feather_map`'s box filter (odd, >= 3)."""
+    return max(3, int(round(feather_px)) | 1)
+
+
+def coverage_counts(depth_m: np.ndarray, feather_px: float, out: np.ndarray | None = None,
+                    coverage: np.ndarray | None = None) -> np.ndarray:
+    """Integer form of :func:`feather_map` (the fast path's input): per pixel the number of covered
+    pixels in the ``feather_box`` box around it (border replicated), uint8 (uint16 for boxes over
+    15 px). :func:`feather_map` equals ``clip(2 * float32(count * (1 / box**2)) - 1, 0, 1)`` on
+    covered pixels, 0 elsewhere, bit for bit (OpenCV's float box filter sums in double and scales
+    once; tested), and the blend kernel evaluates exactly that. ``coverage``: ``depth_m > 0`` as
+    uint8, if the caller has it."""
+    k = feather_box(feather_px)
+    dt = np.uint8 if k * k <= 255 else np.uint16
+    cov = (depth_m > 0).view(np.uint8) if coverage is None else coverage
+    if out is None:
+        out = np.empty(depth_m.shape, dt)
+    cv2.boxFilter(cov, cv2.CV_8U if dt == np.uint8 else cv2.CV_16U, (k, k), dst=out, normalize=False,
+                  borderType=cv2.BORDER_REPLICATE)
+    return out
 
 
 def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
@@ -119,12 +147,13 @@ def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: flo
     no crack filter."""
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     _front_warp_kernel(view.xyz_world, view.rgb, M, np.float32(K.fx), np.float32(K.fy), np.float32(K.cx),
-                       np.float32(K.cy), np.float32(near_m), depth_out, color_out)
+                       np.float32(K.cy), np.float32(near_m), depth_out, color_out.transpose(2, 0, 1))
 
 
 @nb.njit(fastmath=_WARP_FASTMATH, cache=True)  # the warp kernel's flags: bit-equal projections
 def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
-    # Same arithmetic as presim.synthesis.warp._warp_layers_kernel with one layer (tested equal).
+    # Same arithmetic as presim.synthesis.warp._warp_layers_kernel with one layer (tested equal);
+    # colours into the planes cbuf (3, H, W).
     H, W = zbuf.shape
     zbuf[:] = 0.0
     cbuf[:] = 0
@@ -146,40 +175,47 @@ def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma
         cur = zbuf[vi, ui]
         if cur == 0.0 or zc < cur:
             zbuf[vi, ui] = zc
-            cbuf[vi, ui, 0] = rgb[i, 0]
-            cbuf[vi, ui, 1] = rgb[i, 1]
-            cbuf[vi, ui, 2] = rgb[i, 2]
+            cbuf[0, vi, ui] = rgb[i, 0]
+            cbuf[1, vi, ui] = rgb[i, 1]
+            cbuf[2, vi, ui] = rgb[i, 2]
 
 
 def front_of_layers(layer_depth_m: np.ndarray, layer_color: np.ndarray, depth_out: np.ndarray,
                     color_out: np.ndarray) -> None:
     """Front-most surface of an already warped view (the loop's (L, H, W) z-buffered layers): per
     pixel the smallest depth over the layers, written into ``depth_out`` / ``color_out`` (the same
-    surface :func:`front_image_points` z-buffers, without warping the view again)."""
-    _front_of_layers_kernel(layer_depth_m, layer_color, depth_out, color_out)
+    surface :func:`front_image_points` z-buffers, without warping the view again). ``color_out``
+    may be a view of planar memory (the blend's stacks)."""
+    _front_of_layers_kernel(layer_depth_m, layer_color, depth_out, color_out.transpose(2, 0, 1))
 
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
-def _front_of_layers_kernel(ld, lc, zout, cout):  # pragma: no cover
-    # Per row: depths first (branch-free, vectorises), then one colour gather from the chosen layer.
+def _front_of_layers_kernel(ld, lc, zout, cp):  # pragma: no cover
+    # Per row: depths first (branch-free, vectorises), then one colour gather from the chosen layer
+    # into the three colour planes ``cp`` (3, H, W).
     L, H, W = ld.shape
     for v in nb.prange(H):
         best = np.empty(W, np.int32)
+        zr = zout[v]
         for u in range(W):
-            zout[v, u] = ld[0, v, u]
+            zr[u] = ld[0, v, u]
             best[u] = 0
         for l in range(1, L):
+            lr = ld[l, v]
             for u in range(W):
-                z = ld[l, v, u]
-                b = zout[v, u]
+                z = lr[u]
+                b = zr[u]
                 take = (z > 0.0) & ((b == 0.0) | (z < b))
-                zout[v, u] = z if take else b
+                zr[u] = z if take else b
                 best[u] = l if take else best[u]
+        c0 = cp[0, v]
+        c1 = cp[1, v]
+        c2 = cp[2, v]
         for u in range(W):
             bl = best[u]
-            cout[v, u, 0] = lc[bl, v, u, 0]
-            cout[v, u, 1] = lc[bl, v, u, 1]
-            cout[v, u, 2] = lc[bl, v, u, 2]
+            c0[u] = lc[bl, v, u, 0]
+            c1[u] = lc[bl, v, u, 1]
+            c2[u] = lc[bl, v, u, 2]
 
 
 def _world_points(K: Intrinsics, T_world_cam: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
@@ -213,7 +249,8 @@ def blend_reference(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, con
             ang = np.sqrt(2.0 - 2.0 * cosang)  # chord of the angle: = angle to 0.1 % below 8 degrees
             res = np.maximum(0.0, lk / lt - 1.0)
         pen = ang + config.resolution_weight * res
-        f = np.where(win, np.maximum(inp.feather[k], 1.0 / config.feather_px), inp.feather[k])
+        fk = feather_map(inp.view_depth_m[k], config.feather_px)
+        f = np.where(win, np.maximum(fk, 1.0 / config.feather_px), fk)
         w = np.where(use, f * inp.quality[k] / (pen + config.penalty_eps), 0.0)
         col = np.where(win[..., None], inp.color, inp.view_color[k]).astype(np.float64)
         num += w[..., None] * col
@@ -225,15 +262,20 @@ def blend_reference(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, con
     return out
 
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
-def _blend_kernel(color, depth, source, ids, vdepth, vcolor, feather, centres, quality, M, fx, fy, cx, cy,
+@nb.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
+def _blend_kernel(color, depth, source, ids, vdepth, vcp, fcount, fscale, centres, quality, M, fx, fy, cx, cy,
                   tol, res_w, eps, min_f, out):  # pragma: no cover
-    # Row by row; the inner loops over u are branch-free (selects) in float32 so they vectorise:
-    # ~5x cheaper than a per-pixel loop with early exits. Same formulas as blend_reference.
+    # Row by row; the inner loops over u are branch-free (selects, unconditional loads) in float32
+    # over contiguous rows (view colours planar: vcp (n, 3, H, W)), so they vectorise; the numpy
+    # error model drops the division-by-zero branches that kept the weight loop scalar. Same
+    # formulas and order of operations as blend_reference (float32); the feathering factor is
+    # computed from the box counts exactly as feather_map computes it.
     H, W = depth.shape
     n = ids.shape[0]
     one = np.float32(1.0)
     zero = np.float32(0.0)
+    two = np.float32(2.0)
+    tiny = np.float32(1e-12)
     for v in nb.prange(H):
         t0 = np.empty(W, np.float32)
         t1 = np.empty(W, np.float32)
@@ -244,9 +286,15 @@ def _blend_kernel(color, depth, source, ids, vdepth, vcolor, feather, centres, q
         s2 = np.zeros(W, np.float32)
         den = np.zeros(W, np.float32)
         cnt = np.zeros(W, np.int32)
+        c0r = np.empty(W, np.uint8)  # the winner colours, de-interleaved
+        c1r = np.empty(W, np.uint8)
+        c2r = np.empty(W, np.uint8)
+        dr = depth[v]
+        sr = source[v]
+        cr = color[v]
         yn = (np.float32(v) - cy) / fy
         for u in range(W):
-            d = depth[v, u]
+            d = dr[u]
             xn = (np.float32(u) - cx) / fx
             a0 = (M[0, 0] * xn + M[0, 1] * yn + M[0, 2]) * d  # target ray to the surface point
             a1 = (M[1, 0] * xn + M[1, 1] * yn + M[1, 2]) * d
@@ -254,69 +302,101 @@ def _blend_kernel(color, depth, source, ids, vdepth, vcolor, feather, centres, q
             t0[u] = a0
             t1[u] = a1
             t2[u] = a2
-            lt[u] = max(np.sqrt(a0 * a0 + a1 * a1 + a2 * a2), np.float32(1e-12))
+            lt[u] = max(np.sqrt(a0 * a0 + a1 * a1 + a2 * a2), tiny)
+            c0r[u] = cr[u, 0]
+            c1r[u] = cr[u, 1]
+            c2r[u] = cr[u, 2]
         for k in range(n):
             idk = ids[k]
             e0 = M[0, 3] - centres[k, 0]  # target centre - view centre
             e1 = M[1, 3] - centres[k, 1]
             e2 = M[2, 3] - centres[k, 2]
             qk = quality[k]
+            vdr = vdepth[k, v]
+            fcr = fcount[k, v]
+            v0 = vcp[k, 0, v]
+            v1 = vcp[k, 1, v]
+            v2 = vcp[k, 2, v]
             for u in range(W):
-                d = depth[v, u]
-                dk = vdepth[k, v, u]
-                win = source[v, u] == idk
+                d = dr[u]
+                dk = vdr[u]
+                win = sr[u] == idk
                 use = (d > zero) & (win | ((dk > zero) & (abs(dk - d) <= tol * d)))
                 r0 = t0[u] + e0
                 r1 = t1[u] + e1
                 r2 = t2[u] + e2
                 lk = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
                 ltu = lt[u]
-                c = (t0[u] * r0 + t1[u] * r1 + t2[u] * r2) / (ltu * max(lk, np.float32(1e-12)))
+                c = (t0[u] * r0 + t1[u] * r1 + t2[u] * r2) / (ltu * max(lk, tiny))
                 c = min(one, max(-one, c))
-                pen = np.sqrt(np.float32(2.0) - np.float32(2.0) * c) + res_w * max(zero, lk / ltu - one)
-                f = feather[k, v, u]
+                pen = np.sqrt(two - two * c) + res_w * max(zero, lk / ltu - one)
+                m = np.float32(np.float64(fcr[u]) * fscale)  # feather_map: box mean, as OpenCV rounds it
+                fm = min(one, max(zero, two * m - one))
+                f = fm if dk > zero else zero
                 f = max(f, min_f) if win else f
                 w = f * qk / (pen + eps) if use else zero
-                s0[u] += w * np.float32(color[v, u, 0] if win else vcolor[k, v, u, 0])
-                s1[u] += w * np.float32(color[v, u, 1] if win else vcolor[k, v, u, 1])
-                s2[u] += w * np.float32(color[v, u, 2] if win else vcolor[k, v, u, 2])
                 den[u] += w
                 cnt[u] += np.int32(use)
+                a0 = c0r[u]
+                a1 = c1r[u]
+                a2 = c2r[u]
+                b0 = v0[u]
+                b1 = v1[u]
+                b2 = v2[u]
+                s0[u] += w * np.float32(a0 if win else b0)
+                s1[u] += w * np.float32(a1 if win else b1)
+                s2[u] += w * np.float32(a2 if win else b2)
+        for u in range(W):  # blended value where >= 2 views agree, else the winner's
+            ok = (cnt[u] >= 2) & (den[u] > zero)
+            inv = one / den[u]
+            x0 = np.uint8(min(np.float32(255.0), max(zero, np.floor(s0[u] * inv + np.float32(0.5)))))
+            x1 = np.uint8(min(np.float32(255.0), max(zero, np.floor(s1[u] * inv + np.float32(0.5)))))
+            x2 = np.uint8(min(np.float32(255.0), max(zero, np.floor(s2[u] * inv + np.float32(0.5)))))
+            c0r[u] = x0 if ok else c0r[u]
+            c1r[u] = x1 if ok else c1r[u]
+            c2r[u] = x2 if ok else c2r[u]
+        orow = out[v]
         for u in range(W):
-            if cnt[u] >= 2 and den[u] > zero:
-                inv = one / den[u]
-                out[v, u, 0] = np.uint8(min(np.float32(255.0), max(zero, np.floor(s0[u] * inv + np.float32(0.5)))))
-                out[v, u, 1] = np.uint8(min(np.float32(255.0), max(zero, np.floor(s1[u] * inv + np.float32(0.5)))))
-                out[v, u, 2] = np.uint8(min(np.float32(255.0), max(zero, np.floor(s2[u] * inv + np.float32(0.5)))))
-            else:
-                out[v, u, 0] = color[v, u, 0]
-                out[v, u, 1] = color[v, u, 1]
-                out[v, u, 2] = color[v, u, 2]
+            orow[u, 0] = c0r[u]
+            orow[u, 1] = c1r[u]
+            orow[u, 2] = c2r[u]
 
 
 def blend_numba(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config: BlendConfig) -> np.ndarray:
     """numba fast path of :func:`blend_reference` (float32: the same result up to a level where the
     blended value falls within float rounding of a .5 level, or a depth within rounding of the
-    tolerance)."""
+    tolerance). Reads the view colours as planes (copies them when ``view_color`` is not planar
+    memory) and feathers from :func:`coverage_counts` (``inp.feather_count`` or computed here)."""
     out = np.empty_like(inp.color)
     f32 = np.float32
+    vcp = inp.view_color.transpose(0, 3, 1, 2)
+    if not vcp.flags.c_contiguous:
+        vcp = np.ascontiguousarray(vcp)
+    counts = inp.feather_count
+    if counts is None:
+        counts = np.stack([coverage_counts(d, config.feather_px) for d in inp.view_depth_m])
+    k = feather_box(config.feather_px)
+    fscale = 1.0 if config.feather_px <= 1 else 1.0 / (k * k)  # no feathering: any count >= 1 gives 1
     _blend_kernel(inp.color, inp.depth_m, inp.source, inp.view_ids.astype(np.int32),
-                  inp.view_depth_m, inp.view_color, inp.feather, np.ascontiguousarray(inp.centres, np.float32),
+                  inp.view_depth_m, vcp, counts, fscale, np.ascontiguousarray(inp.centres, np.float32),
                   np.ascontiguousarray(inp.quality, np.float32), np.ascontiguousarray(T_world_cam, np.float32),
                   f32(K.fx), f32(K.fy), f32(K.cx), f32(K.cy), f32(config.depth_tol_rel),
                   f32(config.resolution_weight), f32(config.penalty_eps), f32(1.0 / float(config.feather_px)), out)
     return out
 
 
-def blend_stacks(buffers: dict, max_views: int, H: int, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The per-view ``(depth (n, H, W), color (n, H, W, 3), feather (n, H, W))`` stacks kept in
-    ``buffers`` across frames (allocated once per output size). Slot ``i`` holds the ``i``-th
-    blended view, so a caller can write a view's front surface there before :func:`blend_frame`."""
-    if buffers.get("shape") != (max_views, H, W):
-        buffers["shape"] = (max_views, H, W)
+def blend_stacks(buffers: dict, max_views: int, H: int, W: int, feather_px: float = 8.0
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The per-view ``(depth (n, H, W), color (n, H, W, 3), feather counts (n, H, W))`` stacks kept
+    in ``buffers`` across frames (allocated once per output size). Slot ``i`` holds the ``i``-th
+    blended view, so a caller can write a view's front surface there before :func:`blend_frame`.
+    The colours are planar memory ``(n, 3, H, W)`` seen as ``(n, H, W, 3)`` (what the kernel reads)."""
+    dt = np.uint8 if feather_box(feather_px) ** 2 <= 255 else np.uint16
+    if buffers.get("shape") != (max_views, H, W, dt):
+        buffers["shape"] = (max_views, H, W, dt)
         buffers["d"] = np.empty((max_views, H, W), np.float32)
-        buffers["c"] = np.empty((max_views, H, W, 3), np.uint8)
-        buffers["f"] = np.empty((max_views, H, W), np.float32)
+        buffers["c"] = np.empty((max_views, 3, H, W), np.uint8).transpose(0, 2, 3, 1)
+        buffers["f"] = np.empty((max_views, H, W), dt)
     return buffers["d"], buffers["c"], buffers["f"]
 
 
@@ -349,15 +429,18 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
         return color, (time.perf_counter() - t0) * 1e3
     H, W = depth_m.shape
     n = len(use)
-    d_all, c_all, f_all = blend_stacks(buffers if buffers is not None else {}, config.max_views, H, W)
-    vd, vc, fe = d_all[:n], c_all[:n], f_all[:n]
+    d_all, c_all, f_all = blend_stacks(buffers if buffers is not None else {}, config.max_views, H, W,
+                                       config.feather_px)
+    vd, vc, fc = d_all[:n], c_all[:n], f_all[:n]
     for i, v in enumerate(use):
         front_image(v, vd[i], vc[i])  # the caller may have filled slot i already (the loop's warp)
         if color_transform is not None:
             vc[i] = color_transform(v, vc[i])
-        fe[i] = feather_map(vd[i], config.feather_px)
-    inp = BlendInput(color, depth_m, source, np.asarray(use, np.int32), vd, vc, fe,
+        if not use_reference:
+            coverage_counts(vd[i], config.feather_px, out=fc[i])
+    inp = BlendInput(color, depth_m, source, np.asarray(use, np.int32), vd, vc,
                      np.stack([np.asarray(centre_of(v), np.float64) for v in use]),
-                     np.array([1.0 if quality_of is None else float(quality_of(v)) for v in use]))
+                     np.array([1.0 if quality_of is None else float(quality_of(v)) for v in use]),
+                     None if use_reference else fc)
     out = (blend_reference if use_reference else blend_numba)(inp, K, np.asarray(T_world_cam, np.float64), config)
     return out, (time.perf_counter() - t0) * 1e3

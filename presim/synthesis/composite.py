@@ -362,6 +362,35 @@ def _occupancy_kernel(d, bits):  # pragma: no cover
             bits[v, u] = b
 
 
+@nb.njit(parallel=True, cache=True)
+def _occupancy_front_kernel(d, c, bits, zout, cp):  # pragma: no cover
+    # _occupancy_kernel plus, from the same reads, the front-most surface of the layers (smallest
+    # depth; ties to the lower layer): depth into zout (H, W), colour into the planes cp (3, H, W).
+    # Same result as presim.synthesis.blend.front_of_layers (tested equal).
+    L, H, W = d.shape
+    for v in nb.prange(H):
+        zr = zout[v]
+        c0 = cp[0, v]
+        c1 = cp[1, v]
+        c2 = cp[2, v]
+        for u in range(W):
+            zb = d[0, v, u]
+            b = 1 if zb > 0 else 0
+            best = 0
+            for l in range(1, L):
+                z = d[l, v, u]
+                if z > 0:
+                    b |= 1 << l
+                    if zb == 0 or z < zb:
+                        zb = z
+                        best = l
+            bits[v, u] = b
+            zr[u] = zb
+            c0[u] = c[best, v, u, 0]
+            c1[u] = c[best, v, u, 1]
+            c2[u] = c[best, v, u, 2]
+
+
 @nb.njit(cache=True, inline="always")
 def _ce(a, i, j):  # pragma: no cover
     x = a[i]
@@ -483,8 +512,8 @@ def _packed_seam_kernel(d, c, mask, use_mask, dout, cout):  # pragma: no cover
             cout[v, u, 2] = b2[k]
 
 
-def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None
-                              ) -> tuple[np.ndarray, np.ndarray]:
+def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
+                              front: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """3 x 3 switching median per layer + front-to-back composite + seam pass, crack mask first.
 
     Equals ``crack_filter`` (per layer, ``"switching_median"``, 3 x 3) -> :func:`composite_layers` ->
@@ -497,6 +526,10 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
         replace: optional bool (H, W): only these pixels' final values are wanted (the composite is
             then evaluated on ``replace`` grown by one pixel, all the seam pass reads); other
             pixels are UNDEFINED.
+        front: optional ``(depth_out (H, W) float32, color_out (H, W, 3) uint8)``: also write the
+            front-most surface of the layers there (smallest depth per pixel, no crack filter: what
+            :func:`presim.synthesis.blend.front_of_layers` computes), from the same pass that reads
+            the layers for the crack mask (blending keeps it; ``color_out`` may be planar memory).
     Returns:
         ``(depth_m (H, W), color (H, W, 3))``.
     """
@@ -504,7 +537,10 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
     if L > PACKED_MAX_LAYERS:
         raise ValueError(f"filtered_composite_packed: at most {PACKED_MAX_LAYERS} layers, got {L}")
     bits = np.empty((H, W), np.uint8)
-    _occupancy_kernel(depth_m, bits)
+    if front is None:
+        _occupancy_kernel(depth_m, bits)
+    else:
+        _occupancy_front_kernel(depth_m, color, bits, front[0], front[1].transpose(2, 0, 1))
     use = replace is not None
     need = replace if not use else cv2.dilate(replace.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
     dummy = np.zeros((1, 1), np.bool_)

@@ -100,6 +100,10 @@ class Workspace:
 
     layers: LayeredImage | None = None
     """numba: the (L, H, W) warp buffers."""
+    front: tuple[np.ndarray, np.ndarray] | None = None
+    """numba: when set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with
+    the front-most surface of its warped layers (smallest depth, no crack filter; multi-view
+    blending keeps it, :func:`presim.synthesis.blend.front_of_layers`)."""
 
 
 class ViewImageFn(Protocol):
@@ -121,8 +125,12 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     if (config.packed_cracks and mode == "switching_median" and kpx == 3
             and lay.depth_m.shape[0] <= PACKED_MAX_LAYERS):
         # Filter + composite + seam pass in one call; later views only on their replaceable pixels.
-        d, c = filtered_composite_packed(lay.depth_m, lay.color, replace)
+        d, c = filtered_composite_packed(lay.depth_m, lay.color, replace, workspace.front)
         return ViewImage(d, c, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3, 0.0)
+    if workspace.front is not None:  # the other kernels keep no occupancy pass to share
+        from presim.synthesis.blend import front_of_layers
+
+        front_of_layers(lay.depth_m, lay.color, *workspace.front)
     if replace is not None and mode == "switching_median" and replace.mean() < config.masked_max_frac:
         # Later views only write into the replaceable region: filter/composite just there.
         d, c = filtered_composite_masked(lay.depth_m, lay.color, replace, kpx, seam_pass=True)

@@ -35,7 +35,7 @@ import numpy as np
 
 from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
-from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points, front_of_layers
+from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
 from presim.synthesis.crack_filter import CRACK_FILTERS
@@ -177,10 +177,11 @@ class RenderConfig:
     # ---- multi-view blending (presim/synthesis/blend.py) ----
     blend: bool = False
     """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered
-    seams) instead of keeping the winning view's colour. Off by default: it costs more than the
-    20 % per frame the issue allows on cheap frames (``benchmarks/bench_render.py
-    --compare-blend``, docs/evaluation.md). The views the adaptive loop warped are reused, not
-    warped again (numba backend)."""
+    seams) instead of keeping the winning view's colour. Off by default (it changes the image; the
+    default is the thesis's pipeline); with sharpness and photometric correction it costs +10 to
+    +17 % CPU per frame at 640x480 (``benchmarks/bench_render.py --compare-blend``,
+    docs/evaluation.md). The views the adaptive loop warped are reused, not warped again (numba
+    backend: their front surface comes out of the crack pass, ``Workspace.front``)."""
     blend_views: int = 4
     """Blend among this many views: those the adaptive loop warped, in order, then the remaining
     selected candidates."""
@@ -274,12 +275,14 @@ class RenderStats:
 
 class _WarpCapture:
     """Front surface of every view the adaptive loop warps, kept for blending so that blending
-    does not warp those views again (numba backend: taken from the workspace's warped layers right
-    after each warp, :func:`~presim.synthesis.blend.front_of_layers`, ~1 ms; other backends keep no
-    layers and blending warps the view itself)."""
+    does not warp those views again (numba backend: the view image writes it into the blend's
+    stacks through ``Workspace.front`` from the same pass that reads the warped layers for the
+    crack mask, :func:`~presim.synthesis.composite.filtered_composite_packed`; other backends
+    keep no layers and blending warps the view itself)."""
 
-    def __init__(self, stacks: dict) -> None:
+    def __init__(self, stacks: dict, feather_px: float = 8.0) -> None:
         self._stacks = stacks  # the blend's per-view stacks: slot i = the i-th warped view
+        self._feather_px = feather_px
         self._ids: list[int] = []
 
     def wrap(self, get_view, view_image, max_views: int):
@@ -294,11 +297,18 @@ class _WarpCapture:
             return get_view(idx)
 
         def view_image_rec(view, T_cam_world, K, config, replace, workspace):
-            img = view_image(view, T_cam_world, K, config, replace, workspace)
-            lay, n = getattr(workspace, "layers", None), len(self._ids)
-            if current and n < max_views and isinstance(lay, LayeredImage):
-                d, c, _ = blend_stacks(self._stacks, max_views, *lay.depth_m.shape[1:])
-                front_of_layers(lay.depth_m, lay.color, d[n], c[n])
+            n = len(self._ids)
+            want = bool(current) and n < max_views and hasattr(workspace, "front")
+            if want:  # the numba backend writes the front surface while it reads the layers
+                d, c, _ = blend_stacks(self._stacks, max_views, K.height, K.width, self._feather_px)
+                workspace.front = (d[n], c[n])
+            try:
+                img = view_image(view, T_cam_world, K, config, replace, workspace)
+            finally:
+                if want:
+                    workspace.front = None
+            lay = getattr(workspace, "layers", None)
+            if want and isinstance(lay, LayeredImage):
                 self._ids.append(current[0])
             current.clear()
             return img
@@ -354,7 +364,7 @@ class Renderer:
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
         self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
-        self._warp_capture = _WarpCapture(self._blend_stacks)  # the loop's warps, for blending
+        self._warp_capture = _WarpCapture(self._blend_stacks, config.blend_feather_px)  # the loop's warps, for blending
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
