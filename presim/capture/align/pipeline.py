@@ -11,6 +11,11 @@
    adjustment of all frames with all observations, started from step 4.
 6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
    mean of centre offsets), so floor, objects and point cloud keep their world frame.
+7. Acceptance (``accept_p > 0``): per frame, a paired test of its observations' costs under the given
+   vs the refined poses; a frame whose refined pose does not lower them significantly (or that has too
+   few observations) keeps its given pose, and the other frames are adjusted again with those held
+   fixed (they anchor the gauge: no frame drifts relative to a neighbour left at its given pose).
+   Per-frame status, test statistic and pose uncertainty go into the statistics.
 Deterministic for a seed (OpenCV RANSAC is seeded per pair; scipy's solver is deterministic).
 """
 
@@ -21,8 +26,11 @@ from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import t as student_t
 
-from presim.capture.align.bundle import BAConfig, PairObservations, adjust_poses, residuals_px
+from presim.capture.align.bundle import (BAConfig, PairObservations, adjust_poses, observation_costs,
+                                         pose_covariances, pose_information, residuals_px)
 from presim.capture.align.features import FeatureConfig, Features, PairMatch, extract_features, match_pair, unproject_uv
 from presim.capture.align.grouping import GroupConfig, group_poses, view_angles_rad
 from presim.capture.scene import Scene
@@ -58,6 +66,25 @@ class AlignConfig:
     them; True = keep their given pose."""
     seed: int = 0
     """Key-pose draw and RANSAC seeds."""
+    accept_p: float = 0.01
+    """Per-frame acceptance: a frame takes its refined pose only when the refined poses lower the cost
+    of its observations (the adjustment's Huber cost, whitened) significantly: one-sided paired t test
+    at this level (p-value below it), over d = per image pair touching the frame, the cost under the
+    given poses minus the cost under the refined ones, summed over the pair's observations (the pair
+    is the unit: its observations share two depth maps and their registration error, so they are not
+    independent), n_pairs - 1 degrees of freedom. 0 = accept all refined poses (no test)."""
+    accept_chi2: float = 16.81
+    """... and only when its own pose change is measurable: ``delta^T I delta`` above this, with
+    ``delta`` the 6-vector change (rotation vector, translation) from the given pose and ``I`` the
+    frame's own information (all other frames held; residual noise level measured from the data).
+    16.81 = the 99 % quantile of chi-square with 6 degrees of freedom: a change inside the frame's
+    own 99 % confidence region is not measurable and the given pose is kept."""
+    min_frame_obs: int = 30
+    """A frame with fewer inlier observations than this, or with fewer than 2 image pairs, keeps its
+    given pose (too weakly connected to test or to trust)."""
+    accept_rounds: int = 5
+    """Test, re-adjust the others with the kept frames fixed, test again, until no frame changes
+    side: at most this many re-adjustments (then the last test only moves frames to their given pose)."""
 
 
 @dataclass(frozen=True)
@@ -307,6 +334,19 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
     S = fit_rigid_to(T_given[idx], T_ref[idx])
     T_out = T_given.copy()
     T_out[idx] = S @ T_ref[idx]
+
+    # 7. per-frame acceptance; frames kept at their given pose anchor a re-adjustment of the others
+    status = {i: "given: unmatched" for i in unmatched}
+    for i in idx:
+        status[i] = "refined"
+    frame_stats: dict[int, dict] = {}
+    cov = np.full((n, 6, 6), np.nan)
+    if all_pairs and idx:
+        jpairs = [p for p in all_pairs if p[0] in main and p[1] in main]
+        obs, _, slot = _pair_obs(jpairs, feats, scene, idx, config.max_matches_per_pair, config.seed + 2)
+        K4 = _K4s(scene, idx)
+        T_out, status, frame_stats, cov_m = _accept(T_given, T_out, idx, obs, K4, config, status)
+        cov[idx] = cov_m
     t_end = time.perf_counter()
 
     e0, d0 = transfer_errors(all_pairs, feats, scene, T_given)
@@ -323,10 +363,19 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         "change_m": _stat(dt), "change_deg": _stat(dr),
         "per_frame_change": [{"frame_id": scene.frame_ids[i], "dt_m": float(dt[i]), "dr_deg": float(dr[i])}
                              for i in range(n)],
+        "kept_given": {reason: [scene.frame_ids[i] for i in range(n) if status.get(i) == reason]
+                       for reason in sorted({v for v in status.values() if v != "refined"})},
+        "per_frame": [_frame_record(scene.frame_ids[i], status.get(i, "given: unmatched"), dt[i], dr[i],
+                                    frame_stats.get(i, {}), cov[i]) for i in range(n)],
         "time_s": {"features": t_feat - t_start, "local_global": t_stages - t_feat,
                    "joint": t_end - t_stages, "total": t_end - t_start},
         "config": asdict(config),
     }
+    n_kept = sum(1 for v in status.values() if v != "refined")
+    if n_kept:
+        log(f"kept the given pose of {n_kept} frame(s): " + "; ".join(
+            f"{r} {len(v)} ({_names(scene, [scene.frame_ids.index(f) for f in v], 6)})"
+            for r, v in stats["kept_given"].items()))
     log(f"aligned {n} frames: transfer error median {stats['transfer_px_before']['median']:.2f} -> "
         f"{stats['transfer_px_after']['median']:.2f} px, cameras moved median {np.median(dt) * 100:.2f} cm / "
         f"{np.median(dr):.2f} deg, {t_end - t_start:.1f} s")
@@ -345,3 +394,131 @@ def _restrict(f: Features, used: set[int] | None, fc: FeatureConfig) -> tuple[Fe
         return f, np.arange(len(f.uv))
     idx = np.array(sorted(used))
     return Features(f.uv[idx], f.desc[idx], f.depth_m[idx]), idx
+
+
+def _frame_test(T_given: np.ndarray, T_new: np.ndarray, obs: PairObservations, K4: np.ndarray,
+                ba: BAConfig) -> dict:
+    """Per camera (local index) the acceptance statistics of ``T_new`` against ``T_given``:
+    ``n_obs`` inlier observations touching it, ``n_pairs`` image pairs among them, ``t`` the paired t
+    statistic of the cost decrease given -> new with the image pair as the unit (the sum of the
+    decrease over a pair's observations: observations of one pair share both depth maps and their
+    registration errors, so they are not independent), ``t_obs`` the same with single observations as
+    the unit (for reference), ``rms_given`` / ``rms_refined`` the RMS whitened residual; and ``use``,
+    the inlier mask (O,). An observation counts when it is an inlier under either pose set (neither
+    side chooses its data)."""
+    rho_g, in_g = observation_costs(T_given, K4, obs, ba)
+    rho_n, in_n = observation_costs(T_new, K4, obs, ba)
+    use = in_g | in_n
+    C = len(T_given)
+    d = rho_g - rho_n
+    pair_key = obs.a_idx.astype(np.int64) * C + obs.b_idx
+    keys, pair_of = np.unique(pair_key, return_inverse=True)
+    d_pair = np.bincount(pair_of, weights=np.where(use, d, 0.0), minlength=len(keys))
+    n_in_pair = np.bincount(pair_of, weights=use.astype(float), minlength=len(keys))
+    pa, pb = keys // C, keys % C
+    out = {k: np.zeros(C) for k in ("t", "t_obs")}
+    out.update({k: np.zeros(C, int) for k in ("n_obs", "n_pairs")})
+    out.update({k: np.full(C, np.nan) for k in ("rms_given", "rms_refined")})
+
+    def tstat(x: np.ndarray) -> float:
+        if len(x) < 2:
+            return 0.0
+        sd = float(np.std(x, ddof=1))
+        mean = float(np.mean(x))
+        return mean / (sd / np.sqrt(len(x))) if sd > 0 else (np.inf if mean > 0 else 0.0)
+
+    for c in range(C):
+        m = use & ((obs.a_idx == c) | (obs.b_idx == c))
+        k = int(m.sum())
+        out["n_obs"][c] = k
+        if k == 0:
+            continue
+        out["rms_given"][c], out["rms_refined"][c] = np.sqrt(2 * rho_g[m].mean()), np.sqrt(2 * rho_n[m].mean())
+        out["t_obs"][c] = tstat(d[m])
+        pm = ((pa == c) | (pb == c)) & (n_in_pair > 0)
+        out["n_pairs"][c] = int(pm.sum())
+        out["t"][c] = tstat(d_pair[pm])
+    out["p"] = student_t.sf(out["t"], np.maximum(out["n_pairs"] - 1, 1))
+    # is the frame's own change measurable? chi2 of the change under its own information
+    info = pose_information(T_new, K4, PairObservations(obs.a_idx[use], obs.b_idx[use], obs.X_a[use],
+                                                        obs.uv_b[use], obs.z_b[use]), ba)
+    w = Rotation.from_matrix(np.einsum("nij,nkj->nik", T_new[:, :3, :3], T_given[:, :3, :3])).as_rotvec()
+    delta = np.concatenate([w, T_new[:, :3, 3] - T_given[:, :3, 3]], axis=1)
+    out["chi2"] = np.einsum("ni,nij,nj->n", delta, info, delta)
+    out["use"] = use
+    return out
+
+
+_FRAME_KEYS = ("n_obs", "n_pairs", "t", "p", "t_obs", "chi2", "rms_given", "rms_refined")
+
+
+def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObservations, K4: np.ndarray,
+            config: AlignConfig, status: dict[int, str]):
+    """Step 7 (see module doc) over the frames ``idx`` (global indices; ``obs`` uses local ones).
+    Returns (poses, status, per-frame statistics, (len(idx), 6, 6) covariances)."""
+    ba = config.ba
+    Tg, Tn = T_given[idx], T_out[idx]
+    C = len(idx)
+    keep = np.zeros(C, bool)
+    reason = [""] * C
+    decided: dict[int, dict] = {}  # statistics of the round that kept a frame at its given pose
+    for rnd in range(max(1, config.accept_rounds) + 1):
+        ft = _frame_test(Tg, Tn, obs, K4, ba)
+        use = ft["use"]
+        if config.accept_p <= 0:
+            break
+        few = ~keep & ((ft["n_obs"] < config.min_frame_obs) | (ft["n_pairs"] < 2))
+        weak = ~keep & ~few & ~(ft["p"] < config.accept_p)
+        small = ~keep & ~few & ~weak & (ft["chi2"] <= config.accept_chi2)
+        for c in np.flatnonzero(few):
+            reason[c] = "given: few observations"
+        for c in np.flatnonzero(weak):
+            reason[c] = "given: residuals not significantly lower"
+        for c in np.flatnonzero(small):
+            reason[c] = "given: change within uncertainty"
+        new_keep = keep | few | weak | small
+        for c in np.flatnonzero(new_keep & ~keep):
+            decided[c] = {k: ft[k][c] for k in _FRAME_KEYS}
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        Tn = np.where(keep[:, None, None], Tg, Tn)
+        if keep.all() or rnd == max(1, config.accept_rounds):
+            break
+        # re-adjust the others with the kept frames fixed at their given poses (they are the gauge)
+        m = use & ~(keep[obs.a_idx] & keep[obs.b_idx])
+        touches_free = np.zeros(C, bool)
+        touches_free[obs.a_idx[m]] = touches_free[obs.b_idx[m]] = True
+        sub = PairObservations(obs.a_idx[m], obs.b_idx[m], obs.X_a[m], obs.uv_b[m], obs.z_b[m])
+        if not m.any() or not (keep & touches_free).any():
+            # free frames share no observation with a kept one: nothing ties them, keep the rigid fit
+            continue
+        res = adjust_poses(Tn, keep, K4, sub, ba)
+        Tn = res.T_world_cam
+    ft = _frame_test(Tg, Tn, obs, K4, ba)
+    use = ft["use"]
+    # uncertainty of the refined frames: relative to the kept frames, else to the most observed frame
+    fixed = keep.copy() if keep.any() else (np.arange(C) == int(np.argmax(ft["n_obs"])))
+    inl = PairObservations(obs.a_idx[use], obs.b_idx[use], obs.X_a[use], obs.uv_b[use], obs.z_b[use])
+    cov = pose_covariances(Tn, fixed, K4, inl, ba)
+    frame_stats = {}
+    for c, i in enumerate(idx):
+        if keep[c]:
+            status[i] = reason[c]
+        src = decided[c] if keep[c] else {k: ft[k][c] for k in _FRAME_KEYS}
+        frame_stats[i] = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in src.items()}
+    T = T_given.copy()
+    T[idx] = Tn
+    return T, status, frame_stats, cov
+
+
+def _frame_record(frame_id: str, status: str, dt: float, dr: float, fs: dict, cov: np.ndarray) -> dict:
+    rec = {"frame_id": frame_id, "status": status, "dt_m": float(dt), "dr_deg": float(dr)}
+    for k in _FRAME_KEYS:
+        if k in fs:
+            v = fs[k]
+            rec[k] = v if isinstance(v, int) else (round(v, 4) if np.isfinite(v) else None)
+    if np.all(np.isfinite(cov)):
+        rec["sigma_rot_deg"] = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+        rec["sigma_trans_m"] = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
+    return rec
