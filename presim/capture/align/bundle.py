@@ -301,16 +301,18 @@ def _huber_rho(r: np.ndarray, k: float) -> np.ndarray:
 
 
 def observation_costs(T_world_cam: np.ndarray, K: np.ndarray, obs: PairObservations,
-                      config: BAConfig = BAConfig()) -> tuple[np.ndarray, np.ndarray]:
-    """Per observation, under the poses ``T_world_cam``: (Huber cost of its whitened residuals, the
-    quantity :func:`adjust_poses` minimises (O,); inlier (O,) bool by the adjustment's outlier rule)."""
+                      config: BAConfig = BAConfig()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per observation, under the poses ``T_world_cam``, the Huber costs of its whitened residuals
+    (the terms :func:`adjust_poses` minimises): (reprojection (O,), depth (O,), 0 without depth or
+    with ``use_depth`` off; inlier (O,) bool by the adjustment's outlier rule)."""
     sig = _depth_sigma(obs, config)
     r, _, _ = _linearize(np.asarray(T_world_cam, np.float64), K, obs, sig, config.use_depth, config.sigma_px)
-    rho = _huber_rho(r, config.huber).sum(axis=1)
+    rho_px = _huber_rho(r[:, :2], config.huber).sum(axis=1)
+    rho_z = _huber_rho(r[:, 2], config.huber)
     inl = np.hypot(r[:, 0], r[:, 1]) * config.sigma_px <= config.outlier_px
     if config.use_depth:
         inl &= np.abs(r[:, 2]) <= config.outlier_depth_sigma
-    return rho, inl
+    return rho_px, rho_z, inl
 
 
 def _weighted_system(T: np.ndarray, K: np.ndarray, obs: PairObservations, config: BAConfig,
