@@ -85,8 +85,8 @@ class AlignConfig:
     16.81 = the 99 % quantile of chi-square with 6 degrees of freedom: a change inside the frame's
     own 99 % confidence region is not measurable and the given pose is kept."""
     min_frame_obs: int = 30
-    """A frame with fewer inlier observations than this, or with fewer than 2 image pairs, keeps its
-    given pose (too weakly connected to test or to trust)."""
+    """A frame with fewer inlier observations than this keeps its given pose (too weakly connected to
+    test or to trust)."""
     accept_rounds: int = 5
     """Test, re-adjust the others with the kept frames fixed, test again, until no frame changes
     side: at most this many re-adjustments (then the last test only moves frames to their given pose)."""
@@ -439,7 +439,7 @@ def _frame_test(T_given: np.ndarray, T_new: np.ndarray, obs: PairObservations, K
         se = float(np.std(dm, ddof=1)) / np.sqrt(k)
         se_pair = float(np.sqrt(np.sum(np.bincount(pair_of, weights=dm - mean) ** 2))) / k
         out["t"][c] = mean / se if se > 0 else (np.inf if mean > 0 else 0.0)
-        out["t_pair"][c] = mean / se_pair if se_pair > 0 else (np.inf if mean > 0 else 0.0)
+        out["t_pair"][c] = mean / se_pair if len(keys) > 1 and se_pair > 0 else np.nan
         dz = d_z[m]
         se_z = float(np.std(dz, ddof=1)) / np.sqrt(k)
         out["t_depth"][c] = float(dz.mean()) / se_z if se_z > 0 else 0.0
@@ -471,7 +471,7 @@ def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObs
         use = ft["use"]
         if config.accept_t <= 0:
             break
-        few = ~keep & ((ft["n_obs"] < config.min_frame_obs) | (ft["n_pairs"] < 2))
+        few = ~keep & (ft["n_obs"] < config.min_frame_obs)
         weak = ~keep & ~few & (ft["t"] <= config.accept_t)
         small = ~keep & ~few & ~weak & (ft["chi2"] <= config.accept_chi2)
         for c in np.flatnonzero(few):
