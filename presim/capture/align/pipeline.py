@@ -70,14 +70,12 @@ class AlignConfig:
     reprojection cost of its observations measurably: the paired t statistic
     ``mean(d) / (std(d) / sqrt(n_obs))`` above this, d = an observation's Huber reprojection cost under
     the given poses minus the one under the refined poses, over the frame's inlier observations (the
-    improvement must exceed ``accept_t`` standard errors of the measured noise). When the given poses
-    are exact and the noise independent, fitting the noise alone gives t ~ sqrt(p)/2 (p ~ 6-12 free
-    parameters near a frame), so 3 keeps them; a real pose error grows t with sqrt(n_obs). The depth
-    residuals are left out of the test on purpose: a sensor's depth errors are systematic per frame
-    (a depth map registered pixels off its colour image, depth-dependent bias), a pose that absorbs
-    them lowers the depth cost of every observation of the frame, and the reprojection of a feature
-    lifted with a wrong depth moves only by parallax (docs/alignment.md has the measurements).
-    0 = accept all refined poses (no test)."""
+    improvement must exceed ``accept_t`` standard errors of the measured noise). The depth residuals
+    are left out of the test on purpose: a sensor's depth errors are systematic per frame (a depth
+    map registered pixels off its colour image, depth-dependent bias), a pose that absorbs them lowers
+    the depth cost of every observation of the frame, while the reprojection of a feature lifted with
+    a wrong depth moves only by parallax (docs/alignment.md has the measurements). Measured t: exact
+    poses 0-6, real pose errors 4-37. 0 = accept all refined poses (no test)."""
     accept_chi2: float = 16.81
     """... and only when its own pose change is measurable: ``delta^T I delta`` above this, with
     ``delta`` the 6-vector change (rotation vector, translation) from the given pose and ``I`` the
@@ -402,14 +400,16 @@ def _restrict(f: Features, used: set[int] | None, fc: FeatureConfig) -> tuple[Fe
 
 
 def _frame_test(T_given: np.ndarray, T_new: np.ndarray, obs: PairObservations, K4: np.ndarray,
-                ba: BAConfig) -> dict:
+                ba: BAConfig, accept_t: float) -> dict:
     """Per camera (local index) the acceptance statistics of ``T_new`` against ``T_given``:
     ``n_obs`` inlier observations touching it, ``n_pairs`` image pairs among them, ``t`` the paired t
     statistic of the per-observation reprojection cost decrease given -> new, ``t_depth`` the same
     for the depth cost (reported, not tested: see ``AlignConfig.accept_t``), ``t_pair`` as ``t`` with a
     cluster-robust standard error (the image pair as the cluster: for reference, it shows how much of
     the decrease is shared within pairs), ``chi2`` the frame's change under its own information,
-    ``rms_given`` / ``rms_refined`` the RMS whitened residual; and ``use``,
+    ``rms_given`` / ``rms_refined`` the RMS whitened residual, ``pairs_improved`` how many of its
+    image pairs have a paired t statistic of their own reprojection cost decrease above ``accept_t``;
+    and ``use``,
     the inlier mask (O,). An observation counts when it is an inlier under either pose set (neither
     side chooses its data)."""
     px_g, z_g, in_g = observation_costs(T_given, K4, obs, ba)
@@ -420,8 +420,21 @@ def _frame_test(T_given: np.ndarray, T_new: np.ndarray, obs: PairObservations, K
     d_z = z_g - z_n
     rho_g, rho_n = px_g + z_g, px_n + z_n
     pair_key = obs.a_idx.astype(np.int64) * C + obs.b_idx
+    # per image pair: paired t of the reprojection cost decrease over the pair's observations
+    pk, p_of = np.unique(pair_key, return_inverse=True)
+    w = use.astype(float)
+    n_p = np.bincount(p_of, weights=w, minlength=len(pk))
+    s1 = np.bincount(p_of, weights=w * d, minlength=len(pk))
+    s2 = np.bincount(p_of, weights=w * d * d, minlength=len(pk))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean_p = s1 / n_p
+        var_p = (s2 - n_p * mean_p ** 2) / (n_p - 1)
+        t_p = mean_p / np.sqrt(np.maximum(var_p, 1e-300) / n_p)
+    t_p = np.where(n_p >= 2, np.nan_to_num(t_p, nan=0.0), 0.0)
+    improved_pair = t_p > accept_t
+    pa, pb = pk // C, pk % C
     out = {k: np.zeros(C) for k in ("t", "t_pair", "t_depth")}
-    out.update({k: np.zeros(C, int) for k in ("n_obs", "n_pairs")})
+    out.update({k: np.zeros(C, int) for k in ("n_obs", "n_pairs", "pairs_improved")})
     out.update({k: np.full(C, np.nan) for k in ("rms_given", "rms_refined")})
     for c in range(C):
         m = use & ((obs.a_idx == c) | (obs.b_idx == c))
@@ -433,6 +446,7 @@ def _frame_test(T_given: np.ndarray, T_new: np.ndarray, obs: PairObservations, K
         out["rms_given"][c], out["rms_refined"][c] = np.sqrt(2 * rho_g[m].mean()), np.sqrt(2 * rho_n[m].mean())
         keys, pair_of = np.unique(pair_key[m], return_inverse=True)
         out["n_pairs"][c] = len(keys)
+        out["pairs_improved"][c] = int(np.count_nonzero(improved_pair[((pa == c) | (pb == c)) & (n_p > 0)]))
         if k < 2:
             continue
         mean = float(dm.mean())
@@ -453,7 +467,7 @@ def _frame_test(T_given: np.ndarray, T_new: np.ndarray, obs: PairObservations, K
     return out
 
 
-_FRAME_KEYS = ("n_obs", "n_pairs", "t", "t_pair", "t_depth", "chi2", "rms_given", "rms_refined")
+_FRAME_KEYS = ("n_obs", "n_pairs", "pairs_improved", "t", "t_pair", "t_depth", "chi2", "rms_given", "rms_refined")
 
 
 def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObservations, K4: np.ndarray,
@@ -466,13 +480,14 @@ def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObs
     keep = np.zeros(C, bool)
     reason = [""] * C
     decided: dict[int, dict] = {}  # statistics of the round that kept a frame at its given pose
+    few_all = np.zeros(C, bool)
     for rnd in range(max(1, config.accept_rounds) + 1):
-        ft = _frame_test(Tg, Tn, obs, K4, ba)
+        ft = _frame_test(Tg, Tn, obs, K4, ba, config.accept_t)
         use = ft["use"]
         if config.accept_t <= 0:
             break
         few = ~keep & (ft["n_obs"] < config.min_frame_obs)
-        weak = ~keep & ~few & (ft["t"] <= config.accept_t)
+        weak = ~keep & ~few & ((ft["t"] <= config.accept_t) | (2 * ft["pairs_improved"] <= ft["n_pairs"]))
         small = ~keep & ~few & ~weak & (ft["chi2"] <= config.accept_chi2)
         for c in np.flatnonzero(few):
             reason[c] = "given: few observations"
@@ -480,6 +495,7 @@ def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObs
             reason[c] = "given: residuals not significantly lower"
         for c in np.flatnonzero(small):
             reason[c] = "given: change within uncertainty"
+        few_all |= few
         new_keep = keep | few | weak | small
         for c in np.flatnonzero(new_keep & ~keep):
             decided[c] = {k: ft[k][c] for k in _FRAME_KEYS}
@@ -489,20 +505,26 @@ def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObs
         Tn = np.where(keep[:, None, None], Tg, Tn)
         if keep.all() or rnd == max(1, config.accept_rounds):
             break
-        # re-adjust the others with the kept frames fixed at their given poses (they are the gauge)
-        m = use & ~(keep[obs.a_idx] & keep[obs.b_idx])
+        # re-adjust the others with the frames whose given pose the data support (kept as not
+        # significantly improved) fixed there: they are the gauge, so no refined frame drifts relative
+        # to a neighbour left at its given pose. Frames kept for too few observations are no evidence
+        # for anything: they keep their given pose but neither anchor nor constrain the others.
+        anchor = keep & ~few_all
+        m = use & ~few_all[obs.a_idx] & ~few_all[obs.b_idx] & ~(anchor[obs.a_idx] & anchor[obs.b_idx])
         touches_free = np.zeros(C, bool)
         touches_free[obs.a_idx[m]] = touches_free[obs.b_idx[m]] = True
         sub = PairObservations(obs.a_idx[m], obs.b_idx[m], obs.X_a[m], obs.uv_b[m], obs.z_b[m])
-        if not m.any() or not (keep & touches_free).any():
-            # free frames share no observation with a kept one: nothing ties them, keep the rigid fit
+        if not m.any() or not (anchor & touches_free).any():
+            # no anchor shares an observation with the free frames: the rigid fit stays their gauge
             continue
-        res = adjust_poses(Tn, keep, K4, sub, ba)
+        res = adjust_poses(Tn, keep, K4, sub, ba)  # few-observation frames are fixed and unobserved
         Tn = res.T_world_cam
-    ft = _frame_test(Tg, Tn, obs, K4, ba)
+    ft = _frame_test(Tg, Tn, obs, K4, ba, config.accept_t)
     use = ft["use"]
-    # uncertainty of the refined frames: relative to the kept frames, else to the most observed frame
-    fixed = keep.copy() if keep.any() else (np.arange(C) == int(np.argmax(ft["n_obs"])))
+    # uncertainty of the refined frames: relative to the anchors, else to the most observed frame
+    anchor = keep & ~few_all
+    fixed = anchor | few_all if anchor.any() else few_all | (np.arange(C) == int(np.argmax(ft["n_obs"])))
+    use = use & ~few_all[obs.a_idx] & ~few_all[obs.b_idx]
     inl = PairObservations(obs.a_idx[use], obs.b_idx[use], obs.X_a[use], obs.uv_b[use], obs.z_b[use])
     cov = pose_covariances(Tn, fixed, K4, inl, ba)
     frame_stats = {}
