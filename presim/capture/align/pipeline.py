@@ -75,7 +75,9 @@ class AlignConfig:
     map registered pixels off its colour image, depth-dependent bias), a pose that absorbs them lowers
     the depth cost of every observation of the frame, while the reprojection of a feature lifted with
     a wrong depth moves only by parallax (docs/alignment.md has the measurements). Measured t: exact
-    poses 0-6, real pose errors 4-37. 0 = accept all refined poses (no test)."""
+    poses 0-6, real pose errors 4-37. At least half of the frame's image pairs must also pass the same
+    test on their own observations: a wrong neighbour improves only the pairs it is in, so an exact
+    frame next to it keeps its given pose. 0 = accept all refined poses (no test)."""
     accept_chi2: float = 16.81
     """... and only when its own pose change is measurable: ``delta^T I delta`` above this, with
     ``delta`` the 6-vector change (rotation vector, translation) from the given pose and ``I`` the
@@ -487,7 +489,7 @@ def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObs
         if config.accept_t <= 0:
             break
         few = ~keep & (ft["n_obs"] < config.min_frame_obs)
-        weak = ~keep & ~few & ((ft["t"] <= config.accept_t) | (2 * ft["pairs_improved"] <= ft["n_pairs"]))
+        weak = ~keep & ~few & ((ft["t"] <= config.accept_t) | (2 * ft["pairs_improved"] < ft["n_pairs"]))
         small = ~keep & ~few & ~weak & (ft["chi2"] <= config.accept_chi2)
         for c in np.flatnonzero(few):
             reason[c] = "given: few observations"
