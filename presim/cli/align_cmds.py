@@ -79,10 +79,11 @@ def _align(args) -> int:
     for reason, ids in st["kept_given"].items():
         print(f"kept the given pose of {len(ids)} frame(s), {reason.removeprefix('given: ')}: "
               f"{', '.join(ids[:10])}" + (f" and {len(ids) - 10} more" if len(ids) > 10 else ""))
+    n_ref = sum(r["status"] == "refined" for r in st["per_frame"])
     sig = [r["sigma_trans_m"] for r in st["per_frame"] if "sigma_trans_m" in r]
-    if sig:
-        print(f"refined {len(sig)} frame(s); pose uncertainty (1 sigma) median {np.median(sig) * 1000:.2f} mm, "
-              f"max {max(sig) * 1000:.2f} mm (per frame: presim info --json)")
+    print(f"refined {n_ref} of {st['frames']} frame(s)" + (
+        f"; pose uncertainty (1 sigma, relative to the frames held fixed) median {np.median(sig) * 1000:.2f} mm, "
+        f"max {max(sig) * 1000:.2f} mm (per frame: presim info --json)" if sig else ""))
     print(f"wrote {out}")
     if args.json is not None:
         atomic_write_json(args.json, st)
