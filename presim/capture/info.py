@@ -159,9 +159,9 @@ def format_info(info: dict) -> str:
             lines.append("  largest   " + ", ".join(f"{r['frame_id']} {r['dt_m'] * 100:.2f} cm/{r['dr_deg']:.2f} deg"
                                                    for r in worst) + " (per frame: --json)")
             if ps.get("sigma_m"):
-                lines.append(f"  uncertainty of the refined poses (1 sigma) median {ps['sigma_m']['median'] * 1000:.2f} mm / "
-                             f"{ps['sigma_deg']['median']:.3f} deg, max {ps['sigma_m']['max'] * 1000:.2f} mm / "
-                             f"{ps['sigma_deg']['max']:.3f} deg")
+                sm, sd = ps["sigma_m"], ps["sigma_deg"]
+                lines.append(f"  uncertainty of the refined poses (1 sigma) median {sm['median'] * 1000:.2f} mm / "
+                             f"{sd['median']:.3f} deg, max {sm['max'] * 1000:.2f} mm / {sd['max']:.3f} deg")
             for reason, ids in ps.get("kept_given", {}).items():
                 more = f" and {len(ids) - 6} more" if len(ids) > 6 else ""
                 lines.append(f"  kept given {len(ids)} frame(s), {reason.removeprefix('given: ')}: "
