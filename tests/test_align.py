@@ -75,10 +75,10 @@ def test_exact_poses_do_not_move_and_same_seed_same_poses(syn):
 
 
 def test_one_perturbed_frame_is_corrected_the_exact_ones_kept(syn):
-    """Only frame 3 is off (1 cm / 0.5 deg): it takes its refined pose, back within 1 mm / 0.05 deg
-    of the truth, with a reprojection t statistic far above 3 and a pose uncertainty far below its
-    error; the exact frames end within 0.2 mm of their given poses (kept, or refined only because
-    their observations with frame 3 improved)."""
+    """Only frame 3 is off (1 cm / 0.5 deg): it takes its refined pose, back within 0.5 mm / 0.02 deg
+    of the truth (the exact frames anchor it), with a reprojection t statistic far above 3 and a pose
+    uncertainty far below its error; every exact frame keeps its given pose bit for bit (only its pair
+    with frame 3 improves: 1 of 6-7 pairs)."""
     scene, T = syn
     bad = T.copy()
     bad[3] = perturb(T[3:4], 0.01, 0.5, seed=4)[0]
@@ -86,14 +86,13 @@ def test_one_perturbed_frame_is_corrected_the_exact_ones_kept(syn):
     rec = res.stats["per_frame"][3]
     assert rec["status"] == "refined" and rec["t"] > 10, rec
     assert rec["sigma_trans_m"] < 0.001 and rec["sigma_rot_deg"] < 0.05, rec
-    dt, dr = pose_change(T, res.T_world_cam)
-    assert dt[3] < 0.001 and dr[3] < 0.05, (dt[3], dr[3])
+    dt, dr = _errors(T, res.T_world_cam)
+    assert dt[3] < 0.0005 and dr[3] < 0.02, (dt[3], dr[3])  # measured 0.20 mm / 0.004 deg
     others = np.arange(8) != 3
-    assert dt[others].max() < 0.0002 and dr[others].max() < 0.01, (dt, dr)
-    for i in np.flatnonzero(others):
-        r = res.stats["per_frame"][i]
-        if r["status"] != "refined":
-            np.testing.assert_array_equal(res.T_world_cam[i], T[i])
+    assert [r["status"] for r in np.array(res.stats["per_frame"])[others]] == \
+        ["given: residuals not significantly lower"] * 7
+    np.testing.assert_array_equal(res.T_world_cam[others], T[others])
+    assert pose_change(T, bad)[0][3] > 0.009  # the test can fail: frame 3 was really off
 
 
 def test_frame_with_too_few_observations_keeps_its_given_pose(syn):
