@@ -85,12 +85,20 @@ def _poses_info(scene: Scene) -> dict:
     Rrel = np.einsum("nji,njk->nik", T_given[:, :3, :3], T_ref[:, :3, :3])
     dr = np.degrees(np.arccos(np.clip((np.trace(Rrel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     st = prov.get("stats", {})
+    frames = {r.get("frame_id"): r for r in prov.get("frames", []) if isinstance(r, dict)}
+    kept = st.get("kept_given", {})
+    sig = [r["sigma_trans_m"] for r in frames.values() if r.get("sigma_trans_m") is not None]
+    sig_r = [r["sigma_rot_deg"] for r in frames.values() if r.get("sigma_rot_deg") is not None]
     out.update({
         "refined_available": True,
+        "kept_given": {k: list(v) for k, v in kept.items()} if isinstance(kept, dict) else {},
+        "sigma_m": {"median": float(np.median(sig)), "max": float(np.max(sig))} if sig else None,
+        "sigma_deg": {"median": float(np.median(sig_r)), "max": float(np.max(sig_r))} if sig_r else None,
         "change_m": {"median": float(np.median(dt)), "max": float(dt.max())},
         "change_deg": {"median": float(np.median(dr)), "max": float(dr.max())},
         "transfer_px": [st.get("transfer_px_before", {}).get("median"), st.get("transfer_px_after", {}).get("median")],
-        "per_frame": [{"frame_id": f, "dt_m": round(float(a), 6), "dr_deg": round(float(b), 5)}
+        "per_frame": [{"frame_id": f, "dt_m": round(float(a), 6), "dr_deg": round(float(b), 5),
+                       **{k: v for k, v in frames.get(f, {}).items() if k not in ("frame_id", "dt_m", "dr_deg")}}
                       for f, a, b in zip(scene.frame_ids, dt, dr)],
     })
     return out
@@ -150,6 +158,14 @@ def format_info(info: dict) -> str:
             worst = sorted(ps["per_frame"], key=lambda r: -r["dt_m"])[:5]
             lines.append("  largest   " + ", ".join(f"{r['frame_id']} {r['dt_m'] * 100:.2f} cm/{r['dr_deg']:.2f} deg"
                                                    for r in worst) + " (per frame: --json)")
+            if ps.get("sigma_m"):
+                sm, sd = ps["sigma_m"], ps["sigma_deg"]
+                lines.append(f"  uncertainty of the refined poses (1 sigma) median {sm['median'] * 1000:.2f} mm / "
+                             f"{sd['median']:.3f} deg, max {sm['max'] * 1000:.2f} mm / {sd['max']:.3f} deg")
+            for reason, ids in ps.get("kept_given", {}).items():
+                more = f" and {len(ids) - 6} more" if len(ids) > 6 else ""
+                lines.append(f"  kept given {len(ids)} frame(s), {reason.removeprefix('given: ')}: "
+                             f"{', '.join(ids[:6])}{more}")
     for n in i["notes"]:
         lines.append(f"note        {n}")
     return "\n".join(lines)

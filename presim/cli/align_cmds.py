@@ -21,6 +21,11 @@ def register(sub) -> None:
     p.add_argument("--no-depth-residuals", action="store_true", help="reprojection residuals only (as the thesis)")
     p.add_argument("--keep-unmatched", action="store_true",
                    help="keep the given pose of frames no match connects (default: error naming them)")
+    p.add_argument("--accept-t", type=float, default=3.0,
+                   help="a frame keeps its given pose unless the refined poses lower its reprojection "
+                        "residuals by more than this many standard errors (default 3; 0 = accept all)")
+    p.add_argument("--min-frame-obs", type=int, default=30,
+                   help="frames with fewer verified observations keep their given pose (default 30)")
     p.add_argument("--from", dest="start", choices=("given", "refined"), default="given",
                    help="start from the given poses (default) or from existing refined ones")
     p.add_argument("--overwrite", action="store_true", help="replace existing refined poses")
@@ -42,6 +47,8 @@ def register(sub) -> None:
 
 
 def _align(args) -> int:
+    import numpy as np
+
     from presim.capture.align import AlignConfig, align_poses
     from presim.capture.align.bundle import BAConfig
     from presim.capture.align.features import FeatureConfig
@@ -54,11 +61,13 @@ def _align(args) -> int:
         raise FileExistsError(f"{args.scene / REFINED_POSES_FILE}: already exists (pass --overwrite to recompute)")
     cfg = AlignConfig(features=FeatureConfig(max_features=args.features), grouping=GroupConfig(max_group=args.max_group),
                       ba=BAConfig(use_depth=not args.no_depth_residuals), joint=not args.no_joint,
-                      joint_neighbours=args.neighbours, keep_unmatched=args.keep_unmatched, seed=args.seed)
+                      joint_neighbours=args.neighbours, keep_unmatched=args.keep_unmatched, seed=args.seed,
+                      accept_t=args.accept_t, min_frame_obs=args.min_frame_obs)
     res = align_poses(scene, cfg, log=lambda s: print(s, file=sys.stderr))
     st = res.stats
     prov = {"command": "presim align", "started_from": scene.poses_source, "seed": args.seed,
-            "stats": {k: v for k, v in st.items() if k != "per_frame_change"}}
+            "stats": {k: v for k, v in st.items() if k not in ("per_frame_change", "per_frame")},
+            "frames": st["per_frame"]}
     out = save_refined_poses(args.scene, res.T_world_cam, scene.frame_ids, prov)
     b, a = st["transfer_px_before"], st["transfer_px_after"]
     print(f"{args.scene}: {st['frames']} frames, {st['groups']} groups, {st['matches']} verified matches")
@@ -67,9 +76,14 @@ def _align(args) -> int:
           f"{st['depth_res_m_after']['median'] * 1000:.1f} mm")
     print(f"cameras moved median {st['change_m']['median'] * 100:.2f} cm / {st['change_deg']['median']:.2f} deg "
           f"(p90 {st['change_m']['p90'] * 100:.2f} cm / {st['change_deg']['p90']:.2f} deg), {st['time_s']['total']:.1f} s")
-    if st["unmatched_frames"]:
-        print(f"kept the given pose of {len(st['unmatched_frames'])} unmatched frame(s): "
-              f"{', '.join(st['unmatched_frames'][:10])}")
+    for reason, ids in st["kept_given"].items():
+        print(f"kept the given pose of {len(ids)} frame(s), {reason.removeprefix('given: ')}: "
+              f"{', '.join(ids[:10])}" + (f" and {len(ids) - 10} more" if len(ids) > 10 else ""))
+    n_ref = sum(r["status"] == "refined" for r in st["per_frame"])
+    sig = [r["sigma_trans_m"] for r in st["per_frame"] if "sigma_trans_m" in r]
+    print(f"refined {n_ref} of {st['frames']} frame(s)" + (
+        f"; pose uncertainty (1 sigma, relative to the frames held fixed) median {np.median(sig) * 1000:.2f} mm, "
+        f"max {max(sig) * 1000:.2f} mm (per frame: presim info --json)" if sig else ""))
     print(f"wrote {out}")
     if args.json is not None:
         atomic_write_json(args.json, st)

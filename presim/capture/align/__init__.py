@@ -10,7 +10,9 @@ Stages, each one pure function with its config dataclass beside it:
   5.1), reprojection and depth residuals, Huber loss (scipy ``least_squares``, sparse Jacobian);
   ``bundle_adjust``: the same with free 3D points (slower; not used by the pipeline).
 - :mod:`.pipeline`  -- ``align_poses``: local BA per group, global BA of the key poses, an optional joint
-  pass over all frames, and the rigid fit that keeps the scene's world frame.
+  pass over all frames, the rigid fit that keeps the scene's world frame, and the per-frame acceptance
+  test (a frame keeps its given pose unless the refined one measurably lowers its reprojection
+  residuals; kept frames anchor a re-adjustment of the others; per-frame uncertainty).
 
 See docs/alignment.md.
 """

@@ -21,7 +21,8 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-__all__ = ["BAConfig", "BAProblem", "BAResult", "bundle_adjust", "residuals_px"]
+__all__ = ["BAConfig", "BAProblem", "BAResult", "bundle_adjust", "observation_costs", "pose_covariances",
+           "pose_information", "residuals_px"]
 
 
 @dataclass(frozen=True)
@@ -217,6 +218,7 @@ class PairObservations:
 class PoseAdjustResult:
     T_world_cam: np.ndarray
     inlier: np.ndarray
+    """(O,) bool: observations kept by the last pass."""
     transfer_px_before: np.ndarray
     transfer_px_after: np.ndarray
     nfev: int
@@ -271,6 +273,96 @@ def _linearize(T: np.ndarray, K: np.ndarray, obs: PairObservations, sig_z: np.nd
     return r, Ja, Jb
 
 
+def _depth_sigma(obs: PairObservations, config: BAConfig) -> np.ndarray:
+    """sigma_z of each observation's depth residual, metres (from both depths)."""
+    return np.maximum(config.depth_sigma_coeff * np.sqrt(obs.X_a[:, 2] ** 4 + obs.z_b ** 4), 1e-6)
+
+
+def _normal_equations(C: int, free: np.ndarray, o: PairObservations, r: np.ndarray, Ja: np.ndarray,
+                      Jb: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton (J^T W J, J^T W r) over the free cameras' 6-vectors (dense, 6F x 6F)."""
+    H = np.zeros((C, C, 6, 6))
+    g = np.zeros((C, 6))
+    JaW, JbW = Ja * w[:, :, None], Jb * w[:, :, None]
+    np.add.at(H, (o.a_idx, o.a_idx), np.einsum("oki,okj->oij", JaW, Ja))
+    np.add.at(H, (o.b_idx, o.b_idx), np.einsum("oki,okj->oij", JbW, Jb))
+    Hab = np.einsum("oki,okj->oij", JaW, Jb)
+    np.add.at(H, (o.a_idx, o.b_idx), Hab)
+    np.add.at(H, (o.b_idx, o.a_idx), np.swapaxes(Hab, 1, 2))
+    np.add.at(g, o.a_idx, np.einsum("oki,ok->oi", JaW, r))
+    np.add.at(g, o.b_idx, np.einsum("oki,ok->oi", JbW, r))
+    Hf = H[np.ix_(free, free)].transpose(0, 2, 1, 3).reshape(6 * len(free), 6 * len(free))
+    return Hf, g[free].reshape(-1)
+
+
+def _huber_rho(r: np.ndarray, k: float) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a <= k, 0.5 * a ** 2, k * (a - 0.5 * k))
+
+
+def observation_costs(T_world_cam: np.ndarray, K: np.ndarray, obs: PairObservations,
+                      config: BAConfig = BAConfig()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per observation, under the poses ``T_world_cam``, the Huber costs of its whitened residuals
+    (the terms :func:`adjust_poses` minimises): (reprojection (O,), depth (O,), 0 without depth or
+    with ``use_depth`` off; inlier (O,) bool by the adjustment's outlier rule)."""
+    sig = _depth_sigma(obs, config)
+    r, _, _ = _linearize(np.asarray(T_world_cam, np.float64), K, obs, sig, config.use_depth, config.sigma_px)
+    rho_px = _huber_rho(r[:, :2], config.huber).sum(axis=1)
+    rho_z = _huber_rho(r[:, 2], config.huber)
+    inl = np.hypot(r[:, 0], r[:, 1]) * config.sigma_px <= config.outlier_px
+    if config.use_depth:
+        inl &= np.abs(r[:, 2]) <= config.outlier_depth_sigma
+    return rho_px, rho_z, inl
+
+
+def _weighted_system(T: np.ndarray, K: np.ndarray, obs: PairObservations, config: BAConfig,
+                     free: np.ndarray) -> tuple[np.ndarray, float]:
+    """(J^T W J over the ``free`` cameras, s^2 = weighted residual variance per degree of freedom)."""
+    r, Ja, Jb = _linearize(T, K, obs, _depth_sigma(obs, config), config.use_depth, config.sigma_px)
+    a = np.abs(r)
+    w = np.where(a <= config.huber, 1.0, config.huber / np.maximum(a, 1e-12))
+    Hf, _ = _normal_equations(len(T), free, obs, r, Ja, Jb, w)
+    n_res = 2 * len(r) + (int(np.count_nonzero(r[:, 2])) if config.use_depth else 0)
+    dof = max(n_res - 6 * len(free), 1)
+    return Hf, float(np.sum(w * r ** 2)) / dof
+
+
+def pose_information(T_world_cam: np.ndarray, K: np.ndarray, obs: PairObservations,
+                     config: BAConfig = BAConfig()) -> np.ndarray:
+    """(C, 6, 6) information of each camera's own increment (w rad, v m) with all other cameras held:
+    its diagonal block of ``J^T W J / s^2`` (``s^2`` as :func:`pose_covariances`). Its inverse is the
+    frame's conditional covariance: how well its own observations fix it, gauge-free."""
+    T = np.asarray(T_world_cam, np.float64)
+    C = len(T)
+    if len(obs.a_idx) == 0:
+        return np.zeros((C, 6, 6))
+    Hf, s2 = _weighted_system(T, K, obs, config, np.arange(C))
+    return Hf.reshape(C, 6, C, 6)[np.arange(C), :, np.arange(C), :] / max(s2, 1e-12)
+
+
+def pose_covariances(T_world_cam: np.ndarray, fixed: np.ndarray, K: np.ndarray, obs: PairObservations,
+                     config: BAConfig = BAConfig()) -> np.ndarray:
+    """(C, 6, 6) marginal covariances of the free cameras' increments (w rad, v m) at the poses
+    ``T_world_cam`` (NaN for fixed cameras): ``s^2 (J^T W J)^-1`` with the Huber weights, ``s^2`` the
+    weighted residual variance per degree of freedom (the measured noise level, not the assumed
+    sigma). Relative to the fixed cameras (the gauge); ``obs`` should be the inliers."""
+    T = np.asarray(T_world_cam, np.float64)
+    fixed = np.asarray(fixed, bool)
+    C = len(T)
+    free = np.flatnonzero(~fixed)
+    cov = np.full((C, 6, 6), np.nan)
+    if len(free) == 0 or len(obs.a_idx) == 0:
+        return cov
+    Hf, s2 = _weighted_system(T, K, obs, config, free)
+    try:
+        inv = np.linalg.inv(Hf + 1e-12 * np.eye(len(Hf)))
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(Hf)
+    blocks = inv.reshape(len(free), 6, len(free), 6)[np.arange(len(free)), :, np.arange(len(free)), :]
+    cov[free] = s2 * blocks
+    return cov
+
+
 def adjust_poses(T_world_cam: np.ndarray, fixed: np.ndarray, K: np.ndarray, obs: PairObservations,
                  config: BAConfig = BAConfig()) -> PoseAdjustResult:
     """Pose-only RGB-D adjustment: moves the free cameras so that every feature of a, lifted with a's
@@ -286,9 +378,7 @@ def adjust_poses(T_world_cam: np.ndarray, fixed: np.ndarray, K: np.ndarray, obs:
     if O == 0:
         raise ValueError("adjust_poses: no observations")
     free = np.flatnonzero(~fixed)
-    z_a = obs.X_a[:, 2]
-    sig_all = config.depth_sigma_coeff * np.sqrt(z_a ** 4 + obs.z_b ** 4)
-    sig_all = np.maximum(sig_all, 1e-6)
+    sig_all = _depth_sigma(obs, config)
     pred0, _ = transfer(T, K, obs)
     err0 = np.linalg.norm(pred0 - obs.uv_b, axis=1)
     active = np.ones(O, dtype=bool)
@@ -322,18 +412,7 @@ def adjust_poses(T_world_cam: np.ndarray, fixed: np.ndarray, K: np.ndarray, obs:
             for _ in range(config.max_nfev * max(1, config.irls_rounds)):
                 a = np.abs(r)
                 w = np.where(a <= k_h, 1.0, k_h / np.maximum(a, 1e-12))        # Huber IRLS weights
-                H = np.zeros((C, C, 6, 6))
-                g = np.zeros((C, 6))
-                JaW, JbW = Ja * w[:, :, None], Jb * w[:, :, None]
-                np.add.at(H, (o.a_idx, o.a_idx), np.einsum("oki,okj->oij", JaW, Ja))
-                np.add.at(H, (o.b_idx, o.b_idx), np.einsum("oki,okj->oij", JbW, Jb))
-                Hab = np.einsum("oki,okj->oij", JaW, Jb)
-                np.add.at(H, (o.a_idx, o.b_idx), Hab)
-                np.add.at(H, (o.b_idx, o.a_idx), np.swapaxes(Hab, 1, 2))
-                np.add.at(g, o.a_idx, np.einsum("oki,ok->oi", JaW, r))
-                np.add.at(g, o.b_idx, np.einsum("oki,ok->oi", JbW, r))
-                Hf = H[np.ix_(free, free)].transpose(0, 2, 1, 3).reshape(6 * len(free), 6 * len(free))
-                gf = g[free].reshape(-1)
+                Hf, gf = _normal_equations(C, free, o, r, Ja, Jb, w)
                 while True:
                     A = Hf + lam * np.diag(np.diag(Hf) + 1e-9)
                     try:

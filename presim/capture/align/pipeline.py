@@ -11,6 +11,11 @@
    adjustment of all frames with all observations, started from step 4.
 6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
    mean of centre offsets), so floor, objects and point cloud keep their world frame.
+7. Acceptance (``accept_t > 0``): per frame, a paired test of its observations' costs under the given
+   vs the refined poses; a frame whose refined pose does not lower them significantly (or that has too
+   few observations) keeps its given pose, and the other frames are adjusted again with those held
+   fixed (they anchor the gauge: no frame drifts relative to a neighbour left at its given pose).
+   Per-frame status, test statistic and pose uncertainty go into the statistics.
 Deterministic for a seed (OpenCV RANSAC is seeded per pair; scipy's solver is deterministic).
 """
 
@@ -21,8 +26,10 @@ from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from presim.capture.align.bundle import BAConfig, PairObservations, adjust_poses, residuals_px
+from presim.capture.align.bundle import (BAConfig, PairObservations, adjust_poses, observation_costs,
+                                         pose_covariances, pose_information, residuals_px)
 from presim.capture.align.features import FeatureConfig, Features, PairMatch, extract_features, match_pair, unproject_uv
 from presim.capture.align.grouping import GroupConfig, group_poses, view_angles_rad
 from presim.capture.scene import Scene
@@ -58,6 +65,31 @@ class AlignConfig:
     them; True = keep their given pose."""
     seed: int = 0
     """Key-pose draw and RANSAC seeds."""
+    accept_t: float = 3.0
+    """Per-frame acceptance: a frame takes its refined pose only when the refined poses lower the
+    reprojection cost of its observations measurably: the paired t statistic
+    ``mean(d) / (std(d) / sqrt(n_obs))`` above this, d = an observation's Huber reprojection cost under
+    the given poses minus the one under the refined poses, over the frame's inlier observations (the
+    improvement must exceed ``accept_t`` standard errors of the measured noise). The depth residuals
+    are left out of the test on purpose: a sensor's depth errors are systematic per frame (a depth
+    map registered pixels off its colour image, depth-dependent bias), a pose that absorbs them lowers
+    the depth cost of every observation of the frame, while the reprojection of a feature lifted with
+    a wrong depth moves only by parallax (docs/alignment.md has the measurements). Measured t: exact
+    poses 0-6, real pose errors 4-37. At least half of the frame's image pairs must also pass the same
+    test on their own observations: a wrong neighbour improves only the pairs it is in, so an exact
+    frame next to it keeps its given pose. 0 = accept all refined poses (no test)."""
+    accept_chi2: float = 16.81
+    """... and only when its own pose change is measurable: ``delta^T I delta`` above this, with
+    ``delta`` the 6-vector change (rotation vector, translation) from the given pose and ``I`` the
+    frame's own information (all other frames held; residual noise level measured from the data).
+    16.81 = the 99 % quantile of chi-square with 6 degrees of freedom: a change inside the frame's
+    own 99 % confidence region is not measurable and the given pose is kept."""
+    min_frame_obs: int = 30
+    """A frame with fewer inlier observations than this keeps its given pose (too weakly connected to
+    test or to trust)."""
+    accept_rounds: int = 5
+    """Test, re-adjust the others with the kept frames fixed, test again, until no frame changes
+    side: at most this many re-adjustments (then the last test only moves frames to their given pose)."""
 
 
 @dataclass(frozen=True)
@@ -307,6 +339,19 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
     S = fit_rigid_to(T_given[idx], T_ref[idx])
     T_out = T_given.copy()
     T_out[idx] = S @ T_ref[idx]
+
+    # 7. per-frame acceptance; frames kept at their given pose anchor a re-adjustment of the others
+    status = {i: "given: unmatched" for i in unmatched}
+    for i in idx:
+        status[i] = "refined"
+    frame_stats: dict[int, dict] = {}
+    cov = np.full((n, 6, 6), np.nan)
+    if all_pairs and idx:
+        jpairs = [p for p in all_pairs if p[0] in main and p[1] in main]
+        obs, _, slot = _pair_obs(jpairs, feats, scene, idx, config.max_matches_per_pair, config.seed + 2)
+        K4 = _K4s(scene, idx)
+        T_out, status, frame_stats, cov_m = _accept(T_given, T_out, idx, obs, K4, config, status)
+        cov[idx] = cov_m
     t_end = time.perf_counter()
 
     e0, d0 = transfer_errors(all_pairs, feats, scene, T_given)
@@ -323,10 +368,19 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         "change_m": _stat(dt), "change_deg": _stat(dr),
         "per_frame_change": [{"frame_id": scene.frame_ids[i], "dt_m": float(dt[i]), "dr_deg": float(dr[i])}
                              for i in range(n)],
+        "kept_given": {reason: [scene.frame_ids[i] for i in range(n) if status.get(i) == reason]
+                       for reason in sorted({v for v in status.values() if v != "refined"})},
+        "per_frame": [_frame_record(scene.frame_ids[i], status.get(i, "given: unmatched"), dt[i], dr[i],
+                                    frame_stats.get(i, {}), cov[i]) for i in range(n)],
         "time_s": {"features": t_feat - t_start, "local_global": t_stages - t_feat,
                    "joint": t_end - t_stages, "total": t_end - t_start},
         "config": asdict(config),
     }
+    n_kept = sum(1 for v in status.values() if v != "refined")
+    if n_kept:
+        log(f"kept the given pose of {n_kept} frame(s): " + "; ".join(
+            f"{r} {len(v)} ({_names(scene, [scene.frame_ids.index(f) for f in v], 6)})"
+            for r, v in stats["kept_given"].items()))
     log(f"aligned {n} frames: transfer error median {stats['transfer_px_before']['median']:.2f} -> "
         f"{stats['transfer_px_after']['median']:.2f} px, cameras moved median {np.median(dt) * 100:.2f} cm / "
         f"{np.median(dr):.2f} deg, {t_end - t_start:.1f} s")
@@ -345,3 +399,181 @@ def _restrict(f: Features, used: set[int] | None, fc: FeatureConfig) -> tuple[Fe
         return f, np.arange(len(f.uv))
     idx = np.array(sorted(used))
     return Features(f.uv[idx], f.desc[idx], f.depth_m[idx]), idx
+
+
+def _frame_test(T_given: np.ndarray, T_new: np.ndarray, obs: PairObservations, K4: np.ndarray,
+                ba: BAConfig, accept_t: float) -> dict:
+    """Per camera (local index) the acceptance statistics of ``T_new`` against ``T_given``:
+    ``n_obs`` inlier observations touching it, ``n_pairs`` image pairs among them, ``t`` the paired t
+    statistic of the per-observation reprojection cost decrease given -> new, ``t_depth`` the same
+    for the depth cost (reported, not tested: see ``AlignConfig.accept_t``), ``t_pair`` as ``t`` with a
+    cluster-robust standard error (the image pair as the cluster: for reference, it shows how much of
+    the decrease is shared within pairs), ``chi2`` the frame's change under its own information,
+    ``rms_given`` / ``rms_refined`` the RMS whitened residual, ``pairs_improved`` how many of its
+    image pairs have a paired t statistic of their own reprojection cost decrease above ``accept_t``;
+    and ``use``,
+    the inlier mask (O,). An observation counts when it is an inlier under either pose set (neither
+    side chooses its data)."""
+    px_g, z_g, in_g = observation_costs(T_given, K4, obs, ba)
+    px_n, z_n, in_n = observation_costs(T_new, K4, obs, ba)
+    use = in_g | in_n
+    C = len(T_given)
+    d = px_g - px_n
+    d_z = z_g - z_n
+    rho_g, rho_n = px_g + z_g, px_n + z_n
+    pair_key = obs.a_idx.astype(np.int64) * C + obs.b_idx
+    # per image pair: paired t of the reprojection cost decrease over the pair's observations
+    pk, p_of = np.unique(pair_key, return_inverse=True)
+    w = use.astype(float)
+    n_p = np.bincount(p_of, weights=w, minlength=len(pk))
+    s1 = np.bincount(p_of, weights=w * d, minlength=len(pk))
+    s2 = np.bincount(p_of, weights=w * d * d, minlength=len(pk))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean_p = s1 / n_p
+        var_p = (s2 - n_p * mean_p ** 2) / (n_p - 1)
+        t_p = mean_p / np.sqrt(np.maximum(var_p, 1e-300) / n_p)
+    t_p = np.where(n_p >= 2, np.nan_to_num(t_p, nan=0.0), 0.0)
+    improved_pair = t_p > accept_t
+    pa, pb = pk // C, pk % C
+    out = {k: np.zeros(C) for k in ("t", "t_pair", "t_depth")}
+    out.update({k: np.zeros(C, int) for k in ("n_obs", "n_pairs", "pairs_improved")})
+    out.update({k: np.full(C, np.nan) for k in ("rms_given", "rms_refined")})
+    for c in range(C):
+        m = use & ((obs.a_idx == c) | (obs.b_idx == c))
+        k = int(m.sum())
+        out["n_obs"][c] = k
+        if k == 0:
+            continue
+        dm = d[m]
+        out["rms_given"][c], out["rms_refined"][c] = np.sqrt(2 * rho_g[m].mean()), np.sqrt(2 * rho_n[m].mean())
+        keys, pair_of = np.unique(pair_key[m], return_inverse=True)
+        out["n_pairs"][c] = len(keys)
+        out["pairs_improved"][c] = int(np.count_nonzero(improved_pair[((pa == c) | (pb == c)) & (n_p > 0)]))
+        if k < 2:
+            continue
+        mean = float(dm.mean())
+        se = float(np.std(dm, ddof=1)) / np.sqrt(k)
+        se_pair = float(np.sqrt(np.sum(np.bincount(pair_of, weights=dm - mean) ** 2))) / k
+        out["t"][c] = mean / se if se > 0 else (np.inf if mean > 0 else 0.0)
+        out["t_pair"][c] = mean / se_pair if len(keys) > 1 and se_pair > 0 else np.nan
+        dz = d_z[m]
+        se_z = float(np.std(dz, ddof=1)) / np.sqrt(k)
+        out["t_depth"][c] = float(dz.mean()) / se_z if se_z > 0 else 0.0
+    # is the frame's own change measurable? chi2 of the change under its own information
+    info = pose_information(T_new, K4, PairObservations(obs.a_idx[use], obs.b_idx[use], obs.X_a[use],
+                                                        obs.uv_b[use], obs.z_b[use]), ba)
+    w = Rotation.from_matrix(np.einsum("nij,nkj->nik", T_new[:, :3, :3], T_given[:, :3, :3])).as_rotvec()
+    delta = np.concatenate([w, T_new[:, :3, 3] - T_given[:, :3, 3]], axis=1)
+    out["chi2"] = np.einsum("ni,nij,nj->n", delta, info, delta)
+    out["info"] = info
+    out["use"] = use
+    return out
+
+
+_FRAME_KEYS = ("n_obs", "n_pairs", "pairs_improved", "t", "t_pair", "t_depth", "chi2", "rms_given", "rms_refined")
+
+
+def _accept(T_given: np.ndarray, T_out: np.ndarray, idx: list[int], obs: PairObservations, K4: np.ndarray,
+            config: AlignConfig, status: dict[int, str]):
+    """Step 7 (see module doc) over the frames ``idx`` (global indices; ``obs`` uses local ones).
+    Returns (poses, status, per-frame statistics, (len(idx), 6, 6) covariances)."""
+    ba = config.ba
+    Tg, Tn = T_given[idx], T_out[idx]
+    C = len(idx)
+    keep = np.zeros(C, bool)
+    reason = [""] * C
+    decided: dict[int, dict] = {}  # statistics of the round that kept a frame at its given pose
+    few_all = np.zeros(C, bool)
+    anchors_final = np.zeros(C, bool)
+    for rnd in range(max(1, config.accept_rounds) + 1):
+        ft = _frame_test(Tg, Tn, obs, K4, ba, config.accept_t)
+        use = ft["use"]
+        if config.accept_t <= 0:
+            break
+        few = ~keep & (ft["n_obs"] < config.min_frame_obs)
+        weak = ~keep & ~few & ((ft["t"] <= config.accept_t) | (2 * ft["pairs_improved"] < ft["n_pairs"]))
+        small = ~keep & ~few & ~weak & (ft["chi2"] <= config.accept_chi2)
+        for c in np.flatnonzero(few):
+            reason[c] = "given: few observations"
+        for c in np.flatnonzero(weak):
+            reason[c] = "given: residuals not significantly lower"
+        for c in np.flatnonzero(small):
+            reason[c] = "given: change within uncertainty"
+        few_all |= few
+        new_keep = keep | few | weak | small
+        for c in np.flatnonzero(new_keep & ~keep):
+            decided[c] = {k: ft[k][c] for k in _FRAME_KEYS}
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        T_prev = Tn
+        Tn = np.where(keep[:, None, None], Tg, Tn)
+        if keep.all() or rnd == max(1, config.accept_rounds):
+            break
+        # Anchors: kept frames whose given pose the data confirm, i.e. the given pose lies inside the
+        # frame's own confidence region once the refined trajectory is placed by the kept frames
+        # (rigid fit onto them: the first fit also carried the frames being corrected). The others are
+        # re-adjusted with the anchors fixed at their given poses, so no refined frame drifts relative
+        # to a neighbour left at its given pose. Frames kept for lack of evidence (too few
+        # observations, or a measurable change that does not lower the residuals) keep their given
+        # pose but neither anchor nor constrain the others: measured on TUM fr1/rpy, anchoring at such
+        # a frame's mocap pose (mocap-to-camera calibration error) bent its weakly matched neighbours
+        # and cost one target 3.5 dB.
+        cand = keep & ~few_all
+        anchor = np.zeros(C, bool)
+        if cand.any():
+            S = fit_rigid_to(Tg[cand], T_prev[cand])
+            anchor = cand & (_chi2_change(Tg, S @ T_prev, ft["info"]) <= config.accept_chi2)
+            if anchor.any():
+                S = fit_rigid_to(Tg[anchor], T_prev[anchor])
+                Tn = np.where(keep[:, None, None], Tg, S @ T_prev)
+        anchors_final = anchor
+        loose = keep & ~anchor  # kept but not anchors: out of the re-adjustment
+        m = use & ~loose[obs.a_idx] & ~loose[obs.b_idx] & ~(anchor[obs.a_idx] & anchor[obs.b_idx])
+        touches_free = np.zeros(C, bool)
+        touches_free[obs.a_idx[m]] = touches_free[obs.b_idx[m]] = True
+        sub = PairObservations(obs.a_idx[m], obs.b_idx[m], obs.X_a[m], obs.uv_b[m], obs.z_b[m])
+        if not m.any() or not (anchor & touches_free).any():
+            # no anchor shares an observation with the free frames: the rigid fit stays their gauge
+            Tn = np.where(keep[:, None, None], Tg, T_prev)
+            continue
+        res = adjust_poses(Tn, keep, K4, sub, ba)  # loose kept frames are fixed and unobserved
+        Tn = res.T_world_cam
+    ft = _frame_test(Tg, Tn, obs, K4, ba, config.accept_t)
+    use = ft["use"]
+    # uncertainty of the refined frames: relative to the anchors, else to the most observed refined frame
+    anchor = anchors_final & keep
+    loose = keep & ~anchor
+    gauge = np.arange(C) == int(np.argmax(np.where(keep, -1, ft["n_obs"])))
+    fixed = keep | (gauge if not anchor.any() else False)
+    use = use & ~loose[obs.a_idx] & ~loose[obs.b_idx]
+    inl = PairObservations(obs.a_idx[use], obs.b_idx[use], obs.X_a[use], obs.uv_b[use], obs.z_b[use])
+    cov = pose_covariances(Tn, fixed, K4, inl, ba)
+    frame_stats = {}
+    for c, i in enumerate(idx):
+        if keep[c]:
+            status[i] = reason[c]
+        src = decided[c] if keep[c] else {k: ft[k][c] for k in _FRAME_KEYS}
+        frame_stats[i] = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in src.items()}
+    T = T_given.copy()
+    T[idx] = Tn
+    return T, status, frame_stats, cov
+
+
+def _chi2_change(T_given: np.ndarray, T_new: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """(N,) chi2 of each frame's change (rotation vector, translation) from its given pose."""
+    w = Rotation.from_matrix(np.einsum("nij,nkj->nik", T_new[:, :3, :3], T_given[:, :3, :3])).as_rotvec()
+    delta = np.concatenate([w, T_new[:, :3, 3] - T_given[:, :3, 3]], axis=1)
+    return np.einsum("ni,nij,nj->n", delta, info, delta)
+
+
+def _frame_record(frame_id: str, status: str, dt: float, dr: float, fs: dict, cov: np.ndarray) -> dict:
+    rec = {"frame_id": frame_id, "status": status, "dt_m": float(dt), "dr_deg": float(dr)}
+    for k in _FRAME_KEYS:
+        if k in fs:
+            v = fs[k]
+            rec[k] = v if isinstance(v, int) else (round(v, 4) if np.isfinite(v) else None)
+    if np.all(np.isfinite(cov)):
+        rec["sigma_rot_deg"] = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+        rec["sigma_trans_m"] = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
+    return rec
