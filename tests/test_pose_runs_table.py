@@ -35,3 +35,10 @@ def test_mean_and_sample_std_over_seeds(tmp_path, capsys):
     assert "| M | 2 | 0.600 ± 0.141 | 0.250 ± 0.000 | 0.300 ± 0.071 |" in out
     assert "| M | 0.200 ± 0.141 | 1.000 ± 0.000 |" in out and "2 (sym)" in out
     assert mod.main([f"M={tmp_path}/none_*"]) == 2
+
+
+def test_visibility_curve_is_the_mean_over_runs_and_skips_empty_bins():
+    mod = _module()
+    vis = lambda a: {"bin_edges": [0.0, 0.5, 1.0], "n": [0, 4], "acc_add_s_01d": [None, a]}  # noqa: E731
+    edges, n, vals = mod.visibility_curve([{"visibility": vis(0.25)}, {"visibility": vis(0.75)}])
+    assert edges == [0.0, 0.5, 1.0] and n == [0, 4] and vals == [None, 0.5]
