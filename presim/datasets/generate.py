@@ -85,10 +85,10 @@ class GenConfig:
     """Camera pose sampling around seed views."""
     annotate: AnnotateConfig = AnnotateConfig()
     """Mask / visibility / box computation."""
-    source_frames: tuple[tuple[int, int, int], ...] | None = None
-    """``((start, stop, step), ...)``: the capture frame positions the synthesis may use, as seed views
-    and as source views (union of Python slices; None = all). Keeps held-out capture frames out of a synthesized training set
-    (the Table 4.5 protocol in docs/pose-networks.md)."""
+    source_frames: FrameRanges | None = None
+    """Capture frame positions the synthesis may use as seed and source views (union of Python
+    slices, ``real_split.parse_frame_range``; None = all). Keeps held-out capture frames out of a
+    synthesized training set (the Table 4.5 protocol in docs/pose-networks.md)."""
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -144,9 +144,8 @@ def source_scene(scene_path: str | Path, scene_poses: str, source_frames: FrameR
         return scene
     idx = frame_positions(source_frames, len(scene))
     if not idx:
-        raise ValueError(f"--source-frames {','.join(':'.join(map(str, r)) for r in source_frames)} selects "
-                         f"no frame of the "
-                         f"{len(scene)} in {scene_path}")
+        ranges = ",".join(":".join(map(str, r)) for r in source_frames)
+        raise ValueError(f"--source-frames {ranges} selects no frame of the {len(scene)} in {scene_path}")
     return scene.subset(idx)
 
 
