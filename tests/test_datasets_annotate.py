@@ -106,44 +106,6 @@ def test_visibility_rules_and_counts():
     assert d.info.px_count_visib == 0 and d.info.bbox_obj == (-1, -1, -1, -1) and d.info.bbox_visib == (-1, -1, -1, -1)
 
 
-def test_rendered_visibility_follows_the_synthesized_surface():
-    """``visib_mode="rendered"``: a silhouette pixel is the object only where the rendered depth is the
-    object's surface; background seen behind the silhouette and holes are not, unlike BOP'19."""
-    model = _mesh_model(kind="box")
-    T = make_pose(np.eye(3), [0, 0, 0.5])
-    full = render_model_depth(model, T, K).in_image(K)
-    mask = full > 0
-    scene = np.where(mask, full + 0.005, 2.0).astype(np.float32)  # the object's surface, +5 mm
-    scene[:, :70] = 2.0       # background shows through the left part (an edge the render missed)
-    scene[:, 90:] = 0.0       # a hole on the right
-    scene[:, 80:85] = 0.3     # a 5-px occluder in front
-    valid = scene > 0
-    bop = AnnotateConfig(occlusion_open_px=0)
-    ren = AnnotateConfig(occlusion_open_px=0, visib_mode="rendered")
-    (b,) = annotate_instances({1: model}, [(1, T)], K, scene, valid, config=bop)
-    (r,) = annotate_instances({1: model}, [(1, T)], K, scene, valid, config=ren)
-    shown = mask.copy()
-    shown[:, :70] = False
-    shown[:, 80:85] = False
-    shown[:, 90:] = False
-    assert (r.mask_visib == shown).all()
-    assert (b.mask_visib == (mask & ~((np.arange(160) >= 80) & (np.arange(160) < 85))[None, :])).all()
-    assert r.info.px_count_visib == shown.sum() and r.info.px_count_all == b.info.px_count_all
-    assert r.info.px_count_valid == b.info.px_count_valid == (mask & valid).sum()
-    # the tolerance is on ray length: z + 15 mm is 15 mm x |ray| further (|ray| >= 1)
-    from presim.datasets.annotate import ray_norm_image
-    tol_in = 0.015 * ray_norm_image(K)[mask].max() + 1e-6
-    edge = np.where(mask, full + 0.015, 2.0).astype(np.float32)
-    (e,) = annotate_instances({1: model}, [(1, T)], K, edge, config=AnnotateConfig(visib_mode="rendered",
-                                                                                      visib_tolerance_m=tol_in))
-    assert e.visib_fract == 1.0
-    (f,) = annotate_instances({1: model}, [(1, T)], K, edge, config=AnnotateConfig(visib_mode="rendered",
-                                                                                      visib_tolerance_m=0.0149))
-    assert f.info.px_count_visib == 0
-    with pytest.raises(ValueError, match="visib_mode"):
-        annotate_instances({1: model}, [(1, T)], K, scene, config=AnnotateConfig(visib_mode="bop18"))
-
-
 def test_occlusion_opening_removes_slivers_keeps_real_occluders():
     model = _mesh_model(kind="box")
     T = make_pose(np.eye(3), [0, 0, 0.5])

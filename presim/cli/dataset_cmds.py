@@ -39,11 +39,6 @@ def register(sub) -> None:
                    help="depth PNG unit in mm (depth_mm = value * scale; default 0.1)")
     p.add_argument("--visib-tolerance-m", type=float, default=0.015,
                    help="visibility test tolerance (BOP delta, default 0.015 m)")
-    p.add_argument("--visib-mode", choices=("bop19", "rendered"), default="bop19",
-                   help="bop19 (default): BOP's visibility rule, pixels where the synthesized depth is far "
-                        "behind the object or missing count as visible; rendered: a silhouette pixel is "
-                        "visible only where the synthesized depth is the object's surface (within the "
-                        "tolerance), so masks never cover background the render shows")
     p.add_argument("--overwrite", action="store_true", help="replace a scene written by a different job")
     p.add_argument("--max-new-frames", type=int, default=None,
                    help="make at most this many new frames then stop (time-sliced jobs; rerun to continue)")
@@ -82,7 +77,7 @@ def _gen_bop(args) -> int:
         min_visib_fract=args.min_visib, coco=args.coco,
         sampling=CameraSamplingConfig(max_rotation_deg=args.max_rotation_deg,
                                       max_translation_m=args.max_translation_m, max_roll_deg=args.max_roll_deg),
-        annotate=AnnotateConfig(visib_tolerance_m=args.visib_tolerance_m, visib_mode=args.visib_mode),
+        annotate=AnnotateConfig(visib_tolerance_m=args.visib_tolerance_m),
         source_frames=None if args.source_frames is None else parse_frame_range(args.source_frames,
                                                                                 "--source-frames"),
     )

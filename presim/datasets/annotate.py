@@ -74,16 +74,6 @@ class AnnotateConfig:
     """Shift of the rendered silhouette in u and v, pixels. 0 = PreSim's convention (pixel centres at
     integers, as the synthesized images). -0.5 reproduces bop_toolkit's OpenGL renderer, whose
     masks and boxes sit half a pixel up-left of the same K (LM-O bbox_obj IoU 0.972 -> 0.9999)."""
-    visib_mode: str = "bop19"
-    """``"bop19"``: BOP's rule (above): a model pixel is visible unless the scene is more than
-    ``visib_tolerance_m`` in front of it; pixels where the scene is far *behind* the model, or has no
-    depth, count as visible. Right for sensor depth, which misses or bleeds at silhouettes while the
-    colour still shows the object. ``"rendered"``: for images whose colour and depth come from the
-    same render (``gen-bop``): a model pixel is visible only where the rendered surface *is* the
-    model's surface, i.e. valid synthesized depth within ``visib_tolerance_m`` of the model on either
-    side. Background that the render shows through a silhouette edge, and holes, are then not labelled
-    as the object (measured on a synthesized split of the sample scene: 3.8 % of bop19-visible pixels
-    lay > 15 cm behind the object, against 0.4 % on its captured frames)."""
 
 
 @dataclass(frozen=True)
@@ -323,8 +313,6 @@ def annotate_instances(models: Mapping[int, ObjectModel], instances: Sequence[tu
         One :class:`InstanceAnnotation` per instance, in the order given.
     """
     H, W = K.height, K.width
-    if config.visib_mode not in ("bop19", "rendered"):
-        raise ValueError(f"unknown visib_mode {config.visib_mode!r} (bop19, rendered)")
     if scene_depth_m is not None:
         scene_depth_m = np.asarray(scene_depth_m)
         if scene_depth_m.shape != (H, W):
@@ -368,9 +356,6 @@ def annotate_instances(models: Mapping[int, ObjectModel], instances: Sequence[tu
                 kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
                 occluded = cv2.morphologyEx(occluded.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
             visib &= ~occluded
-            if config.visib_mode == "rendered":
-                # the render shows something else here: background behind the silhouette, or a hole
-                visib &= scene_ok & (dist_scene - dist_model <= config.visib_tolerance_m)
             px_valid = int(np.count_nonzero(mask & scene_ok))
         else:
             px_valid = 0

@@ -84,8 +84,7 @@ class GenConfig:
     sampling: CameraSamplingConfig = CameraSamplingConfig()
     """Camera pose sampling around seed views."""
     annotate: AnnotateConfig = AnnotateConfig()
-    """Mask / visibility / box computation (BOP'19 by default; ``visib_mode="rendered"`` labels
-    only the pixels where the synthesized depth is the object's surface)."""
+    """Mask / visibility / box computation."""
     source_frames: FrameRanges | None = None
     """Capture frame positions the synthesis may use as seed and source views (union of Python
     slices, ``real_split.parse_frame_range``; None = all). Keeps held-out capture frames out of a
