@@ -463,6 +463,11 @@ def test_segmentation_train_predict_and_iou(bop, tmp_path, capsys):
     assert lab.shape == (H, W) and lab.dtype == np.int64 and lab.max() <= 2
     iou = segmentation_iou(bop, seg_run, "test")
     assert set(iou) == {1, 2} and all(0.0 <= v <= 1.0 for v in iou.values())
+    # the CLI's segmentation recipe uses its own learning rate unless --lr is given
+    seg_cli = tmp_path / "seg_cli"
+    assert main(["pose-train", "--dataset", str(bop), "--split", "test", "--model", "segmentation", "--out",
+                 str(seg_cli), "--epochs", "1"]) == 0
+    assert json.loads((seg_cli / "config.json").read_text())["lr"] == tr.QUICK_SEG_LR != tr.TrainConfig().lr
     # a pose run (tiny) through the CLI with the segmentation in front
     rc = main(["pose-train", "--dataset", str(bop), "--split", "test", "--model", "densefusion", "--out",
                str(pose_run), "--epochs", "1", "--points", "32", "--batch-size", "4"])

@@ -63,10 +63,12 @@ def _train(args: argparse.Namespace) -> int:
     _require_torch()
     from dataclasses import replace
 
-    from presim.pose.nets.train import TrainConfig, train
+    from presim.pose.nets.train import QUICK_SEG_LR, TrainConfig, train
 
     cfg = TrainConfig(model=args.model, device=args.device, seed=args.seed, full_size=args.full_size,
                       max_instances=args.max_instances)
+    if args.model == "segmentation":
+        cfg = replace(cfg, lr=QUICK_SEG_LR)
     cfg = replace(cfg, data=replace(cfg.data, split=args.split, seed=args.seed))
     if args.epochs is not None:
         if args.epochs < 1:
