@@ -37,7 +37,8 @@ from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis import kernels_reference as ref
 from presim.synthesis.composite import (PACKED_MAX_LAYERS, analyse_holes, composite_layers, filtered_composite,
-                                        filtered_composite_masked, filtered_composite_packed, merge_view)
+                                        filtered_composite_banded, filtered_composite_masked, filtered_composite_packed,
+                                        merge_view)
 from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS, fill_holes
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
@@ -125,7 +126,10 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     if (config.packed_cracks and mode == "switching_median" and kpx == 3
             and lay.depth_m.shape[0] <= PACKED_MAX_LAYERS):
         # Filter + composite + seam pass in one call; later views only on their replaceable pixels.
-        d, c = filtered_composite_packed(lay.depth_m, lay.color, replace, workspace.front)
+        if workspace.front is None:  # one pass over bands of rows (same output)
+            d, c = filtered_composite_banded(lay.depth_m, lay.color, replace)
+        else:
+            d, c = filtered_composite_packed(lay.depth_m, lay.color, replace, workspace.front)
         return ViewImage(d, c, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3, 0.0)
     if workspace.front is not None:  # the other kernels keep no occupancy pass to share
         from presim.synthesis.blend import front_of_layers
