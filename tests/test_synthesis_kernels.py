@@ -252,3 +252,34 @@ def test_banded_composite_matches_reference_on_warp(L):
     bd, bc = filtered_composite_banded(lay.depth_m, lay.color)
     np.testing.assert_array_equal(bd, d)
     np.testing.assert_array_equal(bc, c)
+
+
+def test_layer_slots_balance_known_answer():
+    """Layers of 50, 40, 10 and 3 points over 2 threads: {50, 3} and {40, 10} (53 vs 50 points;
+    equal chunks of the layer range would give 90 vs 13); every layer exactly once."""
+    from presim.synthesis.warp import layer_slots
+
+    order, start = layer_slots(np.array([0, 50, 90, 100, 103]), 2)
+    groups = [sorted(order[start[s]:start[s + 1]].tolist()) for s in range(2)]
+    assert groups == [[0, 3], [1, 2]]
+    order, start = layer_slots(np.array([0, 5, 5]), 4)  # more threads than layers: one slot per layer
+    assert sorted(order.tolist()) == [0, 1] and start.tolist() == [0, 1, 2]
+
+
+def test_warp_same_with_any_thread_count():
+    """Each layer is warped by one thread, in point order: 1 and 2 threads give the same buffers."""
+    import numba
+
+    vp, T_cam_world = _room_view(L=4)
+    old = numba.get_num_threads()
+    outs = []
+    try:
+        for n in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(n)
+            lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
+            outs.append((lay.depth_m.copy(), lay.color.copy()))
+    finally:
+        numba.set_num_threads(old)
+    assert (outs[0][0] > 0).mean() > 0.1
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_array_equal(outs[0][1], outs[1][1])
