@@ -105,11 +105,21 @@ class HoleStats:
 @nb.njit(cache=True)
 def _areas_kernel(labels, n):  # pragma: no cover
     # Pixel count per label (label 0 = background is counted too, and ignored by the caller).
+    # Counted per run of equal labels along a row: one add per run instead of a chain of
+    # increments of the same counter, pixel after pixel.
     areas = np.zeros(n, np.int64)
     H, W = labels.shape
     for v in range(H):
+        prev = labels[v, 0]
+        run = 0
         for u in range(W):
-            areas[labels[v, u]] += 1
+            lab = labels[v, u]
+            if lab != prev:
+                areas[prev] += run
+                prev = lab
+                run = 0
+            run += 1
+        areas[prev] += run
     return areas
 
 
