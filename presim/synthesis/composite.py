@@ -575,9 +575,9 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
 # same bit for bit.
 
 def _band_rows(H: int) -> int:
-    """Rows per band: 32 (6 % halo recomputation of the composite), 16 on small images so that
-    both threads get several bands."""
-    return 32 if H >= 256 else 16
+    """Rows per band: 32 (6 % halo recomputation of the composite; 16-row bands made 128x128 frames
+    slower: twice the halo rows and the per-band buffers)."""
+    return 32
 
 
 _LOWEST = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.int64)
@@ -655,8 +655,9 @@ def _median8_interior(d, c, l, v, u, out_c):  # pragma: no cover
 
 @nb.njit(parallel=True, cache=True)
 def _banded_crack_kernel(d, c, spread, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
-    # Branch-free per pixel (the occupancy of warped layers is speckled: a branch per pixel and
-    # layer mispredicts often); the pixels that need a median are first collected into a list.
+    # Branch-free per pixel and layer (the occupancy of warped layers is speckled: a branch per
+    # pixel and layer mispredicts often) except one test "nothing here at all", which holds over
+    # whole regions; the pixels that need a median are first collected into a list.
     L, H, W = d.shape
     n_bands = (H + band - 1) // band
     for bi in nb.prange(n_bands):
@@ -707,6 +708,12 @@ def _banded_crack_kernel(d, c, spread, lowest, need, use_need, mask, band, dout,
                 m = b | _nibble_flags_to_byte(f)
                 if use_need:
                     m = m * np.int64(need[v, u])
+                if m == 0:  # empty and no median due (most pixels outside the covered region):
+                    zr[u] = 0.0  # one well-predicted branch beats the gathers below there
+                    cr[u, 0] = 0
+                    cr[u, 1] = 0
+                    cr[u, 2] = 0
+                    continue
                 l = lowest[m]
                 hit = (m >> l) & (b >> l) & 1  # 0 / 1: arithmetic selects below, no branches
                 zr[u] = d[l, v, u] * np.float32(hit)
@@ -716,7 +723,7 @@ def _banded_crack_kernel(d, c, spread, lowest, need, use_need, mask, band, dout,
                 cr[u, 2] = c[l, v, u, 2] * hc
                 med_u[nm] = u
                 med_l[nm] = l
-                nm += np.int64(m != 0) & (hit ^ 1)
+                nm += hit ^ 1
             inner_v = 0 < v < H - 1
             for i in range(nm):
                 u = med_u[i]
