@@ -403,3 +403,23 @@ def test_analyse_holes_matches_scipy_labelling(seed, hole_frac):
     np.testing.assert_array_equal(hs.replace, holes | ndimage.binary_dilation(big, disk))
     last = analyse_holes(valid, want_replace=False, want_largest=False)
     assert last.hole_frac == hs.hole_frac and last.replace is None
+
+
+@pytest.mark.parametrize("C", [1, 4])
+def test_fill_push_step_kernel_equals_numpy_expression_exactly(C):
+    """One push step of the numba pull-push = pushpull_fill's numpy expression, bit for bit
+    (weights 0, fractional, 1; values from a real-like range)."""
+    from presim.synthesis.fill import _blend_level_kernel
+
+    rng = np.random.default_rng(C)
+    h, w = 31, 47
+    wl = rng.choice([0.0, 0.25, 0.5, 0.75, 1.0], (h, w)).astype(np.float32) * rng.random((h, w)).astype(np.float32)
+    wl[::3] = rng.choice([0.0, 1.0, 0.25], (len(range(0, h, 3)), w)).astype(np.float32)
+    acc = (rng.random((h, w, C)) * 255 * wl[..., None]).astype(np.float32)
+    up = (rng.random((h, w, C)) * 255).astype(np.float32)
+    alpha = np.clip(wl, 0.0, 1.0)[..., None]
+    want = acc / np.maximum(wl, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+    got = np.empty_like(up)
+    _blend_level_kernel(acc, wl, up, got)
+    assert got.dtype == want.dtype == np.float32
+    np.testing.assert_array_equal(got, want)

@@ -24,7 +24,7 @@ import numpy as np
 from presim.synthesis.crack_filter import gather_window, sort_window
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
-           "filtered_composite_packed", "merge_view", "analyse_holes"]
+           "filtered_composite_packed", "filtered_composite_banded", "merge_view", "analyse_holes"]
 
 
 @nb.njit(parallel=True, cache=True)
@@ -105,11 +105,21 @@ class HoleStats:
 @nb.njit(cache=True)
 def _areas_kernel(labels, n):  # pragma: no cover
     # Pixel count per label (label 0 = background is counted too, and ignored by the caller).
+    # Counted per run of equal labels along a row: one add per run instead of a chain of
+    # increments of the same counter, pixel after pixel.
     areas = np.zeros(n, np.int64)
     H, W = labels.shape
     for v in range(H):
+        prev = labels[v, 0]
+        run = 0
         for u in range(W):
-            areas[labels[v, u]] += 1
+            lab = labels[v, u]
+            if lab != prev:
+                areas[prev] += run
+                prev = lab
+                run = 0
+            run += 1
+        areas[prev] += run
     return areas
 
 
@@ -346,6 +356,7 @@ PACKED_MAX_LAYERS = 8
 """Layers the packed occupancy path supports (4-bit counters in a uint32)."""
 
 _SPREAD = np.array([sum(((b >> l) & 1) << (4 * l) for l in range(8)) for b in range(256)], np.uint32)
+_SPREAD_I64 = _SPREAD.astype(np.int64)
 _GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's bit 3 (no carry: 9 + 3 < 16)
 _BIT3 = np.uint32(0x88888888)
 
@@ -550,4 +561,248 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
     _packed_composite_kernel(depth_m, color, bits, _SPREAD, need if use else dummy, use, comp_d, comp_c)
     out_d, out_c = comp_d.copy(), comp_c.copy()
     _packed_seam_kernel(comp_d, comp_c, replace if use else dummy, use, out_d, out_c)
+    return out_d, out_c
+
+
+# ---- the same three passes fused in row bands (one parallel region per view) ------------------
+#
+# filtered_composite_packed runs three image-wide passes (occupancy bits, filter + composite, seam
+# pass) with full-size intermediates and copies between them. Here every thread takes bands of
+# rows and does all three for its band in buffers that stay in cache: the occupancy bits of the
+# band grown by 2 rows, the composite of the band grown by 1 row (what the seam pass reads), then
+# the seam pass of the band itself. The rows of the halos are computed twice (by both bands that
+# touch them); the arithmetic per pixel is that of the three kernels above, so the output is the
+# same bit for bit.
+
+def _band_rows(H: int) -> int:
+    """Rows per band: 32 (6 % halo recomputation of the composite; 16-row bands made 128x128 frames
+    slower: twice the halo rows and the per-band buffers)."""
+    return 32
+
+
+_LOWEST = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.int64)
+"""Index of the lowest set bit of a byte (0 for 0)."""
+
+
+@nb.njit(cache=True, inline="always")
+def _nibble_flags_to_byte(f):  # pragma: no cover
+    # Bits 4l + 3 (l = 0..7) of f -> bits l of a byte.
+    x = (f >> 3) & 0x11111111
+    x = (x | (x >> 3)) & 0x03030303
+    x = (x | (x >> 6)) & 0x000F000F
+    return (x | (x >> 12)) & 0xFF
+
+
+@nb.njit(cache=True, inline="always")
+def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
+    # The compare-exchanges of _sort8 on scalars (kept in registers); returns sorted[2], sorted[3]
+    # (the compiler drops the exchanges that cannot reach those two outputs).
+    x0, x1 = min(x0, x1), max(x0, x1)
+    x2, x3 = min(x2, x3), max(x2, x3)
+    x4, x5 = min(x4, x5), max(x4, x5)
+    x6, x7 = min(x6, x7), max(x6, x7)
+    x0, x2 = min(x0, x2), max(x0, x2)
+    x1, x3 = min(x1, x3), max(x1, x3)
+    x4, x6 = min(x4, x6), max(x4, x6)
+    x5, x7 = min(x5, x7), max(x5, x7)
+    x1, x2 = min(x1, x2), max(x1, x2)
+    x5, x6 = min(x5, x6), max(x5, x6)
+    x0, x4 = min(x0, x4), max(x0, x4)
+    x1, x5 = min(x1, x5), max(x1, x5)
+    x2, x6 = min(x2, x6), max(x2, x6)
+    x3, x7 = min(x3, x7), max(x3, x7)
+    x2, x4 = min(x2, x4), max(x2, x4)
+    x3, x5 = min(x3, x5), max(x3, x5)
+    x1, x2 = min(x1, x2), max(x1, x2)
+    x3, x4 = min(x3, x4), max(x3, x4)
+    x5, x6 = min(x5, x6), max(x5, x6)
+    return x2, x3
+
+
+@nb.njit(cache=True, inline="always")
+def _nb_depth(d, l, y, x):  # pragma: no cover
+    z = d[l, y, x]
+    return z if z > 0 else np.float32(np.inf)
+
+
+@nb.njit(cache=True, inline="always")
+def _nb_chan(d, c, l, y, x, ch):  # pragma: no cover
+    return c[l, y, x, ch] if d[l, y, x] > 0 else np.uint8(255)
+
+
+@nb.njit(cache=True, inline="always")
+def _median8_interior(d, c, l, v, u, out_c):  # pragma: no cover
+    """:func:`_median8` of the 3x3 window of layer ``l`` at an interior pixel ``(v, u)`` whose centre
+    is empty, without branches or buffers: the 8 neighbours are read as they are, empty ones as
+    +inf / 255 (the padding :func:`_median8` uses), and ranks 2 and 3 of a sorting network give the
+    lower median of the 5..8 non-empty ones. Depth returned, colour into ``out_c``."""
+    n = 0
+    for y in range(v - 1, v + 2):
+        for x in range(u - 1, u + 2):
+            n += d[l, y, x] > 0
+    r2, r3 = _rank23_of8(_nb_depth(d, l, v - 1, u - 1), _nb_depth(d, l, v - 1, u), _nb_depth(d, l, v - 1, u + 1),
+                         _nb_depth(d, l, v, u - 1), _nb_depth(d, l, v, u + 1), _nb_depth(d, l, v + 1, u - 1),
+                         _nb_depth(d, l, v + 1, u), _nb_depth(d, l, v + 1, u + 1))
+    hi = n >= 7  # lower median of n values: rank (n - 1) // 2 = 3 for n = 7, 8, else 2
+    for ch in range(3):
+        q2, q3 = _rank23_of8(_nb_chan(d, c, l, v - 1, u - 1, ch), _nb_chan(d, c, l, v - 1, u, ch),
+                             _nb_chan(d, c, l, v - 1, u + 1, ch), _nb_chan(d, c, l, v, u - 1, ch),
+                             _nb_chan(d, c, l, v, u + 1, ch), _nb_chan(d, c, l, v + 1, u - 1, ch),
+                             _nb_chan(d, c, l, v + 1, u, ch), _nb_chan(d, c, l, v + 1, u + 1, ch))
+        out_c[ch] = q3 if hi else q2
+    return r3 if hi else r2
+
+
+@nb.njit(parallel=True, cache=True)
+def _banded_crack_kernel(d, c, spread, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
+    # Branch-free per pixel and layer (the occupancy of warped layers is speckled: a branch per
+    # pixel and layer mispredicts often) except one test "nothing here at all", which holds over
+    # whole regions; the pixels that need a median are first collected into a list.
+    L, H, W = d.shape
+    n_bands = (H + band - 1) // band
+    for bi in nb.prange(n_bands):
+        a = bi * band
+        e = min(a + band, H)
+        r0 = max(a - 1, 0)  # composite rows [r0, r1): the band and the seam pass's halo
+        r1 = min(e + 1, H)
+        s0 = max(r0 - 1, 0)  # occupancy rows [s0, s1): what the composite's counts read
+        s1 = min(r1 + 1, H)
+        bits = np.empty((s1 - s0, W), np.uint8)
+        for y in range(s0, s1):
+            br = bits[y - s0]
+            d0 = d[0, y]
+            for u in range(W):
+                br[u] = np.uint8(d0[u] > 0)
+            for l in range(1, L):
+                dl = d[l, y]
+                for u in range(W):
+                    br[u] |= np.uint8(dl[u] > 0) << np.uint8(l)
+        nr = r1 - r0
+        comp_d = np.empty((nr, W), np.float32)
+        comp_c = np.empty((nr, W, 3), np.uint8)
+        col = np.zeros(W + 2, np.int64)
+        icol = np.zeros(W + 2, np.int32)
+        med_u = np.empty(W, np.int64)
+        med_l = np.empty(W, np.int64)
+        bd = np.empty(8, np.float32)
+        b0 = np.empty(8, np.uint8)
+        b1 = np.empty(8, np.uint8)
+        b2 = np.empty(8, np.uint8)
+        px = np.empty(3, np.uint8)
+        for v in range(r0, r1):
+            y0 = max(v - 1, 0)
+            y1 = min(v + 2, H)
+            for u in range(W):
+                col[u + 1] = 0
+            for y in range(y0, y1):
+                br = bits[y - s0]
+                for u in range(W):
+                    col[u + 1] += spread[br[u]]
+            zr = comp_d[v - r0]
+            cr = comp_c[v - r0]
+            brv = bits[v - s0]
+            nm = 0
+            for u in range(W):
+                b = np.int64(brv[u])
+                f = (col[u] + col[u + 1] + col[u + 2] + 0x33333333) & 0x88888888
+                m = b | _nibble_flags_to_byte(f)
+                if use_need:
+                    m = m * np.int64(need[v, u])
+                if m == 0:  # empty and no median due (most pixels outside the covered region):
+                    zr[u] = 0.0  # one well-predicted branch beats the gathers below there
+                    cr[u, 0] = 0
+                    cr[u, 1] = 0
+                    cr[u, 2] = 0
+                    continue
+                l = lowest[m]
+                hit = (m >> l) & (b >> l) & 1  # 0 / 1: arithmetic selects below, no branches
+                zr[u] = d[l, v, u] * np.float32(hit)
+                hc = np.uint8(hit)
+                cr[u, 0] = c[l, v, u, 0] * hc
+                cr[u, 1] = c[l, v, u, 1] * hc
+                cr[u, 2] = c[l, v, u, 2] * hc
+                med_u[nm] = u
+                med_l[nm] = l
+                nm += hit ^ 1
+            inner_v = 0 < v < H - 1
+            for i in range(nm):
+                u = med_u[i]
+                if inner_v and 0 < u < W - 1:
+                    zr[u] = _median8_interior(d, c, med_l[i], v, u, px)
+                    cr[u, 0] = px[0]
+                    cr[u, 1] = px[1]
+                    cr[u, 2] = px[2]
+                    continue
+                k = _median8(d, c, med_l[i], y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+                zr[u] = bd[k]
+                cr[u, 0] = b0[k]
+                cr[u, 1] = b1[k]
+                cr[u, 2] = b2[k]
+        # Seam pass over the band: 3x3 switching median of the composite.
+        cd3 = comp_d.reshape((1, nr, W))
+        cc3 = comp_c.reshape((1, nr, W, 3))
+        for v in range(a, e):
+            y0 = max(v - 1, 0)
+            y1 = min(v + 2, H)
+            for u in range(W):
+                icol[u + 1] = 0
+            for y in range(y0, y1):
+                zy = comp_d[y - r0]
+                for u in range(W):
+                    icol[u + 1] += np.int32(zy[u] > 0)
+            zr = comp_d[v - r0]
+            dout[v] = zr
+            cout[v] = comp_c[v - r0]
+            nm = 0
+            for u in range(W):
+                want = (np.int64(zr[u] > 0) ^ 1) & np.int64(icol[u] + icol[u + 1] + icol[u + 2] >= 5)
+                if use_need:
+                    want = want & np.int64(mask[v, u])
+                med_u[nm] = u
+                nm += want
+            inner_v = 0 < v < H - 1
+            for i in range(nm):
+                u = med_u[i]
+                if inner_v and 0 < u < W - 1:
+                    dout[v, u] = _median8_interior(cd3, cc3, 0, v - r0, u, px)
+                    cout[v, u, 0] = px[0]
+                    cout[v, u, 1] = px[1]
+                    cout[v, u, 2] = px[2]
+                    continue
+                k = _median8(cd3, cc3, 0, y0 - r0, y1 - r0, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+                dout[v, u] = bd[k]
+                cout[v, u, 0] = b0[k]
+                cout[v, u, 1] = b1[k]
+                cout[v, u, 2] = b2[k]
+
+
+def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
+                              band_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`filtered_composite_packed` (without ``front``) in one pass over bands of rows.
+
+    Same output bit for bit on every pixel the packed chain defines (all pixels without
+    ``replace``; the ``replace`` pixels with it — others are UNDEFINED here too), tested against
+    it and against the numpy reference chain. Occupancy, composite and seam pass of a band run in
+    buffers of the band (no full-size intermediates, no copies, one parallel region).
+
+    Args:
+        depth_m: float32 (L, H, W) warped layers (L <= :data:`PACKED_MAX_LAYERS`); color: uint8 (L, H, W, 3).
+        replace: optional bool (H, W): the pixels whose values are wanted.
+        band_rows: rows per band (default :func:`_band_rows`; any value >= 1 gives the same output).
+    Returns:
+        ``(depth_m (H, W), color (H, W, 3))``.
+    """
+    L, H, W = depth_m.shape
+    if L > PACKED_MAX_LAYERS:
+        raise ValueError(f"filtered_composite_banded: at most {PACKED_MAX_LAYERS} layers, got {L}")
+    use = replace is not None
+    if use:
+        need = cv2.dilate(replace.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+        mask = replace
+    else:
+        need = mask = np.zeros((1, 1), np.bool_)
+    out_d = np.empty((H, W), np.float32)
+    out_c = np.empty((H, W, 3), np.uint8)
+    band = int(band_rows) if band_rows else _band_rows(H)
+    _banded_crack_kernel(depth_m, color, _SPREAD_I64, _LOWEST, need, use, mask, max(band, 1), out_d, out_c)
     return out_d, out_c

@@ -37,12 +37,13 @@ from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis import kernels_reference as ref
 from presim.synthesis.composite import (PACKED_MAX_LAYERS, analyse_holes, composite_layers, filtered_composite,
-                                        filtered_composite_masked, filtered_composite_packed, merge_view)
+                                        filtered_composite_banded, filtered_composite_masked, filtered_composite_packed,
+                                        merge_view)
 from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS, fill_holes
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
-__all__ = ["STAGES", "MASKED_MAX_FRAC", "ViewImageConfig", "ViewImage", "Workspace", "ViewImageFn",
+__all__ = ["STAGES", "MASKED_MAX_FRAC", "BANDED_MIN_PIXELS", "ViewImageConfig", "ViewImage", "Workspace", "ViewImageFn",
            "SynthesisBackend", "BACKEND_TABLE", "BACKENDS", "get_backend", "view_image_numba",
            "view_image_reference", "FrameConfig", "FrameResult", "grid_pixels", "synthesize_frame"]
 
@@ -53,6 +54,14 @@ MASKED_MAX_FRAC = 0.12
 """numba: views after the first filter/composite only their replaceable pixels while these are
 below this fraction of the image (measured crossover: ~350 ns per masked pixel vs ~19 ms CPU for
 the dense per-layer filter + composite + seam pass at 640x480, L = 4)."""
+
+
+BANDED_MIN_PIXELS = 200_000
+"""numba, packed path: images of at least this many pixels run the crack pass fused in row bands
+(:func:`presim.synthesis.composite.filtered_composite_banded`), smaller ones the three-kernel chain
+(same output). Measured CPU ratio packed / banded, one thread, on captured inputs
+(``benchmarks/bench_crack_kernels.py``): 640x480 1.10 (apc) and 1.03 (sample); 256x256 1.03 and
+0.80; 128x128 1.02 and 0.86."""
 
 
 @dataclass(frozen=True)
@@ -125,7 +134,11 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     if (config.packed_cracks and mode == "switching_median" and kpx == 3
             and lay.depth_m.shape[0] <= PACKED_MAX_LAYERS):
         # Filter + composite + seam pass in one call; later views only on their replaceable pixels.
-        d, c = filtered_composite_packed(lay.depth_m, lay.color, replace, workspace.front)
+        if workspace.front is None and lay.depth_m.shape[1] * lay.depth_m.shape[2] >= BANDED_MIN_PIXELS:
+            # one pass over bands of rows (same output)
+            d, c = filtered_composite_banded(lay.depth_m, lay.color, replace)
+        else:
+            d, c = filtered_composite_packed(lay.depth_m, lay.color, replace, workspace.front)
         return ViewImage(d, c, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3, 0.0)
     if workspace.front is not None:  # the other kernels keep no occupancy pass to share
         from presim.synthesis.blend import front_of_layers

@@ -126,6 +126,24 @@ def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no
                     color_out[i, j, ch] = np.uint8(min(max(up + 0.5, 0.0), 255.0))
 
 
+@nb.njit(cache=True)
+def _blend_level_kernel(acc, w, up, out):  # pragma: no cover
+    # One push step of pushpull_fill: acc / max(w, 1e-12) * a + up * (1 - a), a = clip(w, 0, 1);
+    # float32 throughout, no fused multiply-add (same rounding as the numpy expression).
+    h, ww, C = acc.shape
+    eps = np.float32(1e-12)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(ww):
+            wv = w[i, j]
+            a = min(max(wv, zero), one)
+            den = max(wv, eps)
+            b = one - a
+            for ch in range(C):
+                out[i, j, ch] = acc[i, j, ch] / den * a + up[i, j, ch] * b
+
+
 def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarray
                   ) -> tuple[np.ndarray | None, np.ndarray]:
     """:func:`pushpull_fill` of colour (optional) and depth, with the full-size steps in numba.
@@ -167,8 +185,10 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     for acc_l, w_l in reversed(levels):
         h, ww = w_l.shape
         up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
-        alpha = np.clip(w_l, 0.0, 1.0)[..., None]
-        est = acc_l / np.maximum(w_l, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+        # = acc_l / max(w_l, 1e-12) * clip(w_l, 0, 1) + up * (1 - clip(w_l, 0, 1)) in one pass
+        # (the same float32 operations in the same order as pushpull_fill's numpy expression).
+        est = np.empty_like(up)
+        _blend_level_kernel(acc_l, w_l, up, est)
     out_c = col.copy() if with_color else None
     out_d = depth_m.copy()
     _push0_kernel(known, with_color, np.ascontiguousarray(est, np.float32), out_c if with_color else col, out_d)
@@ -192,7 +212,7 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
     if kernel not in FILL_KERNELS:
         raise ValueError(f"fill kernel must be one of {FILL_KERNELS}, got {kernel!r}")
     holes = ~valid
-    n_hole = int(holes.sum())
+    n_hole = holes.size - int(np.count_nonzero(valid))
     if n_hole == 0 or n_hole == holes.size:
         return color.copy(), depth_m.copy()
     if method == "auto":
