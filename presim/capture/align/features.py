@@ -16,7 +16,8 @@ import numpy as np
 
 from presim.geometry import Intrinsics, project, unproject
 
-__all__ = ["FeatureConfig", "Features", "PairMatch", "extract_features", "match_pair", "unproject_uv"]
+__all__ = ["FeatureConfig", "Features", "PairMatch", "appearance_similarity", "extract_features", "match_pair",
+           "unproject_uv"]
 
 
 @dataclass(frozen=True)
@@ -141,3 +142,44 @@ def match_pair(fa: Features, fb: Features, K_a: Intrinsics, K_b: Intrinsics,
     T[:3, :3] = cv2.Rodrigues(rvec)[0]
     T[:3, 3] = tvec.ravel()
     return PairMatch(ia_a[inl], ib_a[inl], T)
+
+
+def appearance_similarity(descriptors: list[np.ndarray], words: int = 256, seed: int = 0,
+                          per_frame: int = 200) -> np.ndarray:
+    """(N, N) cosine similarity of the frames' TF-IDF bag-of-words histograms (diagonal included).
+
+    The vocabulary is ``words`` k-means centres (10 Lloyd iterations, seeded) of at most ``per_frame``
+    descriptors per frame (a seeded subset): a vocabulary learnt on the capture itself, since none can
+    be downloaded. It depends on the images only, never on the poses: which frames are matched does
+    not inherit the errors of the poses being refined. ``descriptors``: one (M_i, 128) array per frame.
+    Deterministic for ``seed``."""
+    n = len(descriptors)
+    rng = np.random.default_rng(seed)
+    sample = []
+    for d in descriptors:
+        sel = rng.choice(len(d), min(len(d), per_frame), replace=False) if len(d) else np.zeros(0, int)
+        sample.append(np.asarray(d)[np.sort(sel)].astype(np.float32))
+    sample = np.concatenate(sample) if sample else np.zeros((0, 128), np.float32)
+    words = min(words, len(sample))
+    if words < 2:
+        return np.zeros((n, n))
+    centres = sample[rng.choice(len(sample), words, replace=False)]
+
+    def assign(x: np.ndarray) -> np.ndarray:
+        d2 = (x * x).sum(1)[:, None] - 2 * x @ centres.T + (centres * centres).sum(1)[None]
+        return np.argmin(d2, axis=1)
+
+    for _ in range(10):
+        lab = assign(sample)
+        for w in range(words):
+            m = lab == w
+            if m.any():
+                centres[w] = sample[m].mean(0)
+    hist = np.zeros((n, words))
+    for i, d in enumerate(descriptors):
+        if len(d):
+            hist[i] = np.bincount(assign(np.asarray(d).astype(np.float32)), minlength=words)
+    idf = np.log(n / np.maximum(1, (hist > 0).sum(0)))
+    v = hist / np.maximum(1, hist.sum(1, keepdims=True)) * idf
+    v /= np.maximum(1e-12, np.linalg.norm(v, axis=1, keepdims=True))
+    return v @ v.T
