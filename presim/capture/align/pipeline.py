@@ -63,6 +63,18 @@ class AlignConfig:
     chosen from the poses inherit their errors (measured on TUM fr1/rpy, whose camera centres move
     1.2 cm per frame: with 3 cm pose noise the nearest centres are unrelated frames and 11 frames found
     no match). 0 = pose-based neighbours only."""
+    rematch_rounds: int = 3
+    """Second matching pass (needs ``joint``): frames that the first pass left outside the connected
+    set, or with fewer than ``min_frame_obs`` verified matches, are matched again against their
+    neighbours (pose and appearance) at the neighbours' refined poses, with the gate grown to the
+    uncertainty of the frame's given pose (:func:`predicted_match_cov`, ``pose_sigma_deg`` /
+    ``pose_sigma_m``); frames that join start at their PnP pose and all frames are adjusted again.
+    Repeated while frames join, at most this many rounds. 0 = one pass only."""
+    pose_sigma_deg: float | None = None
+    """Noise of the given poses (1 sigma per axis, degrees) for the second pass's gate; None =
+    measured: the RMS per axis of the changes the first pass made to the connected frames."""
+    pose_sigma_m: float | None = None
+    """As ``pose_sigma_deg`` for the camera centres (metres)."""
     max_matches_per_pair: int = 200
     """Verified matches per image pair used by the adjustments (seeded random subset): bounds the time."""
     min_features: int = 20
@@ -290,10 +302,10 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
 
     # neighbour pairs for the joint pass (beyond the thesis)
     neighbour_pairs: list[Pair] = []
+    sim = None
     if config.joint and (config.joint_neighbours > 0 or config.appearance_neighbours > 0):
         have = {(min(a, b), max(a, b)) for a, b, _ in local_pairs + global_pairs}
         centres = T_given[:, :3, 3]
-        sim = None
         if config.appearance_neighbours > 0:
             sim = appearance_similarity([f.desc for f in feats], seed=config.seed)
             np.fill_diagonal(sim, -np.inf)
@@ -337,24 +349,58 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
     t_stages = time.perf_counter()
 
     # 5. joint
-    T_ref = T_glob
-    if config.joint and all_pairs:
+    def joint(T_start: np.ndarray) -> np.ndarray:
         cams = sorted(main)
         jpairs = [p for p in all_pairs if p[0] in main and p[1] in main]
         gauge = keys[0] if keys[0] in main else cams[0]
         obs, _, slot = _pair_obs(jpairs, feats, scene, cams, config.max_matches_per_pair, config.seed + 2)
-        res = adjust_poses(T_glob[cams], np.array([c == gauge for c in cams]), _K4s(scene, cams), obs, config.ba)
-        T_ref = T_glob.copy()
+        res = adjust_poses(T_start[cams], np.array([c == gauge for c in cams]), _K4s(scene, cams), obs, config.ba)
+        T = T_start.copy()
         for c in cams:
-            T_ref[c] = res.T_world_cam[slot[c]]
+            T[c] = res.T_world_cam[slot[c]]
+        return T
 
-    # 6. rigid fit onto the given trajectory (frames in the main component)
-    idx = sorted(main)
-    S = fit_rigid_to(T_given[idx], T_ref[idx])
-    T_out = T_given.copy()
-    T_out[idx] = S @ T_ref[idx]
+    def fit(T_ref: np.ndarray) -> np.ndarray:
+        """6. rigid fit onto the given trajectory (frames in the main component)"""
+        idx = sorted(main)
+        T = T_given.copy()
+        T[idx] = fit_rigid_to(T_given[idx], T_ref[idx]) @ T_ref[idx]
+        return T
+
+    T_ref = joint(T_glob) if config.joint and all_pairs else T_glob
+    T_out = fit(T_ref)
+
+    # 5b. second matching pass: weakly or not connected frames, gate grown to their pose uncertainty
+    rematched: list[int] = []
+    pose_sigma: tuple[float, float] | None = None
+    for _ in range(config.rematch_rounds if config.joint and all_pairs else 0):
+        matched = np.zeros(n)
+        for a, b, m in all_pairs:
+            matched[a] += len(m.idx_a)
+            matched[b] += len(m.idx_a)
+        weak = [i for i in range(n) if i not in main or matched[i] < config.min_frame_obs]
+        if not weak:
+            break
+        if pose_sigma is None:
+            pose_sigma = _given_pose_sigma(T_given, T_out, sorted(main), config)
+        new_pairs, joined = _rematch(weak, main, all_pairs, feats, scene, T_out, T_given, pose_sigma, sim, fov,
+                                     config, pair_seed)
+        if not new_pairs:
+            break
+        neighbour_pairs.extend(new_pairs)
+        all_pairs = local_pairs + global_pairs + neighbour_pairs
+        comps = _components(n, [(a, b) for a, b, _ in all_pairs])
+        main = set(comps[0])
+        unmatched = sorted(i for c in comps[1:] for i in c)
+        rematched.extend(sorted({i for p in new_pairs for i in p[:2] if i in weak}))
+        # start the joined frames at their PnP pose (in the world frame of T_out), then adjust all again
+        T_start = T_out.copy()
+        for u, T_u in joined.items():
+            T_start[u] = T_u
+        T_out = fit(joint(T_start))
 
     # 7. per-frame acceptance; frames kept at their given pose anchor a re-adjustment of the others
+    idx = sorted(main)
     status = {i: "given: unmatched" for i in unmatched}
     for i in idx:
         status[i] = "refined"
@@ -377,6 +423,9 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         "neighbour_pairs": len(neighbour_pairs),
         "matches": int(sum(len(p[2].idx_a) for p in all_pairs)),
         "unmatched_frames": [scene.frame_ids[i] for i in unmatched],
+        "rematched_frames": [scene.frame_ids[i] for i in sorted(set(rematched))],
+        "given_pose_sigma": (None if pose_sigma is None else
+                             {"deg": float(np.degrees(pose_sigma[0])), "m": float(pose_sigma[1])}),
         "transfer_px_before": _stat(e0), "transfer_px_after": _stat(e1),
         "depth_res_m_before": _stat(d0), "depth_res_m_after": _stat(d1),
         "change_m": _stat(dt), "change_deg": _stat(dr),
@@ -399,6 +448,56 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         f"{stats['transfer_px_after']['median']:.2f} px, cameras moved median {np.median(dt) * 100:.2f} cm / "
         f"{np.median(dr):.2f} deg, {t_end - t_start:.1f} s")
     return AlignResult(T_out, stats)
+
+
+def _given_pose_sigma(T_given: np.ndarray, T_out: np.ndarray, idx: list[int],
+                      config: AlignConfig) -> tuple[float, float]:
+    """(rad, m) noise of the given poses, 1 sigma per axis: as stated in ``config``, else the RMS per
+    axis of the changes the first pass made to the frames ``idx`` (after the rigid fit)."""
+    w = Rotation.from_matrix(np.einsum("nij,nkj->nik", T_out[idx, :3, :3], T_given[idx, :3, :3])).as_rotvec()
+    v = T_out[idx, :3, 3] - T_given[idx, :3, 3]
+    s_rot = (np.radians(config.pose_sigma_deg) if config.pose_sigma_deg is not None
+             else float(np.sqrt(np.mean(np.sum(w * w, axis=1)) / 3)))
+    s_t = config.pose_sigma_m if config.pose_sigma_m is not None else float(np.sqrt(np.mean(np.sum(v * v, axis=1)) / 3))
+    return float(s_rot), float(s_t)
+
+
+def _rematch(weak: list[int], main: set[int], all_pairs: list[Pair], feats: list[Features], scene: Scene,
+             T_out: np.ndarray, T_given: np.ndarray, pose_sigma: tuple[float, float], sim: np.ndarray | None,
+             fov: float, config: AlignConfig, pair_seed: int) -> tuple[list[Pair], dict[int, np.ndarray]]:
+    """Second-pass pairs of the frames ``weak`` with frames of the connected set ``main`` (their
+    ``joint_neighbours`` nearest by the current poses within the FOV plus their
+    ``appearance_neighbours`` most similar), gated by :func:`match_pair` at the connected frame's
+    refined pose (its error neglected: millimetres) and the weak frame's current pose with noise
+    ``pose_sigma``. Pairs tried before under the fixed gate are tried again. Also the PnP pose (world
+    frame of ``T_out``) of each weak frame outside ``main`` that found a pair (the pair with most
+    inliers)."""
+    n = len(T_out)
+    have = {(min(a, b), max(a, b)) for a, b, _ in all_pairs}
+    centres = T_out[:, :3, 3]
+    sig = (pose_sigma[0], pose_sigma[1], 0.0, 0.0)
+    out: list[Pair] = []
+    best: dict[int, tuple[int, np.ndarray]] = {}
+    for u in weak:
+        ang = view_angles_rad(T_out, u)
+        dist = np.linalg.norm(centres - centres[u], axis=1)
+        cand = [int(j) for j in np.argsort(dist, kind="stable") if j in main and j != u and ang[j] <= fov]
+        cand = cand[: config.joint_neighbours]
+        if sim is not None:
+            cand += [int(j) for j in np.argsort(-sim[u], kind="stable") if j in main and j != u][
+                : config.appearance_neighbours]
+        for j in dict.fromkeys(cand):
+            if (min(u, j), max(u, j)) in have:
+                continue
+            have.add((min(u, j), max(u, j)))
+            pm = match_pair(feats[u], feats[j], scene.intrinsics[u], scene.intrinsics[j], config.features,
+                            seed=pair_seed + u * n + j, T_b_a_prior=_rel(T_out, u, j), prior_sigma=sig)
+            if pm is None:
+                continue
+            out.append((u, j, pm))
+            if u not in main and len(pm.idx_a) > best.get(u, (0, None))[0]:
+                best[u] = (len(pm.idx_a), T_out[j] @ pm.T_b_a)  # T_world_u = T_world_j T_j_u
+    return out, {u: T for u, (_, T) in best.items()}
 
 
 def _rel(T_world_cam: np.ndarray, a: int, b: int) -> np.ndarray:
