@@ -71,8 +71,10 @@ class AlignConfig:
     ``pose_sigma_m``); frames that join start at their PnP pose and all frames are adjusted again.
     Repeated while frames join, at most this many rounds. 0 = one pass only."""
     pose_sigma_deg: float | None = None
-    """Noise of the given poses (1 sigma per axis, degrees) for the second pass's gate; None =
-    measured: the RMS per axis of the changes the first pass made to the connected frames."""
+    """Stated noise of the given poses (1 sigma per axis, degrees; with ``pose_sigma_m``): every
+    matching gate is then the predicted-match covariance gate of both frames' noise instead of the
+    fixed ``features.prior_px``. None = first pass with the fixed gate, second pass with the noise
+    measured by the first: the RMS per axis of the changes it made to the connected frames."""
     pose_sigma_m: float | None = None
     """As ``pose_sigma_deg`` for the camera centres (metres)."""
     max_matches_per_pair: int = 200
@@ -260,6 +262,12 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
     groups = group_poses(T_given, fov, config.grouping, seed=config.seed)
     pair_seed = config.seed * 1_000_003
 
+    # stated noise of the given poses: every prior gate grows to it (else the fixed prior_px)
+    sig0 = None
+    if config.pose_sigma_deg is not None and config.pose_sigma_m is not None:
+        r0 = float(np.radians(config.pose_sigma_deg))
+        sig0 = (r0, config.pose_sigma_m, r0, config.pose_sigma_m)
+
     # 3. local
     T_local = T_given.copy()
     local_pairs: list[Pair] = []
@@ -268,7 +276,7 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         pairs = []
         for m in g.member_idxs:
             pm = match_pair(feats[g.key_idx], feats[m], scene.intrinsics[g.key_idx], scene.intrinsics[m], fc,
-                            seed=pair_seed + g.key_idx * n + m, T_b_a_prior=_rel(T_given, g.key_idx, m))
+                            seed=pair_seed + g.key_idx * n + m, T_b_a_prior=_rel(T_given, g.key_idx, m), prior_sigma=sig0)
             if pm is not None:
                 pairs.append((g.key_idx, m, pm))
         if not pairs:
@@ -296,7 +304,7 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
             done.add((min(ka, kb), max(ka, kb)))
             fa, fb = _restrict(feats[ka], used.get(ka), fc), _restrict(feats[kb], used.get(kb), fc)
             pm = match_pair(fa[0], fb[0], scene.intrinsics[ka], scene.intrinsics[kb], fc, seed=pair_seed + ka * n + kb,
-                            T_b_a_prior=_rel(T_local, ka, kb))
+                            T_b_a_prior=_rel(T_local, ka, kb), prior_sigma=sig0)
             if pm is not None:
                 global_pairs.append((ka, kb, PairMatch(fa[1][pm.idx_a], fb[1][pm.idx_b], pm.T_b_a)))
 
@@ -315,14 +323,15 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
             order = [int(j) for j in np.argsort(dist, kind="stable") if j != i and ang[j] <= fov]
             order = order[: config.joint_neighbours]
             if sim is not None:  # pose-free candidates: the images' own similarity
-                order += [int(j) for j in np.argsort(-sim[i], kind="stable")[: config.appearance_neighbours]]
+                order += [int(j) for j in np.argsort(-sim[i], kind="stable") if ang[j] <= fov][
+                    : config.appearance_neighbours]
             for j in order:
                 key = (min(i, j), max(i, j))
                 if key in have:
                     continue
                 have.add(key)
                 pm = match_pair(feats[i], feats[j], scene.intrinsics[i], scene.intrinsics[j], fc,
-                                seed=pair_seed + i * n + j, T_b_a_prior=_rel(T_given, i, j))
+                                seed=pair_seed + i * n + j, T_b_a_prior=_rel(T_given, i, j), prior_sigma=sig0)
                 if pm is not None:
                     neighbour_pairs.append((i, j, pm))
 
@@ -456,10 +465,9 @@ def _given_pose_sigma(T_given: np.ndarray, T_out: np.ndarray, idx: list[int],
     axis of the changes the first pass made to the frames ``idx`` (after the rigid fit)."""
     w = Rotation.from_matrix(np.einsum("nij,nkj->nik", T_out[idx, :3, :3], T_given[idx, :3, :3])).as_rotvec()
     v = T_out[idx, :3, 3] - T_given[idx, :3, 3]
-    s_rot = (np.radians(config.pose_sigma_deg) if config.pose_sigma_deg is not None
-             else float(np.sqrt(np.mean(np.sum(w * w, axis=1)) / 3)))
-    s_t = config.pose_sigma_m if config.pose_sigma_m is not None else float(np.sqrt(np.mean(np.sum(v * v, axis=1)) / 3))
-    return float(s_rot), float(s_t)
+    if config.pose_sigma_deg is not None and config.pose_sigma_m is not None:
+        return float(np.radians(config.pose_sigma_deg)), float(config.pose_sigma_m)
+    return float(np.sqrt(np.mean(np.sum(w * w, axis=1)) / 3)), float(np.sqrt(np.mean(np.sum(v * v, axis=1)) / 3))
 
 
 def _rematch(weak: list[int], main: set[int], all_pairs: list[Pair], feats: list[Features], scene: Scene,
