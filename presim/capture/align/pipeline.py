@@ -59,10 +59,10 @@ class AlignConfig:
     thesis' stages never match to each other."""
     appearance_neighbours: int = 6
     """For the joint pass, each frame is also matched to this many frames most similar in appearance
-    (TF-IDF bag of SIFT words, :func:`appearance_similarity`), whatever the poses say: neighbours
-    chosen from the poses inherit their errors (measured on TUM fr1/rpy, whose camera centres move
-    1.2 cm per frame: with 3 cm pose noise the nearest centres are unrelated frames and 11 frames found
-    no match). 0 = pose-based neighbours only."""
+    (TF-IDF bag of SIFT words, :func:`appearance_similarity`) among those within the FOV: neighbours
+    chosen by camera-centre distance inherit the poses' errors (measured on TUM fr1/rpy, whose camera
+    centres move 1.2 cm per frame: with 3 cm pose noise the nearest centres are unrelated frames and 11
+    frames found no match), the images' similarity does not. 0 = pose-based neighbours only."""
     rematch_rounds: int = 3
     """Second matching pass (needs ``joint``): frames that the first pass left outside the connected
     set, or with fewer than ``min_frame_obs`` verified matches, are matched again against their
