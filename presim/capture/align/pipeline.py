@@ -7,8 +7,11 @@
    of the members' poses (:func:`adjust_poses`: reprojection + depth residuals, Huber), key fixed.
 4. Global: key images matched to their nearest keys using only features the local stage kept;
    adjustment of the key poses (first key fixed); members follow their key rigidly.
-5. Joint (beyond the thesis, ``joint=True``): each frame also matched to its nearest frames, then one
-   adjustment of all frames with all observations, started from step 4.
+5. Joint (beyond the thesis, ``joint=True``): each frame also matched to its nearest frames and to
+   its most similar frames in appearance (pose-free), then one adjustment of all frames with all
+   observations, started from step 4. Second matching pass: frames left unconnected or weakly
+   connected are matched again at their neighbours' refined poses with the gate grown to their pose
+   uncertainty (``predicted_match_cov``), and all frames are adjusted again.
 6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
    mean of centre offsets), so floor, objects and point cloud keep their world frame.
 7. Acceptance (``accept_t > 0``): per frame, a paired test of its observations' costs under the given

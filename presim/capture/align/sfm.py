@@ -126,8 +126,9 @@ def metric_scale(sfm_depth: np.ndarray, sensor_depth_m: np.ndarray) -> tuple[flo
 def retrieval_pairs(descriptors: list[np.ndarray], config: SfmConfig) -> list[tuple[int, int]]:
     """Loop-closure pairs ``(a, b)``, a < b: for each frame its ``config.loop_neighbours`` most similar
     frames with ``|a - b| > config.sequential_overlap`` (those are matched sequentially), by cosine
-    similarity of TF-IDF bag-of-words histograms. The vocabulary is ``config.vocabulary_words`` k-means
-    centres (10 Lloyd iterations, seeded) of at most 200 descriptors per frame.
+    similarity of TF-IDF bag-of-words histograms (:func:`appearance_similarity`). The vocabulary is
+    ``config.vocabulary_words`` k-means centres (10 Lloyd iterations, seeded) of at most 200
+    descriptors per frame.
 
     ``descriptors``: one (M_i, 128) uint8 array per frame. Deterministic for ``config.seed``."""
     n, k = len(descriptors), config.loop_neighbours
