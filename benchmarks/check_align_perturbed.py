@@ -60,6 +60,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="refine the unperturbed given poses here instead of reading poses_refined.json")
     ap.add_argument("--accept-t", type=float, default=None,
                     help="AlignConfig.accept_t for the perturbed run (and --realign); 0 = no acceptance step")
+    ap.add_argument("--appearance-neighbours", type=int, default=None,
+                    help="AlignConfig.appearance_neighbours for the perturbed run (and --realign); the "
+                         "reference should be refined with the same value")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
@@ -72,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = AlignConfig(seed=args.seed, keep_unmatched=True)
     if args.accept_t is not None:
         cfg = replace(cfg, accept_t=args.accept_t)
+    if args.appearance_neighbours is not None:
+        cfg = replace(cfg, appearance_neighbours=args.appearance_neighbours)
     t0 = time.perf_counter()
     if args.realign:
         r = align_poses(scene, cfg)

@@ -17,9 +17,10 @@ def register(sub) -> None:
     p.add_argument("--features", type=int, default=2000, help="SIFT features per image (default 2000)")
     p.add_argument("--neighbours", type=int, default=6,
                    help="nearest frames each frame is matched to for the joint pass (default 6; 0 = none)")
-    p.add_argument("--appearance-neighbours", type=int, default=6,
+    p.add_argument("--appearance-neighbours", type=int, default=0,
                    help="frames most similar in appearance (bag of SIFT words, pose-free) each frame is also "
-                        "matched to for the joint pass (default 6; 0 = none)")
+                        "matched to for the joint pass: for poor given poses, e.g. 6 (default 0 = none: "
+                        "costs ~0.1 dB when the given poses are good)")
     p.add_argument("--rematch-rounds", type=int, default=3,
                    help="second matching pass for frames left unconnected or weakly connected, gate grown "
                         "to their pose uncertainty (default: up to 3 rounds; 0 = off)")

@@ -60,12 +60,16 @@ class AlignConfig:
     """For the joint pass, each frame is also matched to this many nearest frames (camera-centre
     distance, viewing directions within the FOV): links neighbouring groups, whose members the
     thesis' stages never match to each other."""
-    appearance_neighbours: int = 6
+    appearance_neighbours: int = 0
     """For the joint pass, each frame is also matched to this many frames most similar in appearance
-    (TF-IDF bag of SIFT words, :func:`appearance_similarity`) among those within the FOV: neighbours
-    chosen by camera-centre distance inherit the poses' errors (measured on TUM fr1/rpy, whose camera
-    centres move 1.2 cm per frame: with 3 cm pose noise the nearest centres are unrelated frames and 11
-    frames found no match), the images' similarity does not. 0 = pose-based neighbours only."""
+    (TF-IDF bag of SIFT words, :func:`appearance_similarity`) among those within the FOV, and the
+    second pass's weak frames to as many: neighbours chosen by camera-centre distance inherit the
+    poses' errors (measured on TUM fr1/rpy, whose camera centres move 1.2 cm per frame: with 3 cm pose
+    noise the nearest centres are unrelated frames and 11 frames found no match), the images'
+    similarity does not. Measured with 6: the 3 cm / 2 deg perturbation of TUM comes back to 1.12 cm
+    of the unperturbed result instead of 1.88, but the long-range pairs cost 0.11 dB on APC and 0.13 dB
+    on TUM when the given poses are good (docs/alignment.md): off by default, for poses known to be
+    poor (``--appearance-neighbours 6``). 0 = pose-based neighbours only."""
     rematch_rounds: int = 3
     """Second matching pass (needs ``joint``): frames that the first pass left outside the connected
     set, or with fewer than ``min_frame_obs`` verified matches, are matched again against their
