@@ -63,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--appearance-neighbours", type=int, default=None,
                     help="AlignConfig.appearance_neighbours for the perturbed run (and --realign); the "
                          "reference should be refined with the same value")
+    ap.add_argument("--rematch-rounds", type=int, default=None,
+                    help="AlignConfig.rematch_rounds for the perturbed run (and --realign)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
@@ -75,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = AlignConfig(seed=args.seed, keep_unmatched=True)
     if args.accept_t is not None:
         cfg = replace(cfg, accept_t=args.accept_t)
+    if args.rematch_rounds is not None:
+        cfg = replace(cfg, rematch_rounds=args.rematch_rounds)
     if args.appearance_neighbours is not None:
         cfg = replace(cfg, appearance_neighbours=args.appearance_neighbours)
     t0 = time.perf_counter()

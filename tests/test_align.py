@@ -176,6 +176,26 @@ def test_frame_beyond_the_fixed_gate_is_recovered_with_its_stated_noise(syn):
     assert np.delete(dt, 3).max() < 0.0002, dt
 
 
+def test_second_pass_connects_a_disconnected_group(syn):
+    """Two groups of 4 and no pair between them in the first pass (no key or nearest-frame matching):
+    the second half is unconnected and keeps its perturbed poses (named). The second pass matches
+    those frames to the refined first half, the gate grown to the pose noise the first pass measured
+    (its changes: ~1 cm / 0.5 deg), and all 8 poses come back within 2 mm / 0.1 deg."""
+    scene, T = syn
+    bad = perturb(T, 0.01, 0.5, seed=1)
+    sc = dataclasses.replace(scene, T_world_cam=bad)
+    cfg = AlignConfig(grouping=GroupConfig(max_group=4), global_neighbours=0, joint_neighbours=0,
+                      keep_unmatched=True)
+    one = align_poses(sc, cfg)
+    assert len(one.stats["unmatched_frames"]) == 4 and one.stats["rematched_frames"] == []
+    res = align_poses(sc, dataclasses.replace(cfg, rematch_rounds=3))
+    assert res.stats["unmatched_frames"] == [] and len(res.stats["rematched_frames"]) >= 4
+    sig = res.stats["given_pose_sigma"]
+    assert 0.1 < sig["deg"] < 0.6 and 0.002 < sig["m"] < 0.012, sig
+    dt, dr = _errors(T, res.T_world_cam)
+    assert dt.max() < 0.002 and dr.max() < 0.1, (dt.max(), dr.max())
+
+
 def test_appearance_similarity_known_answers():
     """Frame 3 holds frame 0's descriptors (shuffled): similarity 1 (the histogram ignores order);
     every frame is most similar to itself; the matrix is symmetric and the same for the same seed."""

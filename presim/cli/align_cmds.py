@@ -21,9 +21,10 @@ def register(sub) -> None:
                    help="frames most similar in appearance (bag of SIFT words, pose-free) each frame is also "
                         "matched to for the joint pass: for poor given poses, e.g. 6 (default 0 = none: "
                         "costs ~0.1 dB when the given poses are good)")
-    p.add_argument("--rematch-rounds", type=int, default=3,
+    p.add_argument("--rematch-rounds", type=int, default=0,
                    help="second matching pass for frames left unconnected or weakly connected, gate grown "
-                        "to their pose uncertainty (default: up to 3 rounds; 0 = off)")
+                        "to their pose uncertainty, at most this many rounds (default 0 = off; for poor "
+                        "given poses with --appearance-neighbours 6: 3)")
     p.add_argument("--pose-sigma-deg", type=float, default=None,
                    help="stated noise of the given poses (1 sigma per axis, degrees; with --pose-sigma-cm): "
                         "every matching gate grows to it (default: fixed 80 px gate, second pass measured)")
