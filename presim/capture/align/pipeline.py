@@ -7,11 +7,12 @@
    of the members' poses (:func:`adjust_poses`: reprojection + depth residuals, Huber), key fixed.
 4. Global: key images matched to their nearest keys using only features the local stage kept;
    adjustment of the key poses (first key fixed); members follow their key rigidly.
-5. Joint (beyond the thesis, ``joint=True``): each frame also matched to its nearest frames and to
-   its most similar frames in appearance (pose-free), then one adjustment of all frames with all
-   observations, started from step 4. Second matching pass: frames left unconnected or weakly
-   connected are matched again at their neighbours' refined poses with the gate grown to their pose
-   uncertainty (``predicted_match_cov``), and all frames are adjusted again.
+5. Joint (beyond the thesis, ``joint=True``): each frame also matched to its nearest frames (and,
+   with ``appearance_neighbours``, to its most similar frames in appearance: pose-free), then one
+   adjustment of all frames with all observations, started from step 4. Optional second matching
+   pass (``rematch_rounds``): frames left unconnected or weakly connected are matched again at their
+   neighbours' refined poses with the gate grown to their pose uncertainty (``predicted_match_cov``),
+   and all frames are adjusted again.
 6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
    mean of centre offsets), so floor, objects and point cloud keep their world frame.
 7. Acceptance (``accept_t > 0``): per frame, a paired test of its observations' costs under the given
@@ -288,7 +289,8 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         pairs = []
         for m in g.member_idxs:
             pm = match_pair(feats[g.key_idx], feats[m], scene.intrinsics[g.key_idx], scene.intrinsics[m], fc,
-                            seed=pair_seed + g.key_idx * n + m, T_b_a_prior=_rel(T_given, g.key_idx, m), prior_sigma=sig0)
+                            seed=pair_seed + g.key_idx * n + m, T_b_a_prior=_rel(T_given, g.key_idx, m),
+                            prior_sigma=sig0)
             if pm is not None:
                 pairs.append((g.key_idx, m, pm))
         if not pairs:
@@ -404,8 +406,8 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
             break
         if pose_sigma is None:
             pose_sigma = _given_pose_sigma(T_given, T_out, sorted(main), config)
-        new_pairs, joined = _rematch(weak, main, all_pairs, feats, scene, T_out, T_given, pose_sigma, sim, fov,
-                                     config, pair_seed)
+        new_pairs, joined = _rematch(weak, main, all_pairs, feats, scene, T_out, pose_sigma, sim, fov, config,
+                                     pair_seed)
         if not new_pairs:
             break
         neighbour_pairs.extend(new_pairs)
@@ -483,7 +485,7 @@ def _given_pose_sigma(T_given: np.ndarray, T_out: np.ndarray, idx: list[int],
 
 
 def _rematch(weak: list[int], main: set[int], all_pairs: list[Pair], feats: list[Features], scene: Scene,
-             T_out: np.ndarray, T_given: np.ndarray, pose_sigma: tuple[float, float], sim: np.ndarray | None,
+             T_out: np.ndarray, pose_sigma: tuple[float, float], sim: np.ndarray | None,
              fov: float, config: AlignConfig, pair_seed: int) -> tuple[list[Pair], dict[int, np.ndarray]]:
     """Second-pass pairs of the frames ``weak`` with frames of the connected set ``main`` (their
     ``rematch_neighbours`` nearest by the current poses within the FOV plus their
