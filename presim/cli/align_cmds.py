@@ -17,6 +17,18 @@ def register(sub) -> None:
     p.add_argument("--features", type=int, default=2000, help="SIFT features per image (default 2000)")
     p.add_argument("--neighbours", type=int, default=6,
                    help="nearest frames each frame is matched to for the joint pass (default 6; 0 = none)")
+    p.add_argument("--appearance-neighbours", type=int, default=0,
+                   help="frames most similar in appearance (bag of SIFT words, pose-free) each frame is also "
+                        "matched to for the joint pass: for poor given poses, e.g. 6 (default 0 = none: "
+                        "costs ~0.1 dB when the given poses are good)")
+    p.add_argument("--rematch-rounds", type=int, default=0,
+                   help="second matching pass for frames left unconnected or weakly connected, gate grown "
+                        "to their pose uncertainty, at most this many rounds (default 0 = off; for poor "
+                        "given poses with --appearance-neighbours 6: 3)")
+    p.add_argument("--pose-sigma-deg", type=float, default=None,
+                   help="stated noise of the given poses (1 sigma per axis, degrees; with --pose-sigma-cm): "
+                        "every matching gate grows to it (default: fixed 80 px gate, second pass measured)")
+    p.add_argument("--pose-sigma-cm", type=float, default=None, help="as --pose-sigma-deg, camera centres (cm)")
     p.add_argument("--no-joint", action="store_true", help="thesis stages only (local + global key poses)")
     p.add_argument("--no-depth-residuals", action="store_true", help="reprojection residuals only (as the thesis)")
     p.add_argument("--keep-unmatched", action="store_true",
@@ -59,10 +71,15 @@ def _align(args) -> int:
     scene = load_scene(args.scene, poses=args.start)
     if (args.scene / REFINED_POSES_FILE).is_file() and not args.overwrite:
         raise FileExistsError(f"{args.scene / REFINED_POSES_FILE}: already exists (pass --overwrite to recompute)")
+    if (args.pose_sigma_deg is None) != (args.pose_sigma_cm is None):
+        raise ValueError("--pose-sigma-deg and --pose-sigma-cm go together (state both or neither)")
     cfg = AlignConfig(features=FeatureConfig(max_features=args.features), grouping=GroupConfig(max_group=args.max_group),
                       ba=BAConfig(use_depth=not args.no_depth_residuals), joint=not args.no_joint,
                       joint_neighbours=args.neighbours, keep_unmatched=args.keep_unmatched, seed=args.seed,
-                      accept_t=args.accept_t, min_frame_obs=args.min_frame_obs)
+                      accept_t=args.accept_t, min_frame_obs=args.min_frame_obs,
+                      appearance_neighbours=args.appearance_neighbours, rematch_rounds=args.rematch_rounds,
+                      pose_sigma_deg=args.pose_sigma_deg,
+                      pose_sigma_m=None if args.pose_sigma_cm is None else args.pose_sigma_cm / 100)
     res = align_poses(scene, cfg, log=lambda s: print(s, file=sys.stderr))
     st = res.stats
     prov = {"command": "presim align", "started_from": scene.poses_source, "seed": args.seed,

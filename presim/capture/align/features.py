@@ -16,7 +16,8 @@ import numpy as np
 
 from presim.geometry import Intrinsics, project, unproject
 
-__all__ = ["FeatureConfig", "Features", "PairMatch", "extract_features", "match_pair", "unproject_uv"]
+__all__ = ["FeatureConfig", "Features", "PairMatch", "appearance_similarity", "extract_features", "match_pair",
+           "predicted_match_cov", "unproject_uv"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,11 @@ class FeatureConfig:
     farther than this from where the prior puts them are dropped before RANSAC (repetitive texture
     otherwise swamps the inliers). None = no gating. 80 px ~ 8 deg at fx 540: above the error of
     drifting SLAM/mocap poses."""
+    gate_chi2: float = 13.82
+    """With a pose uncertainty for the prior (``match_pair(prior_sigma=...)``), a candidate is kept when
+    its offset from the predicted position is inside this Mahalanobis radius squared under the
+    predicted-match covariance (:func:`predicted_match_cov`); 13.82 = 99.9 % of chi-square with 2
+    degrees of freedom."""
     min_inliers: int = 20
     """A pair with fewer verified matches is not used."""
     max_depth_jump: float = 0.03
@@ -97,13 +103,47 @@ def extract_features(color: np.ndarray, depth_m: np.ndarray, config: FeatureConf
     return Features(uv, np.clip(np.rint(desc), 0, 255).astype(np.uint8), np.where(ok, z, 0.0).astype(np.float32))
 
 
+def predicted_match_cov(K_b: Intrinsics, X_a: np.ndarray, T_b_a: np.ndarray,
+                        prior_sigma: tuple[float, float, float, float], sigma_px: float) -> np.ndarray:
+    """(M, 2, 2) covariance of where points ``X_a`` (M, 3, camera a) appear in image b under the
+    relative pose ``T_b_a``, when each camera's pose is off by independent isotropic noise
+    ``prior_sigma = (rot_a rad, trans_a m, rot_b rad, trans_b m)`` (1 sigma per axis), plus
+    ``sigma_px`` of feature noise.
+
+    A rotation error w of camera a about its centre moves the point in b's frame by R_ba (w x p_a),
+    covariance ``rot_a^2 (|q|^2 I - q q^T)`` with q = R_ba p_a; a centre error adds ``trans_a^2 I``;
+    camera b's errors likewise with x = the point in b's frame. Mapped to pixels by the projection's
+    Jacobian (first order)."""
+    sra, sta, srb, stb = (float(v) for v in prior_sigma)
+    X_a = np.asarray(X_a, np.float64)
+    q = X_a @ T_b_a[:3, :3].T
+    x = q + T_b_a[:3, 3]
+    eye = np.eye(3)[None]
+
+    def rot_cov(p: np.ndarray, s: float) -> np.ndarray:
+        return s * s * (np.einsum("mi,mi->m", p, p)[:, None, None] * eye - p[:, :, None] * p[:, None, :])
+
+    S3 = rot_cov(q, sra) + rot_cov(x, srb) + (sta * sta + stb * stb) * eye
+    z = np.where(np.abs(x[:, 2]) > 1e-9, x[:, 2], 1e-9)
+    J = np.zeros((len(x), 2, 3))
+    J[:, 0, 0] = K_b.fx / z
+    J[:, 0, 2] = -K_b.fx * x[:, 0] / z ** 2
+    J[:, 1, 1] = K_b.fy / z
+    J[:, 1, 2] = -K_b.fy * x[:, 1] / z ** 2
+    return J @ S3 @ J.transpose(0, 2, 1) + sigma_px * sigma_px * np.eye(2)[None]
+
+
 def match_pair(fa: Features, fb: Features, K_a: Intrinsics, K_b: Intrinsics,
                config: FeatureConfig = FeatureConfig(), seed: int = 0,
-               T_b_a_prior: np.ndarray | None = None) -> PairMatch | None:
+               T_b_a_prior: np.ndarray | None = None,
+               prior_sigma: tuple[float, float, float, float] | None = None) -> PairMatch | None:
     """Verified matches from frame a (with depth) to frame b, or None when fewer than ``min_inliers``.
 
     ``T_b_a_prior``: an approximate relative pose (camera a -> camera b); with ``config.prior_px`` it
-    gates the candidate matches (see :class:`FeatureConfig`)."""
+    gates the candidate matches (see :class:`FeatureConfig`). With ``prior_sigma`` (each camera's pose
+    noise, see :func:`predicted_match_cov`) the gate is instead the Mahalanobis radius
+    ``config.gate_chi2`` under the predicted-match covariance: it grows with the poses' uncertainty
+    and with the point's nearness."""
     if len(fa.uv) < 2 or len(fb.uv) < 2:
         return None
     matcher = cv2.BFMatcher(cv2.NORM_L2)
@@ -123,9 +163,15 @@ def match_pair(fa: Features, fb: Features, K_a: Intrinsics, K_b: Intrinsics,
     if len(ia_a) < config.min_inliers:
         return None
     X = unproject_uv(K_a, fa.uv[ia_a].astype(np.float64), fa.depth_m[ia_a].astype(np.float64))
-    if T_b_a_prior is not None and config.prior_px is not None:
+    if T_b_a_prior is not None and (config.prior_px is not None or prior_sigma is not None):
         uv_pred, z = project(K_b, X @ T_b_a_prior[:3, :3].T + T_b_a_prior[:3, 3])
-        near = (z > 0) & (np.linalg.norm(np.nan_to_num(uv_pred, nan=1e9) - fb.uv[ib_a], axis=1) < config.prior_px)
+        r = np.nan_to_num(uv_pred, nan=1e9) - fb.uv[ib_a]
+        if prior_sigma is not None:
+            C = predicted_match_cov(K_b, X, T_b_a_prior, prior_sigma, config.ransac_px)
+            d2 = np.einsum("mi,mij,mj->m", r, np.linalg.inv(C), r)
+            near = (z > 0) & (d2 <= config.gate_chi2)
+        else:
+            near = (z > 0) & (np.linalg.norm(r, axis=1) < config.prior_px)
         ia_a, ib_a, X = ia_a[near], ib_a[near], X[near]
         if len(ia_a) < config.min_inliers:
             return None
@@ -141,3 +187,44 @@ def match_pair(fa: Features, fb: Features, K_a: Intrinsics, K_b: Intrinsics,
     T[:3, :3] = cv2.Rodrigues(rvec)[0]
     T[:3, 3] = tvec.ravel()
     return PairMatch(ia_a[inl], ib_a[inl], T)
+
+
+def appearance_similarity(descriptors: list[np.ndarray], words: int = 256, seed: int = 0,
+                          per_frame: int = 200) -> np.ndarray:
+    """(N, N) cosine similarity of the frames' TF-IDF bag-of-words histograms (diagonal included).
+
+    The vocabulary is ``words`` k-means centres (10 Lloyd iterations, seeded) of at most ``per_frame``
+    descriptors per frame (a seeded subset): a vocabulary learnt on the capture itself, since none can
+    be downloaded. It depends on the images only, never on the poses: which frames are matched does
+    not inherit the errors of the poses being refined. ``descriptors``: one (M_i, 128) array per frame.
+    Deterministic for ``seed``."""
+    n = len(descriptors)
+    rng = np.random.default_rng(seed)
+    sample = []
+    for d in descriptors:
+        sel = rng.choice(len(d), min(len(d), per_frame), replace=False) if len(d) else np.zeros(0, int)
+        sample.append(np.asarray(d)[np.sort(sel)].astype(np.float32))
+    sample = np.concatenate(sample) if sample else np.zeros((0, 128), np.float32)
+    words = min(words, len(sample))
+    if words < 2:
+        return np.zeros((n, n))
+    centres = sample[rng.choice(len(sample), words, replace=False)]
+
+    def assign(x: np.ndarray) -> np.ndarray:
+        d2 = (x * x).sum(1)[:, None] - 2 * x @ centres.T + (centres * centres).sum(1)[None]
+        return np.argmin(d2, axis=1)
+
+    for _ in range(10):
+        lab = assign(sample)
+        for w in range(words):
+            m = lab == w
+            if m.any():
+                centres[w] = sample[m].mean(0)
+    hist = np.zeros((n, words))
+    for i, d in enumerate(descriptors):
+        if len(d):
+            hist[i] = np.bincount(assign(np.asarray(d).astype(np.float32)), minlength=words)
+    idf = np.log(n / np.maximum(1, (hist > 0).sum(0)))
+    v = hist / np.maximum(1, hist.sum(1, keepdims=True)) * idf
+    v /= np.maximum(1e-12, np.linalg.norm(v, axis=1, keepdims=True))
+    return v @ v.T

@@ -40,6 +40,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from presim.capture.align.features import appearance_similarity
 from presim.capture.scene import Scene
 from presim.io_utils import progress
 
@@ -125,42 +126,17 @@ def metric_scale(sfm_depth: np.ndarray, sensor_depth_m: np.ndarray) -> tuple[flo
 def retrieval_pairs(descriptors: list[np.ndarray], config: SfmConfig) -> list[tuple[int, int]]:
     """Loop-closure pairs ``(a, b)``, a < b: for each frame its ``config.loop_neighbours`` most similar
     frames with ``|a - b| > config.sequential_overlap`` (those are matched sequentially), by cosine
-    similarity of TF-IDF bag-of-words histograms. The vocabulary is ``config.vocabulary_words`` k-means
-    centres (10 Lloyd iterations, seeded) of at most 200 descriptors per frame.
+    similarity of TF-IDF bag-of-words histograms (:func:`appearance_similarity`). The vocabulary is
+    ``config.vocabulary_words`` k-means centres (10 Lloyd iterations, seeded) of at most 200
+    descriptors per frame.
 
     ``descriptors``: one (M_i, 128) uint8 array per frame. Deterministic for ``config.seed``."""
     n, k = len(descriptors), config.loop_neighbours
     if k <= 0 or n <= config.sequential_overlap + 1:
         return []
-    rng = np.random.default_rng(config.seed)
-    sample = []
-    for d in descriptors:
-        sel = rng.choice(len(d), min(len(d), 200), replace=False) if len(d) else np.zeros(0, int)
-        sample.append(d[np.sort(sel)].astype(np.float32))
-    sample = np.concatenate(sample)
-    words = min(config.vocabulary_words, len(sample))
-    if words < 2:
+    sim = appearance_similarity(descriptors, config.vocabulary_words, config.seed)
+    if not sim.any():
         return []
-    centres = sample[rng.choice(len(sample), words, replace=False)]
-
-    def assign(x: np.ndarray) -> np.ndarray:
-        d2 = (x * x).sum(1)[:, None] - 2 * x @ centres.T + (centres * centres).sum(1)[None]
-        return np.argmin(d2, axis=1)
-
-    for _ in range(10):
-        lab = assign(sample)
-        for w in range(words):
-            m = lab == w
-            if m.any():
-                centres[w] = sample[m].mean(0)
-    hist = np.zeros((n, words))
-    for i, d in enumerate(descriptors):
-        if len(d):
-            hist[i] = np.bincount(assign(d.astype(np.float32)), minlength=words)
-    idf = np.log(n / np.maximum(1, (hist > 0).sum(0)))
-    v = hist / np.maximum(1, hist.sum(1, keepdims=True)) * idf
-    v /= np.maximum(1e-12, np.linalg.norm(v, axis=1, keepdims=True))
-    sim = v @ v.T
     idx = np.arange(n)
     sim[np.abs(idx[:, None] - idx[None]) <= config.sequential_overlap] = -np.inf
     pairs = set()
