@@ -88,7 +88,8 @@ def test_one_perturbed_frame_is_corrected_the_exact_ones_kept(syn):
     assert rec["status"] == "refined" and rec["t"] > 10, rec
     assert rec["sigma_trans_m"] < 0.001 and rec["sigma_rot_deg"] < 0.05, rec
     dt, dr = _errors(T, res.T_world_cam)
-    assert dt[3] < 0.0005 and dr[3] < 0.02, (dt[3], dr[3])  # measured 0.20 mm / 0.004 deg
+    # measured 0.71 mm / 0.018 deg with the default reprojection-only residuals (0.20 mm / 0.004 deg with depth)
+    assert dt[3] < 0.001 and dr[3] < 0.03, (dt[3], dr[3])
     others = np.arange(8) != 3
     assert [r["status"] for r in np.array(res.stats["per_frame"])[others]] == \
         ["given: residuals not significantly lower"] * 7
@@ -265,7 +266,7 @@ def test_bundle_adjust_with_free_points_recovers_toy_problem():
     T0[1:, :3, 3] += rng.normal(size=(C - 1, 3)) * 0.01
     prob = BAProblem(T0, np.arange(C) == 0, K, X + rng.normal(size=X.shape) * 0.01, np.array(ci), np.array(pi),
                      np.array(uv), np.array(d))
-    r = bundle_adjust(prob, BAConfig())
+    r = bundle_adjust(prob, BAConfig(use_depth=True))  # depth fixes the free points' scale exactly
     assert np.abs(r.T_cam_world - T_cw).max() < 1e-6
     assert np.median(r.reproj_px_after) < 1e-6 < np.median(r.reproj_px_before)
 

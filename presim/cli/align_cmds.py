@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -30,7 +31,9 @@ def register(sub) -> None:
                         "every matching gate grows to it (default: fixed 80 px gate, second pass measured)")
     p.add_argument("--pose-sigma-cm", type=float, default=None, help="as --pose-sigma-deg, camera centres (cm)")
     p.add_argument("--no-joint", action="store_true", help="thesis stages only (local + global key poses)")
-    p.add_argument("--no-depth-residuals", action="store_true", help="reprojection residuals only (as the thesis)")
+    p.add_argument("--depth-residuals", action=argparse.BooleanOptionalAction, default=False,
+                   help="also fit the depth residuals (RGB-D, beyond the thesis; default off: reprojection only, "
+                        "as the thesis, measured better on the real captures, docs/alignment.md)")
     p.add_argument("--keep-unmatched", action="store_true",
                    help="keep the given pose of frames no match connects (default: error naming them)")
     p.add_argument("--accept-t", type=float, default=3.0,
@@ -74,7 +77,7 @@ def _align(args) -> int:
     if (args.pose_sigma_deg is None) != (args.pose_sigma_cm is None):
         raise ValueError("--pose-sigma-deg and --pose-sigma-cm go together (state both or neither)")
     cfg = AlignConfig(features=FeatureConfig(max_features=args.features), grouping=GroupConfig(max_group=args.max_group),
-                      ba=BAConfig(use_depth=not args.no_depth_residuals), joint=not args.no_joint,
+                      ba=BAConfig(use_depth=args.depth_residuals), joint=not args.no_joint,
                       joint_neighbours=args.neighbours, keep_unmatched=args.keep_unmatched, seed=args.seed,
                       accept_t=args.accept_t, min_frame_obs=args.min_frame_obs,
                       appearance_neighbours=args.appearance_neighbours, rematch_rounds=args.rematch_rounds,

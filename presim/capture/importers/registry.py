@@ -71,6 +71,7 @@ def _estimate_poses(scene: Scene, sfm_config: "SfmConfig | None") -> Scene:
     import sys
 
     from presim.capture.align import AlignConfig, align_poses
+    from presim.capture.align.bundle import BAConfig
     from presim.capture.align.sfm import SfmConfig, estimate_poses_sfm
 
     def log(s: str) -> None:
@@ -80,7 +81,8 @@ def _estimate_poses(scene: Scene, sfm_config: "SfmConfig | None") -> Scene:
     reg = res.registered_idxs
     lost = [scene.frame_ids[i] for i in range(len(scene)) if i not in set(reg)]
     sub = replace(scene.subset(reg), T_world_cam=res.T_world_cam[reg], poses_source="given")
-    aligned = align_poses(sub, AlignConfig(keep_unmatched=True), log=log)
+    # depth residuals on: the configuration the pose-less import was measured with (docs/alignment.md)
+    aligned = align_poses(sub, AlignConfig(keep_unmatched=True, ba=BAConfig(use_depth=True)), log=log)
     st = res.stats
     notes = [f"poses estimated from the images (pycolmap incremental SfM, metric scale "
              f"{st['scale_m_per_unit']:.4g} m/unit from the depth, spread {st['scale_spread_mad_rel']:.1%} MAD; "
