@@ -94,7 +94,12 @@ def test_presim_drive_ctrl_c_leaves_valid_recordings(toy_scene, tmp_path, sig):
 
     out = tmp_path / "rec"
     env = dict(os.environ, PYTHONPATH=str(ROOT), PRESIM_NO_PROGRESS="1")
-    cmd = [sys.executable, "-m", "presim", "drive", str(toy_scene), "--steps", "100000", "--realtime",
+    # a route of minutes (the built-in one ends after ~17 s, which a loaded machine's recorder can
+    # outlast before frame 5 is on disk: the signal then came after a normal exit)
+    wp = tmp_path / "back_and_forth.txt"
+    wp.write_text("2.0 1.0\n2.0 3.0\n" * 50)
+    cmd = [sys.executable, "-m", "presim", "drive", str(toy_scene), "--waypoints", str(wp), "--steps", "100000",
+           "--realtime",
            "--width", "64", "--height", "48", "--record", str(out), "--rrd", str(out / "drive.rrd")]
     p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
