@@ -10,6 +10,7 @@ is the folder's path, and a missing folder fails in CI and skips locally.
 from __future__ import annotations
 
 import os
+import signal
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,6 +19,13 @@ import pytest
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 """Real captures (``../shared/data`` relative to the repository root); read only, never copied."""
+
+# A shell that starts the suite as a background job without job control (`make test &`, nohup ... &)
+# sets SIGINT to "ignore", and every child inherits it: the Ctrl-C tests' subprocesses (drive,
+# recorder, ROS bridge) would then never see their SIGINT. A handler, unlike "ignore", is reset to
+# the default in a child at exec, so the children start with Python's usual KeyboardInterrupt.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.hookimpl(hookwrapper=True)
