@@ -182,7 +182,7 @@ def test_symmetric_add_accepts_listed_symmetries_only():
 
 
 def test_lr_schedule_warmup_and_cosine_known_values():
-    from presim.pose.nets.train import QUICK_STEPS, TrainConfig
+    from presim.pose.nets.train import QUICK_LR, QUICK_SEG_LR, QUICK_STEPS, TrainConfig
 
     cfg = TrainConfig(lr=1e-3, warmup_frac=0.1)
     assert [cfg.lr_at(s, 100) for s in (0, 4, 9)] == pytest.approx([1e-4, 5e-4, 1e-3])
@@ -192,6 +192,11 @@ def test_lr_schedule_warmup_and_cosine_known_values():
     assert TrainConfig(lr_schedule="constant").lr_at(7, 100) == 1e-3
     assert TrainConfig().epochs == 0 and TrainConfig().total_steps(85) == QUICK_STEPS
     assert TrainConfig(epochs=3).total_steps(85) == 255
+    # lr left unset: the quick recipe's rate for the model, recorded as a number
+    assert TrainConfig().lr == QUICK_LR and TrainConfig(model="segmentation").lr == QUICK_SEG_LR
+    assert TrainConfig(model="segmentation", lr=5e-4).lr == 5e-4
+    with pytest.raises(ValueError, match="lr"):
+        TrainConfig(lr=float("nan"))
     with pytest.raises(ValueError, match="unknown schedule"):
         TrainConfig(lr_schedule="step").lr_at(0, 10)
 

@@ -49,9 +49,12 @@ QUICK_SEG_EPOCHS = 12
 """Epochs of the segmentation network's quick recipe (whole images per step). On the sample scene's
 300-image split: 12 epochs (216 steps, 8 min CPU) reach test object IoU 0.801, where 3 epochs gave
 0.645 with the training IoU still climbing (docs/pose-networks.md)."""
+QUICK_LR = 1e-3
+"""Peak learning rate of the pose networks' quick recipe (``TrainConfig.lr`` left unset)."""
 QUICK_SEG_LR = 3e-3
-"""Peak learning rate of the segmentation quick recipe (``pose-train --model segmentation`` without
-``--lr``)."""
+"""Peak learning rate of the segmentation quick recipe (``TrainConfig.lr`` left unset with
+``model="segmentation"``): 12 epochs of whole images need a larger step than the pose networks'
+2500 instance batches (docs/pose-networks.md)."""
 
 
 @dataclass(frozen=True)
@@ -67,9 +70,10 @@ class TrainConfig:
     """Optimiser steps when ``epochs`` is 0 (checkpoints still come after every pass over the data)."""
     batch_size: int = 16
     """Instances per step."""
-    lr: float = 1e-3
+    lr: float | None = None
     """Peak Adam learning rate (thesis: 1e-4 for the full recipe; the short CPU recipe needs a larger one).
-    ``pose-train --model segmentation`` without ``--lr`` uses ``QUICK_SEG_LR``."""
+    None = the quick recipe's rate for ``model``: ``QUICK_SEG_LR`` for segmentation, ``QUICK_LR``
+    otherwise (resolved when the config is made, so ``config.json`` records the number)."""
     lr_schedule: str = "cosine"
     """``cosine``: linear warm-up over ``warmup_frac`` of the steps, then cosine decay to 0 at the last
     step; ``constant``: ``lr`` throughout."""
@@ -94,6 +98,12 @@ class TrainConfig:
     """Instances and augmentation (quick: 128 points, 32 px crop, 100 model points)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """Loss weights."""
+
+    def __post_init__(self) -> None:
+        if self.lr is None:
+            object.__setattr__(self, "lr", QUICK_SEG_LR if self.model == "segmentation" else QUICK_LR)
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ValueError(f"TrainConfig: lr must be a positive number, got {self.lr}")
 
     def total_steps(self, steps_per_epoch: int) -> int:
         """Optimiser steps of the whole run."""
