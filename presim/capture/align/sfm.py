@@ -291,7 +291,11 @@ def _run_colmap(pycolmap, scene: Scene, config: SfmConfig, log: Callable[[str], 
         log(f"sfm: {n} frames, features {t_ext - t0:.0f} s, matching {t_match - t_ext:.0f} s "
             f"({len(loops)} loop pairs), {n_pairs} pairs with two-view geometry")
         opts = _mapper_options(pycolmap, config)
-        models = pycolmap.incremental_mapping(db_path, img_dir, out_dir, options=opts)
+        # progress: one tick per image the mapper registers (the initial pair counts two)
+        with progress(total=n, desc="sfm: mapping", unit="frame") as bar:
+            models = pycolmap.incremental_mapping(db_path, img_dir, out_dir, options=opts,
+                                                  initial_image_pair_callback=lambda: bar.update(2),
+                                                  next_image_callback=lambda: bar.update(1))
         t_map = time.perf_counter()
     return models, names, n_pairs, loops, (t_ext - t0, t_match - t_ext, t_map - t_match)
 
