@@ -22,16 +22,16 @@ def register(sub) -> None:
                    help="frames most similar in appearance (bag of SIFT words, pose-free) each frame is also "
                         "matched to for the joint pass (0 = none). Default auto: none, unless the first pass "
                         "measures the given poses too noisy for neighbours chosen by camera-centre distance "
-                        "(relative centre noise > --auto-noise-ratio x the centre spacing; then 6 and the "
+                        "(relative centre noise > --auto-noise-ratio x the centre spacing; then 6, and the "
                         "matching is done again; the output says so, with the numbers)")
     p.add_argument("--rematch-rounds", type=_auto_int, default=None, metavar="N|auto",
                    help="second matching pass for frames left unconnected or weakly connected, gate grown "
                         "to their pose uncertainty, at most this many rounds (0 = off). Default auto: 0, or 3 "
                         "when the rule above fires")
-    p.add_argument("--auto-noise-ratio", type=float, default=0.5,
+    p.add_argument("--auto-noise-ratio", type=float, default=0.25,
                    help="the auto rule fires when the relative camera-centre noise the first pass measures "
                         "exceeds this fraction of the distance to the --neighbours-th nearest centre "
-                        "(default 0.5, docs/alignment.md)")
+                        "(default 0.25, docs/alignment.md)")
     p.add_argument("--pose-sigma-deg", type=float, default=None,
                    help="stated noise of the given poses (1 sigma per axis, degrees; with --pose-sigma-cm): "
                         "every matching gate grows to it (default: fixed 80 px gate, second pass measured)")

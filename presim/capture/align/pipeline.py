@@ -82,12 +82,12 @@ class AlignConfig:
     ``auto_rematch_rounds`` when the auto rule fires. 0 = one pass only (measured neutral on TUM from
     mocap alone, and worse alone from the perturbed start, 2.02 cm vs 1.88; with appearance neighbours
     part of the 0.82 cm run)."""
-    auto_noise_ratio: float = 0.5
+    auto_noise_ratio: float = 0.25
     """Auto rule (either of the two above None): after the first pass, the matching is done again with
     the appearance neighbours and the second pass when the relative camera-centre noise of the given
     poses (what the first pass corrected between verified pairs) exceeds this fraction of the spacing
     of the camera centres (distance to the ``joint_neighbours``-th nearest): see
-    :func:`pose_noise_evidence` and docs/alignment.md for why 0.5 and the measured values."""
+    :func:`pose_noise_evidence` and docs/alignment.md for why 0.25 and the measured values."""
     auto_appearance_neighbours: int = 6
     """``appearance_neighbours`` when the auto rule fires."""
     auto_rematch_rounds: int = 3
@@ -547,9 +547,12 @@ def pose_noise_evidence(T_given: np.ndarray, T_refined: np.ndarray, pairs: list[
     ``spacing``: the median over ``frames`` of the distance from a refined camera centre to its
     ``k``-th nearest refined centre with the viewing direction within the FOV: the radius of the
     neighbourhood the distance-based choice picks from.
-    ``fired`` when ``noise > max_ratio * spacing``: a frame at the very same place then appears, on
-    average, sqrt(8/pi) noise = 1.6 noise away (mean length of a 3D Gaussian vector), i.e. beyond
-    0.8 spacing for max_ratio 0.5: distance no longer tells the frame's neighbourhood from the rest."""
+    ``fired`` when ``noise > max_ratio * spacing``. With ``max_ratio`` 0.25 (``AlignConfig``): the
+    given distance between two frames is off by ``noise`` (1 sigma, along the line joining them), so
+    its 95 % band (+-2 noise) is then wider than half the neighbourhood's radius: a typical true
+    neighbour (half-way to the radius) is ranked outside the chosen set, and a frame from outside in
+    it, at a rate of several per cent per neighbour, and distance no longer tells the frame's
+    neighbourhood from the rest."""
     idx = sorted(frames)
     P = np.array(sorted({(min(a, b), max(a, b)) for a, b in pairs if a in frames and b in frames and a != b}),
                  dtype=int).reshape(-1, 2)
