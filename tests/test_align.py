@@ -377,10 +377,14 @@ def test_cli_align_info_eval_poses(tmp_path, syn):
     dst = save_scene(dataclasses.replace(scene, T_world_cam=bad), tmp_path / "s")
     r = _cli("align", dst)
     assert "feature transfer error" in r.stdout and (dst / "poses_refined.json").is_file()
+    assert "auto matching not needed: relative camera-centre noise" in r.stdout  # the rule's decision, stated
     r = _cli("align", dst, check=False)
     assert r.returncode == 1 and "already exists" in r.stderr and "Traceback" not in r.stderr
+    r = _cli("align", dst, "--overwrite", "--appearance-neighbours", "many", check=False)
+    assert r.returncode == 2 and "expected 'auto' or a non-negative integer" in r.stderr
     info = _cli("info", dst).stdout
     assert "refined in use" in info and "largest" in info and "uncertainty of the refined poses" in info
+    assert "matching  auto rule not fired: relative camera-centre noise" in info
     js = json.loads(_cli("info", dst, "--json").stdout)
     recs = js["poses"]["per_frame"]
     assert {"status", "n_obs", "t"} <= set(recs[0])
