@@ -12,7 +12,10 @@
    adjustment of all frames with all observations, started from step 4. Optional second matching
    pass (``rematch_rounds``): frames left unconnected or weakly connected are matched again at their
    neighbours' refined poses with the gate grown to their pose uncertainty (``predicted_match_cov``),
-   and all frames are adjusted again.
+   and all frames are adjusted again. Both default to ``auto``: after a first pass without them,
+   :func:`pose_noise_evidence` compares the relative camera-centre corrections between verified
+   pairs with the spacing of the centres; when the given poses are too noisy for neighbours chosen
+   by distance, steps 4-5b are done again with them (pairs already matched are reused).
 6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
    mean of centre offsets), so floor, objects and point cloud keep their world frame.
 7. Acceptance (``accept_t > 0``): per frame, a paired test of its observations' costs under the given
