@@ -28,7 +28,7 @@ def register(sub) -> None:
                    help="second matching pass for frames left unconnected or weakly connected, gate grown "
                         "to their pose uncertainty, at most this many rounds (0 = off). Default auto: 0, or 3 "
                         "when the rule above fires")
-    p.add_argument("--auto-noise-ratio", type=float, default=0.25,
+    p.add_argument("--auto-noise-ratio", type=float, default=0.25, metavar="R",
                    help="the auto rule fires when the relative camera-centre noise the first pass measures "
                         "exceeds this fraction of the distance to the --neighbours-th nearest centre "
                         "(default 0.25, docs/alignment.md)")
@@ -93,6 +93,8 @@ def _align(args) -> int:
     scene = load_scene(args.scene, poses=args.start)
     if (args.scene / REFINED_POSES_FILE).is_file() and not args.overwrite:
         raise FileExistsError(f"{args.scene / REFINED_POSES_FILE}: already exists (pass --overwrite to recompute)")
+    if not args.auto_noise_ratio >= 0:
+        raise ValueError(f"--auto-noise-ratio: must be >= 0, got {args.auto_noise_ratio}")
     if (args.pose_sigma_deg is None) != (args.pose_sigma_cm is None):
         raise ValueError("--pose-sigma-deg and --pose-sigma-cm go together (state both or neither)")
     cfg = AlignConfig(features=FeatureConfig(max_features=args.features), grouping=GroupConfig(max_group=args.max_group),
