@@ -11,6 +11,11 @@ the reference run, a perturbed one in the other), how many frames each run kept,
 per-frame change, plus time. ``--accept-t 0`` switches the acceptance step off for the perturbed run
 (and for ``--realign``): the refinement's own repeatability.
 
+Both runs use ``AlignConfig``'s defaults (as plain ``presim align --keep-unmatched``: appearance
+neighbours and second pass on ``auto``) unless an option below overrides them; the reference read
+from ``poses_refined.json`` must have been made by such a run (``presim align SCENE --keep-unmatched``).
+The output says whether the auto rule fired in each run, with its measured noise / spacing ratio.
+
     PYTHONPATH=. python benchmarks/check_align_perturbed.py out/tum --trans-m 0.03 --rot-deg 2 --seed 0 \
         --json out/tum_perturbed.json
 
@@ -50,6 +55,14 @@ def perturb_poses(T: np.ndarray, trans_m: float, rot_deg: float, seed: int) -> n
     return out
 
 
+def _auto(am: dict | None) -> dict | None:
+    """The auto rule's decision in a run's statistics (None: explicit settings, or made before the rule)."""
+    if am is None:
+        return None
+    return {k: am.get(k) for k in ("fired", "ratio", "noise_m", "spacing_m", "weak_frames",
+                                   "appearance_neighbours", "rematch_rounds")}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene")
@@ -62,9 +75,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="AlignConfig.accept_t for the perturbed run (and --realign); 0 = no acceptance step")
     ap.add_argument("--appearance-neighbours", type=int, default=None,
                     help="AlignConfig.appearance_neighbours for the perturbed run (and --realign); the "
-                         "reference should be refined with the same value")
+                         "reference should be refined with the same value (default: auto)")
     ap.add_argument("--rematch-rounds", type=int, default=None,
-                    help="AlignConfig.rematch_rounds for the perturbed run (and --realign)")
+                    help="AlignConfig.rematch_rounds for the perturbed run (and --realign) (default: auto)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
@@ -85,11 +98,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.realign:
         r = align_poses(scene, cfg)
         T_ref, ref_status = r.T_world_cam, [f["status"] for f in r.stats["per_frame"]]
+        ref_auto = r.stats.get("auto_matching")
     else:
         from presim.capture.store import read_refined_poses
 
         T_ref, prov = read_refined_poses(args.scene, scene.frame_ids)
         ref_status = [f.get("status", "refined") for f in prov.get("frames", [])] or ["refined"] * len(scene)
+        ref_auto = prov.get("stats", {}).get("auto_matching")
     t_ref = time.perf_counter() - t0
 
     T_pert = perturb_poses(T_given, args.trans_m, args.rot_deg, args.seed)
@@ -120,6 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         "refined_vs_reference_median_m": float(np.median(dt)),
         "refined_vs_reference_median_deg": float(np.median(dr)),
         "refined_vs_reference_max_m": float(np.max(dt)),
+        "reference_auto_matching": _auto(ref_auto),
+        "perturbed_auto_matching": _auto(res.stats.get("auto_matching")),
         "target_m": 0.01,
         "met": bool(e_out.ate_rmse_m <= 0.01),
         "align_wall_s": t_align,

@@ -19,7 +19,7 @@ from presim.capture.align import AlignConfig, AlignError, align_poses  # noqa: E
 from presim.capture.align.bundle import BAConfig, BAProblem, bundle_adjust  # noqa: E402
 from presim.capture.align.features import appearance_similarity, predicted_match_cov  # noqa: E402
 from presim.capture.align.grouping import GroupConfig, group_poses  # noqa: E402
-from presim.capture.align.pipeline import fit_rigid_to, pose_change  # noqa: E402
+from presim.capture.align.pipeline import fit_rigid_to, pose_change, pose_noise_evidence  # noqa: E402
 from presim.capture.scene import ArrayFrameSource  # noqa: E402
 from presim.capture.store import load_scene, read_refined_poses, save_refined_poses, save_scene  # noqa: E402
 from presim.geometry import Intrinsics, invert, make_pose  # noqa: E402
@@ -46,6 +46,9 @@ def test_perturbed_poses_are_recovered(syn):
     dt0, dr0 = _errors(T, bad)
     assert dt0.max() > 0.005  # the test can fail: the input was really off
     st = res.stats
+    # 1 cm per frame against centres ~18 cm apart (6th nearest): the auto rule stays off (measured 0.05)
+    am = st["auto_matching"]
+    assert not am["fired"] and am["ratio"] < 0.2 and st["rematched_frames"] == [], am
     assert st["transfer_px_after"]["median"] < 0.2 < st["transfer_px_before"]["median"]
     # the refined trajectory stays in the scene's world frame (rigid fit onto the given poses)
     assert np.linalg.norm(res.T_world_cam[:, :3, 3].mean(0) - bad[:, :3, 3].mean(0)) < 0.01
@@ -60,6 +63,8 @@ def test_exact_poses_do_not_move_and_same_seed_same_poses(syn):
     a = align_poses(scene, AlignConfig(seed=3))
     b = align_poses(scene, AlignConfig(seed=3))
     np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+    am = a.stats["auto_matching"]  # the auto rule measures (almost) no pose noise and stays off
+    assert not am["fired"] and am["ratio"] < 0.05 and am["appearance_neighbours"] == 0, am
     dt, dr = pose_change(T, a.T_world_cam)
     assert dt.max() < 0.0001 and dr.max() < 0.01, (dt.max(), dr.max())
     kept = [i for i, r in enumerate(a.stats["per_frame"]) if r["status"] != "refined"]
@@ -137,6 +142,54 @@ def test_appearance_neighbours_connect_frames_whatever_the_poses_say(syn):
     assert dt.max() < 0.002 and dr.max() < 0.1, (dt.max(), dr.max())
     with pytest.raises(AlignError, match="disconnected sequence"):
         align_poses(sc, dataclasses.replace(cfg, appearance_neighbours=0))
+
+
+def test_pose_noise_evidence_known_answers():
+    """11 cameras on a line 1 cm apart, all looking along +z, pairs between consecutive frames, k = 2
+    (the 2nd nearest centre: 1 cm for the 9 inner frames, 2 cm at the ends: median 1 cm). Given
+    centres off by a (1, 1, 1) with alternating sign: every relative correction is 2a per axis, so
+    the noise is 1.4826 x 2a: a = 2 mm -> 5.93 mm, ratio 0.593 > 0.5 (fires); a = 1 mm -> 0.297 (does
+    not). A constant offset (camera-to-marker calibration) leaves every relative vector as it was:
+    noise 0, however large the offset."""
+    from presim.geometry import make_pose as mk
+
+    truth = np.stack([mk(np.eye(3), [0.01 * i, 0.0, 0.0]) for i in range(11)])
+    pairs = [(i, i + 1) for i in range(10)]
+    fov = np.radians(60)
+    for a, ratio, fired in ((0.002, 0.593, True), (0.0005, 0.148, False)):
+        given = truth.copy()
+        given[:, :3, 3] += a * np.outer((-1.0) ** np.arange(11), [1, 1, 1])
+        ev = pose_noise_evidence(given, truth, pairs, set(range(11)), 2, fov, AlignConfig().auto_noise_ratio)
+        assert ev["spacing_m"] == pytest.approx(0.01)
+        assert ev["noise_m"] == pytest.approx(1.4826 * 2 * a)
+        assert ev["ratio"] == pytest.approx(ratio, abs=1e-3) and ev["fired"] is fired and ev["pairs"] == 10
+    given = truth.copy()
+    given[:, :3, 3] += [0.05, -0.03, 0.02]
+    ev = pose_noise_evidence(given, truth, pairs, set(range(11)), 2, fov, 0.25)
+    assert ev["noise_m"] == pytest.approx(0.0, abs=1e-12) and not ev["fired"]
+
+
+def test_auto_rule_fires_on_a_large_perturbation_and_recovers(syn):
+    """Every pose moved 15 cm (and turned 1 deg) against centres ~18 cm from their 6th nearest: the
+    first pass measures a relative centre noise of ~sqrt(2/3) x 15 = 12 cm per axis (measured 14 cm),
+    ratio 0.78 > 0.25, so the auto rule fires and the matching is redone with 6 appearance neighbours and
+    3 second-pass rounds; all 8 poses come back within 2 mm / 0.1 deg (measured 0.71 mm / 0.014 deg).
+    The result is the explicit 6 / 3 run's, bit for bit (same pairs, same start). Explicit settings
+    are honoured: 0 and 0 switch the rule off (no evidence is recorded)."""
+    scene, T = syn
+    bad = perturb(T, 0.15, 1.0, seed=1)
+    sc = dataclasses.replace(scene, T_world_cam=bad)
+    res = align_poses(sc, AlignConfig())
+    am = res.stats["auto_matching"]
+    assert am["fired"] and am["appearance_neighbours"] == 6 and am["rematch_rounds"] == 3, am
+    assert 0.09 < am["noise_m"] < 0.16 and 0.15 < am["spacing_m"] < 0.22 and am["ratio"] > 0.5, am
+    dt, dr = _errors(T, res.T_world_cam)
+    assert dt.max() < 0.002 and dr.max() < 0.1, (dt.max(), dr.max())
+    assert _errors(T, bad)[0].max() > 0.1  # the test can fail: the input was really off
+    explicit = align_poses(sc, AlignConfig(appearance_neighbours=6, rematch_rounds=3))
+    np.testing.assert_array_equal(res.T_world_cam, explicit.T_world_cam)
+    off = align_poses(sc, AlignConfig(appearance_neighbours=0, rematch_rounds=0))
+    assert off.stats["auto_matching"] is None
 
 
 def test_predicted_match_cov_known_answers():
@@ -327,10 +380,14 @@ def test_cli_align_info_eval_poses(tmp_path, syn):
     dst = save_scene(dataclasses.replace(scene, T_world_cam=bad), tmp_path / "s")
     r = _cli("align", dst)
     assert "feature transfer error" in r.stdout and (dst / "poses_refined.json").is_file()
+    assert "auto matching not needed: relative camera-centre noise" in r.stdout  # the rule's decision, stated
     r = _cli("align", dst, check=False)
     assert r.returncode == 1 and "already exists" in r.stderr and "Traceback" not in r.stderr
+    r = _cli("align", dst, "--overwrite", "--appearance-neighbours", "many", check=False)
+    assert r.returncode == 2 and "expected 'auto' or a non-negative integer" in r.stderr
     info = _cli("info", dst).stdout
     assert "refined in use" in info and "largest" in info and "uncertainty of the refined poses" in info
+    assert "matching  auto rule not fired: relative camera-centre noise" in info
     js = json.loads(_cli("info", dst, "--json").stdout)
     recs = js["poses"]["per_frame"]
     assert {"status", "n_obs", "t"} <= set(recs[0])

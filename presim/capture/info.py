@@ -97,6 +97,7 @@ def _poses_info(scene: Scene) -> dict:
         "change_m": {"median": float(np.median(dt)), "max": float(dt.max())},
         "change_deg": {"median": float(np.median(dr)), "max": float(dr.max())},
         "transfer_px": [st.get("transfer_px_before", {}).get("median"), st.get("transfer_px_after", {}).get("median")],
+        "auto_matching": st.get("auto_matching"),
         "per_frame": [{"frame_id": f, "dt_m": round(float(a), 6), "dr_deg": round(float(b), 5),
                        **{k: v for k, v in frames.get(f, {}).items() if k not in ("frame_id", "dt_m", "dr_deg")}}
                       for f, a, b in zip(scene.frame_ids, dt, dr)],
@@ -162,6 +163,12 @@ def format_info(info: dict) -> str:
                 sm, sd = ps["sigma_m"], ps["sigma_deg"]
                 lines.append(f"  uncertainty of the refined poses (1 sigma) median {sm['median'] * 1000:.2f} mm / "
                              f"{sd['median']:.3f} deg, max {sm['max'] * 1000:.2f} mm / {sd['max']:.3f} deg")
+            am = ps.get("auto_matching")
+            if isinstance(am, dict) and "message" in am:
+                head = ("auto rule FIRED, given poses too noisy for distance neighbours" if am.get("fired")
+                        else "auto rule not fired")
+                lines.append(f"  matching  {head}: {am['message']}; used {am.get('appearance_neighbours')} appearance neighbours, "
+                             f"{am.get('rematch_rounds')} second-pass round(s)")
             for reason, ids in ps.get("kept_given", {}).items():
                 more = f" and {len(ids) - 6} more" if len(ids) > 6 else ""
                 lines.append(f"  kept given {len(ids)} frame(s), {reason.removeprefix('given: ')}: "

@@ -18,14 +18,20 @@ def register(sub) -> None:
     p.add_argument("--features", type=int, default=2000, help="SIFT features per image (default 2000)")
     p.add_argument("--neighbours", type=int, default=6,
                    help="nearest frames each frame is matched to for the joint pass (default 6; 0 = none)")
-    p.add_argument("--appearance-neighbours", type=int, default=0,
+    p.add_argument("--appearance-neighbours", type=_auto_int, default=None, metavar="K|auto",
                    help="frames most similar in appearance (bag of SIFT words, pose-free) each frame is also "
-                        "matched to for the joint pass: for poor given poses, e.g. 6 (default 0 = none: "
-                        "costs ~0.1 dB when the given poses are good)")
-    p.add_argument("--rematch-rounds", type=int, default=0,
+                        "matched to for the joint pass (0 = none). Default auto: none, unless the first pass "
+                        "measures the given poses too noisy for neighbours chosen by camera-centre distance "
+                        "(relative centre noise > --auto-noise-ratio x the centre spacing; then 6, and the "
+                        "matching is done again; the output says so, with the numbers)")
+    p.add_argument("--rematch-rounds", type=_auto_int, default=None, metavar="N|auto",
                    help="second matching pass for frames left unconnected or weakly connected, gate grown "
-                        "to their pose uncertainty, at most this many rounds (default 0 = off; for poor "
-                        "given poses with --appearance-neighbours 6: 3)")
+                        "to their pose uncertainty, at most this many rounds (0 = off). Default auto: 0, or 3 "
+                        "when the rule above fires")
+    p.add_argument("--auto-noise-ratio", type=float, default=0.25, metavar="R",
+                   help="the auto rule fires when the relative camera-centre noise the first pass measures "
+                        "exceeds this fraction of the distance to the --neighbours-th nearest centre "
+                        "(default 0.25, docs/alignment.md)")
     p.add_argument("--pose-sigma-deg", type=float, default=None,
                    help="stated noise of the given poses (1 sigma per axis, degrees; with --pose-sigma-cm): "
                         "every matching gate grows to it (default: fixed 80 px gate, second pass measured)")
@@ -61,6 +67,19 @@ def register(sub) -> None:
     e.set_defaults(func=_eval_poses)
 
 
+def _auto_int(s: str) -> int | None:
+    """``auto`` -> None, else a non-negative integer (argparse type)."""
+    if s == "auto":
+        return None
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a non-negative integer, got {s!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a non-negative integer, got {s!r}")
+    return v
+
+
 def _align(args) -> int:
     import numpy as np
 
@@ -74,6 +93,8 @@ def _align(args) -> int:
     scene = load_scene(args.scene, poses=args.start)
     if (args.scene / REFINED_POSES_FILE).is_file() and not args.overwrite:
         raise FileExistsError(f"{args.scene / REFINED_POSES_FILE}: already exists (pass --overwrite to recompute)")
+    if not args.auto_noise_ratio >= 0:
+        raise ValueError(f"--auto-noise-ratio: must be >= 0, got {args.auto_noise_ratio}")
     if (args.pose_sigma_deg is None) != (args.pose_sigma_cm is None):
         raise ValueError("--pose-sigma-deg and --pose-sigma-cm go together (state both or neither)")
     cfg = AlignConfig(features=FeatureConfig(max_features=args.features), grouping=GroupConfig(max_group=args.max_group),
@@ -81,6 +102,7 @@ def _align(args) -> int:
                       joint_neighbours=args.neighbours, keep_unmatched=args.keep_unmatched, seed=args.seed,
                       accept_t=args.accept_t, min_frame_obs=args.min_frame_obs,
                       appearance_neighbours=args.appearance_neighbours, rematch_rounds=args.rematch_rounds,
+                      auto_noise_ratio=args.auto_noise_ratio,
                       pose_sigma_deg=args.pose_sigma_deg,
                       pose_sigma_m=None if args.pose_sigma_cm is None else args.pose_sigma_cm / 100)
     res = align_poses(scene, cfg, log=lambda s: print(s, file=sys.stderr))
@@ -90,6 +112,12 @@ def _align(args) -> int:
             "frames": st["per_frame"]}
     out = save_refined_poses(args.scene, res.T_world_cam, scene.frame_ids, prov)
     b, a = st["transfer_px_before"], st["transfer_px_after"]
+    am = st.get("auto_matching")
+    if am is not None:
+        print(("auto matching FIRED (given poses too noisy for distance neighbours): " if am["fired"] else
+               "auto matching not needed: ") + am["message"] +
+              f"; {am['weak_frames']} frame(s) weakly or not connected after the first pass; used "
+              f"{am['appearance_neighbours']} appearance neighbours, {am['rematch_rounds']} second-pass round(s)")
     print(f"{args.scene}: {st['frames']} frames, {st['groups']} groups, {st['matches']} verified matches")
     print(f"feature transfer error median {b['median']:.2f} -> {a['median']:.2f} px, "
           f"depth residual median {st['depth_res_m_before']['median'] * 1000:.1f} -> "

@@ -12,7 +12,10 @@
    adjustment of all frames with all observations, started from step 4. Optional second matching
    pass (``rematch_rounds``): frames left unconnected or weakly connected are matched again at their
    neighbours' refined poses with the gate grown to their pose uncertainty (``predicted_match_cov``),
-   and all frames are adjusted again.
+   and all frames are adjusted again. Both default to ``auto``: after a first pass without them,
+   :func:`pose_noise_evidence` compares the relative camera-centre corrections between verified
+   pairs with the spacing of the centres; when the given poses are too noisy for neighbours chosen
+   by distance, steps 4-5b are done again with them (pairs already matched are reused).
 6. The refined trajectory is moved rigidly onto the given one (rotation: chordal mean, translation:
    mean of centre offsets), so floor, objects and point cloud keep their world frame.
 7. Acceptance (``accept_t > 0``): per frame, a paired test of its observations' costs under the given
@@ -41,7 +44,8 @@ from presim.capture.scene import Scene
 from presim.geometry import invert as invert_pose
 from presim.io_utils import progress
 
-__all__ = ["AlignConfig", "AlignError", "AlignResult", "align_poses", "fit_rigid_to", "pose_change"]
+__all__ = ["AlignConfig", "AlignError", "AlignResult", "align_poses", "fit_rigid_to", "pose_change",
+           "pose_noise_evidence"]
 
 
 class AlignError(ValueError):
@@ -61,25 +65,36 @@ class AlignConfig:
     """For the joint pass, each frame is also matched to this many nearest frames (camera-centre
     distance, viewing directions within the FOV): links neighbouring groups, whose members the
     thesis' stages never match to each other."""
-    appearance_neighbours: int = 0
+    appearance_neighbours: int | None = None
     """For the joint pass, each frame is also matched to this many frames most similar in appearance
     (TF-IDF bag of SIFT words, :func:`appearance_similarity`) among those within the FOV, and the
     second pass's weak frames to as many: neighbours chosen by camera-centre distance inherit the
     poses' errors (measured on TUM fr1/rpy, whose camera centres move 1.2 cm per frame: with 3 cm pose
     noise the nearest centres are unrelated frames and 11 frames found no match), the images'
-    similarity does not. Measured with 6: the 3 cm / 2 deg perturbation of TUM comes back to 1.12 cm
-    of the unperturbed result instead of 1.88, but the long-range pairs cost 0.11 dB on APC and 0.13 dB
-    on TUM when the given poses are good (docs/alignment.md): off by default, for poses known to be
-    poor (``--appearance-neighbours 6``). 0 = pose-based neighbours only."""
-    rematch_rounds: int = 0
+    similarity does not. The long-range pairs cost ~0.1 dB when the given poses are good
+    (docs/alignment.md). None = auto (default): 0, unless the first pass measures poses too noisy for
+    distance-based neighbours (:func:`pose_noise_evidence`, ``auto_noise_ratio``); then the matching
+    is done again with ``auto_appearance_neighbours``. 0 = pose-based neighbours only."""
+    rematch_rounds: int | None = None
     """Second matching pass (needs ``joint``): frames that the first pass left outside the connected
     set, or with fewer than ``min_frame_obs`` verified matches, are matched again against their
     neighbours (pose and appearance) at the neighbours' refined poses, with the gate grown to the
     uncertainty of the frame's given pose (:func:`predicted_match_cov`, ``pose_sigma_deg`` /
     ``pose_sigma_m``); frames that join start at their PnP pose and all frames are adjusted again.
-    Repeated while frames join, at most this many rounds. 0 = one pass only (default: measured
-    neutral on TUM from mocap, 1.91 cm / 19.80 dB vs 1.92 / 19.81, and worse alone from the perturbed
-    start, 2.02 cm vs 1.88; with ``appearance_neighbours=6`` part of the 1.12 cm run)."""
+    Repeated while frames join, at most this many rounds. None = auto (default): 0, or
+    ``auto_rematch_rounds`` when the auto rule fires. 0 = one pass only (measured neutral on TUM from
+    mocap alone, and worse alone from the perturbed start, 2.02 cm vs 1.88; with appearance neighbours
+    part of the 0.82 cm run)."""
+    auto_noise_ratio: float = 0.25
+    """Auto rule (either of the two above None): after the first pass, the matching is done again with
+    the appearance neighbours and the second pass when the relative camera-centre noise of the given
+    poses (what the first pass corrected between verified pairs) exceeds this fraction of the spacing
+    of the camera centres (distance to the ``joint_neighbours``-th nearest): see
+    :func:`pose_noise_evidence` and docs/alignment.md for why 0.25 and the measured values."""
+    auto_appearance_neighbours: int = 6
+    """``appearance_neighbours`` when the auto rule fires."""
+    auto_rematch_rounds: int = 3
+    """``rematch_rounds`` when the auto rule fires."""
     rematch_neighbours: int = 6
     """Second pass: each weak frame is tried with this many nearest connected frames (current poses,
     within the FOV), besides its ``appearance_neighbours`` most similar ones."""
@@ -322,105 +337,144 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
             if pm is not None:
                 global_pairs.append((ka, kb, PairMatch(fa[1][pm.idx_a], fb[1][pm.idx_b], pm.T_b_a)))
 
-    # neighbour pairs for the joint pass (beyond the thesis)
-    neighbour_pairs: list[Pair] = []
-    sim = None
-    if config.joint and (config.joint_neighbours > 0 or config.appearance_neighbours > 0):
+    # neighbour pairs for the joint pass (beyond the thesis); pairs are matched once (cache) even when
+    # the matching is redone with the appearance pairs (auto rule below)
+    cache: dict[tuple[int, int], PairMatch | None] = {}
+    sim_box: list[np.ndarray] = []
+
+    def similarity() -> np.ndarray:
+        if not sim_box:
+            s = appearance_similarity([f.desc for f in feats], seed=config.seed)
+            np.fill_diagonal(s, -np.inf)
+            sim_box.append(s)
+        return sim_box[0]
+
+    def neighbour_matches(k_app: int) -> list[Pair]:
+        pairs: list[Pair] = []
+        if not config.joint or (config.joint_neighbours <= 0 and k_app <= 0):
+            return pairs
         have = {(min(a, b), max(a, b)) for a, b, _ in local_pairs + global_pairs}
         centres = T_given[:, :3, 3]
-        if config.appearance_neighbours > 0:
-            sim = appearance_similarity([f.desc for f in feats], seed=config.seed)
-            np.fill_diagonal(sim, -np.inf)
+        sim = similarity() if k_app > 0 else None
         for i in progress(range(n), desc="align: neighbour matches", unit="frame"):
             ang = view_angles_rad(T_given, i)
             dist = np.linalg.norm(centres - centres[i], axis=1)
             order = [int(j) for j in np.argsort(dist, kind="stable") if j != i and ang[j] <= fov]
             order = order[: config.joint_neighbours]
             if sim is not None:  # pose-free candidates: the images' own similarity
-                order += [int(j) for j in np.argsort(-sim[i], kind="stable") if ang[j] <= fov][
-                    : config.appearance_neighbours]
+                order += [int(j) for j in np.argsort(-sim[i], kind="stable") if ang[j] <= fov][:k_app]
             for j in order:
                 key = (min(i, j), max(i, j))
                 if key in have:
                     continue
                 have.add(key)
-                pm = match_pair(feats[i], feats[j], scene.intrinsics[i], scene.intrinsics[j], fc,
-                                seed=pair_seed + i * n + j, T_b_a_prior=_rel(T_given, i, j), prior_sigma=sig0)
-                if pm is not None:
-                    neighbour_pairs.append((i, j, pm))
+                if (i, j) not in cache:
+                    cache[(i, j)] = match_pair(feats[i], feats[j], scene.intrinsics[i], scene.intrinsics[j], fc,
+                                               seed=pair_seed + i * n + j, T_b_a_prior=_rel(T_given, i, j),
+                                               prior_sigma=sig0)
+                if cache[(i, j)] is not None:
+                    pairs.append((i, j, cache[(i, j)]))
+        return pairs
 
-    all_pairs = local_pairs + global_pairs + neighbour_pairs
-    comps = _components(n, [(a, b) for a, b, _ in all_pairs])
-    main = set(comps[0])
-    unmatched = sorted(i for c in comps[1:] for i in c)
+    def matching_pass(k_app: int, rounds: int) -> dict:
+        """Steps 4 (key adjustment) to 5b with ``k_app`` appearance neighbours and ``rounds`` second
+        passes: pairs, connected set, poses (rigidly fitted onto the given ones) before acceptance."""
+        neighbour_pairs = neighbour_matches(k_app)
+        all_pairs = local_pairs + global_pairs + neighbour_pairs
+        comps = _components(n, [(a, b) for a, b, _ in all_pairs])
+        main = set(comps[0])
+        T_glob = T_local.copy()
+        if global_pairs:
+            gkeys = sorted({k for a, b, _ in global_pairs for k in (a, b)} & main)
+            gpairs = [p for p in global_pairs if p[0] in main]
+            obs, _, slot = _pair_obs(gpairs, feats, scene, gkeys, config.max_matches_per_pair, config.seed + 1)
+            res = adjust_poses(T_local[gkeys], np.arange(len(gkeys)) == 0, _K4s(scene, gkeys), obs, config.ba)
+            member_of = {m: g.key_idx for g in groups for m in g.member_idxs}
+            for k in gkeys:
+                T_glob[k] = res.T_world_cam[slot[k]]
+            for m, k in member_of.items():
+                if k in slot:
+                    T_glob[m] = T_glob[k] @ invert_pose(T_local[k]) @ T_local[m]
+
+        # 5. joint
+        def joint(T_start: np.ndarray) -> np.ndarray:
+            cams = sorted(main)
+            jpairs = [p for p in all_pairs if p[0] in main and p[1] in main]
+            gauge = keys[0] if keys[0] in main else cams[0]
+            obs, _, slot = _pair_obs(jpairs, feats, scene, cams, config.max_matches_per_pair, config.seed + 2)
+            res = adjust_poses(T_start[cams], np.array([c == gauge for c in cams]), _K4s(scene, cams), obs,
+                               config.ba)
+            T = T_start.copy()
+            for c in cams:
+                T[c] = res.T_world_cam[slot[c]]
+            return T
+
+        def fit(T_ref: np.ndarray) -> np.ndarray:
+            """6. rigid fit onto the given trajectory (frames in the main component)"""
+            idx = sorted(main)
+            T = T_given.copy()
+            T[idx] = fit_rigid_to(T_given[idx], T_ref[idx]) @ T_ref[idx]
+            return T
+
+        T_out = fit(joint(T_glob) if config.joint and all_pairs else T_glob)
+        first = {"T_out": T_out, "pairs": list(all_pairs), "main": set(main)}
+
+        # 5b. second matching pass: weakly or not connected frames, gate grown to their pose uncertainty
+        rematched: list[int] = []
+        pose_sigma: tuple[float, float] | None = None
+        for _ in range(rounds if config.joint and all_pairs else 0):
+            weak = _weak_frames(n, all_pairs, main, config.min_frame_obs)
+            if not weak:
+                break
+            if pose_sigma is None:
+                pose_sigma = _given_pose_sigma(T_given, T_out, sorted(main), config)
+            new_pairs, joined = _rematch(weak, main, all_pairs, feats, scene, T_out, pose_sigma,
+                                         similarity() if k_app > 0 else None, k_app, fov, config, pair_seed)
+            if not new_pairs:
+                break
+            neighbour_pairs.extend(new_pairs)
+            all_pairs = local_pairs + global_pairs + neighbour_pairs
+            comps = _components(n, [(a, b) for a, b, _ in all_pairs])
+            main = set(comps[0])
+            rematched.extend(sorted({i for p in new_pairs for i in p[:2] if i in weak}))
+            # start the joined frames at their PnP pose (in the world frame of T_out), then adjust all again
+            T_start = T_out.copy()
+            for u, T_u in joined.items():
+                T_start[u] = T_u
+            T_out = fit(joint(T_start))
+        unmatched = sorted(i for c in comps[1:] for i in c)
+        return {"neighbour_pairs": neighbour_pairs, "all_pairs": all_pairs, "main": main, "unmatched": unmatched,
+                "T_out": T_out, "rematched": rematched, "pose_sigma": pose_sigma, "first": first}
+
+    t_stages = time.perf_counter()
+    k_app = config.appearance_neighbours if config.appearance_neighbours is not None else 0
+    rounds = config.rematch_rounds if config.rematch_rounds is not None else 0
+    P = matching_pass(k_app, rounds)
+    # auto rule: are the given poses too noisy for neighbours chosen by camera-centre distance?
+    auto = config.appearance_neighbours is None or config.rematch_rounds is None
+    evidence = None
+    if auto and config.joint:
+        f1 = P["first"]
+        evidence = pose_noise_evidence(T_given, f1["T_out"], [(a, b) for a, b, _ in f1["pairs"]], f1["main"],
+                                       max(1, config.joint_neighbours), fov, config.auto_noise_ratio)
+        evidence["weak_frames"] = len(_weak_frames(n, f1["pairs"], f1["main"], config.min_frame_obs))
+        if evidence["fired"]:
+            k_app = config.appearance_neighbours if config.appearance_neighbours is not None \
+                else config.auto_appearance_neighbours
+            rounds = config.rematch_rounds if config.rematch_rounds is not None else config.auto_rematch_rounds
+            evidence.update(appearance_neighbours=k_app, rematch_rounds=rounds)
+            log(f"poor given poses: {evidence['message']}; matching again with {k_app} appearance neighbours "
+                f"and {rounds} second-pass round(s)")
+            P = matching_pass(k_app, rounds)
+        else:
+            evidence.update(appearance_neighbours=k_app, rematch_rounds=rounds)
+            log(f"given poses good enough for distance neighbours: {evidence['message']}")
+    neighbour_pairs, all_pairs, main, unmatched = P["neighbour_pairs"], P["all_pairs"], P["main"], P["unmatched"]
+    T_out, rematched, pose_sigma = P["T_out"], P["rematched"], P["pose_sigma"]
     if unmatched and not config.keep_unmatched:
         raise AlignError(f"disconnected sequence: {len(unmatched)} frame(s) share no verified matches with the "
                          f"{len(main)} others: {_names(scene, unmatched)} (pass keep_unmatched / --keep-unmatched "
                          f"to keep their given poses)")
-    T_glob = T_local.copy()
-    if global_pairs:
-        gkeys = sorted({k for a, b, _ in global_pairs for k in (a, b)} & main)
-        gpairs = [p for p in global_pairs if p[0] in main]
-        obs, _, slot = _pair_obs(gpairs, feats, scene, gkeys, config.max_matches_per_pair, config.seed + 1)
-        res = adjust_poses(T_local[gkeys], np.arange(len(gkeys)) == 0, _K4s(scene, gkeys), obs, config.ba)
-        member_of = {m: g.key_idx for g in groups for m in g.member_idxs}
-        for k in gkeys:
-            T_glob[k] = res.T_world_cam[slot[k]]
-        for m, k in member_of.items():
-            if k in slot:
-                T_glob[m] = T_glob[k] @ invert_pose(T_local[k]) @ T_local[m]
-    t_stages = time.perf_counter()
-
-    # 5. joint
-    def joint(T_start: np.ndarray) -> np.ndarray:
-        cams = sorted(main)
-        jpairs = [p for p in all_pairs if p[0] in main and p[1] in main]
-        gauge = keys[0] if keys[0] in main else cams[0]
-        obs, _, slot = _pair_obs(jpairs, feats, scene, cams, config.max_matches_per_pair, config.seed + 2)
-        res = adjust_poses(T_start[cams], np.array([c == gauge for c in cams]), _K4s(scene, cams), obs, config.ba)
-        T = T_start.copy()
-        for c in cams:
-            T[c] = res.T_world_cam[slot[c]]
-        return T
-
-    def fit(T_ref: np.ndarray) -> np.ndarray:
-        """6. rigid fit onto the given trajectory (frames in the main component)"""
-        idx = sorted(main)
-        T = T_given.copy()
-        T[idx] = fit_rigid_to(T_given[idx], T_ref[idx]) @ T_ref[idx]
-        return T
-
-    T_ref = joint(T_glob) if config.joint and all_pairs else T_glob
-    T_out = fit(T_ref)
-
-    # 5b. second matching pass: weakly or not connected frames, gate grown to their pose uncertainty
-    rematched: list[int] = []
-    pose_sigma: tuple[float, float] | None = None
-    for _ in range(config.rematch_rounds if config.joint and all_pairs else 0):
-        matched = np.zeros(n)
-        for a, b, m in all_pairs:
-            matched[a] += len(m.idx_a)
-            matched[b] += len(m.idx_a)
-        weak = [i for i in range(n) if i not in main or matched[i] < config.min_frame_obs]
-        if not weak:
-            break
-        if pose_sigma is None:
-            pose_sigma = _given_pose_sigma(T_given, T_out, sorted(main), config)
-        new_pairs, joined = _rematch(weak, main, all_pairs, feats, scene, T_out, pose_sigma, sim, fov, config,
-                                     pair_seed)
-        if not new_pairs:
-            break
-        neighbour_pairs.extend(new_pairs)
-        all_pairs = local_pairs + global_pairs + neighbour_pairs
-        comps = _components(n, [(a, b) for a, b, _ in all_pairs])
-        main = set(comps[0])
-        unmatched = sorted(i for c in comps[1:] for i in c)
-        rematched.extend(sorted({i for p in new_pairs for i in p[:2] if i in weak}))
-        # start the joined frames at their PnP pose (in the world frame of T_out), then adjust all again
-        T_start = T_out.copy()
-        for u, T_u in joined.items():
-            T_start[u] = T_u
-        T_out = fit(joint(T_start))
 
     # 7. per-frame acceptance; frames kept at their given pose anchor a re-adjustment of the others
     idx = sorted(main)
@@ -447,6 +501,7 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
         "matches": int(sum(len(p[2].idx_a) for p in all_pairs)),
         "unmatched_frames": [scene.frame_ids[i] for i in unmatched],
         "rematched_frames": [scene.frame_ids[i] for i in sorted(set(rematched))],
+        "auto_matching": evidence,
         "given_pose_sigma": (None if pose_sigma is None else
                              {"deg": float(np.degrees(pose_sigma[0])), "m": float(pose_sigma[1])}),
         "transfer_px_before": _stat(e0), "transfer_px_after": _stat(e1),
@@ -473,6 +528,61 @@ def align_poses(scene: Scene, config: AlignConfig = AlignConfig(),
     return AlignResult(T_out, stats)
 
 
+def _weak_frames(n: int, pairs: list[Pair], main: set[int], min_frame_obs: int) -> list[int]:
+    """Frames outside the connected set ``main`` or with fewer than ``min_frame_obs`` verified matches."""
+    matched = np.zeros(n)
+    for a, b, m in pairs:
+        matched[a] += len(m.idx_a)
+        matched[b] += len(m.idx_a)
+    return [i for i in range(n) if i not in main or matched[i] < min_frame_obs]
+
+
+def pose_noise_evidence(T_given: np.ndarray, T_refined: np.ndarray, pairs: list[tuple[int, int]],
+                        frames: set[int] | list[int], k: int, fov_rad: float, max_ratio: float) -> dict:
+    """Are the given poses too noisy for neighbours chosen by camera-centre distance? Pure.
+
+    ``noise``: the robust spread (1.4826 x median absolute value, pooled over the axes) of the
+    *relative* centre corrections ``(c_b - c_a)_refined - (c_b - c_a)_given`` over the verified pairs
+    (a, b) among ``frames``: the per-axis noise of the vector between two given centres, which is
+    what ranking frames by centre distance reads. Relative, so a smooth drift or a constant
+    camera-to-marker offset (which leave the neighbour ranking intact) barely count, while noise
+    independent per frame counts in full (sqrt(2) x the per-frame noise).
+    ``spacing``: the median over ``frames`` of the distance from a refined camera centre to its
+    ``k``-th nearest refined centre with the viewing direction within the FOV: the radius of the
+    neighbourhood the distance-based choice picks from.
+    ``fired`` when ``noise > max_ratio * spacing``. With ``max_ratio`` 0.25 (``AlignConfig``): the
+    given distance between two frames is off by ``noise`` (1 sigma, along the line joining them), so
+    its 95 % band (+-2 noise) is then wider than half the neighbourhood's radius: a typical true
+    neighbour (half-way to the radius) is ranked outside the chosen set, and a frame from outside in
+    it, at a rate of several per cent per neighbour, and distance no longer tells the frame's
+    neighbourhood from the rest."""
+    idx = sorted(frames)
+    P = np.array(sorted({(min(a, b), max(a, b)) for a, b in pairs if a in frames and b in frames and a != b}),
+                 dtype=int).reshape(-1, 2)
+    c_r, c_g = T_refined[:, :3, 3], T_given[:, :3, 3]
+    if len(P) == 0 or len(idx) < k + 1:
+        return {"fired": False, "noise_m": None, "spacing_m": None, "ratio": None, "pairs": int(len(P)),
+                "max_ratio": max_ratio, "message": "too few frames or pairs to measure the pose noise"}
+    rel = (c_r[P[:, 1]] - c_r[P[:, 0]]) - (c_g[P[:, 1]] - c_g[P[:, 0]])
+    noise = 1.4826 * float(np.median(np.abs(rel)))
+    Ti = T_refined[idx]
+    dk = []
+    for a in range(len(idx)):
+        ang = view_angles_rad(Ti, a)
+        d = np.linalg.norm(Ti[:, :3, 3] - Ti[a, :3, 3], axis=1)
+        d = np.sort(d[(np.arange(len(idx)) != a) & (ang <= fov_rad)])
+        if len(d) >= k:
+            dk.append(d[k - 1])
+    spacing = float(np.median(dk)) if dk else float("nan")
+    ratio = noise / spacing if spacing > 0 else float("inf")
+    fired = bool(np.isfinite(spacing) and ratio > max_ratio)
+    msg = (f"relative camera-centre noise {noise * 100:.2f} cm (robust, per axis, over {len(P)} verified pairs) "
+           f"vs {k}-th-nearest-centre spacing {spacing * 100:.2f} cm: ratio {ratio:.2f} "
+           f"{'>' if fired else '<='} {max_ratio:g}")
+    return {"fired": fired, "noise_m": noise, "spacing_m": spacing, "ratio": float(ratio), "pairs": int(len(P)),
+            "max_ratio": max_ratio, "message": msg}
+
+
 def _given_pose_sigma(T_given: np.ndarray, T_out: np.ndarray, idx: list[int],
                       config: AlignConfig) -> tuple[float, float]:
     """(rad, m) noise of the given poses, 1 sigma per axis: as stated in ``config``, else the RMS per
@@ -485,11 +595,11 @@ def _given_pose_sigma(T_given: np.ndarray, T_out: np.ndarray, idx: list[int],
 
 
 def _rematch(weak: list[int], main: set[int], all_pairs: list[Pair], feats: list[Features], scene: Scene,
-             T_out: np.ndarray, pose_sigma: tuple[float, float], sim: np.ndarray | None,
+             T_out: np.ndarray, pose_sigma: tuple[float, float], sim: np.ndarray | None, k_app: int,
              fov: float, config: AlignConfig, pair_seed: int) -> tuple[list[Pair], dict[int, np.ndarray]]:
     """Second-pass pairs of the frames ``weak`` with frames of the connected set ``main`` (their
     ``rematch_neighbours`` nearest by the current poses within the FOV plus their
-    ``appearance_neighbours`` most similar), gated by :func:`match_pair` at the connected frame's
+    ``k_app`` most similar), gated by :func:`match_pair` at the connected frame's
     refined pose (its error neglected: millimetres) and the weak frame's current pose with noise
     ``pose_sigma``. Pairs tried before under the fixed gate are tried again. Also the PnP pose (world
     frame of ``T_out``) of each weak frame outside ``main`` that found a pair (the pair with most
@@ -506,8 +616,7 @@ def _rematch(weak: list[int], main: set[int], all_pairs: list[Pair], feats: list
         cand = [int(j) for j in np.argsort(dist, kind="stable") if j in main and j != u and ang[j] <= fov]
         cand = cand[: config.rematch_neighbours]
         if sim is not None:
-            cand += [int(j) for j in np.argsort(-sim[u], kind="stable") if j in main and j != u][
-                : config.appearance_neighbours]
+            cand += [int(j) for j in np.argsort(-sim[u], kind="stable") if j in main and j != u][:k_app]
         for j in dict.fromkeys(cand):
             if (min(u, j), max(u, j)) in have:
                 continue

@@ -81,8 +81,10 @@ def _estimate_poses(scene: Scene, sfm_config: "SfmConfig | None") -> Scene:
     reg = res.registered_idxs
     lost = [scene.frame_ids[i] for i in range(len(scene)) if i not in set(reg)]
     sub = replace(scene.subset(reg), T_world_cam=res.T_world_cam[reg], poses_source="given")
-    # depth residuals on: the configuration the pose-less import was measured with (docs/alignment.md)
-    aligned = align_poses(sub, AlignConfig(keep_unmatched=True, ba=BAConfig(use_depth=True)), log=log)
+    # depth residuals on and no appearance pairs / second pass (no auto rule): the configuration the
+    # pose-less import was measured with (docs/alignment.md)
+    aligned = align_poses(sub, AlignConfig(keep_unmatched=True, ba=BAConfig(use_depth=True), appearance_neighbours=0,
+                                           rematch_rounds=0), log=log)
     st = res.stats
     notes = [f"poses estimated from the images (pycolmap incremental SfM, metric scale "
              f"{st['scale_m_per_unit']:.4g} m/unit from the depth, spread {st['scale_spread_mad_rel']:.1%} MAD; "
