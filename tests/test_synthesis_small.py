@@ -1,0 +1,152 @@
+"""Small-frame fast paths (issue 13): single-threaded kernel twins, the fused merge + hole mask, the
+numba LOD median and grid counts — each equal, bit for bit, to the path or numpy expression it
+replaces."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from presim.synthesis import jit_twins
+from presim.synthesis.composite import (analyse_hole_mask, analyse_holes, filtered_composite_packed, merge_view,
+                                        merge_view_holes)
+from presim.synthesis.warp import warp_layers
+from tests.test_synthesis_kernels import K_SMALL, _reference_view_chain, _room_view
+
+
+def _random_layers(L, shape, density, seed):
+    rng = np.random.default_rng(seed)
+    d = np.where(rng.random((L,) + shape) < density, rng.choice([0.5, 0.7, 1.0, 1.3], (L,) + shape), 0)
+    d = d.astype(np.float32)
+    c = rng.integers(0, 256, (L,) + shape + (3,), dtype=np.uint8) * (d > 0)[..., None].astype(np.uint8)
+    return d, c, rng
+
+
+@pytest.mark.parametrize("L,density", [(1, 0.6), (4, 0.35), (8, 0.6)])
+def test_packed_chain_serial_equals_parallel_and_reference(L, density, monkeypatch):
+    """The one-call single-threaded chain (below SERIAL_MAX_PIXELS) = the parallel kernels = the
+    numpy reference chain; with a mask, on the masked pixels (depth: everywhere the seam reads)."""
+    d, c, rng = _random_layers(L, (29, 37), density, 20 + L)
+    rd, rc = _reference_view_chain(d, c)
+    mask = rng.random(d.shape[1:]) < 0.3
+    outs = {}
+    for name, limit in (("serial", 10**9), ("parallel", 0)):
+        monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
+        outs[name] = filtered_composite_packed(d, c), filtered_composite_packed(d, c, mask)
+    for name, ((pd, pc), (md, mc)) in outs.items():
+        np.testing.assert_array_equal(pd, rd, err_msg=name)
+        np.testing.assert_array_equal(pc, rc, err_msg=name)
+        np.testing.assert_array_equal(md[mask], rd[mask], err_msg=name)
+        np.testing.assert_array_equal(mc[mask], rc[mask], err_msg=name)
+    np.testing.assert_array_equal(outs["serial"][1][0], outs["parallel"][1][0])  # depth defined everywhere
+
+
+def test_dilate3_equals_opencv():
+    from presim.synthesis.composite import _dilate3_kernel
+
+    rng = np.random.default_rng(3)
+    for shape, p in (((17, 23), 0.05), ((1, 9), 0.3), ((8, 1), 0.3), ((31, 30), 0.5)):
+        m = rng.random(shape) < p
+        out = np.empty(shape, np.bool_)
+        _dilate3_kernel(m, out)
+        np.testing.assert_array_equal(out, cv2.dilate(m.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool))
+
+
+def test_warp_serial_twin_equals_parallel(monkeypatch):
+    vp, T_cam_world = _room_view(L=4)
+    outs = []
+    for limit in (10**9, 0):
+        monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
+        lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
+        outs.append((lay.depth_m.copy(), lay.color.copy()))
+    assert (outs[0][0] > 0).mean() > 0.1
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_array_equal(outs[0][1], outs[1][1])
+
+
+@pytest.mark.parametrize("limit", [10**9, 0])
+def test_merge_view_holes_equals_merge_then_mask(limit, monkeypatch):
+    """Fused merge + hole mask + count = merge_view, then ``acc > 0``; the first view (no replace
+    mask) only writes its source ids."""
+    monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
+    rng = np.random.default_rng(5)
+    H, W = 21, 26
+    d1 = np.where(rng.random((H, W)) < 0.6, rng.random((H, W)) + 0.1, 0).astype(np.float32)
+    d1[0, 0] = np.nan  # not > 0: a hole
+    c1 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    src = np.full((H, W), 99, np.int32)
+    holes = np.empty((H, W), np.uint8)
+    n = merge_view_holes(d1, c1, src, None, d1, c1, 4, holes)
+    np.testing.assert_array_equal(src, np.where(d1 > 0, 4, -1))
+    np.testing.assert_array_equal(holes, (~(d1 > 0)).view(np.uint8))
+    assert n == np.count_nonzero(~(d1 > 0))
+    replace = analyse_holes(d1 > 0, 4, 1).replace
+    d2 = np.where(rng.random((H, W)) < 0.7, rng.random((H, W)) + 0.1, 0).astype(np.float32)
+    c2 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    ref = [a.copy() for a in (d1, c1, src)]
+    merge_view(*ref, replace, d2, c2, 9)
+    acc = [a.copy() for a in (d1, c1, src)]
+    n = merge_view_holes(*acc, replace, d2, c2, 9, holes)
+    for a, b in zip(acc, ref):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(holes, (~(ref[0] > 0)).view(np.uint8))
+    assert n == np.count_nonzero(~(ref[0] > 0))
+
+
+@pytest.mark.parametrize("limit", [10**9, 0])
+def test_analyse_hole_mask_equals_analyse_holes(limit, monkeypatch):
+    monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
+    rng = np.random.default_rng(7)
+    for p in (0.02, 0.3, 0.6):
+        valid = rng.random((40, 50)) > p
+        valid[5:12, 5:12] = False  # one big hole
+        holes = (~valid).view(np.uint8)
+        for kw in ({}, {"hole_dilation_px": 0}, {"big_hole_px": 200}, {"want_replace": False},
+                   {"stop_px": 1e6}, {"want_replace": False, "want_largest": False}):
+            a = analyse_holes(valid, **kw)
+            b = analyse_hole_mask(holes, int(holes.sum()), **kw)
+            assert (a.hole_frac, a.largest_hole_px) == (b.hole_frac, b.largest_hole_px)
+            for x, y in ((a.replace, b.replace), (a.big, b.big)):
+                assert (x is None) == (y is None)
+                if x is not None:
+                    np.testing.assert_array_equal(x, y)
+
+
+def test_median_ratio_kernel_equals_numpy_median():
+    """LOD footprint median: numpy's ``np.median(z_s[ok] / z_t[ok])`` with ``ok`` from float32
+    comparisons, exactly (odd / even counts, ties, none ok -> nan)."""
+    from presim.synthesis.grids import _median_ratio_kernel
+
+    rng = np.random.default_rng(0)
+    for t in range(400):
+        n = int(rng.integers(0, 40))
+        zs = rng.uniform(-0.5, 3, n).astype(np.float32)
+        zt = rng.uniform(-0.5, 3, n).astype(np.float32)
+        if t % 3 == 0 and n:
+            zs[: n // 2] = zs[0]
+        near = 0.1  # float32(0.1) > 0.1: numpy compares in float32
+        zs[: n // 4] = np.float32(near)
+        ok = (zs > near) & (zt > near)
+        got = _median_ratio_kernel(zs, zt, np.float32(near))
+        if not ok.any():
+            assert np.isnan(got)
+            continue
+        ref = np.median(zs[ok] / zt[ok])
+        assert np.float32(got) == ref and float(np.float32(got) * np.sqrt(2.0)) == float(ref * np.sqrt(2.0))
+
+
+def test_grid_count_kernels_equal_numpy():
+    from presim.synthesis.grids import _count_front_kernel, _front_pixels_kernel, count_in_mask
+
+    rng = np.random.default_rng(1)
+    pix = rng.integers(-1, 500, 300).astype(np.int64)
+    z = rng.uniform(-1, 2, 300).astype(np.float32)
+    z[:20] = np.float32(0.01)
+    ok = (pix >= 0) & (z > 0.01)
+    assert _count_front_kernel(pix, z, np.float32(0.01)) == np.count_nonzero(ok)
+    np.testing.assert_array_equal(_front_pixels_kernel(pix, z, np.float32(0.01)), pix[ok])
+    mask = rng.random(500) < 0.3
+    px = pix[ok]
+    assert count_in_mask(mask, px) == np.count_nonzero(mask[px])
+    assert count_in_mask(mask, px[:0]) == 0
