@@ -4,65 +4,11 @@ replaces."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
 from presim.synthesis import jit_twins
-from presim.synthesis.composite import (analyse_hole_mask, analyse_holes, filtered_composite_packed, merge_view,
-                                        merge_view_holes)
-from presim.synthesis.warp import warp_layers
-from tests.test_synthesis_kernels import K_SMALL, _reference_view_chain, _room_view
-
-
-def _random_layers(L, shape, density, seed):
-    rng = np.random.default_rng(seed)
-    d = np.where(rng.random((L,) + shape) < density, rng.choice([0.5, 0.7, 1.0, 1.3], (L,) + shape), 0)
-    d = d.astype(np.float32)
-    c = rng.integers(0, 256, (L,) + shape + (3,), dtype=np.uint8) * (d > 0)[..., None].astype(np.uint8)
-    return d, c, rng
-
-
-@pytest.mark.parametrize("L,density", [(1, 0.6), (4, 0.35), (8, 0.6)])
-def test_packed_chain_serial_equals_parallel_and_reference(L, density, monkeypatch):
-    """The one-call single-threaded chain (below SERIAL_MAX_PIXELS) = the parallel kernels = the
-    numpy reference chain; with a mask, on the masked pixels (depth: everywhere the seam reads)."""
-    d, c, rng = _random_layers(L, (29, 37), density, 20 + L)
-    rd, rc = _reference_view_chain(d, c)
-    mask = rng.random(d.shape[1:]) < 0.3
-    outs = {}
-    for name, limit in (("serial", 10**9), ("parallel", 0)):
-        monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
-        outs[name] = filtered_composite_packed(d, c), filtered_composite_packed(d, c, mask)
-    for name, ((pd, pc), (md, mc)) in outs.items():
-        np.testing.assert_array_equal(pd, rd, err_msg=name)
-        np.testing.assert_array_equal(pc, rc, err_msg=name)
-        np.testing.assert_array_equal(md[mask], rd[mask], err_msg=name)
-        np.testing.assert_array_equal(mc[mask], rc[mask], err_msg=name)
-    np.testing.assert_array_equal(outs["serial"][1][0], outs["parallel"][1][0])  # depth defined everywhere
-
-
-def test_dilate3_equals_opencv():
-    from presim.synthesis.composite import _dilate3_kernel
-
-    rng = np.random.default_rng(3)
-    for shape, p in (((17, 23), 0.05), ((1, 9), 0.3), ((8, 1), 0.3), ((31, 30), 0.5)):
-        m = rng.random(shape) < p
-        out = np.empty(shape, np.bool_)
-        _dilate3_kernel(m, out)
-        np.testing.assert_array_equal(out, cv2.dilate(m.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool))
-
-
-def test_warp_serial_twin_equals_parallel(monkeypatch):
-    vp, T_cam_world = _room_view(L=4)
-    outs = []
-    for limit in (10**9, 0):
-        monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
-        lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
-        outs.append((lay.depth_m.copy(), lay.color.copy()))
-    assert (outs[0][0] > 0).mean() > 0.1
-    np.testing.assert_array_equal(outs[0][0], outs[1][0])
-    np.testing.assert_array_equal(outs[0][1], outs[1][1])
+from presim.synthesis.composite import analyse_hole_mask, analyse_holes, merge_view, merge_view_holes
 
 
 @pytest.mark.parametrize("limit", [10**9, 0])

@@ -22,7 +22,6 @@ import numba as nb
 import numpy as np
 
 from presim.synthesis.crack_filter import gather_window, sort_window
-from presim.synthesis import jit_twins
 from presim.synthesis.jit_twins import pick, serial_twin
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
@@ -459,9 +458,6 @@ def _occupancy_kernel(d, bits):  # pragma: no cover
             bits[v, u] = b
 
 
-_occupancy_serial = serial_twin(_occupancy_kernel)
-
-
 @nb.njit(parallel=True, cache=True)
 def _occupancy_front_kernel(d, c, bits, zout, cp):  # pragma: no cover
     # _occupancy_kernel plus, from the same reads, the front-most surface of the layers (smallest
@@ -584,7 +580,6 @@ def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  #
                     break
 
 
-_packed_composite_serial = serial_twin(_packed_composite_kernel)
 _ONES3 = np.ones((3, 3), np.uint8)
 
 
@@ -620,46 +615,6 @@ def _packed_seam_kernel(d, c, mask, use_mask, dout, cout):  # pragma: no cover
             cout[v, u, 2] = b2[k]
 
 
-_packed_seam_serial = serial_twin(_packed_seam_kernel)
-
-
-@nb.njit(cache=True)
-def _dilate3_kernel(mask, out):  # pragma: no cover
-    # cv2.dilate(mask, ones((3, 3))): OR over the 3 x 3 window clipped to the image.
-    H, W = mask.shape
-    for v in range(H):
-        y0 = max(v - 1, 0)
-        y1 = min(v + 2, H)
-        for u in range(W):
-            x0 = max(u - 1, 0)
-            x1 = min(u + 2, W)
-            hit = False
-            for y in range(y0, y1):
-                for x in range(x0, x1):
-                    hit |= mask[y, x]
-            out[v, u] = hit
-
-
-@nb.njit(cache=True)
-def _packed_chain_serial(d, c, spread, replace, use):  # pragma: no cover
-    # filtered_composite_packed (no ``front``) in one call, single-threaded: the three kernels'
-    # twins and the 3 x 3 dilation of ``replace``, buffers allocated here.
-    L, H, W = d.shape
-    bits = np.empty((H, W), np.uint8)
-    _occupancy_serial(d, bits)
-    need = replace
-    if use:
-        need = np.empty((H, W), np.bool_)
-        _dilate3_kernel(replace, need)
-    comp_d = np.empty((H, W), np.float32)
-    comp_c = np.empty((H, W, 3), np.uint8)
-    _packed_composite_serial(d, c, bits, spread, need, use, comp_d, comp_c)
-    out_d = np.empty((H, W), np.float32)
-    out_c = np.empty((H, W, 3), np.uint8)
-    _packed_seam_serial(comp_d, comp_c, replace, use, out_d, out_c)
-    return out_d, out_c
-
-
 def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
                               front: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """3 x 3 switching median per layer + front-to-back composite + seam pass, crack mask first.
@@ -685,18 +640,16 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
     if L > PACKED_MAX_LAYERS:
         raise ValueError(f"filtered_composite_packed: at most {PACKED_MAX_LAYERS} layers, got {L}")
     use = replace is not None
-    if front is None and H * W < jit_twins.SERIAL_MAX_PIXELS:  # small: one call, no parallel region
-        return _packed_chain_serial(depth_m, color, _SPREAD, replace if use else _NO_MASK, use)
+    need = _NO_MASK if not use else cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
     bits = np.empty((H, W), np.uint8)
     if front is None:
         _occupancy_kernel(depth_m, bits)
     else:
         _occupancy_front_kernel(depth_m, color, bits, front[0], front[1].transpose(2, 0, 1))
-    need = replace if not use else cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
     # Depth outside ``need`` is written 0 (empty for the seam counts), colour there is left undefined.
     comp_d = np.empty((H, W), np.float32)
     comp_c = np.empty((H, W, 3), np.uint8)
-    _packed_composite_kernel(depth_m, color, bits, _SPREAD, need if use else _NO_MASK, use, comp_d, comp_c)
+    _packed_composite_kernel(depth_m, color, bits, _SPREAD, need, use, comp_d, comp_c)
     out_d = np.empty((H, W), np.float32)
     out_c = np.empty((H, W, 3), np.uint8)
     _packed_seam_kernel(comp_d, comp_c, replace if use else _NO_MASK, use, out_d, out_c)

@@ -57,12 +57,14 @@ below this fraction of the image (measured crossover: ~350 ns per masked pixel v
 the dense per-layer filter + composite + seam pass at 640x480, L = 4)."""
 
 
-BANDED_MIN_PIXELS = 200_000
+BANDED_MIN_PIXELS = 0
 """numba, packed path: images of at least this many pixels run the crack pass fused in row bands
-(:func:`presim.synthesis.composite.filtered_composite_banded`), smaller ones the three-kernel chain
-(same output). Measured CPU ratio packed / banded, one thread, on captured inputs
-(``benchmarks/bench_crack_kernels.py``): 640x480 1.10 (apc) and 1.03 (sample); 256x256 1.03 and
-0.80; 128x128 1.02 and 0.86."""
+(:func:`presim.synthesis.composite.filtered_composite_banded`, one parallel region per view),
+smaller ones the three-kernel chain (three regions; same output). 0: every size runs the bands.
+Measured (docs/synthesis.md, "Small frames"): at 128x128 and 128x96 the band kernel took ~0.8x
+the CPU of the chain per view with 2 threads (each parallel region costs ~50-100 us of CPU on the
+shared 2-core machine); one thread alone (no region cost) had favoured the chain below ~200,000
+pixels on the sample scene (0.80-0.86)."""
 
 
 @dataclass(frozen=True)

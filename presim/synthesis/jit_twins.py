@@ -18,9 +18,11 @@ import numba as nb
 __all__ = ["SERIAL_MAX_PIXELS", "serial_twin", "pick"]
 
 SERIAL_MAX_PIXELS = 70_000
-"""Images of fewer pixels run the single-threaded twins of the per-pixel kernels (warp buffers
-cleared, occupancy / composite / seam pass, merge, hole masks, fill). Measured crossover in
-docs/synthesis.md ("Small frames: fixed costs per view")."""
+"""Images of fewer pixels (128 x 128, 128 x 96, 256 x 256) run the single-threaded twins of the
+light per-pixel kernels (merge + hole mask, big-hole mask: ~1 ns of work per pixel). Measured in
+docs/synthesis.md ("Small frames"). The heavier kernels (warp, crack pass) stay parallel at every
+size: their twins measured no better, or slower (numba's parallel lowering also compiles the
+loop body better)."""
 
 
 def serial_twin(kernel: Any, **options: Any) -> Any:

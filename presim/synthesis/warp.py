@@ -19,8 +19,6 @@ import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics, unproject_depth
-from presim.synthesis import jit_twins
-from presim.synthesis.jit_twins import serial_twin
 
 __all__ = ["ViewPoints", "LayeredImage", "assign_layers", "layer_slots", "prepare_view", "prepare_view_ref", "warp_layers"]
 
@@ -261,9 +259,6 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_slots, M, fx, fy, cx, cy, near,
                     cbuf[l, vi, ui, 2] = rgb[i, 2]
 
 
-_warp_layers_serial = serial_twin(_warp_layers_kernel, fastmath=_FASTMATH)
-
-
 def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
                 out: LayeredImage | None = None) -> LayeredImage:
     """Warp a prepared view into the target camera, one z-buffered image per layer (numba).
@@ -283,12 +278,8 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         out = LayeredImage(np.empty((L, K.height, K.width), np.float32),
                            np.empty((L, K.height, K.width, 3), np.uint8))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    # Layers grouped per thread (layer_slots, computed inside the kernel); a small target image
-    # runs the single-threaded twin (same output: the grouping does not change it).
-    if K.height * K.width < jit_twins.SERIAL_MAX_PIXELS:
-        kernel, n_slots = _warp_layers_serial, 1
-    else:
-        kernel, n_slots = _warp_layers_kernel, nb.get_num_threads()
-    kernel(view.xyz_world, view.rgb, view.layer_start, n_slots, M, np.float32(K.fx), np.float32(K.fy),
-           np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.depth_m, out.color)
+    # Layers grouped per thread (layer_slots) inside the kernel: one call from Python per view.
+    _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
+                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.depth_m,
+                        out.color)
     return out
