@@ -889,7 +889,7 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
         raise ValueError(f"filtered_composite_banded: at most {PACKED_MAX_LAYERS} layers, got {L}")
     use = replace is not None
     if use:
-        need = cv2.dilate(replace.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+        need = cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
         mask = replace
     else:
         need = mask = np.zeros((1, 1), np.bool_)
