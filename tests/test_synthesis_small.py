@@ -1,6 +1,6 @@
-"""Small-frame fast paths (issue 13): single-threaded kernel twins, the fused merge + hole mask, the
-numba LOD median and grid counts — each equal, bit for bit, to the path or numpy expression it
-replaces."""
+"""Small-frame fast paths (issue 13): single-threaded kernel twins (merge, big-hole mask, fill), the
+fused merge + hole mask, the numba LOD median and grid counts — each equal, bit for bit, to the
+path or numpy expression it replaces."""
 
 from __future__ import annotations
 
@@ -96,3 +96,21 @@ def test_grid_count_kernels_equal_numpy():
     px = pix[ok]
     assert count_in_mask(mask, px) == np.count_nonzero(mask[px])
     assert count_in_mask(mask, px[:0]) == 0
+
+
+def test_pushpull_serial_twins_equal_parallel(monkeypatch):
+    """The fill's two full-size steps, single-threaded twins vs parallel kernels: same bytes."""
+    from presim.synthesis.fill import pushpull_rgbd
+
+    rng = np.random.default_rng(11)
+    H, W = 40, 54
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
+    valid = rng.random((H, W)) > 0.4
+    valid[10:25, 20:40] = False
+    outs = []
+    for limit in (10**9, 0):
+        monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
+        outs.append(pushpull_rgbd(color, depth, valid) + pushpull_rgbd(None, depth, valid)[1:])
+    for a, b in zip(*outs):
+        np.testing.assert_array_equal(a, b)
