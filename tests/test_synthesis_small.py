@@ -1,21 +1,18 @@
-"""Small-frame fast paths (issue 13): single-threaded kernel twins (merge, big-hole mask, fill), the
-fused merge + hole mask, the numba LOD median and grid counts — each equal, bit for bit, to the
-path or numpy expression it replaces."""
+"""Small-frame fast paths (issue 13): the fused merge + hole mask, the hole analysis from that mask,
+the numba LOD median and grid counts — each equal, bit for bit, to the path or numpy expression it
+replaces."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from presim.synthesis import jit_twins
 from presim.synthesis.composite import analyse_hole_mask, analyse_holes, merge_view, merge_view_holes
 
 
-@pytest.mark.parametrize("limit", [10**9, 0])
-def test_merge_view_holes_equals_merge_then_mask(limit, monkeypatch):
+def test_merge_view_holes_equals_merge_then_mask():
     """Fused merge + hole mask + count = merge_view, then ``acc > 0``; the first view (no replace
     mask) only writes its source ids."""
-    monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
     rng = np.random.default_rng(5)
     H, W = 21, 26
     d1 = np.where(rng.random((H, W)) < 0.6, rng.random((H, W)) + 0.1, 0).astype(np.float32)
@@ -40,9 +37,7 @@ def test_merge_view_holes_equals_merge_then_mask(limit, monkeypatch):
     assert n == np.count_nonzero(~(ref[0] > 0))
 
 
-@pytest.mark.parametrize("limit", [10**9, 0])
-def test_analyse_hole_mask_equals_analyse_holes(limit, monkeypatch):
-    monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
+def test_analyse_hole_mask_equals_analyse_holes():
     rng = np.random.default_rng(7)
     for p in (0.02, 0.3, 0.6):
         valid = rng.random((40, 50)) > p
@@ -97,20 +92,3 @@ def test_grid_count_kernels_equal_numpy():
     assert count_in_mask(mask, px) == np.count_nonzero(mask[px])
     assert count_in_mask(mask, px[:0]) == 0
 
-
-def test_pushpull_serial_twins_equal_parallel(monkeypatch):
-    """The fill's two full-size steps, single-threaded twins vs parallel kernels: same bytes."""
-    from presim.synthesis.fill import pushpull_rgbd
-
-    rng = np.random.default_rng(11)
-    H, W = 40, 54
-    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    depth = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
-    valid = rng.random((H, W)) > 0.4
-    valid[10:25, 20:40] = False
-    outs = []
-    for limit in (10**9, 0):
-        monkeypatch.setattr(jit_twins, "SERIAL_MAX_PIXELS", limit)
-        outs.append(pushpull_rgbd(color, depth, valid) + pushpull_rgbd(None, depth, valid)[1:])
-    for a, b in zip(*outs):
-        np.testing.assert_array_equal(a, b)

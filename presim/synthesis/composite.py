@@ -22,7 +22,6 @@ import numba as nb
 import numpy as np
 
 from presim.synthesis.crack_filter import gather_window, sort_window
-from presim.synthesis.jit_twins import pick, serial_twin
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
            "filtered_composite_packed", "filtered_composite_banded", "merge_view", "merge_view_holes", "analyse_holes",
@@ -115,9 +114,6 @@ def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, ho
     return n
 
 
-_merge_holes_serial = serial_twin(_merge_holes_kernel)
-
-
 def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
                      replace: np.ndarray | None, depth_m: np.ndarray, color: np.ndarray, view_id: int,
                      holes: np.ndarray) -> int:
@@ -131,11 +127,9 @@ def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source:
     Returns:
         The number of hole pixels.
     """
-    H, W = acc_depth_m.shape
     first = replace is None
-    kernel = pick(_merge_holes_kernel, _merge_holes_serial, H * W)
-    return int(kernel(acc_depth_m, acc_color, acc_source, _NO_MASK if first else replace, depth_m, color,
-                      np.int32(view_id), first, holes))
+    return int(_merge_holes_kernel(acc_depth_m, acc_color, acc_source, _NO_MASK if first else replace, depth_m,
+                                   color, np.int32(view_id), first, holes))
 
 
 @dataclass(frozen=True)
@@ -198,8 +192,6 @@ def _big_kernel(labels, big_lut, big):  # pragma: no cover
             big[v, u] = big_lut[labels[v, u]]
 
 
-_big_serial = serial_twin(_big_kernel)
-
 _ELLIPSES: dict[int, np.ndarray] = {}
 
 
@@ -251,7 +243,7 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
     replace = big = None
     if want_replace:
         big = np.empty((H, W), np.uint8)
-        pick(_big_kernel, _big_serial, H * W)(labels, big_lut, big)
+        _big_kernel(labels, big_lut, big)
         if hole_dilation_px > 0 and any_big:
             k = 2 * hole_dilation_px + 1
             replace = cv2.bitwise_or(holes, cv2.dilate(big, _ellipse(k)))

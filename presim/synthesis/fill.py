@@ -25,8 +25,6 @@ import cv2
 import numba as nb
 import numpy as np
 
-from presim.synthesis.jit_twins import pick, serial_twin
-
 __all__ = ["FILL_METHODS", "FILL_KERNELS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
 
 FILL_METHODS = ("auto", "telea", "pushpull")
@@ -100,9 +98,6 @@ def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
             w[i, j] = sw * inv
 
 
-_pull0_serial = serial_twin(_pull0_kernel)
-
-
 @nb.njit(cache=True, inline="always")
 def _taps(i, n_coarse):  # pragma: no cover
     # Bilinear taps of fine index i in the coarser level: coordinate (i + 0.5) / 2 - 0.5, clamped.
@@ -129,9 +124,6 @@ def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no
                     depth_out[i, j] = up
                 elif with_color:
                     color_out[i, j, ch] = np.uint8(min(max(up + 0.5, 0.0), 255.0))
-
-
-_push0_serial = serial_twin(_push0_kernel)
 
 
 @nb.njit(cache=True)
@@ -181,7 +173,7 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     C = 4 if with_color else 1
     acc = np.empty((H // 2, W // 2, C), np.float32)
     w = np.empty(acc.shape[:2], np.float32)
-    pick(_pull0_kernel, _pull0_serial, H * W)(col, depth_m, known, with_color, acc, w)
+    _pull0_kernel(col, depth_m, known, with_color, acc, w)
     # Coarser levels exactly as pushpull_fill (OpenCV area pooling, bilinear push).
     levels = []
     while not (w > 0).all() and min(w.shape) > 1:
@@ -199,8 +191,7 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
         _blend_level_kernel(acc_l, w_l, up, est)
     out_c = col.copy() if with_color else None
     out_d = depth_m.copy()
-    pick(_push0_kernel, _push0_serial, H * W)(known, with_color, np.ascontiguousarray(est, np.float32),
-                                             out_c if with_color else col, out_d)
+    _push0_kernel(known, with_color, np.ascontiguousarray(est, np.float32), out_c if with_color else col, out_d)
     return out_c, out_d
 
 
