@@ -11,8 +11,8 @@ from presim.synthesis.composite import analyse_hole_mask, analyse_holes, merge_v
 
 
 def test_merge_view_holes_equals_merge_then_mask():
-    """Fused merge + hole mask + count = merge_view, then ``acc > 0``; the first view (no replace
-    mask) only writes its source ids."""
+    """Fused merge + hole mask + count = the numpy merge, then ``acc > 0``; the first view (no
+    replace mask) only writes its source ids; merge_view (the same kernel) merges the same."""
     rng = np.random.default_rng(5)
     H, W = 21, 26
     d1 = np.where(rng.random((H, W)) < 0.6, rng.random((H, W)) + 0.1, 0).astype(np.float32)
@@ -27,11 +27,17 @@ def test_merge_view_holes_equals_merge_then_mask():
     replace = analyse_holes(d1 > 0, 4, 1).replace
     d2 = np.where(rng.random((H, W)) < 0.7, rng.random((H, W)) + 0.1, 0).astype(np.float32)
     c2 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    ref = [a.copy() for a in (d1, c1, src)]
-    merge_view(*ref, replace, d2, c2, 9)
+    ref = [a.copy() for a in (d1, c1, src)]  # numpy reference of the merge
+    take = replace & (d2 > 0)
+    ref[0][take], ref[1][take], ref[2][take] = d2[take], c2[take], 9
+    assert 0 < take.sum() < take.size
     acc = [a.copy() for a in (d1, c1, src)]
     n = merge_view_holes(*acc, replace, d2, c2, 9, holes)
     for a, b in zip(acc, ref):
+        np.testing.assert_array_equal(a, b)
+    acc2 = [a.copy() for a in (d1, c1, src)]
+    merge_view(*acc2, replace, d2, c2, 9)
+    for a, b in zip(acc2, ref):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(holes, (~(ref[0] > 0)).view(np.uint8))
     assert n == np.count_nonzero(~(ref[0] > 0))

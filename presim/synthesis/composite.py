@@ -66,19 +66,6 @@ def composite_layers(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray
 _NO_MASK = np.zeros((1, 1), np.bool_)
 
 
-@nb.njit(parallel=True, cache=True)
-def _merge_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id):  # pragma: no cover
-    H, W = acc_d.shape
-    for v in nb.prange(H):
-        for u in range(W):
-            if replace[v, u] and d[v, u] > 0:
-                acc_d[v, u] = d[v, u]
-                acc_c[v, u, 0] = c[v, u, 0]
-                acc_c[v, u, 1] = c[v, u, 1]
-                acc_c[v, u, 2] = c[v, u, 2]
-                acc_src[v, u] = view_id
-
-
 def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
                replace: np.ndarray, depth_m: np.ndarray, color: np.ndarray, view_id: int) -> None:
     """In place: where ``replace`` (bool (H, W)) and the view has a value, take the view's pixel.
@@ -89,13 +76,15 @@ def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.nd
         depth_m / color: the view's composited image.
         view_id: scene frame index written to ``acc_source``.
     """
-    _merge_kernel(acc_depth_m, acc_color, acc_source, replace, depth_m, color, np.int32(view_id))
+    merge_view_holes(acc_depth_m, acc_color, acc_source, replace, depth_m, color, view_id,
+                     np.empty(acc_depth_m.shape, np.uint8))
 
 
 @nb.njit(parallel=True, cache=True)
 def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
-    # _merge_kernel (or, for the first view, only its source ids) + the hole mask of the result
-    # (1 where the accumulated depth is not > 0) and its count, in one pass.
+    # The merge (where replace and the view has a value, take the view's pixel; for the first view
+    # only its source ids) + the hole mask of the result (1 where the accumulated depth is not > 0)
+    # and its count, in one pass.
     H, W = acc_d.shape
     n = 0
     for v in nb.prange(H):
