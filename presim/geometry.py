@@ -290,7 +290,9 @@ def check_rigid(T: np.ndarray, what: str = "pose", tol: float = 1e-3) -> np.ndar
         raise ValueError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{what}: contains non-finite values (NaN/inf)")
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+    # = np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) (its |a - b| <= atol + rtol |b|), without its overhead
+    if not (abs(T[3, 0]) <= 1e-6 and abs(T[3, 1]) <= 1e-6 and abs(T[3, 2]) <= 1e-6
+            and abs(T[3, 3] - 1.0) <= 1e-6 + 1e-5 * 1.0):
         raise ValueError(f"{what}: last row must be [0 0 0 1], got {T[3]}")
     R = T[:3, :3]
     err = np.abs(R @ R.T - np.eye(3)).max()

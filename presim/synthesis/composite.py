@@ -24,7 +24,8 @@ import numpy as np
 from presim.synthesis.crack_filter import gather_window, sort_window
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
-           "filtered_composite_packed", "filtered_composite_banded", "merge_view", "analyse_holes"]
+           "filtered_composite_packed", "filtered_composite_banded", "merge_view", "merge_view_holes", "analyse_holes",
+           "analyse_hole_mask"]
 
 
 @nb.njit(parallel=True, cache=True)
@@ -62,17 +63,7 @@ def composite_layers(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray
     return dout, cout
 
 
-@nb.njit(parallel=True, cache=True)
-def _merge_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id):  # pragma: no cover
-    H, W = acc_d.shape
-    for v in nb.prange(H):
-        for u in range(W):
-            if replace[v, u] and d[v, u] > 0:
-                acc_d[v, u] = d[v, u]
-                acc_c[v, u, 0] = c[v, u, 0]
-                acc_c[v, u, 1] = c[v, u, 1]
-                acc_c[v, u, 2] = c[v, u, 2]
-                acc_src[v, u] = view_id
+_NO_MASK = np.zeros((1, 1), np.bool_)
 
 
 def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
@@ -85,7 +76,49 @@ def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.nd
         depth_m / color: the view's composited image.
         view_id: scene frame index written to ``acc_source``.
     """
-    _merge_kernel(acc_depth_m, acc_color, acc_source, replace, depth_m, color, np.int32(view_id))
+    merge_view_holes(acc_depth_m, acc_color, acc_source, replace, depth_m, color, view_id,
+                     np.empty(acc_depth_m.shape, np.uint8))
+
+
+@nb.njit(parallel=True, cache=True)
+def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
+    # The merge (where replace and the view has a value, take the view's pixel; for the first view
+    # only its source ids) + the hole mask of the result (1 where the accumulated depth is not > 0)
+    # and its count, in one pass.
+    H, W = acc_d.shape
+    n = 0
+    for v in nb.prange(H):
+        for u in range(W):
+            if first:
+                acc_src[v, u] = view_id if d[v, u] > 0 else np.int32(-1)
+            elif replace[v, u] and d[v, u] > 0:
+                acc_d[v, u] = d[v, u]
+                acc_c[v, u, 0] = c[v, u, 0]
+                acc_c[v, u, 1] = c[v, u, 1]
+                acc_c[v, u, 2] = c[v, u, 2]
+                acc_src[v, u] = view_id
+            h = np.uint8(0) if acc_d[v, u] > 0 else np.uint8(1)
+            holes[v, u] = h
+            n += np.int64(h)
+    return n
+
+
+def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
+                     replace: np.ndarray | None, depth_m: np.ndarray, color: np.ndarray, view_id: int,
+                     holes: np.ndarray) -> int:
+    """:func:`merge_view` and the hole mask of the merged image in one pass (numba).
+
+    With ``replace`` None (the first view, whose image IS the accumulator: ``acc_depth_m`` is
+    ``depth_m``), only ``acc_source`` is written: ``view_id`` where the view has a value, else -1.
+    Then ``holes`` (uint8 (H, W)) = 1 where ``acc_depth_m`` is not > 0, else 0 (what
+    :func:`analyse_holes` derives from the coverage mask ``acc_depth_m > 0``).
+
+    Returns:
+        The number of hole pixels.
+    """
+    first = replace is None
+    return int(_merge_holes_kernel(acc_depth_m, acc_color, acc_source, _NO_MASK if first else replace, depth_m,
+                                   color, np.int32(view_id), first, holes))
 
 
 @dataclass(frozen=True)
@@ -123,12 +156,40 @@ def _areas_kernel(labels, n):  # pragma: no cover
     return areas
 
 
+@nb.njit(cache=True)
+def _big_lut_kernel(labels, n, big_hole_px):  # pragma: no cover
+    # Areas of the n labels (_areas_kernel), the largest hole (label >= 1), and the lookup table
+    # label -> 1 if a hole of at least big_hole_px pixels (label 0 = background -> 0).
+    areas = _areas_kernel(labels, n)
+    lut = np.zeros(n, np.uint8)
+    largest = 0
+    any_big = False
+    for i in range(1, n):
+        a = areas[i]
+        largest = max(largest, a)
+        if a >= big_hole_px:
+            lut[i] = 1
+            any_big = True
+    return lut, largest, any_big
+
+
 @nb.njit(parallel=True, cache=True)
 def _big_kernel(labels, big_lut, big):  # pragma: no cover
     H, W = labels.shape
     for v in nb.prange(H):
         for u in range(W):
             big[v, u] = big_lut[labels[v, u]]
+
+
+_ELLIPSES: dict[int, np.ndarray] = {}
+
+
+def _ellipse(k: int) -> np.ndarray:
+    """OpenCV's k x k elliptic structuring element (cached: it is asked for once per view)."""
+    se = _ELLIPSES.get(k)
+    if se is None:
+        se = _ELLIPSES[k] = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    return se
 
 
 def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
@@ -151,25 +212,30 @@ def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: in
     the hole pixels (an upper bound of the component count) fit.
     """
     holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
-    n_hole = cv2.countNonZero(holes)
-    H, W = valid.shape
+    return analyse_hole_mask(holes, cv2.countNonZero(holes), big_hole_px, hole_dilation_px, want_replace,
+                             stop_px, want_largest)
+
+
+def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hole_dilation_px: int = 2,
+                      want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
+    """:func:`analyse_holes` from the hole mask itself: ``holes`` uint8 (H, W), 1 = empty pixel,
+    and its count ``n_hole`` (what :func:`merge_view_holes` returns)."""
+    H, W = holes.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
     if n_hole <= stop_px or not (want_largest or want_replace):
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
     ltype = cv2.CV_16U if n_hole < 65535 else cv2.CV_32S
     n, labels = cv2.connectedComponents(holes, connectivity=8, ltype=ltype)
-    areas = _areas_kernel(labels, n)[1:]
-    largest = int(areas.max()) if len(areas) else 0
+    big_lut, largest, any_big = _big_lut_kernel(labels, n, big_hole_px)
+    largest = int(largest)
     replace = big = None
     if want_replace:
-        big_lut = np.zeros(n, np.uint8)
-        big_lut[1:] = areas >= big_hole_px
         big = np.empty((H, W), np.uint8)
         _big_kernel(labels, big_lut, big)
-        if hole_dilation_px > 0 and big_lut.any():
+        if hole_dilation_px > 0 and any_big:
             k = 2 * hole_dilation_px + 1
-            replace = cv2.bitwise_or(holes, cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))))
+            replace = cv2.bitwise_or(holes, cv2.dilate(big, _ellipse(k)))
         else:
             replace = holes.copy()
         replace = replace.view(bool)
@@ -469,6 +535,7 @@ def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  #
         b2 = np.empty(8, np.uint8)
         for u in range(W):
             if use_need and not need[v, u]:
+                dout[v, u] = 0.0  # never a value: stays empty for the seam pass's counts
                 continue
             b = np.int64(bits[v, u])
             flags = (col[u] + col[u + 1] + col[u + 2] + _GE5) & _BIT3
@@ -494,13 +561,19 @@ def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  #
                     break
 
 
+_ONES3 = np.ones((3, 3), np.uint8)
+
+
 @nb.njit(parallel=True, cache=True)
 def _packed_seam_kernel(d, c, mask, use_mask, dout, cout):  # pragma: no cover
-    # 3x3 switching median of one image (the seam pass); dout / cout arrive as copies of d / c.
+    # 3x3 switching median of one image (the seam pass): each row of dout / cout is first a copy
+    # of d / c, then its cracks get the median.
     H, W = d.shape
     d3 = d.reshape((1, H, W))
     c3 = c.reshape((1, H, W, 3))
     for v in nb.prange(H):
+        dout[v] = d[v]
+        cout[v] = c[v]
         y0 = max(v - 1, 0)
         y1 = min(v + 2, H)
         col = np.zeros(W + 2, np.int32)
@@ -547,20 +620,20 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
     L, H, W = depth_m.shape
     if L > PACKED_MAX_LAYERS:
         raise ValueError(f"filtered_composite_packed: at most {PACKED_MAX_LAYERS} layers, got {L}")
+    use = replace is not None
+    need = _NO_MASK if not use else cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
     bits = np.empty((H, W), np.uint8)
     if front is None:
         _occupancy_kernel(depth_m, bits)
     else:
         _occupancy_front_kernel(depth_m, color, bits, front[0], front[1].transpose(2, 0, 1))
-    use = replace is not None
-    need = replace if not use else cv2.dilate(replace.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
-    dummy = np.zeros((1, 1), np.bool_)
-    # Pixels outside ``need`` are never written: zero depth keeps them empty for the seam counts.
-    comp_d = np.zeros((H, W), np.float32) if use else np.empty((H, W), np.float32)
+    # Depth outside ``need`` is written 0 (empty for the seam counts), colour there is left undefined.
+    comp_d = np.empty((H, W), np.float32)
     comp_c = np.empty((H, W, 3), np.uint8)
-    _packed_composite_kernel(depth_m, color, bits, _SPREAD, need if use else dummy, use, comp_d, comp_c)
-    out_d, out_c = comp_d.copy(), comp_c.copy()
-    _packed_seam_kernel(comp_d, comp_c, replace if use else dummy, use, out_d, out_c)
+    _packed_composite_kernel(depth_m, color, bits, _SPREAD, need, use, comp_d, comp_c)
+    out_d = np.empty((H, W), np.float32)
+    out_c = np.empty((H, W, 3), np.uint8)
+    _packed_seam_kernel(comp_d, comp_c, replace if use else _NO_MASK, use, out_d, out_c)
     return out_d, out_c
 
 
@@ -797,7 +870,7 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
         raise ValueError(f"filtered_composite_banded: at most {PACKED_MAX_LAYERS} layers, got {L}")
     use = replace is not None
     if use:
-        need = cv2.dilate(replace.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+        need = cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
         mask = replace
     else:
         need = mask = np.zeros((1, 1), np.bool_)

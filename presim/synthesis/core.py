@@ -36,11 +36,12 @@ import numpy as np
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis import kernels_reference as ref
-from presim.synthesis.composite import (PACKED_MAX_LAYERS, analyse_holes, composite_layers, filtered_composite,
+from presim.synthesis.composite import (PACKED_MAX_LAYERS, analyse_hole_mask, composite_layers, filtered_composite,
                                         filtered_composite_banded, filtered_composite_masked, filtered_composite_packed,
-                                        merge_view)
+                                        merge_view_holes)
 from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS, fill_holes
+from presim.synthesis.grids import count_in_mask
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "MASKED_MAX_FRAC", "BANDED_MIN_PIXELS", "ViewImageConfig", "ViewImage", "Workspace", "ViewImageFn",
@@ -56,12 +57,14 @@ below this fraction of the image (measured crossover: ~350 ns per masked pixel v
 the dense per-layer filter + composite + seam pass at 640x480, L = 4)."""
 
 
-BANDED_MIN_PIXELS = 200_000
+BANDED_MIN_PIXELS = 0
 """numba, packed path: images of at least this many pixels run the crack pass fused in row bands
-(:func:`presim.synthesis.composite.filtered_composite_banded`), smaller ones the three-kernel chain
-(same output). Measured CPU ratio packed / banded, one thread, on captured inputs
-(``benchmarks/bench_crack_kernels.py``): 640x480 1.10 (apc) and 1.03 (sample); 256x256 1.03 and
-0.80; 128x128 1.02 and 0.86."""
+(:func:`presim.synthesis.composite.filtered_composite_banded`, one parallel region per view),
+smaller ones the three-kernel chain (three regions; same output). 0: every size runs the bands.
+Measured (docs/synthesis.md, "Small frames"): at 128x128 and 128x96 the band kernel took ~0.8x
+the CPU of the chain per view with 2 threads (each parallel region costs ~50-100 us of CPU on the
+shared 2-core machine); one thread alone (no region cost) had favoured the chain below ~200,000
+pixels on the sample scene (0.80-0.86)."""
 
 
 @dataclass(frozen=True)
@@ -360,6 +363,7 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     acc_d = np.zeros((H, W), np.float32)
     acc_c = np.zeros((H, W, 3), np.uint8)
     acc_src = np.full((H, W), -1, np.int32)
+    holes = None  # uint8 (H, W) hole mask of the accumulated image, 1 = empty (after the first view)
     views: list[int] = []
     hole_fracs: list[float] = []
     skipped: list[int] = []
@@ -381,7 +385,7 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
                 if v not in px_of:
                     px_of[v] = grid_px(v)
             big_flat = big.reshape(-1)
-            counts = [int(np.count_nonzero(big_flat[px_of[v]])) for v in pending]
+            counts = [int(count_in_mask(big_flat, px_of[v])) for v in pending]
             ms["select"] += (time.perf_counter() - t) * 1e3
             cmax = max(counts)
             if cmax == 0:
@@ -404,20 +408,24 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         t = time.perf_counter()
         if replace is None:
             acc_d, acc_c = d, c
-            acc_src[d > 0] = vi
-        else:
-            merge_view(acc_d, acc_c, acc_src, replace, d, c, vi)
+        holes = np.empty((H, W), np.uint8)
+        # merge (the first view's image is the accumulator) + hole mask + hole count, one pass
+        n_hole = merge_view_holes(acc_d, acc_c, acc_src, replace, d, c, vi, holes)
         views.append(vi)
         last = len(views) == n_target or not pending
-        hs = analyse_holes(acc_d > 0, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
-                           stop_px=stop_px if adaptive else 0.0, want_largest=not last)
+        hs = analyse_hole_mask(holes, n_hole, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
+                               stop_px=stop_px if adaptive else 0.0, want_largest=not last)
         hole_fracs.append(hs.hole_frac)
         replace, big = hs.replace, hs.big
         ms["holes"] += (time.perf_counter() - t) * 1e3
         if last or (adaptive and hs.largest_hole_px <= stop_px):
             break
-    valid = acc_d > 0
-    hole_frac = float(1.0 - valid.mean())
+    if holes is None:
+        valid = acc_d > 0
+        hole_frac = float(1.0 - valid.mean())
+    else:  # the last merge's hole mask; the same float operations as 1 - valid.mean()
+        valid = holes == 0
+        hole_frac = float(1.0 - (H * W - n_hole) / float(H * W))
     if blend is not None and len(views) > 1:  # ---- blend hook (presim/synthesis/blend.py) ----
         acc_c, ms["blend"] = blend(views, acc_c, acc_d, acc_src)
     t = time.perf_counter()

@@ -26,7 +26,7 @@ import numpy as np
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 
-__all__ = ["project_grid", "project_grid_ref", "FrameGrids"]
+__all__ = ["project_grid", "project_grid_ref", "count_in_mask", "FrameGrids"]
 
 
 def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics
@@ -78,6 +78,62 @@ def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) 
     return pix, z
 
 
+@nb.njit(cache=True)
+def _median_ratio_kernel(z_src, z_t, near):  # pragma: no cover
+    # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near), all float32 (near too, as
+    # numpy compares a float32 array with a Python float); nan when no point is ok. Exact order
+    # statistics (selection); an even count averages the two middle values as np.median does
+    # (their float32 sum, halved).
+    n = z_src.shape[0]
+    r = np.empty(n, np.float32)
+    m = 0
+    for i in range(n):
+        a = z_src[i]
+        b = z_t[i]
+        if a > near and b > near:
+            r[m] = a / b
+            m += 1
+    if m == 0:
+        return np.nan
+    k = m // 2
+    part = np.partition(r[:m], k)
+    hi = part[k]
+    if m % 2:
+        return np.float64(hi)
+    lo = part[:k].max()
+    return np.float64(np.float32(lo + hi) / np.float32(2.0))
+
+
+@nb.njit(cache=True)
+def _count_front_kernel(pix, z, near):  # pragma: no cover
+    # np.count_nonzero((pix >= 0) & (z > near)) (near float32, as numpy compares it with float32 z).
+    n = 0
+    for i in range(pix.shape[0]):
+        n += (pix[i] >= 0) & (z[i] > near)
+    return n
+
+
+@nb.njit(cache=True)
+def _front_pixels_kernel(pix, z, near):  # pragma: no cover
+    # pix[(pix >= 0) & (z > near)], in order.
+    out = np.empty(pix.shape[0], np.int64)
+    m = 0
+    for i in range(pix.shape[0]):
+        if pix[i] >= 0 and z[i] > near:
+            out[m] = pix[i]
+            m += 1
+    return out[:m].copy()
+
+
+@nb.njit(cache=True)
+def count_in_mask(mask_flat, px):  # pragma: no cover
+    """``np.count_nonzero(mask_flat[px])`` (numba: no gathered copy)."""
+    n = 0
+    for i in range(px.shape[0]):
+        n += mask_flat[px[i]] != 0
+    return n
+
+
 class FrameGrids:
     """The views' grids projected into one target camera, each view at most once (see module doc).
 
@@ -116,10 +172,11 @@ class FrameGrids:
         """(k,) overlap of each view = :func:`presim.synthesis.select.view_overlap`."""
         self.project(ids)
         out = np.zeros(len(ids))
+        near = np.float32(near_m)
         for i, v in enumerate(ids):
             pix, z = self._proj[int(v)]
             if len(pix):
-                out[i] = np.count_nonzero((pix >= 0) & (z > near_m)) / len(pix)
+                out[i] = _count_front_kernel(pix, z, near) / len(pix)
         return out
 
     def pixels(self, v: int, near_m: float) -> np.ndarray:
@@ -128,7 +185,7 @@ class FrameGrids:
         px = self._px.get(key)
         if px is None:
             pix, z = self.projection(v)
-            px = self._px[key] = pix[(pix >= 0) & (z > near_m)]
+            px = self._px[key] = _front_pixels_kernel(pix, z, np.float32(near_m))
         return px
 
     def footprint_ratio(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float) -> float:
@@ -136,7 +193,7 @@ class FrameGrids:
         _, z_t = self.projection(v)
         if len(z_t) == 0:
             return float("nan")
-        ok = (z_src > near_m) & (z_t > near_m)
-        if not ok.any():
+        med = _median_ratio_kernel(np.ascontiguousarray(z_src, np.float32), z_t, np.float32(near_m))
+        if med != med:  # no grid point in front of both cameras
             return float("nan")
-        return float(np.median(z_src[ok] / z_t[ok]) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)
+        return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)

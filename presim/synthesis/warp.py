@@ -223,9 +223,10 @@ def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.n
 
 
 @nb.njit(parallel=True, fastmath=_FASTMATH, cache=True)
-def _warp_layers_kernel(xyz, rgb, layer_start, order, slot_start, M, fx, fy, cx, cy, near, zbuf,
-                        cbuf):  # pragma: no cover
+def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
     L, H, W = zbuf.shape
+    # (the thread count comes in as an argument: nb.get_num_threads() in here makes the kernel uncacheable)
+    order, slot_start = _layer_slots_kernel(layer_start, max(1, min(n_threads, L)))
     # One slot (a group of layers of similar total point count) per thread: the layers of a
     # capture hold very different numbers of points (apc: ~50 k, 40 k, 10 k, 3 k), and equal
     # chunks of the layer range would leave one thread with most of them.
@@ -278,8 +279,8 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         out = LayeredImage(np.empty((L, K.height, K.width), np.float32),
                            np.empty((L, K.height, K.width, 3), np.uint8))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    order, slot_start = layer_slots(view.layer_start, nb.get_num_threads())
-    _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, order, slot_start, M, np.float32(K.fx),
-                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m),
-                        out.depth_m, out.color)
+    # Layers grouped per thread (layer_slots) inside the kernel: one call from Python per view.
+    _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
+                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.depth_m,
+                        out.color)
     return out

@@ -1,0 +1,100 @@
+"""Small-frame fast paths (issue 13): the fused merge + hole mask, the hole analysis from that mask,
+the numba LOD median and grid counts — each equal, bit for bit, to the path or numpy expression it
+replaces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from presim.synthesis.composite import analyse_hole_mask, analyse_holes, merge_view, merge_view_holes
+
+
+def test_merge_view_holes_equals_merge_then_mask():
+    """Fused merge + hole mask + count = the numpy merge, then ``acc > 0``; the first view (no
+    replace mask) only writes its source ids; merge_view (the same kernel) merges the same."""
+    rng = np.random.default_rng(5)
+    H, W = 21, 26
+    d1 = np.where(rng.random((H, W)) < 0.6, rng.random((H, W)) + 0.1, 0).astype(np.float32)
+    d1[0, 0] = np.nan  # not > 0: a hole
+    c1 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    src = np.full((H, W), 99, np.int32)
+    holes = np.empty((H, W), np.uint8)
+    n = merge_view_holes(d1, c1, src, None, d1, c1, 4, holes)
+    np.testing.assert_array_equal(src, np.where(d1 > 0, 4, -1))
+    np.testing.assert_array_equal(holes, (~(d1 > 0)).view(np.uint8))
+    assert n == np.count_nonzero(~(d1 > 0))
+    replace = analyse_holes(d1 > 0, 4, 1).replace
+    d2 = np.where(rng.random((H, W)) < 0.7, rng.random((H, W)) + 0.1, 0).astype(np.float32)
+    c2 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    ref = [a.copy() for a in (d1, c1, src)]  # numpy reference of the merge
+    take = replace & (d2 > 0)
+    ref[0][take], ref[1][take], ref[2][take] = d2[take], c2[take], 9
+    assert 0 < take.sum() < take.size
+    acc = [a.copy() for a in (d1, c1, src)]
+    n = merge_view_holes(*acc, replace, d2, c2, 9, holes)
+    for a, b in zip(acc, ref):
+        np.testing.assert_array_equal(a, b)
+    acc2 = [a.copy() for a in (d1, c1, src)]
+    merge_view(*acc2, replace, d2, c2, 9)
+    for a, b in zip(acc2, ref):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(holes, (~(ref[0] > 0)).view(np.uint8))
+    assert n == np.count_nonzero(~(ref[0] > 0))
+
+
+def test_analyse_hole_mask_equals_analyse_holes():
+    rng = np.random.default_rng(7)
+    for p in (0.02, 0.3, 0.6):
+        valid = rng.random((40, 50)) > p
+        valid[5:12, 5:12] = False  # one big hole
+        holes = (~valid).view(np.uint8)
+        for kw in ({}, {"hole_dilation_px": 0}, {"big_hole_px": 200}, {"want_replace": False},
+                   {"stop_px": 1e6}, {"want_replace": False, "want_largest": False}):
+            a = analyse_holes(valid, **kw)
+            b = analyse_hole_mask(holes, int(holes.sum()), **kw)
+            assert (a.hole_frac, a.largest_hole_px) == (b.hole_frac, b.largest_hole_px)
+            for x, y in ((a.replace, b.replace), (a.big, b.big)):
+                assert (x is None) == (y is None)
+                if x is not None:
+                    np.testing.assert_array_equal(x, y)
+
+
+def test_median_ratio_kernel_equals_numpy_median():
+    """LOD footprint median: numpy's ``np.median(z_s[ok] / z_t[ok])`` with ``ok`` from float32
+    comparisons, exactly (odd / even counts, ties, none ok -> nan)."""
+    from presim.synthesis.grids import _median_ratio_kernel
+
+    rng = np.random.default_rng(0)
+    for t in range(400):
+        n = int(rng.integers(0, 40))
+        zs = rng.uniform(-0.5, 3, n).astype(np.float32)
+        zt = rng.uniform(-0.5, 3, n).astype(np.float32)
+        if t % 3 == 0 and n:
+            zs[: n // 2] = zs[0]
+        near = 0.1  # float32(0.1) > 0.1: numpy compares in float32
+        zs[: n // 4] = np.float32(near)
+        ok = (zs > near) & (zt > near)
+        got = _median_ratio_kernel(zs, zt, np.float32(near))
+        if not ok.any():
+            assert np.isnan(got)
+            continue
+        ref = np.median(zs[ok] / zt[ok])
+        assert np.float32(got) == ref and float(np.float32(got) * np.sqrt(2.0)) == float(ref * np.sqrt(2.0))
+
+
+def test_grid_count_kernels_equal_numpy():
+    from presim.synthesis.grids import _count_front_kernel, _front_pixels_kernel, count_in_mask
+
+    rng = np.random.default_rng(1)
+    pix = rng.integers(-1, 500, 300).astype(np.int64)
+    z = rng.uniform(-1, 2, 300).astype(np.float32)
+    z[:20] = np.float32(0.01)
+    ok = (pix >= 0) & (z > 0.01)
+    assert _count_front_kernel(pix, z, np.float32(0.01)) == np.count_nonzero(ok)
+    np.testing.assert_array_equal(_front_pixels_kernel(pix, z, np.float32(0.01)), pix[ok])
+    mask = rng.random(500) < 0.3
+    px = pix[ok]
+    assert count_in_mask(mask, px) == np.count_nonzero(mask[px])
+    assert count_in_mask(mask, px[:0]) == 0
+
