@@ -57,7 +57,7 @@ def test_frame_grids_answers_equal_the_reference_functions():
         np.testing.assert_array_equal(g.pixels(v, 0.01), grid_pixels(grid, T_cw, Kt, 0.01))
         assert r._lod_level_fast(v, g) == r.lod_level(v, T_cw, Kt)
         ref = footprint_ratio(grid, invert(scene.T_world_cam[v]), float(r._src_focal[v]), T_cw,
-                              float(np.sqrt(Kt.fx * Kt.fy)), 0.01)
+                              float(np.sqrt(Kt.fx * Kt.fy)), 0.01, Kt)
         got = g.footprint_ratio(v, r._grid_zsrc_of(v), float(r._src_focal[v]), 0.01)
         assert got == pytest.approx(ref, rel=1e-6)
     assert 0.3 < ov.max() <= 1.0

@@ -75,6 +75,15 @@ def test_choose_level_and_footprint_ratio():
     T_back = T @ make_pose(np.eye(3), (0.0, 0.0, -3.0))
     r = footprint_ratio(pts, invert(T), 500.0, invert(T_back), 500.0)
     assert r == pytest.approx(np.median(np.array([2.0, 4.0, 3.0]) / np.array([5.0, 7.0, 6.0])))
+    # With the target intrinsics only points inside the target image count: two points in front of the
+    # target but outside its 60 deg image (x / z_t = 3 / 3.5 and 4 / 3.5 > tan 30 deg), with the small
+    # ratio 0.5 / 3.5, move the median of all five to 2 / 5 and are ignored with K_tgt.
+    K = Intrinsics.from_fov(100, 100, 60.0)
+    side = transform_points(T, np.array([[3.0, 0.0, 0.5], [4.0, 0.0, 0.5]]))
+    both = np.vstack([pts, side])
+    assert footprint_ratio(both, invert(T), 500.0, invert(T_back), 500.0) == pytest.approx(2.0 / 5.0)
+    assert footprint_ratio(both, invert(T), 500.0, invert(T_back), 500.0, K_tgt=K) == pytest.approx(r)
+    assert np.isnan(footprint_ratio(side, invert(T), 500.0, invert(T_back), 500.0, K_tgt=K))
 
 
 def _scene(K):

@@ -62,7 +62,7 @@ def test_analyse_hole_mask_equals_analyse_holes():
 
 def test_median_ratio_kernel_equals_numpy_median():
     """LOD footprint median: numpy's ``np.median(z_s[ok] / z_t[ok])`` with ``ok`` from float32
-    comparisons, exactly (odd / even counts, ties, none ok -> nan)."""
+    comparisons and the in-image test, exactly (odd / even counts, ties, none ok -> nan)."""
     from presim.synthesis.grids import _median_ratio_kernel
 
     rng = np.random.default_rng(0)
@@ -74,8 +74,9 @@ def test_median_ratio_kernel_equals_numpy_median():
             zs[: n // 2] = zs[0]
         near = 0.1  # float32(0.1) > 0.1: numpy compares in float32
         zs[: n // 4] = np.float32(near)
-        ok = (zs > near) & (zt > near)
-        got = _median_ratio_kernel(zs, zt, np.float32(near))
+        pix = np.where(rng.random(n) < 0.2, -1, rng.integers(0, 1000, n)).astype(np.int64)  # -1: outside
+        ok = (zs > near) & (zt > near) & (pix >= 0)
+        got = _median_ratio_kernel(zs, zt, pix, np.float32(near))
         if not ok.any():
             assert np.isnan(got)
             continue

@@ -79,9 +79,10 @@ def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) 
 
 
 @nb.njit(cache=True)
-def _median_ratio_kernel(z_src, z_t, near):  # pragma: no cover
-    # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near), all float32 (near too, as
-    # numpy compares a float32 array with a Python float); nan when no point is ok. Exact order
+def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
+    # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), z and near
+    # float32 (as numpy compares a float32 array with a Python float); pix: the target pixel of each
+    # point (-1 outside the image); nan when no point is ok. Exact order
     # statistics (selection); an even count averages the two middle values as np.median does
     # (their float32 sum, halved).
     n = z_src.shape[0]
@@ -90,7 +91,7 @@ def _median_ratio_kernel(z_src, z_t, near):  # pragma: no cover
     for i in range(n):
         a = z_src[i]
         b = z_t[i]
-        if a > near and b > near:
+        if a > near and b > near and pix[i] >= 0:
             r[m] = a / b
             m += 1
     if m == 0:
@@ -189,11 +190,12 @@ class FrameGrids:
         return px
 
     def footprint_ratio(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float) -> float:
-        """= :func:`presim.synthesis.lod.footprint_ratio` from the view's cached source depths ``z_src``."""
-        _, z_t = self.projection(v)
+        """= :func:`presim.synthesis.lod.footprint_ratio` (with the target intrinsics: points inside the
+        target image) from the view's cached source depths ``z_src``."""
+        pix, z_t = self.projection(v)
         if len(z_t) == 0:
             return float("nan")
-        med = _median_ratio_kernel(np.ascontiguousarray(z_src, np.float32), z_t, np.float32(near_m))
-        if med != med:  # no grid point in front of both cameras
+        med = _median_ratio_kernel(np.ascontiguousarray(z_src, np.float32), z_t, pix, np.float32(near_m))
+        if med != med:  # no grid point in front of both cameras and inside the target image
             return float("nan")
         return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)

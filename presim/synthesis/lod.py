@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from presim.geometry import Intrinsics, transform_points
+from presim.capture.reprojection import nearest_pixel
+from presim.geometry import Intrinsics, project, transform_points
 
 __all__ = ["LodConfig", "pool_depth_aware", "pool_depth_aware_ref", "half_intrinsics", "build_level",
            "footprint_ratio", "choose_level"]
@@ -155,14 +156,26 @@ def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: in
 
 
 def footprint_ratio(grid_xyz_world: np.ndarray, T_cam_world_src: np.ndarray, f_src_px: float,
-                    T_cam_world_tgt: np.ndarray, f_tgt_px: float, near_m: float = 0.01) -> float:
+                    T_cam_world_tgt: np.ndarray, f_tgt_px: float, near_m: float = 0.01,
+                    K_tgt: Intrinsics | None = None) -> float:
     """Median over a view's grid points of (source pixel footprint) / (target pixel footprint) at level 0:
-    ``(z_s / f_s) / (z_t / f_t)``; nan when no grid point is in front of both cameras."""
+    ``(z_s / f_s) / (z_t / f_t)``; nan when no grid point counts.
+
+    A point counts when it is in front of both cameras and, with ``K_tgt`` (what the Renderer passes),
+    lands inside the target image (pixel-centre rule): only drawn points need the detail. Points in
+    front of the target but outside its image (for a low robot camera: the floor right beside it, at
+    a small ``z_t``) would otherwise pull the median up and the level down.
+    """
     if len(grid_xyz_world) == 0:
         return float("nan")
     z_s = transform_points(T_cam_world_src, grid_xyz_world)[:, 2]
-    z_t = transform_points(T_cam_world_tgt, grid_xyz_world)[:, 2]
+    p_t = transform_points(T_cam_world_tgt, grid_xyz_world)
+    z_t = p_t[:, 2]
     ok = (z_s > near_m) & (z_t > near_m)
+    if K_tgt is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv, _ = project(K_tgt, p_t)
+        ok &= nearest_pixel(uv, K_tgt.width, K_tgt.height)[2]
     if not ok.any():
         return float("nan")
     return float(np.median(z_s[ok] / z_t[ok]) * f_tgt_px / f_src_px)

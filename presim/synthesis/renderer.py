@@ -449,7 +449,7 @@ class Renderer:
         if self._T_cam_world_src is None:
             self._T_cam_world_src = np.linalg.inv(self.scene.T_world_cam)
         r0 = footprint_ratio(self.grid_points(idx), self._T_cam_world_src[idx], float(self._src_focal[idx]),
-                             T_cam_world, float(np.sqrt(K.fx * K.fy)), self.config.near_m)
+                             T_cam_world, float(np.sqrt(K.fx * K.fy)), self.config.near_m, K)
         return choose_level(r0, self._lod)
 
     def _grid_zsrc_of(self, idx: int) -> np.ndarray:
