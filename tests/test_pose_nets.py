@@ -348,6 +348,12 @@ def test_bad_datasets_give_one_line_errors(bop, tmp_path, capsys):
                  str(tmp_path / "run"), "--steps", "3", "--refine-steps", "3"]) == 1
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "--refine-steps: 3 is not below the run's 3 optimiser steps" in lines[0]
+    # a learning rate that is not a positive number
+    for bad in ("0", "-1", "nan"):
+        assert main(["pose-train", "--dataset", str(bop), "--split", "test", "--model", "cgaf", "--out",
+                     str(tmp_path / "run"), "--lr", bad]) == 1
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and "--lr: must be a positive finite number" in lines[0]
     assert not (tmp_path / "run").exists()
 
 

@@ -64,6 +64,7 @@ def _train(args: argparse.Namespace) -> int:
     _require_torch()
     from dataclasses import replace
 
+    from presim.limits import check_positive
     from presim.pose.nets.train import TrainConfig, train
 
     cfg = TrainConfig(model=args.model, device=args.device, seed=args.seed, full_size=args.full_size,
@@ -84,8 +85,6 @@ def _train(args: argparse.Namespace) -> int:
     if args.batch_size is not None:
         cfg = replace(cfg, batch_size=args.batch_size)
     if args.lr is not None:
-        from presim.limits import check_positive
-
         check_positive(args.lr, "--lr", allow_none=False)
         cfg = replace(cfg, lr=args.lr)
     if args.points is not None:
