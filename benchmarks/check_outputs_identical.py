@@ -14,6 +14,9 @@ What it renders (all deterministic):
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/check_outputs_identical.py --save /tmp/fp_before
     PYTHONPATH=$PWD .venv/bin/python benchmarks/check_outputs_identical.py --compare /tmp/fp_before
+
+``--thesis-loop`` renders with ``min_view_gain=0`` (the default stops the adaptive loop at
+diminishing returns since 2026-12-02): compare kernels with a tree from before that.
 """
 
 from __future__ import annotations
@@ -55,13 +58,17 @@ def _midpoints(T: np.ndarray, pairs: list[tuple[int, int]]) -> list[np.ndarray]:
     return out
 
 
+EXTRA: dict = {}
+"""Fields added to every RenderConfig of the fingerprint (``--thesis-loop``)."""
+
+
 def _render_scene(tag: str, scene, pairs, out: dict) -> None:
     from presim.synthesis.renderer import RenderConfig, Renderer
 
     K = scene.intrinsics[0]
     poses = _midpoints(scene.T_world_cam, pairs)
     for name, kw in CONFIGS.items():
-        r = Renderer(scene, RenderConfig(**kw))
+        r = Renderer(scene, RenderConfig(**{**EXTRA, **kw}))
         for i, T in enumerate(poses):
             rgbd = r.render(T, K)
             key = f"{tag}/{name}/{i}"
@@ -72,7 +79,7 @@ def _render_scene(tag: str, scene, pairs, out: dict) -> None:
             out[key + "/views"] = np.asarray(r.last.views, np.int64)
             out[key + "/holes"] = np.asarray(r.last.hole_frac_per_view, np.float64)
     # A target at twice the capture's focal length (zoom path: internal render + upsampling).
-    r = Renderer(scene, RenderConfig())
+    r = Renderer(scene, RenderConfig(**EXTRA))
     K2 = K.scaled(2 * K.width, 2 * K.height)
     rgbd = r.render(poses[0], K2)
     out[f"{tag}/zoom/color"] = rgbd.color
@@ -82,7 +89,7 @@ def _render_scene(tag: str, scene, pairs, out: dict) -> None:
     for backend in ("torch", "reference"):
         try:
             r = Renderer(scene, RenderConfig(backend=backend, torch_device="cpu" if backend == "torch" else None,
-                                             max_views=3, max_zoom=100.0))
+                                             max_views=3, max_zoom=100.0, **EXTRA))
         except ImportError as e:  # torch not installed
             print(f"{tag}: {backend} skipped ({e})")
             continue
@@ -162,7 +169,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="where the sample scene is built once")
     ap.add_argument("--parts", nargs="+", choices=("sample", "apc", "refine"), default=("sample", "apc", "refine"),
                     help="compute only these parts (--compare then checks only their arrays)")
+    ap.add_argument("--thesis-loop", action="store_true",
+                    help="render with min_view_gain=0 (the thesis's adaptive loop), to compare kernels with a tree "
+                         "from before the diminishing-returns default (2026-12-02)")
     args = ap.parse_args(argv)
+    if args.thesis_loop:
+        EXTRA["min_view_gain"] = 0.0
     args.work.mkdir(parents=True, exist_ok=True)
     fp = fingerprint(args.work, tuple(args.parts))
     if args.save:

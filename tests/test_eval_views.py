@@ -143,6 +143,19 @@ def test_eval_views_rejects_bad_requests():
         eval_views(scene, EvalConfig(target_every=9, methods=("DIBR",)))
 
 
+def test_methods_run_the_thesis_loop_but_default():
+    """Every method keeps the thesis's adaptive loop (tables stay comparable across sessions);
+    "default" is RenderConfig() as the renderer ships it (diminishing-returns stop)."""
+    from presim.evaluation.eval_views import _render_config
+    from presim.synthesis.renderer import RenderConfig
+
+    assert RenderConfig().min_view_gain > 0
+    assert _render_config(METHODS["thesis"][0], True)[0].min_view_gain == 0.0
+    assert _render_config(METHODS["full"][0], True)[0].min_view_gain == 0.0
+    d = _render_config(METHODS["default"][0], True, thesis_loop=False)[0]
+    assert d == RenderConfig(use_refined_depth=True, fill_holes=True)
+
+
 def test_all_methods_are_named_like_the_contract():
     for name in ("full", "thesis", "DIBR", "DIBR_DR", "LDIBR", "LDIBR_DR", "sel_distance", "sel_angle", "fixed_1",
                  "fixed_2", "fixed_3", "median_plain", "depth_guided", "depth_median", "tsdf_mesh",

@@ -58,7 +58,7 @@ def test_render_frame_pose_and_trajectory(scene_dir, tmp_path):
     tum.write_text("# stamp x y z qx qy qz qw\n" + "".join(
         f"{i * 0.1} " + " ".join(f"{x:.9f}" for x in pose_to_tum(sc.T_world_cam[i])) + "\n" for i in range(3)))
     out3 = tmp_path / "r3"
-    assert main(["render", str(scene_dir), "--poses", str(tum), "--out", str(out3)]) == 0
+    assert main(["render", str(scene_dir), "--poses", str(tum), "--out", str(out3), "--min-view-gain", "0"]) == 0
     assert len(list(out3.glob("*.color.png"))) == 3 and (out3 / "trajectory_tum.txt").is_file()
     assert not list(out3.glob(".*.tmp"))  # atomic writes leave no temporaries
 
@@ -74,6 +74,12 @@ def test_render_bad_input_is_a_clear_error(scene_dir, tmp_path, capsys):
     assert "bad.txt:1" in capsys.readouterr().err
     assert main(["render", str(scene_dir), "--pose", "1 2 3", "--out", str(tmp_path / "o")]) == 1
     assert "7 numbers" in capsys.readouterr().err
+    for bad_gain in ("1", "-0.1", "nan"):
+        assert main(["render", str(scene_dir), "--frame", "0", "--min-view-gain", bad_gain,
+                     "--out", str(tmp_path / "o")]) == 1
+        err = capsys.readouterr().err
+        assert "--min-view-gain must be in [0, 1)" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
 
 
 def test_render_torch_batch_backend_renders_batches_on_cpu(scene_dir, tmp_path, capsys):

@@ -3,6 +3,8 @@ adaptive loop with a scripted backend, the backend table, and the one z-buffer s
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -218,6 +220,38 @@ def test_synthesize_frame_adaptive_loop_order_stop_and_hook():
     assert res.views == [10, 12]
 
 
+def test_synthesize_frame_min_view_gain_known_answer():
+    """Diminishing returns: a candidate is warped only when the target pixels its grid points in big
+    holes stand for reach min_view_gain x H x W (64 px here; the hole is 32 px)."""
+    d0 = np.ones((8, 8), np.float32)
+    d0[:, 4:] = 0
+    c0 = np.zeros((8, 8, 3), np.uint8)
+    d1 = np.full((8, 8), 2.0, np.float32)
+    c1 = np.full((8, 8, 3), 20, np.uint8)
+    images = {10: (d0, c0), 12: (d1, c1), 13: (d1, c1)}
+    grids = {10: _grid_at([(0, 0)]), 12: _grid_at([(5, 5), (6, 6)]), 13: _grid_at([(6, 1)])}
+    fill = {12: 2.0, 13: 10.0}  # predicted fill (target pixels of the grid points in the hole)
+    seen = []
+
+    def area(v, big_flat):
+        seen.append((v, int(big_flat.sum())))
+        return fill[v]
+    cfg = FrameConfig(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
+
+    def run(gain, grid_fill=area):
+        return synthesize_frame([10, 12, 13], np.eye(4), K8, dataclasses.replace(cfg, min_view_gain=gain),
+                                _scripted(images, []), lambda i: i, grids.__getitem__, grid_fill=grid_fill)
+    assert run(0.0).views == [10, 12]  # off: the first candidate that lands in the hole
+    assert run(0.03).views == [10, 12]  # need 1.92 px: 12's 2 px are enough
+    assert run(0.1).views == [10, 13]  # need 6.4 px: 12 (2 px) is passed over, 13 (10 px) taken
+    res = run(0.2)  # need 12.8 px: nobody -> stop, the hole stays
+    assert res.views == [10] and res.skipped == [12, 13] and res.hole_frac == 0.5
+    assert run(0.2, grid_fill=None).views == [10, 12]  # no fill estimate: the rule cannot apply
+    assert seen and all(n == 32 for _, n in seen)  # asked with the big-hole mask (the right half)
+    with pytest.raises(ValueError, match="min_view_gain"):
+        FrameConfig(min_view_gain=1.0)
+
+
 def test_synthesize_frame_stops_when_no_candidate_can_fill_and_fixed_views():
     d0 = np.ones((8, 8), np.float32)
     d0[:, 4:] = 0
@@ -343,7 +377,8 @@ def test_synthesis_imports_nothing_above_capture():
             "    importlib.import_module('presim.synthesis.' + m)\n"
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('presim.'))))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert out and not [m for m in out if m.split(".")[1] not in ("capture", "geometry", "synthesis")], out
+    # presim.runtime is the package's own import-time process setup (imported by presim/__init__).
+    assert out and not [m for m in out if m.split(".")[1] not in ("capture", "geometry", "synthesis", "runtime")], out
 
 
 @pytest.mark.parametrize("shape,known_frac", [((8, 10), 0.3), ((30, 42), 0.05), ((48, 64), 0.9), ((31, 41), 0.4)])

@@ -93,3 +93,35 @@ def test_unmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path)
     w = np.ones((4, 4), np.float32)
     _unmap_pages(w)  # in-memory / writable arrays: untouched
     assert w.sum() == 16
+
+
+def test_fill_area_known_answers_and_reference():
+    """Each grid point landing on the mask stands for (stride x z_src / z_t x f_t / f_src)^2 target
+    pixels: a target at a view's own pose sees its stride-8 grid as 64 px per point; a target with
+    half the focal length as 16 px; only masked points count."""
+    from presim.synthesis.grids import _fill_area_kernel, fill_area_ref
+
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(3, span_m=0.6), Intrinsics.from_fov(96, 72, 60.0))
+    r = Renderer(scene, RenderConfig())
+    K = scene.intrinsics[1]
+    grids = FrameGrids(invert(scene.T_world_cam[1]), K, r.grid_points)
+    full = np.ones(K.width * K.height, np.uint8)
+    n_in = int((grids.projection(1)[0] >= 0).sum())
+    assert n_in > 50
+    np.testing.assert_allclose(r._grid_fill(1, grids, full), 64.0 * n_in, rtol=1e-5)
+    half = K.scaled(K.width // 2, K.height // 2)
+    g2 = FrameGrids(invert(scene.T_world_cam[1]), half, r.grid_points)
+    n2 = int((g2.projection(1)[0] >= 0).sum())
+    np.testing.assert_allclose(r._grid_fill(1, g2, np.ones(half.width * half.height, bool)), 16.0 * n2, rtol=1e-5)
+    top = np.zeros((K.height, K.width), np.uint8)
+    top[:K.height // 2] = 1  # only the points landing in the top half count
+    pix = grids.projection(1)[0]
+    n_top = int(((pix >= 0) & (pix < (K.height // 2) * K.width)).sum())
+    np.testing.assert_allclose(r._grid_fill(1, grids, top.reshape(-1)), 64.0 * n_top, rtol=1e-5)
+    # numba kernel = numpy reference on random data (points behind / outside / off the mask)
+    rng = np.random.default_rng(3)
+    pix = rng.integers(-1, 500, 3000)
+    zs, zt = rng.uniform(-0.5, 3, 3000).astype(np.float32), rng.uniform(-0.5, 3, 3000).astype(np.float32)
+    mask = (rng.random(500) < 0.4).astype(np.uint8)
+    np.testing.assert_allclose(_fill_area_kernel(mask, pix, zs, zt, np.float32(0.01)),
+                               fill_area_ref(mask, pix, zs, zt, 0.01), rtol=1e-12)

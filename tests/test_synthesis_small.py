@@ -99,3 +99,56 @@ def test_grid_count_kernels_equal_numpy():
     assert count_in_mask(mask, px) == np.count_nonzero(mask[px])
     assert count_in_mask(mask, px[:0]) == 0
 
+
+
+def test_frame_threads_rule():
+    """Auto: one numba thread up to SERIAL_MAX_PIXELS, the caller's count above; explicit counts are
+    capped at numba's pool; a negative count is an error (here and in RenderConfig)."""
+    import numba
+
+    from presim.synthesis.renderer import RenderConfig
+    from presim.synthesis.threads import SERIAL_MAX_PIXELS, frame_threads, numba_threads
+
+    assert frame_threads(128, 128) == 1
+    assert frame_threads(SERIAL_MAX_PIXELS, 1) == 1
+    assert frame_threads(SERIAL_MAX_PIXELS + 1, 1) == numba.get_num_threads()
+    assert frame_threads(640, 480, 1) == 1
+    assert frame_threads(64, 48, 10_000) == numba.config.NUMBA_NUM_THREADS
+    with numba_threads(1):
+        assert numba.get_num_threads() == 1
+        assert frame_threads(640, 480) == 1  # a caller that lowered the count keeps it
+    with pytest.raises(ValueError, match="threads"):
+        frame_threads(64, 48, -1)
+    with pytest.raises(ValueError, match="threads must be >= 0"):
+        RenderConfig(threads=-1)
+
+
+def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
+    """A small frame's core runs with one numba thread (auto), a large one with the caller's count,
+    the caller's count is restored afterwards, and forcing two threads gives the same image."""
+    import numba
+
+    from presim.geometry import Intrinsics, look_at
+    from presim.synthesis import renderer as R
+    from presim.testing import rect_scene as S
+
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(4), K)
+    T = look_at((0.1, -1.0, 1.25), (0.0, 0.5, 0.4))
+    seen = []
+    core = R.synthesize_frame
+
+    def spy(*a, **kw):
+        seen.append(numba.get_num_threads())
+        return core(*a, **kw)
+
+    monkeypatch.setattr(R, "synthesize_frame", spy)
+    before = numba.get_num_threads()
+    auto = R.Renderer(scene, R.RenderConfig()).render(T, K)
+    forced = R.Renderer(scene, R.RenderConfig(threads=numba.config.NUMBA_NUM_THREADS)).render(T, K)
+    wide = Intrinsics(fx=K.fx, fy=K.fy, cx=199.5, cy=149.5, width=400, height=300)  # no zoom: 120 000 px
+    R.Renderer(scene, R.RenderConfig()).render(T, wide)
+    assert seen == [1, numba.config.NUMBA_NUM_THREADS, before]
+    assert numba.get_num_threads() == before
+    np.testing.assert_array_equal(auto.color, forced.color)
+    np.testing.assert_array_equal(auto.depth_m, forced.depth_m)

@@ -44,10 +44,11 @@ def register(sub) -> None:
     e.add_argument("--stride", type=int, default=1, help="capture = every S-th frame (default 1)")
     e.add_argument("--target-every", type=int, default=5, help="targets = capture positions k*E, k >= 1 (default 5)")
     e.add_argument("--methods", nargs="+", default=None,
-                   help="methods (default all): full DIBR DIBR_DR LDIBR LDIBR_DR sel_distance sel_angle fixed_1 "
+                   help="methods (default all): full thesis default DIBR DIBR_DR LDIBR LDIBR_DR sel_distance sel_angle fixed_1 "
                         "fixed_2 fixed_3 median_plain depth_guided depth_median layers_1..layers_8 tsdf_mesh; "
                         "beyond the thesis: photo photo_mean blend blend_2 blend_6 photo_blend sharp sharp_blend "
-                        "photo_sharp_blend photo_sharp_blend_6 fused full_fused fused_est")
+                        "photo_sharp_blend photo_sharp_blend_6 fused full_fused fused_est. Every method but `default` "
+                        "(RenderConfig() as `presim render` uses it) runs the thesis's adaptive loop (min_view_gain 0)")
     e.add_argument("--json", type=Path, default=None, help="write the metrics as JSON here")
     e.add_argument("--max-targets", type=int, default=None, help="evaluate at most M targets (evenly spread)")
     e.add_argument("--cache-dir", type=Path, default=None,

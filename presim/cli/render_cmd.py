@@ -40,6 +40,10 @@ def register(sub) -> None:
                         "adaptive loop)")
     p.add_argument("--batch-size", type=int, default=16,
                    help="poses per batch with --backend torch_batch (default 16)")
+    p.add_argument("--min-view-gain", type=float, default=None, metavar="F",
+                   help="adaptive loop: warp a further view only when it is predicted to fill at least this "
+                        "fraction of the image (default 0.005; 0 = the thesis's loop, every view that can fill "
+                        "a big hole, up to 6)")
     p.add_argument("--scene-poses", choices=("auto", "given", "refined"), default="auto",
                    help="camera poses of the scene: refined by `presim align` when present (auto, default), "
                         "the capture's given ones, or refined (error when absent)")
@@ -80,9 +84,14 @@ def _main(args: argparse.Namespace) -> int:
         raise ValueError("--fused-depth and --raw-depth exclude each other")
     if args.fused_depth and scene.depth_fused is None:
         raise ValueError(f"--fused-depth: {args.scene} has no depth_fused.npy (run `presim fuse {args.scene}`)")
+    gain = {}
+    if args.min_view_gain is not None:
+        if not 0.0 <= args.min_view_gain < 1.0:  # also rejects nan
+            raise ValueError(f"--min-view-gain must be in [0, 1), got {args.min_view_gain}")
+        gain = {"min_view_gain": args.min_view_gain}
     config = RenderConfig(num_layers=args.layers, fill_holes=not args.no_fill,
                           use_refined_depth=not args.raw_depth, backend=args.backend,
-                          use_fused_depth=args.fused_depth)
+                          use_fused_depth=args.fused_depth, **gain)
     K = output_intrinsics(scene.intrinsics[0], args.width, args.height, args.fx, args.fy, args.cx, args.cy)
     from presim.limits import check_render_memory
 

@@ -54,11 +54,16 @@ TARGET_EXPOSURE = "<target>"
 # presim.depth.scene_fuse), or "tsdf" (the mesh baseline, no Renderer).
 # "full" is the best measured combination (issue 12: photometric correction matched to the target's
 # exposure + sharpness-aware views + blending of 6 views; docs/evaluation.md); "thesis" is the
-# thesis pipeline (RenderConfig() defaults), the "full" of earlier tables.
+# thesis pipeline (RenderConfig() defaults but the thesis's adaptive loop, min_view_gain = 0), the
+# "full" of earlier tables; "default" is RenderConfig() as it is (what `presim render` and the
+# simulator use: the loop stops at diminishing returns, docs/synthesis.md). Every other method
+# keeps the thesis's loop too (THESIS_LOOP), so the tables of earlier sessions stay comparable.
+THESIS_LOOP: dict = {"min_view_gain": 0.0}
 BEST: dict = {"use_photometric": True, "exposure_frame": TARGET_EXPOSURE, "sharpness": True, "blend": True, "blend_views": 6}
 METHODS: dict[str, tuple[dict, str]] = {
     "full": (BEST, "refined"),
     "thesis": ({}, "refined"),
+    "default": ({}, "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),
     "DIBR_DR": ({"num_layers": 1}, "refined"),
     "LDIBR": ({}, "raw"),
@@ -189,14 +194,14 @@ def _photometric_key(overrides: dict, base) -> tuple[str, bool]:
             bool(overrides.get("photometric_vignetting", base.vignetting)))
 
 
-def _render_config(overrides: dict, use_refined: bool):
+def _render_config(overrides: dict, use_refined: bool, thesis_loop: bool = True):
     from presim.synthesis.renderer import RenderConfig
 
     names = {f.name for f in dataclasses.fields(RenderConfig)}
     missing = [k for k in overrides if k not in names]
     if missing:
         return None, f"RenderConfig has no field(s) {missing}"
-    kw = dict(overrides)
+    kw = {**THESIS_LOOP, **overrides} if thesis_loop else dict(overrides)
     if "use_refined_depth" in names:
         kw["use_refined_depth"] = use_refined
     if "fill_holes" in names:
@@ -344,7 +349,7 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
                     overrides = {**overrides, "exposure_frame": cap.frame_ids[k]}
                 photo_calib = photo_calibs.get(_photometric_key(overrides, config.photometric))
                 overrides = {o: x for o, x in overrides.items() if not o.startswith("photometric_")}
-                rc, why = _render_config(overrides, use_refined=variant != "raw")
+                rc, why = _render_config(overrides, use_refined=variant != "raw", thesis_loop=name != "default")
                 if rc is None:
                     skipped[name] = why
                     warnings.warn(f"eval-views: method {name} skipped: {why}", stacklevel=2)

@@ -24,7 +24,8 @@ import numpy as np
 from presim.synthesis.crack_filter import gather_window, sort_window
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
-           "filtered_composite_packed", "filtered_composite_banded", "merge_view", "merge_view_holes", "analyse_holes",
+           "filtered_composite_packed", "filtered_composite_banded", "warp_tiles", "tile_any", "TILED_MIN_PIXELS",
+           "TILED_MAX_FRAC", "merge_view", "merge_view_holes", "analyse_holes",
            "analyse_hole_mask"]
 
 
@@ -647,6 +648,26 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
 # touch them); the arithmetic per pixel is that of the three kernels above, so the output is the
 # same bit for bit.
 
+TILE_COLS = 32
+"""Columns per tile of :func:`filtered_composite_banded` with ``replace`` (a run of tiles holding
+wanted pixels is one work item)."""
+
+WARP_TILE_PX = 16
+"""Side of the tiles :func:`warp_tiles` marks for a masked warp."""
+
+TILED_MIN_PIXELS = 150_000
+"""Images of at least this many pixels run a later view's crack pass on tiles (and its warp on
+:func:`warp_tiles`); smaller ones on whole bands. Measured (benchmarks/bench_ab.py, apc capture
+with refined depth, 2 threads): 1.25x less CPU per frame at 640x480, but 0.93x (CPU) and slower
+wall time at 128x128 and 256x256, where a few uneven work items leave a thread idle."""
+
+
+TILED_MAX_FRAC = 0.5
+"""A later view uses tiles (crack pass and warp) only while at most this fraction of the tiles is
+active: with speckled holes everywhere (raw depth with 34 % valid pixels: 81 % of the warp tiles
+active) the tiles' bookkeeping cost more than they saved (apc capture, raw depth, 640x480: 0.76x)."""
+
+
 def _band_rows(H: int) -> int:
     """Rows per band: 32 (6 % halo recomputation of the composite; 16-row bands made 128x128 frames
     slower: twice the halo rows and the per-band buffers)."""
@@ -726,142 +747,220 @@ def _median8_interior(d, c, l, v, u, out_c):  # pragma: no cover
     return r3 if hi else r2
 
 
+@nb.njit(cache=True, inline="always")
+def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
+    # One work item = rows [a, e) x columns [x0, x1) of the output (a band of rows over the whole
+    # width, or a run of tiles that hold wanted pixels). Branch-free per pixel and layer (the
+    # occupancy of warped layers is speckled: a branch per pixel and layer mispredicts often)
+    # except one test "nothing here at all", which holds over whole regions; the pixels that need
+    # a median are first collected into a list. An item reads the layers on its rectangle grown by
+    # 2 pixels (clipped to the image).
+    L, H, W = d.shape
+    r0 = max(a - 1, 0)  # composite rows [r0, r1) x cols [c0, c1): the item and the seam halo
+    r1 = min(e + 1, H)
+    c0 = max(x0 - 1, 0)
+    c1 = min(x1 + 1, W)
+    s0 = max(r0 - 1, 0)  # occupancy rows [s0, s1) x cols [o0, o1): what the composite's counts read
+    s1 = min(r1 + 1, H)
+    o0 = max(c0 - 1, 0)
+    o1 = min(c1 + 1, W)
+    nw = c1 - c0
+    bits = np.empty((s1 - s0, o1 - o0), np.uint8)
+    for y in range(s0, s1):
+        br = bits[y - s0]
+        d0 = d[0, y]
+        for u in range(o0, o1):
+            br[u - o0] = np.uint8(d0[u] > 0)
+        for l in range(1, L):
+            dl = d[l, y]
+            for u in range(o0, o1):
+                br[u - o0] |= np.uint8(dl[u] > 0) << np.uint8(l)
+    nr = r1 - r0
+    comp_d = np.empty((nr, nw), np.float32)
+    comp_c = np.empty((nr, nw, 3), np.uint8)
+    col = np.zeros(nw + 2, np.int64)  # col[u - c0 + 1]: packed counts of column u (0 outside the image)
+    icol = np.zeros(x1 - x0 + 2, np.int32)  # icol[u - x0 + 1]: non-empty composite pixels of column u
+    med_u = np.empty(nw, np.int64)
+    med_l = np.empty(nw, np.int64)
+    bd = np.empty(8, np.float32)
+    b0 = np.empty(8, np.uint8)
+    b1 = np.empty(8, np.uint8)
+    b2 = np.empty(8, np.uint8)
+    px = np.empty(3, np.uint8)
+    for v in range(r0, r1):
+        y0 = max(v - 1, 0)
+        y1 = min(v + 2, H)
+        for k in range(nw + 2):
+            col[k] = 0
+        for y in range(y0, y1):
+            br = bits[y - s0]
+            for u in range(o0, o1):
+                col[u - c0 + 1] += spread[br[u - o0]]
+        zr = comp_d[v - r0]
+        cr = comp_c[v - r0]
+        brv = bits[v - s0]
+        nm = 0
+        for u in range(c0, c1):
+            k = u - c0
+            b = np.int64(brv[u - o0])
+            f = (col[k] + col[k + 1] + col[k + 2] + 0x33333333) & 0x88888888
+            m = b | _nibble_flags_to_byte(f)
+            if use_need:
+                m = m * np.int64(need[v, u])
+            if m == 0:  # empty and no median due (most pixels outside the covered region):
+                zr[k] = 0.0  # one well-predicted branch beats the gathers below there
+                cr[k, 0] = 0
+                cr[k, 1] = 0
+                cr[k, 2] = 0
+                continue
+            l = lowest[m]
+            hit = (m >> l) & (b >> l) & 1  # 0 / 1: arithmetic selects below, no branches
+            zr[k] = d[l, v, u] * np.float32(hit)
+            hc = np.uint8(hit)
+            cr[k, 0] = c[l, v, u, 0] * hc
+            cr[k, 1] = c[l, v, u, 1] * hc
+            cr[k, 2] = c[l, v, u, 2] * hc
+            med_u[nm] = u
+            med_l[nm] = l
+            nm += hit ^ 1
+        inner_v = 0 < v < H - 1
+        for i in range(nm):
+            u = med_u[i]
+            k = u - c0
+            if inner_v and 0 < u < W - 1:
+                zr[k] = _median8_interior(d, c, med_l[i], v, u, px)
+                cr[k, 0] = px[0]
+                cr[k, 1] = px[1]
+                cr[k, 2] = px[2]
+                continue
+            j = _median8(d, c, med_l[i], y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+            zr[k] = bd[j]
+            cr[k, 0] = b0[j]
+            cr[k, 1] = b1[j]
+            cr[k, 2] = b2[j]
+    # Seam pass over the item: 3x3 switching median of the composite.
+    cd3 = comp_d.reshape((1, nr, nw))
+    cc3 = comp_c.reshape((1, nr, nw, 3))
+    for v in range(a, e):
+        y0 = max(v - 1, 0)
+        y1 = min(v + 2, H)
+        for k in range(x1 - x0 + 2):
+            icol[k] = 0
+        for y in range(y0, y1):
+            zy = comp_d[y - r0]
+            for u in range(c0, c1):
+                icol[u - x0 + 1] += np.int32(zy[u - c0] > 0)
+        zr = comp_d[v - r0]
+        cr = comp_c[v - r0]
+        for u in range(x0, x1):
+            dout[v, u] = zr[u - c0]
+            cout[v, u, 0] = cr[u - c0, 0]
+            cout[v, u, 1] = cr[u - c0, 1]
+            cout[v, u, 2] = cr[u - c0, 2]
+        nm = 0
+        for u in range(x0, x1):
+            k = u - x0
+            want = (np.int64(zr[u - c0] > 0) ^ 1) & np.int64(icol[k] + icol[k + 1] + icol[k + 2] >= 5)
+            if use_need:
+                want = want & np.int64(mask[v, u])
+            med_u[nm] = u
+            nm += want
+        inner_v = 0 < v < H - 1
+        for i in range(nm):
+            u = med_u[i]
+            if inner_v and 0 < u < W - 1:
+                dout[v, u] = _median8_interior(cd3, cc3, 0, v - r0, u - c0, px)
+                cout[v, u, 0] = px[0]
+                cout[v, u, 1] = px[1]
+                cout[v, u, 2] = px[2]
+                continue
+            j = _median8(cd3, cc3, 0, y0 - r0, y1 - r0, max(u - 1, 0) - c0, min(u + 2, W) - c0, bd, b0, b1, b2)
+            dout[v, u] = bd[j]
+            cout[v, u, 0] = b0[j]
+            cout[v, u, 1] = b1[j]
+            cout[v, u, 2] = b2[j]
+
+
 @nb.njit(parallel=True, cache=True)
 def _banded_crack_kernel(d, c, spread, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
-    # Branch-free per pixel and layer (the occupancy of warped layers is speckled: a branch per
-    # pixel and layer mispredicts often) except one test "nothing here at all", which holds over
-    # whole regions; the pixels that need a median are first collected into a list.
-    L, H, W = d.shape
-    n_bands = (H + band - 1) // band
-    for bi in nb.prange(n_bands):
-        a = bi * band
-        e = min(a + band, H)
-        r0 = max(a - 1, 0)  # composite rows [r0, r1): the band and the seam pass's halo
-        r1 = min(e + 1, H)
-        s0 = max(r0 - 1, 0)  # occupancy rows [s0, s1): what the composite's counts read
-        s1 = min(r1 + 1, H)
-        bits = np.empty((s1 - s0, W), np.uint8)
-        for y in range(s0, s1):
-            br = bits[y - s0]
-            d0 = d[0, y]
-            for u in range(W):
-                br[u] = np.uint8(d0[u] > 0)
-            for l in range(1, L):
-                dl = d[l, y]
-                for u in range(W):
-                    br[u] |= np.uint8(dl[u] > 0) << np.uint8(l)
-        nr = r1 - r0
-        comp_d = np.empty((nr, W), np.float32)
-        comp_c = np.empty((nr, W, 3), np.uint8)
-        col = np.zeros(W + 2, np.int64)
-        icol = np.zeros(W + 2, np.int32)
-        med_u = np.empty(W, np.int64)
-        med_l = np.empty(W, np.int64)
-        bd = np.empty(8, np.float32)
-        b0 = np.empty(8, np.uint8)
-        b1 = np.empty(8, np.uint8)
-        b2 = np.empty(8, np.uint8)
-        px = np.empty(3, np.uint8)
-        for v in range(r0, r1):
-            y0 = max(v - 1, 0)
-            y1 = min(v + 2, H)
-            for u in range(W):
-                col[u + 1] = 0
-            for y in range(y0, y1):
-                br = bits[y - s0]
-                for u in range(W):
-                    col[u + 1] += spread[br[u]]
-            zr = comp_d[v - r0]
-            cr = comp_c[v - r0]
-            brv = bits[v - s0]
-            nm = 0
-            for u in range(W):
-                b = np.int64(brv[u])
-                f = (col[u] + col[u + 1] + col[u + 2] + 0x33333333) & 0x88888888
-                m = b | _nibble_flags_to_byte(f)
-                if use_need:
-                    m = m * np.int64(need[v, u])
-                if m == 0:  # empty and no median due (most pixels outside the covered region):
-                    zr[u] = 0.0  # one well-predicted branch beats the gathers below there
-                    cr[u, 0] = 0
-                    cr[u, 1] = 0
-                    cr[u, 2] = 0
-                    continue
-                l = lowest[m]
-                hit = (m >> l) & (b >> l) & 1  # 0 / 1: arithmetic selects below, no branches
-                zr[u] = d[l, v, u] * np.float32(hit)
-                hc = np.uint8(hit)
-                cr[u, 0] = c[l, v, u, 0] * hc
-                cr[u, 1] = c[l, v, u, 1] * hc
-                cr[u, 2] = c[l, v, u, 2] * hc
-                med_u[nm] = u
-                med_l[nm] = l
-                nm += hit ^ 1
-            inner_v = 0 < v < H - 1
-            for i in range(nm):
-                u = med_u[i]
-                if inner_v and 0 < u < W - 1:
-                    zr[u] = _median8_interior(d, c, med_l[i], v, u, px)
-                    cr[u, 0] = px[0]
-                    cr[u, 1] = px[1]
-                    cr[u, 2] = px[2]
-                    continue
-                k = _median8(d, c, med_l[i], y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
-                zr[u] = bd[k]
-                cr[u, 0] = b0[k]
-                cr[u, 1] = b1[k]
-                cr[u, 2] = b2[k]
-        # Seam pass over the band: 3x3 switching median of the composite.
-        cd3 = comp_d.reshape((1, nr, W))
-        cc3 = comp_c.reshape((1, nr, W, 3))
-        for v in range(a, e):
-            y0 = max(v - 1, 0)
-            y1 = min(v + 2, H)
-            for u in range(W):
-                icol[u + 1] = 0
-            for y in range(y0, y1):
-                zy = comp_d[y - r0]
-                for u in range(W):
-                    icol[u + 1] += np.int32(zy[u] > 0)
-            zr = comp_d[v - r0]
-            dout[v] = zr
-            cout[v] = comp_c[v - r0]
-            nm = 0
-            for u in range(W):
-                want = (np.int64(zr[u] > 0) ^ 1) & np.int64(icol[u] + icol[u + 1] + icol[u + 2] >= 5)
-                if use_need:
-                    want = want & np.int64(mask[v, u])
-                med_u[nm] = u
-                nm += want
-            inner_v = 0 < v < H - 1
-            for i in range(nm):
-                u = med_u[i]
-                if inner_v and 0 < u < W - 1:
-                    dout[v, u] = _median8_interior(cd3, cc3, 0, v - r0, u, px)
-                    cout[v, u, 0] = px[0]
-                    cout[v, u, 1] = px[1]
-                    cout[v, u, 2] = px[2]
-                    continue
-                k = _median8(cd3, cc3, 0, y0 - r0, y1 - r0, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
-                dout[v, u] = bd[k]
-                cout[v, u, 0] = b0[k]
-                cout[v, u, 1] = b1[k]
-                cout[v, u, 2] = b2[k]
+    # Bands of ``band`` rows over the whole width (constant columns: the compiler drops the offsets).
+    H, W = d.shape[1], d.shape[2]
+    for bi in nb.prange((H + band - 1) // band):
+        _crack_item(d, c, spread, lowest, need, use_need, mask, bi * band, min(bi * band + band, H), 0, W, dout, cout)
+
+
+@nb.njit(parallel=True, cache=True)
+def _tiled_crack_kernel(d, c, spread, lowest, need, use_need, mask, items, dout, cout):  # pragma: no cover
+    # Work items = rows [a, e) x columns [x0, x1) (runs of tiles holding wanted pixels).
+    for it in nb.prange(items.shape[0]):
+        _crack_item(d, c, spread, lowest, need, use_need, mask, items[it, 0], items[it, 1], items[it, 2],
+                    items[it, 3], dout, cout)
+
+
+@nb.njit(cache=True)
+def tile_any(mask, tile_h, tile_w, grow):  # pragma: no cover
+    """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (H, W) lies
+    within ``grow`` pixels (Chebyshev distance) of the tile (numba; ``grow`` < both tile sides)."""
+    H, W = mask.shape
+    out = np.zeros(((H + tile_h - 1) // tile_h, (W + tile_w - 1) // tile_w), np.uint8)
+    for v in range(H):
+        ya = max(v - grow, 0) // tile_h
+        yb = min(v + grow, H - 1) // tile_h
+        row = mask[v]
+        for u in range(W):
+            if row[u]:
+                xa = max(u - grow, 0) // tile_w
+                xb = min(u + grow, W - 1) // tile_w
+                out[ya, xa] = 1
+                out[ya, xb] = 1
+                out[yb, xa] = 1
+                out[yb, xb] = 1
+    return out
+
+
+@nb.njit(cache=True)
+def _tile_items_kernel(active, tile_h, tile_w, H, W):  # pragma: no cover
+    # Runs of consecutive active tiles along each row of tiles -> (n, 4): rows [a, e), cols [x0, x1).
+    th, tw = active.shape
+    out = np.empty((th * tw, 4), np.int64)
+    n = 0
+    for ty in range(th):
+        tx = 0
+        while tx < tw:
+            if active[ty, tx] == 0:
+                tx += 1
+                continue
+            t0 = tx
+            while tx < tw and active[ty, tx] != 0:
+                tx += 1
+            out[n, 0] = ty * tile_h
+            out[n, 1] = min((ty + 1) * tile_h, H)
+            out[n, 2] = t0 * tile_w
+            out[n, 3] = min(tx * tile_w, W)
+            n += 1
+    return out[:n].copy()
 
 
 def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
-                              band_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                              band_rows: int | None = None, tile_cols: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`filtered_composite_packed` (without ``front``) in one pass over bands of rows.
 
     Same output bit for bit on every pixel the packed chain defines (all pixels without
     ``replace``; the ``replace`` pixels with it — others are UNDEFINED here too), tested against
     it and against the numpy reference chain. Occupancy, composite and seam pass of a band run in
-    buffers of the band (no full-size intermediates, no copies, one parallel region).
+    buffers of the band (no full-size intermediates, no copies, one parallel region). With
+    ``replace``, a band is cut into tiles of ``tile_cols`` columns and only runs of tiles holding a
+    ``replace`` pixel are computed; the layers are then read only within 2 pixels of those tiles'
+    ``replace`` pixels' neighbourhoods (:func:`warp_tiles` marks a superset), so the layers may be
+    undefined elsewhere (:func:`presim.synthesis.warp.warp_layers` with ``tiles``).
 
     Args:
         depth_m: float32 (L, H, W) warped layers (L <= :data:`PACKED_MAX_LAYERS`); color: uint8 (L, H, W, 3).
         replace: optional bool (H, W): the pixels whose values are wanted.
         band_rows: rows per band (default :func:`_band_rows`; any value >= 1 gives the same output).
+        tile_cols: columns per tile with ``replace`` (None: :data:`TILE_COLS` from
+            :data:`TILED_MIN_PIXELS` pixels on while at most :data:`TILED_MAX_FRAC` of the tiles
+            hold a ``replace`` pixel, else whole rows; any value >= 1 gives the same output).
     Returns:
         ``(depth_m (H, W), color (H, W, 3))``.
     """
@@ -869,13 +968,32 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
     if L > PACKED_MAX_LAYERS:
         raise ValueError(f"filtered_composite_banded: at most {PACKED_MAX_LAYERS} layers, got {L}")
     use = replace is not None
+    explicit_tiles = tile_cols is not None
+    if tile_cols is None:
+        tile_cols = TILE_COLS if H * W >= TILED_MIN_PIXELS else W
+    band = max(int(band_rows) if band_rows else _band_rows(H), 1)
     if use:
         need = cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
         mask = replace
     else:
         need = mask = np.zeros((1, 1), np.bool_)
+    tw = max(int(tile_cols), 1)
     out_d = np.empty((H, W), np.float32)
     out_c = np.empty((H, W, 3), np.uint8)
-    band = int(band_rows) if band_rows else _band_rows(H)
-    _banded_crack_kernel(depth_m, color, _SPREAD_I64, _LOWEST, need, use, mask, max(band, 1), out_d, out_c)
+    active = tile_any(replace.view(np.uint8), band, tw, 0) if use and tw < W else None
+    if active is not None and (explicit_tiles or active.mean() <= TILED_MAX_FRAC):
+        items = _tile_items_kernel(active, band, tw, H, W)
+        if len(items):
+            _tiled_crack_kernel(depth_m, color, _SPREAD_I64, _LOWEST, need, use, mask, items, out_d, out_c)
+    else:
+        _banded_crack_kernel(depth_m, color, _SPREAD_I64, _LOWEST, need, use, mask, band, out_d, out_c)
     return out_d, out_c
+
+
+def warp_tiles(replace: np.ndarray, tile_px: int = WARP_TILE_PX) -> np.ndarray:
+    """uint8 (ceil(H / tile_px), ceil(W / tile_px)): the tiles of ``tile_px`` x ``tile_px`` pixels
+    within 2 pixels of a ``replace`` pixel — every layer pixel :func:`filtered_composite_banded`
+    reads for the ``replace`` pixels (the 3 x 3 windows of the composite pixels in the 3 x 3
+    windows of the seam pass). :func:`presim.synthesis.warp.warp_layers` warps and clears only
+    those (``tiles=``)."""
+    return tile_any(replace.view(np.uint8), tile_px, tile_px, 2)

@@ -36,9 +36,10 @@ import numpy as np
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis import kernels_reference as ref
-from presim.synthesis.composite import (PACKED_MAX_LAYERS, analyse_hole_mask, composite_layers, filtered_composite,
+from presim.synthesis.composite import (PACKED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX,
+                                        analyse_hole_mask, composite_layers, filtered_composite,
                                         filtered_composite_banded, filtered_composite_masked, filtered_composite_packed,
-                                        merge_view_holes)
+                                        merge_view_holes, warp_tiles)
 from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS, fill_holes
 from presim.synthesis.grids import count_in_mask
@@ -84,6 +85,9 @@ class ViewImageConfig:
     """numba backend, 3 x 3 switching median, <= 8 layers: crack mask first (packed per-layer
     occupancy counts; a window is read only where a median is taken), same output as the
     column-count kernels."""
+    masked_warp: bool = True
+    """numba backend, banded crack pass: a later view (with replaceable pixels) is warped, cleared
+    and crack-filtered only in the tiles near its replaceable pixels (same output on them)."""
 
     def __post_init__(self) -> None:
         if self.crack_filter not in CRACK_FILTERS:
@@ -131,14 +135,23 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     switching median, only the replaceable pixels are computed (the rest is undefined).
     """
     t0 = time.perf_counter()
-    lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers)
-    t1 = time.perf_counter()
     mode, kpx = config.crack_filter, config.crack_kernel_px
-    if (config.packed_cracks and mode == "switching_median" and kpx == 3
-            and lay.depth_m.shape[0] <= PACKED_MAX_LAYERS):
+    packed = (config.packed_cracks and mode == "switching_median" and kpx == 3
+              and view.num_layers <= PACKED_MAX_LAYERS)
+    banded = packed and workspace.front is None and K.width * K.height >= BANDED_MIN_PIXELS
+    # A later view's banded crack pass reads its layers only near the replaceable pixels: warp
+    # (and clear) only the tiles there (same output on those pixels).
+    tiles = None
+    if banded and replace is not None and config.masked_warp and K.width * K.height >= TILED_MIN_PIXELS:
+        tiles = warp_tiles(replace)
+        if tiles.mean() > TILED_MAX_FRAC:  # holes everywhere: the full warp is cheaper
+            tiles = None
+    lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers, tiles=tiles,
+                                         tile_px=WARP_TILE_PX)
+    t1 = time.perf_counter()
+    if packed:
         # Filter + composite + seam pass in one call; later views only on their replaceable pixels.
-        if workspace.front is None and lay.depth_m.shape[1] * lay.depth_m.shape[2] >= BANDED_MIN_PIXELS:
-            # one pass over bands of rows (same output)
+        if banded:  # one pass over bands of rows, or runs of tiles with replaceable pixels (same output)
             d, c = filtered_composite_banded(lay.depth_m, lay.color, replace)
         else:
             d, c = filtered_composite_packed(lay.depth_m, lay.color, replace, workspace.front)
@@ -279,8 +292,14 @@ class FrameConfig:
     """Pull-push implementation: ``"numba"`` or ``"opencv"`` (:data:`presim.synthesis.fill.FILL_KERNELS`)."""
     time_budget_ms: float = 0.0
     """> 0: the adaptive loop adds no view once the frame has run this long (0 = no budget)."""
+    min_view_gain: float = 0.0
+    """> 0: the adaptive loop adds a view only when its grid predicts that it fills at least this
+    fraction of the image (the target pixels its grid points in big holes stand for,
+    ``grid_fill``); 0 = any view that fills at least one grid point."""
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.min_view_gain < 1.0:
+            raise ValueError("FrameConfig: min_view_gain must be in [0, 1)")
         if self.fixed_views < 0 or self.max_views < 1:
             raise ValueError("FrameConfig: fixed_views must be >= 0 and max_views >= 1")
         if self.fill_method not in FILL_METHODS:
@@ -329,7 +348,8 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
                      color_transform: Callable[[int, np.ndarray], np.ndarray] | None = None,
                      blend: Callable[[list[int], np.ndarray, np.ndarray, np.ndarray],
                                      tuple[np.ndarray, float]] | None = None,
-                     grid_px: Callable[[int], np.ndarray] | None = None) -> FrameResult:
+                     grid_px: Callable[[int], np.ndarray] | None = None,
+                     grid_fill: Callable[[int, np.ndarray], float] | None = None) -> FrameResult:
     """The adaptive loop (thesis §3.4.2-3.4.4) and the final fill for one target camera.
 
     Args:
@@ -349,6 +369,11 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         grid_px: optional fast path: ``grid_px(id)`` -> the flat target pixels of the view's grid
             (= :func:`grid_pixels` of ``get_grid(id)``; the Renderer projects all candidates' grids
             once per frame, :class:`presim.synthesis.grids.FrameGrids`).
+        grid_fill: optional ``grid_fill(id, big_flat)`` -> the target pixels that the view's grid points
+            landing on ``big_flat`` (uint8/bool (H * W,), the big holes) stand for (the Renderer: each
+            point's ``(overlap stride x z_src / z_target x f_target / f_src)^2``,
+            :meth:`presim.synthesis.grids.FrameGrids.fill_area`); with ``config.min_view_gain`` > 0
+            a candidate is warped only when it reaches ``min_view_gain x H x W`` (None: that rule is off).
     Returns:
         :class:`FrameResult`.
     """
@@ -386,6 +411,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
                     px_of[v] = grid_px(v)
             big_flat = big.reshape(-1)
             counts = [int(count_in_mask(big_flat, px_of[v])) for v in pending]
+            if cfg.min_view_gain > 0 and grid_fill is not None:
+                # Diminishing returns: a candidate must be predicted to fill enough of the image.
+                need = cfg.min_view_gain * H * W
+                counts = [n if n > 0 and grid_fill(v, big_flat) >= need else 0 for n, v in zip(counts, pending)]
             ms["select"] += (time.perf_counter() - t) * 1e3
             cmax = max(counts)
             if cmax == 0:

@@ -26,7 +26,7 @@ import numpy as np
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 
-__all__ = ["project_grid", "project_grid_ref", "count_in_mask", "FrameGrids"]
+__all__ = ["project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
 
 
 def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics
@@ -135,6 +135,27 @@ def count_in_mask(mask_flat, px):  # pragma: no cover
     return n
 
 
+@nb.njit(cache=True)
+def _fill_area_kernel(mask_flat, pix, z_src, z_t, near):  # pragma: no cover
+    # sum over points with pix >= 0, both depths > near and mask_flat[pix] of (z_src / z_t)^2 (float64)
+    s = 0.0
+    for i in range(pix.shape[0]):
+        p = pix[i]
+        if p >= 0 and z_src[i] > near and z_t[i] > near and mask_flat[p] != 0:
+            r = np.float64(z_src[i]) / np.float64(z_t[i])
+            s += r * r
+    return s
+
+
+def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t: np.ndarray, near_m: float) -> float:
+    """Reference of the fill-area sum (numpy): ``sum((z_src / z_t)^2)`` over the grid points inside the
+    image, in front of both cameras, that land on ``mask_flat``."""
+    near = np.float32(near_m)
+    ok = (pix >= 0) & (z_src > near) & (z_t > near)
+    ok[ok] &= np.asarray(mask_flat).reshape(-1)[pix[ok]] != 0
+    return float(np.sum((z_src[ok].astype(np.float64) / z_t[ok].astype(np.float64)) ** 2))
+
+
 class FrameGrids:
     """The views' grids projected into one target camera, each view at most once (see module doc).
 
@@ -199,3 +220,17 @@ class FrameGrids:
         if med != med:  # no grid point in front of both cameras and inside the target image
             return float("nan")
         return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)
+
+    def fill_area(self, v: int, mask_flat: np.ndarray, z_src: np.ndarray, f_src_px: float, near_m: float,
+                  stride_px: float) -> float:
+        """Target pixels that view ``v``'s grid points landing on ``mask_flat`` (H * W, nonzero =
+        wanted) stand for: each point covers ``(stride_px x z_src / z_t x f_t / f_src)^2`` target pixels
+        (its grid cell of ``stride_px`` source pixels seen from the target). The adaptive loop's
+        diminishing-returns test (``RenderConfig.min_view_gain``); :func:`fill_area_ref` is the numpy
+        reference of the sum."""
+        pix, z_t = self.projection(v)
+        if len(z_t) == 0:
+            return 0.0
+        m = mask_flat.view(np.uint8) if mask_flat.dtype == np.bool_ else mask_flat
+        s = _fill_area_kernel(m, pix, np.ascontiguousarray(z_src, np.float32), z_t, np.float32(near_m))
+        return float(s * (stride_px * np.sqrt(self.K.fx * self.K.fy) / f_src_px) ** 2)

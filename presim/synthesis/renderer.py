@@ -45,6 +45,7 @@ from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
+from presim.synthesis.threads import frame_threads, numba_threads
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
 
@@ -112,6 +113,12 @@ class RenderConfig:
     per-layer occupancy counts and read a window only where a median is taken (same output as
     False, the previous column-count kernels; 2-3x less CPU for the crack stage on the apc capture
     at 640x480, docs/synthesis.md)."""
+    masked_warp: bool = True
+    """numba backend, packed crack pass: a view after the first is warped, cleared and crack-filtered
+    only in the 16 x 16 tiles within 2 pixels of its replaceable pixels, the only pixels it may
+    write (same output as False, which warps and filters the whole image for every view). Applies
+    from ``composite.TILED_MIN_PIXELS`` pixels on and while at most ``composite.TILED_MAX_FRAC`` of
+    the tiles are active (docs/synthesis.md, "Later views on tiles")."""
     view_order: str = "distance"
     """Warp order of the selected views: ``"distance"`` (nearest first; measured better on the real
     capture) or ``"overlap"`` (largest first)."""
@@ -160,9 +167,21 @@ class RenderConfig:
     frame's view selection (candidate list); 0 disables."""
     reuse_turn_deg: float = 1.0
     """Rotation bound of the selection reuse, degrees."""
+    min_view_gain: float = 0.005
+    """Adaptive loop, diminishing returns: a further view is warped only when its sub-sampled grid
+    predicts that it fills at least this fraction of the image (the target pixels its grid points
+    in big holes stand for, each ``(overlap_stride_px x z_src / z_target x f_target / f_src)^2``); 0 = the
+    thesis's loop (any view that can fill a big hole at all). 0.005 warps 3.6 instead of 6.0 views
+    per frame on the apc capture at 640x480 with `eval-views` PSNR/SSIM within 0.04 dB / 0.0013
+    of 0 (docs/synthesis.md, "Diminishing returns")."""
     time_budget_ms: float = 0.0
     """> 0: the adaptive loop adds no further view once the frame has taken this long (the view
     budget is ``max_views``); the final fill still runs. 0 = no time budget."""
+    threads: int = 0
+    """numba threads per frame: 0 = auto (one thread for frames of at most
+    ``threads.SERIAL_MAX_PIXELS`` = 40 000 pixels, where waking a second thread for each parallel
+    kernel costs more than it gives, else numba's current count); > 0 = that many. The images do not
+    depend on it (docs/synthesis.md, "Threads per frame")."""
     batch_views: int = 3
     """``backend="torch_batch"``: :meth:`Renderer.render_batch` renders every frame from this many
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
@@ -224,6 +243,8 @@ class RenderConfig:
             (self.lod_depth_tol >= 0, "lod_depth_tol must be >= 0"),
             (self.reuse_move_m >= 0 and self.reuse_turn_deg >= 0, "reuse_move_m / reuse_turn_deg must be >= 0"),
             (self.time_budget_ms >= 0, "time_budget_ms must be >= 0"),
+            (0.0 <= self.min_view_gain < 1.0, "min_view_gain must be in [0, 1)"),
+            (self.threads >= 0, "threads must be >= 0"),
             (self.batch_views >= 1, "batch_views must be >= 1"),
             (self.blend_views >= 1, "blend_views must be >= 1"),
             (0.0 < self.blend_depth_tol < 1.0, "blend_depth_tol must be in (0, 1)"),
@@ -240,11 +261,13 @@ class RenderConfig:
         """The knobs of the per-frame core (:func:`presim.synthesis.core.synthesize_frame`)."""
         return FrameConfig(
             view=ViewImageConfig(near_m=self.near_m, crack_filter=self.crack_filter,
-                                 crack_kernel_px=self.crack_kernel_px, packed_cracks=self.packed_cracks),
+                                 crack_kernel_px=self.crack_kernel_px, packed_cracks=self.packed_cracks,
+                                 masked_warp=self.masked_warp),
             fixed_views=self.fixed_views, max_views=self.max_views, stop_hole_frac=self.stop_hole_frac,
             big_hole_px=self.big_hole_px, hole_dilation_px=self.hole_dilation_px,
             next_view_fill_frac=self.next_view_fill_frac, fill_holes=self.fill_holes,
-            fill_method=self.fill_method, fill_kernel=self.fill_kernel, time_budget_ms=self.time_budget_ms)
+            fill_method=self.fill_method, fill_kernel=self.fill_kernel, time_budget_ms=self.time_budget_ms,
+            min_view_gain=self.min_view_gain)
 
     def lod_config(self) -> LodConfig:
         """The level-of-detail knobs (:mod:`presim.synthesis.lod`)."""
@@ -469,6 +492,11 @@ class Renderer:
         r0 = grids.footprint_ratio(idx, self._grid_zsrc_of(idx), float(self._src_focal[idx]), self.config.near_m)
         return choose_level(r0, self._lod)
 
+    def _grid_fill(self, idx: int, grids: FrameGrids, mask_flat: np.ndarray) -> float:
+        """Target pixels that view ``idx``'s grid points landing on ``mask_flat`` stand for."""
+        return grids.fill_area(idx, mask_flat, self._grid_zsrc_of(idx), float(self._src_focal[idx]),
+                               self.config.near_m, float(self.config.overlap_stride_px))
+
     @property
     def cache_bytes(self) -> int:
         """Bytes held by the per-view point cache."""
@@ -492,7 +520,8 @@ class Renderer:
         scale = min(1.0, self.config.max_zoom * self._focal_px / np.sqrt(K.fx * K.fy))
         if scale < 1.0:
             K_in = K.scaled(max(1, round(K.width * scale)), max(1, round(K.height * scale)))
-            small = self._render(T_world_cam, K_in)
+            with numba_threads(frame_threads(K_in.width, K_in.height, self.config.threads)):
+                small = self._render(T_world_cam, K_in)
             t = time.perf_counter()
             size = (K.width, K.height)
             color = cv2.resize(small.color, size, interpolation=cv2.INTER_LINEAR)
@@ -501,7 +530,8 @@ class Renderer:
             src = cv2.resize(small.source_view, size, interpolation=cv2.INTER_NEAREST)
             self.last.ms["upsample"] = (time.perf_counter() - t) * 1e3
             return RGBD(color, depth, valid, src, K, T_world_cam, float(1.0 - valid.mean()))
-        return self._render(T_world_cam, K)
+        with numba_threads(frame_threads(K.width, K.height, self.config.threads)):
+            return self._render(T_world_cam, K)
 
     def _reusable(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection | None:
         """The previous frame's selection when the camera moved little (temporal coherence)."""
@@ -544,7 +574,8 @@ class Renderer:
                                view_image, get_view, self.grid_points, self._workspace,
                                color_transform=self._color_transform,
                                blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx),
-                               grid_px=lambda v: grids.pixels(v, near))
+                               grid_px=lambda v: grids.pixels(v, near),
+                               grid_fill=lambda v, big: self._grid_fill(v, grids, big))
         res.ms["select"] += select_ms
         self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                                 ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],

@@ -58,6 +58,10 @@ class LayeredImage:
     """float32 (L, H, W) z-depth, 0 = empty."""
     color: np.ndarray
     """uint8 (L, H, W, 3)."""
+    pix: np.ndarray | None = None
+    """Scratch of :func:`warp_layers` (int64, at least one per point): each point's flat target pixel."""
+    z: np.ndarray | None = None
+    """Scratch of :func:`warp_layers` (float32): each point's target depth."""
 
 
 def assign_layers(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tuple[float, float]]:
@@ -223,8 +227,14 @@ def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.n
 
 
 @nb.njit(parallel=True, fastmath=_FASTMATH, cache=True)
-def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
+def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, pix, zs, tiles, use_tiles, tile_px,
+                        tile_of_px, zbuf, cbuf):  # pragma: no cover
+    # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was),
+    # project its points (a loop without stores that depend on other points: it vectorizes), then
+    # z-buffer them in their (source) order. Splitting the projection from the z-buffer halved
+    # the CPU time of one loop doing both (docs/synthesis.md).
     L, H, W = zbuf.shape
+    th, tw = tiles.shape
     # (the thread count comes in as an argument: nb.get_num_threads() in here makes the kernel uncacheable)
     order, slot_start = _layer_slots_kernel(layer_start, max(1, min(n_threads, L)))
     # One slot (a group of layers of similar total point count) per thread: the layers of a
@@ -233,35 +243,57 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, nea
     for s in nb.prange(slot_start.shape[0] - 1):
         for j in range(slot_start[s], slot_start[s + 1]):
             l = order[j]
+            zf = zbuf[l].reshape(H * W)
+            cf = cbuf[l].reshape(H * W, 3)
             # Clear this layer (buffers are reused across calls: cheaper than fresh zero pages).
-            zbuf[l] = 0.0
-            cbuf[l] = 0
-            for i in range(layer_start[l], layer_start[l + 1]):
+            if use_tiles:
+                for ty in range(th):
+                    for tx in range(tw):
+                        if tiles[ty, tx]:
+                            ya = ty * tile_px
+                            xa = tx * tile_px
+                            xb = min(xa + tile_px, W)
+                            zbuf[l, ya:ya + tile_px, xa:xb] = 0.0
+                            cbuf[l, ya:ya + tile_px, xa:xb] = 0
+            else:
+                zf[:] = 0.0
+                cf[:] = 0
+            i0 = layer_start[l]
+            i1 = layer_start[l + 1]
+            for i in range(i0, i1):  # target pixel (flat v * W + u, -1 = dropped) and depth
                 x = xyz[i, 0]
                 y = xyz[i, 1]
                 z = xyz[i, 2]
                 zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-                if not (zc > near):
-                    continue
                 xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
                 yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
                 uf = fx * xc / zc + cx + np.float32(0.5)
                 vf = fy * yc / zc + cy + np.float32(0.5)
+                zs[i] = zc
                 # Bounds in float before the int cast (large values would overflow).
-                if not (uf >= 0.0 and uf < W and vf >= 0.0 and vf < H):
+                ok = zc > near and uf >= 0.0 and uf < W and vf >= 0.0 and vf < H
+                pix[i] = np.int64(vf) * W + np.int64(uf) if ok else -1
+            for i in range(i0, i1):
+                p = pix[i]
+                if p < 0:
                     continue
-                ui = int(uf)
-                vi = int(vf)
-                cur = zbuf[l, vi, ui]
+                if use_tiles and tile_of_px[p] == 0:
+                    continue
+                zc = zs[i]
+                cur = zf[p]
                 if cur == 0.0 or zc < cur:
-                    zbuf[l, vi, ui] = zc
-                    cbuf[l, vi, ui, 0] = rgb[i, 0]
-                    cbuf[l, vi, ui, 1] = rgb[i, 1]
-                    cbuf[l, vi, ui, 2] = rgb[i, 2]
+                    zf[p] = zc
+                    cf[p, 0] = rgb[i, 0]
+                    cf[p, 1] = rgb[i, 1]
+                    cf[p, 2] = rgb[i, 2]
+
+
+_NO_TILES = np.zeros((1, 1), np.uint8)
 
 
 def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
-                out: LayeredImage | None = None) -> LayeredImage:
+                out: LayeredImage | None = None, tiles: np.ndarray | None = None,
+                tile_px: int = 16) -> LayeredImage:
     """Warp a prepared view into the target camera, one z-buffered image per layer (numba).
 
     Args:
@@ -271,6 +303,11 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         near_m: points closer than this to the target camera are dropped.
         out: buffers of shape (L, H, W) / (L, H, W, 3) to overwrite (the Renderer reuses them);
             new ones are allocated when None or of another shape.
+        tiles: optional uint8 (ceil(H / tile_px), ceil(W / tile_px)): warp only into the marked
+            tiles of ``tile_px`` x ``tile_px`` pixels: points landing elsewhere are skipped and only
+            the marked tiles are cleared, so the layers are UNDEFINED outside them and exactly
+            what a full warp gives inside (:func:`presim.synthesis.composite.warp_tiles` marks
+            what a later view's crack pass reads).
     Returns:
         LayeredImage with depth 0 / color 0 where a layer received no point.
     """
@@ -278,9 +315,20 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     if out is None or out.depth_m.shape != (L, K.height, K.width):
         out = LayeredImage(np.empty((L, K.height, K.width), np.float32),
                            np.empty((L, K.height, K.width, 3), np.uint8))
+    n = view.xyz_world.shape[0]
+    if out.pix is None or out.pix.shape[0] < n:  # per-point scratch, reused with the buffers
+        out = LayeredImage(out.depth_m, out.color, np.empty(n, np.int64), np.empty(n, np.float32))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    # Layers grouped per thread (layer_slots) inside the kernel: one call from Python per view.
+    use = tiles is not None
+    tile_of_px = _NO_TILES.reshape(-1)
+    if use:
+        want = (-(-K.height // tile_px), -(-K.width // tile_px))
+        if tiles.shape != want or tiles.dtype != np.uint8:
+            raise ValueError(f"warp_layers: tiles must be uint8 {want}, got {tiles.dtype} {tiles.shape}")
+        # per pixel: its tile's flag (a byte load per point instead of two integer divisions)
+        tile_of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
+        tile_of_px = tile_of_px.reshape(-1)
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
-                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.depth_m,
-                        out.color)
+                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.pix, out.z,
+                        tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, out.depth_m, out.color)
     return out
