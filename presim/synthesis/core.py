@@ -289,7 +289,8 @@ class FrameConfig:
     fill_method: str = "auto"
     """``"auto"``, ``"telea"`` or ``"pushpull"``."""
     fill_kernel: str = "numba"
-    """Pull-push implementation: ``"numba"`` or ``"opencv"`` (:data:`presim.synthesis.fill.FILL_KERNELS`)."""
+    """Fill implementation (pull-push and Telea): ``"numba"`` or ``"opencv"``
+    (:data:`presim.synthesis.fill.FILL_KERNELS`)."""
     time_budget_ms: float = 0.0
     """> 0: the adaptive loop adds no view once the frame has run this long (0 = no budget)."""
     min_view_gain: float = 0.0
