@@ -520,20 +520,20 @@ class Renderer:
             raise ValueError(f"K must be presim.geometry.Intrinsics, got {type(K).__name__}")
         T_world_cam = check_rigid(T_world_cam, "target pose T_world_cam")
         scale = min(1.0, self.config.max_zoom * self._focal_px / np.sqrt(K.fx * K.fy))
-        if scale < 1.0:
-            K_in = K.scaled(max(1, round(K.width * scale)), max(1, round(K.height * scale)))
-            with numba_threads(frame_threads(K_in.width, K_in.height, self.config.threads)):
-                small = self._render(T_world_cam, K_in)
-            t = time.perf_counter()
-            size = (K.width, K.height)
-            color = cv2.resize(small.color, size, interpolation=cv2.INTER_LINEAR)
-            depth = cv2.resize(small.depth_m, size, interpolation=cv2.INTER_NEAREST)
-            valid = cv2.resize(small.valid.view(np.uint8), size, interpolation=cv2.INTER_NEAREST).view(bool)
-            src = cv2.resize(small.source_view, size, interpolation=cv2.INTER_NEAREST)
-            self.last.ms["upsample"] = (time.perf_counter() - t) * 1e3
-            return RGBD(color, depth, valid, src, K, T_world_cam, float(1.0 - valid.mean()))
-        with numba_threads(frame_threads(K.width, K.height, self.config.threads)):
-            return self._render(T_world_cam, K)
+        # Beyond max_zoom the frame is rendered at the capture's sampling and upsampled.
+        K_in = K if scale >= 1.0 else K.scaled(max(1, round(K.width * scale)), max(1, round(K.height * scale)))
+        with numba_threads(frame_threads(K_in.width, K_in.height, self.config.threads)):
+            out = self._render(T_world_cam, K_in)
+        if K_in is K:
+            return out
+        t = time.perf_counter()
+        size = (K.width, K.height)
+        color = cv2.resize(out.color, size, interpolation=cv2.INTER_LINEAR)
+        depth = cv2.resize(out.depth_m, size, interpolation=cv2.INTER_NEAREST)
+        valid = cv2.resize(out.valid.view(np.uint8), size, interpolation=cv2.INTER_NEAREST).view(bool)
+        src = cv2.resize(out.source_view, size, interpolation=cv2.INTER_NEAREST)
+        self.last.ms["upsample"] = (time.perf_counter() - t) * 1e3
+        return RGBD(color, depth, valid, src, K, T_world_cam, float(1.0 - valid.mean()))
 
     def _reusable(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection | None:
         """The previous frame's selection when the camera moved little (temporal coherence)."""
