@@ -84,6 +84,31 @@ def _key(bits, t, seq):  # pragma: no cover
     return (np.int64(bits.view(np.uint32)[0]) << 32) | seq
 
 
+@nb.njit(cache=True)
+def _seed(heap, seq_px, band, bits):  # pragma: no cover
+    # The band enters the queue at time 0, in raster order (push order = its index); returns n.
+    n = 0
+    for b in range(band.size):
+        seq_px[b] = band[b]
+        n = _heap_push(heap, n, _key(bits, np.float32(0.0), b))
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _push_pixel(heap, n, seq_px, seq, bits, t, p):  # pragma: no cover
+    # Queues padded pixel p (flat) at time t as push number seq; returns the new n.
+    seq_px[seq] = p
+    return _heap_push(heap, n, _key(bits, t, seq))
+
+
+@nb.njit(cache=True, inline="always")
+def _pop_pixel(heap, n, seq_px, ew):  # pragma: no cover
+    # Pops the earliest entry; returns (its padded row, column, the new n).
+    key, n = _heap_pop(heap, n)
+    p = seq_px[key & 0xFFFFFFFF]
+    return p // ew, p % ew, n
+
+
 @nb.njit(cache=True, inline="always")
 def _solve(f, t, i1, j1, i2, j2):  # pragma: no cover
     # One-sided / two-sided eikonal update from neighbours (i1, j1) and (i2, j2), in double.
@@ -155,15 +180,10 @@ def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
     heap = np.empty(n_band + n_ring + n_hole + 1, np.int64)
     bits = np.zeros(1, np.float32)
     # ---- outside pass: arrival times in the ring, negated afterwards ----
-    n = 0
-    for b in range(n_band):
-        seq_px[b] = band[b]
-        n = _heap_push(heap, n, _key(bits, np.float32(0.0), b))
+    n = _seed(heap, seq_px, band, bits)
     seq = n_band
     while n > 0:
-        key, n = _heap_pop(heap, n)
-        p = seq_px[key & 0xFFFFFFFF]
-        ii, jj = p // ew, p % ew
+        ii, jj, n = _pop_pixel(heap, n, seq_px, ew)
         ring[ii, jj] = _CHANGE
         for q in range(4):
             i = ii + di4[q]
@@ -174,8 +194,7 @@ def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
                 d = _arrival(ring, t, i, j)
                 t[i, j] = d
                 ring[i, j] = _BAND
-                seq_px[seq] = i * ew + j
-                n = _heap_push(heap, n, _key(bits, d, seq))
+                n = _push_pixel(heap, n, seq_px, seq, bits, d, i * ew + j)
                 seq += 1
     for b in range(n_band):
         t[band[b] // ew, band[b] % ew] = -t[band[b] // ew, band[b] % ew]
@@ -184,19 +203,14 @@ def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
         if ring[i, j] == _CHANGE:
             t[i, j] = -t[i, j]
     # ---- inpainting pass ----
-    n = 0
-    for b in range(n_band):
-        seq_px[b] = band[b]
-        n = _heap_push(heap, n, _key(bits, np.float32(0.0), b))
+    n = _seed(heap, seq_px, band, bits)
     seq = n_band
     half = np.float32(0.5)
     two = np.float32(2.0)
     r2max = rng * rng
     wk = 2 * rng + 1
     while n > 0:
-        key, n = _heap_pop(heap, n)
-        p = seq_px[key & 0xFFFFFFFF]
-        ii, jj = p // ew, p % ew
+        ii, jj, n = _pop_pixel(heap, n, seq_px, ew)
         mask[ii, jj] = _KNOWN
         for q in range(4):
             i = ii + di4[q]
@@ -305,8 +319,7 @@ def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
                 sat = ia / s + (jx + jy) / (np.float32(np.sqrt(jx * jx + jy * jy)) + np.float32(1.0e-20)) + half
                 img[i - 1, j - 1, c] = np.uint8(min(max(np.rint(sat), np.float32(0.0)), np.float32(255.0)))
             mask[i, j] = _BAND
-            seq_px[seq] = i * ew + j
-            n = _heap_push(heap, n, _key(bits, d, seq))
+            n = _push_pixel(heap, n, seq_px, seq, bits, d, i * ew + j)
             seq += 1
 
 
