@@ -898,24 +898,66 @@ def _tiled_crack_kernel(d, c, spread, lowest, need, use_need, mask, items, dout,
 
 
 @nb.njit(cache=True)
-def tile_any(mask, tile_h, tile_w, grow):  # pragma: no cover
-    """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (H, W) lies
-    within ``grow`` pixels (Chebyshev distance) of the tile (numba; ``grow`` < both tile sides)."""
+def _tile_any_kernel(mask, words, tile_h, tile_w, grow):  # pragma: no cover
+    # Per tile: its rectangle grown by ``grow`` (clipped). With ``words`` (the mask's rows as
+    # uint64, W % 8 == 0), an all-zero cover of 8-pixel words skips the tile (most tiles of a
+    # sparse mask); otherwise a byte scan that stops at the first nonzero pixel (dense masks).
     H, W = mask.shape
-    out = np.zeros(((H + tile_h - 1) // tile_h, (W + tile_w - 1) // tile_w), np.uint8)
-    for v in range(H):
-        ya = max(v - grow, 0) // tile_h
-        yb = min(v + grow, H - 1) // tile_h
-        row = mask[v]
-        for u in range(W):
-            if row[u]:
-                xa = max(u - grow, 0) // tile_w
-                xb = min(u + grow, W - 1) // tile_w
-                out[ya, xa] = 1
-                out[ya, xb] = 1
-                out[yb, xa] = 1
-                out[yb, xb] = 1
+    th = (H + tile_h - 1) // tile_h
+    tw = (W + tile_w - 1) // tile_w
+    use_words = words.shape[1] > 0
+    out = np.zeros((th, tw), np.uint8)
+    for ty in range(th):
+        ya = max(ty * tile_h - grow, 0)
+        yb = min((ty + 1) * tile_h + grow, H)
+        for tx in range(tw):
+            xa = max(tx * tile_w - grow, 0)
+            xb = min((tx + 1) * tile_w + grow, W)
+            if use_words:
+                wa = xa // 8
+                wb = (xb + 7) // 8
+                nz = False
+                for v in range(ya, yb):
+                    wrow = words[v]
+                    for k in range(wa, wb):
+                        if wrow[k] != 0:
+                            nz = True
+                            break
+                    if nz:
+                        break
+                if not nz:
+                    continue
+            found = False
+            for v in range(ya, yb):
+                row = mask[v]
+                for u in range(xa, xb):
+                    if row[u]:
+                        found = True
+                        break
+                if found:
+                    break
+            if found:
+                out[ty, tx] = 1
     return out
+
+
+_NO_WORDS = np.zeros((1, 0), np.uint64)
+
+
+def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
+    """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (uint8 or
+    bool, H x W) lies within ``grow`` pixels (Chebyshev distance) of the tile (numba; reference
+    :func:`presim.synthesis.kernels_reference.tile_any_ref`).
+
+    Each tile looks at its rectangle grown by ``grow``: when W is a multiple of 8, first as 8-pixel
+    words (an all-zero cover skips the tile), then pixel by pixel up to the first nonzero one. So a
+    sparse mask costs a few word reads per tile and a dense one a few pixel reads; marking tiles
+    from every nonzero pixel cost ~5 ns per nonzero pixel (1.4 ms for a 640x480 mask 30 % full).
+    """
+    m = np.ascontiguousarray(mask).view(np.uint8)
+    H, W = m.shape
+    words = m.reshape(H, W // 8, 8).view(np.uint64).reshape(H, W // 8) if W % 8 == 0 and W else _NO_WORDS
+    return _tile_any_kernel(m, words, int(tile_h), int(tile_w), int(grow))
 
 
 @nb.njit(cache=True)

@@ -185,3 +185,21 @@ def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.n
     depth = np.where(np.isfinite(zbuf), zbuf, 0).astype(np.float32)
     return out.reshape(H, W, 3), depth.reshape(H, W)
 
+
+
+def tile_any_ref(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
+    """Reference of :func:`presim.synthesis.composite.tile_any`: uint8 (ceil(H / tile_h),
+    ceil(W / tile_w)), 1 where a nonzero pixel of ``mask`` lies within ``grow`` pixels (Chebyshev
+    distance) of the tile's pixels, i.e. the mask dilated by a (2 grow + 1) square has a nonzero
+    pixel in the tile."""
+    m = np.asarray(mask) != 0
+    H, W = m.shape
+    grown = np.zeros_like(m)
+    for dy in range(-grow, grow + 1):
+        for dx in range(-grow, grow + 1):
+            src = m[max(-dy, 0):H - max(dy, 0), max(-dx, 0):W - max(dx, 0)]
+            grown[max(dy, 0):H - max(-dy, 0), max(dx, 0):W - max(-dx, 0)] |= src
+    th, tw = -(-H // tile_h), -(-W // tile_w)
+    padded = np.zeros((th * tile_h, tw * tile_w), bool)
+    padded[:H, :W] = grown
+    return padded.reshape(th, tile_h, tw, tile_w).any(axis=(1, 3)).astype(np.uint8)
