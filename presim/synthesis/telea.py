@@ -27,6 +27,8 @@ first in, first out. Should a future OpenCV change its discretisation, the tests
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numba as nb
 import numpy as np
@@ -323,14 +325,18 @@ def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
             seq += 1
 
 
+@functools.lru_cache(maxsize=8)
 def _dst_table(rng: int) -> np.ndarray:
-    # 1 / |r|^3 per window offset (float32 of the double expression, as OpenCV computes it).
+    # 1 / |r|^3 per window offset (float32 of the double expression, as OpenCV computes it);
+    # cached: building it costs more than inpainting a few holes of a small frame.
     dy, dx = np.mgrid[-rng:rng + 1, -rng:rng + 1].astype(np.float64)
     L = dy * dy + dx * dx
     with np.errstate(divide="ignore"):
         tab = (1.0 / (L * np.sqrt(L))).astype(np.float32)
     tab[rng, rng] = 0.0
-    return tab.ravel()
+    tab = tab.ravel()
+    tab.flags.writeable = False
+    return tab
 
 
 def telea_inpaint(color: np.ndarray, holes: np.ndarray, radius: int = 3) -> np.ndarray:
