@@ -7,8 +7,8 @@ Methods:
 - ``"telea"``: fast-marching inpainting (Telea 2004) of the color, radius 3 px. Best on small and
   thin holes (sharp continuation of edges), but its cost grows with the hole area.
   ``kernel="numba"`` (default) runs :func:`presim.synthesis.telea.telea_inpaint`, equal to
-  ``cv2.inpaint(..., INPAINT_TELEA)`` pixel for pixel and 2-3x faster; ``kernel="opencv"`` runs
-  ``cv2.inpaint`` itself.
+  ``cv2.inpaint(..., INPAINT_TELEA)`` pixel for pixel and 1.5-3.5x faster on rendered frames;
+  ``kernel="opencv"`` runs ``cv2.inpaint`` itself.
 - ``"pushpull"``: pull-push pyramid interpolation (Gortler et al. 1996): average the known pixels
   down a 2x pyramid, then blend coarse estimates back up into the unknown pixels. A fixed cost per
   pixel whatever the hole size, smooth (blurry) inside large holes. ``kernel="numba"`` (default,

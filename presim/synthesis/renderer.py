@@ -131,7 +131,7 @@ class RenderConfig:
     """Fill implementation. ``"numba"``: pull-push (colour above the Telea limit, depth always)
     reading uint8 colour and depth directly and writing only the holes at full size (~2x less CPU
     than ``"opencv"`` at 640x480 with 23 % holes, measured), and Telea inpainting in numba
-    (:mod:`presim.synthesis.telea`, the same pixels as ``cv2.inpaint``, 2-3x faster). ``"opencv"``:
+    (:mod:`presim.synthesis.telea`, the same pixels as ``cv2.inpaint``, 1.5-3.5x faster). ``"opencv"``:
     the earlier resize-based pull-push (fills differ by < 1 grey level on average) and
     ``cv2.inpaint`` (docs/synthesis.md)."""
     cache_mb: float = 1024.0
