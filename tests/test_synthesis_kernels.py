@@ -364,3 +364,90 @@ def test_warp_same_with_any_thread_count():
     assert (outs[0][0] > 0).mean() > 0.1
     np.testing.assert_array_equal(outs[0][0], outs[1][0])
     np.testing.assert_array_equal(outs[0][1], outs[1][1])
+
+
+def test_chunk_bounds_match_numpy():
+    """Bounds of each run of CHUNK_PTS points (the last run shorter), against numpy."""
+    from presim.synthesis.warp import CHUNK_PTS, chunk_bounds
+
+    xyz = np.random.default_rng(3).normal(size=(5 * CHUNK_PTS + 17, 3)).astype(np.float32)
+    lo, hi = chunk_bounds(xyz)
+    assert lo.shape == hi.shape == (6, 3)
+    for c in range(6):
+        part = xyz[c * CHUNK_PTS:(c + 1) * CHUNK_PTS]
+        np.testing.assert_array_equal(lo[c], part.min(0))
+        np.testing.assert_array_equal(hi[c], part.max(0))
+    vp, _ = _room_view(L=4)
+    np.testing.assert_array_equal(vp.chunk_lo, chunk_bounds(vp.xyz_world)[0])
+    with pytest.raises(ValueError, match="chunk must be >= 1"):
+        chunk_bounds(xyz, 0)
+
+
+def test_chunk_visibility_known_answers():
+    """Points 2 m in front of the camera: no chunk culled; the camera turned away (or the points
+    behind its near plane, or all left of the image): every chunk culled; near <= 0: none."""
+    from presim.synthesis.warp import ViewPoints, chunk_visibility
+
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(-0.3, 0.3, 640), rng.uniform(-0.3, 0.3, 640),
+                           np.full(640, 2.0)]).astype(np.float32)
+    vp = ViewPoints(xyz, np.zeros((640, 3), np.uint8), np.array([0, 640], np.int64), (2.0, 2.0))
+    eye = np.eye(4)
+    assert chunk_visibility(vp, eye, K_SMALL).tolist() == [1] * 10
+    away = invert(look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), up=(0.0, 1.0, 0.0)))
+    assert chunk_visibility(vp, away, K_SMALL).tolist() == [0] * 10
+    shift = np.eye(4)
+    shift[2, 3] = -2.5  # the points 0.5 m behind the camera
+    assert chunk_visibility(vp, shift, K_SMALL).tolist() == [0] * 10
+    left = np.eye(4)
+    left[0, 3] = -3.0  # x in [-3.3, -2.7] at z = 2: far left of a 60 degree image
+    assert chunk_visibility(vp, left, K_SMALL).tolist() == [0] * 10
+    assert chunk_visibility(vp, away, K_SMALL, near_m=0.0).tolist() == [1] * 10
+
+
+def test_culled_warp_is_exactly_the_full_warp():
+    """Skipping the chunks chunk_visibility rules out changes no pixel, over random target cameras
+    (many only partly facing the scene, some close to it) and sizes; some chunks are culled."""
+    from presim.synthesis.warp import chunk_visibility
+
+    rng = np.random.default_rng(7)
+    culled = []
+    for L in (1, 4):
+        vp, _ = _room_view(L=L)
+        for t in range(30):
+            K = Intrinsics.from_fov(int(rng.integers(8, 120)), int(rng.integers(8, 90)), float(rng.uniform(30, 110)))
+            eye = rng.uniform((-1.0, -1.5, 0.2), (1.0, 0.8, 1.8))
+            T_cam_world = invert(look_at(eye, eye + rng.normal(size=3)))
+            a = warp_layers(vp, T_cam_world, K, 1e-3)
+            da, ca = a.depth_m.copy(), a.color.copy()
+            b = warp_layers(vp, T_cam_world, K, 1e-3, cull=False)
+            np.testing.assert_array_equal(da, b.depth_m)
+            np.testing.assert_array_equal(ca, b.color)
+            culled.append(1.0 - chunk_visibility(vp, T_cam_world, K).mean())
+    culled = np.array(culled)
+    assert (culled > 0).sum() >= 10 and (culled < 1).sum() >= 10 and ((culled > 0) & (culled < 1)).any()
+
+
+def test_culled_tiled_warp_is_exactly_the_full_warp_on_the_marked_tiles():
+    """A tiled warp (later views) with culled chunks: the marked tiles (the only defined part of
+    a tiled warp) equal the full warp's, for random marks and tile sizes."""
+    from presim.synthesis.warp import chunk_visibility
+
+    rng = np.random.default_rng(11)
+    vp, _ = _room_view(L=4)
+    T_cam_world = invert(look_at((0.15, -0.9, 1.25), (1.6, 0.3, 0.4)))  # turned: part of the view is culled
+    K = K_SMALL
+    vis = chunk_visibility(vp, T_cam_world, K)
+    assert 0.1 < vis.mean() < 0.9
+    full = warp_layers(vp, T_cam_world, K, 1e-3, cull=False)
+    assert (full.depth_m > 0).mean() > 0.02
+    fd, fc = full.depth_m.copy(), full.color.copy()
+    for t in range(24):
+        tile_px = int(rng.choice([4, 7, 16]))
+        shape = (-(-K.height // tile_px), -(-K.width // tile_px))
+        tiles = (rng.random(shape) < rng.uniform(0.02, 0.5)).astype(np.uint8)
+        tiles[rng.integers(shape[0]), rng.integers(shape[1])] = 1
+        lay = warp_layers(vp, T_cam_world, K, 1e-3, tiles=tiles, tile_px=tile_px)
+        on = np.repeat(np.repeat(tiles, tile_px, 0), tile_px, 1)[:K.height, :K.width].astype(bool)
+        np.testing.assert_array_equal(lay.depth_m[:, on], fd[:, on])
+        np.testing.assert_array_equal(lay.color[:, on], fc[:, on])

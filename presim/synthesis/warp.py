@@ -13,14 +13,52 @@ geometry.py. Layers are independent, so the kernel runs them in parallel (``pran
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics, unproject_depth
 
-__all__ = ["ViewPoints", "LayeredImage", "assign_layers", "layer_slots", "prepare_view", "prepare_view_ref", "warp_layers"]
+__all__ = ["CHUNK_PTS", "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility", "layer_slots",
+           "prepare_view", "prepare_view_ref", "warp_layers"]
+
+CHUNK_PTS = 64
+"""Points per chunk of a prepared view: consecutive points (source raster order within a layer, so
+a chunk is a short run of neighbouring source pixels) whose world bounding box the warp tests
+against the target frustum (:func:`chunk_visibility`) before it projects them."""
+
+
+@nb.njit(cache=True)
+def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
+    n = xyz.shape[0]
+    m = (n + chunk - 1) // chunk
+    lo = np.empty((m, 3), np.float32)
+    hi = np.empty((m, 3), np.float32)
+    for c in range(m):
+        a = c * chunk
+        b = min(n, a + chunk)
+        for k in range(3):
+            mn = xyz[a, k]
+            mx = mn
+            for i in range(a + 1, b):
+                x = xyz[i, k]
+                mn = min(mn, x)
+                mx = max(mx, x)
+            lo[c, k] = mn
+            hi[c, k] = mx
+    return lo, hi
+
+
+def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS) -> tuple[np.ndarray, np.ndarray]:
+    """World axis-aligned bounds of each run of ``chunk`` consecutive points (the last run may be
+    shorter): ``(lo, hi)``, float32 (ceil(n / chunk), 3) each."""
+    xyz = np.ascontiguousarray(xyz_world, np.float32)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"chunk_bounds: need (n, 3) points, got {xyz.shape}")
+    if chunk < 1:
+        raise ValueError(f"chunk_bounds: chunk must be >= 1, got {chunk}")
+    return _chunk_bounds_kernel(xyz, int(chunk))
 
 
 @dataclass(frozen=True)
@@ -35,6 +73,16 @@ class ViewPoints:
     """int64 (L + 1,): points of layer l are ``[layer_start[l], layer_start[l + 1])``."""
     depth_range_m: tuple[float, float]
     """(min, max) valid depth of the view, metres (the layer split)."""
+    chunk_lo: np.ndarray = field(init=False, repr=False, compare=False)
+    """float32 (ceil(n / CHUNK_PTS), 3): world lower bounds of each run of :data:`CHUNK_PTS` points
+    (derived from ``xyz_world`` on construction, :func:`chunk_bounds`)."""
+    chunk_hi: np.ndarray = field(init=False, repr=False, compare=False)
+    """float32, the upper bounds."""
+
+    def __post_init__(self) -> None:
+        lo, hi = chunk_bounds(self.xyz_world)
+        object.__setattr__(self, "chunk_lo", lo)
+        object.__setattr__(self, "chunk_hi", hi)
 
     @property
     def num_layers(self) -> int:
@@ -47,7 +95,8 @@ class ViewPoints:
 
     @property
     def nbytes(self) -> int:
-        return int(self.xyz_world.nbytes + self.rgb.nbytes + self.layer_start.nbytes)
+        return int(self.xyz_world.nbytes + self.rgb.nbytes + self.layer_start.nbytes + self.chunk_lo.nbytes
+                   + self.chunk_hi.nbytes)
 
 
 @dataclass(frozen=True)
@@ -226,9 +275,91 @@ def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.n
     return _layer_slots_kernel(ls, max(1, min(int(n_slots), ls.shape[0] - 1)))
 
 
+@nb.njit(cache=True)
+def _frustum_planes(M, fx, fy, cx, cy, near, W, H):  # pragma: no cover
+    # The warp kernel's keep tests as 5 linear functions of the world point, g_k(p) = G_k . (p, 1)
+    # >= 0 (float64, from the kernel's float32 M and intrinsics): z > near, u >= 0, u < W, v >= 0,
+    # v < H, with u = fx x / z + cx + 0.5 multiplied out by z > 0; and E: the same functions with
+    # absolute coefficients (a bound of each term's magnitude, for the rounding margin).
+    G = np.empty((5, 4))
+    E = np.empty((5, 4))
+    for j in range(4):
+        r0 = np.float64(M[0, j])
+        r1 = np.float64(M[1, j])
+        r2 = np.float64(M[2, j])
+        nz = near if j == 3 else 0.0
+        G[0, j] = r2 - nz
+        G[1, j] = fx * r0 + (cx + 0.5) * r2
+        G[2, j] = (W - cx - 0.5) * r2 - fx * r0
+        G[3, j] = fy * r1 + (cy + 0.5) * r2
+        G[4, j] = (H - cy - 0.5) * r2 - fy * r1
+        E[0, j] = abs(r2) + abs(nz)
+        E[1, j] = fx * abs(r0) + (abs(cx) + 0.5 + W) * abs(r2)
+        E[2, j] = E[1, j]
+        E[3, j] = fy * abs(r1) + (abs(cy) + 0.5 + H) * abs(r2)
+        E[4, j] = E[3, j]
+    return G, E
+
+
+@nb.njit(cache=True)
+def _chunk_visibility_kernel(lo, hi, M, fx, fy, cx, cy, near, W, H, margin_rel, vis):  # pragma: no cover
+    # A chunk is culled when, for one of the frustum's half-spaces g_k(p) >= 0, even the box's
+    # maximum of g_k is below -margin_rel x (a bound of g_k's magnitude: E_k on the box's largest
+    # |coordinates|): every point of the chunk is then dropped by the warp kernel's float32 tests
+    # too (their rounding is ~1e-6 of that bound). Boxes with a non-finite bound are kept.
+    G, E = _frustum_planes(M, fx, fy, cx, cy, near, W, H)
+    m = lo.shape[0]
+    n_vis = 0
+    for c in range(m):
+        keep = np.uint8(1)
+        finite = True
+        for j in range(3):
+            if not (np.isfinite(lo[c, j]) and np.isfinite(hi[c, j])):
+                finite = False
+        if finite:
+            for k in range(5):
+                g = G[k, 3]
+                e = E[k, 3]
+                for j in range(3):
+                    a = G[k, j]
+                    lj = np.float64(lo[c, j])
+                    hj = np.float64(hi[c, j])
+                    g += a * lj if a * lj > a * hj else a * hj
+                    e += E[k, j] * max(abs(lj), abs(hj))
+                if g < -margin_rel * e:
+                    keep = np.uint8(0)
+                    break
+        vis[c] = keep
+        n_vis += np.int64(keep)
+    return n_vis
+
+
+_NO_TILES = np.zeros((1, 1), np.uint8)
+_CULL_MARGIN = 1e-4  # relative: ~100x the float32 rounding of the kernel's projection
+
+
+def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float) -> np.ndarray:
+    vis = np.ones(view.chunk_lo.shape[0], np.uint8)
+    if near_m > 0:
+        _chunk_visibility_kernel(view.chunk_lo, view.chunk_hi, M32, float(np.float32(K.fx)), float(np.float32(K.fy)),
+                                 float(np.float32(K.cx)), float(np.float32(K.cy)), float(np.float32(near_m)),
+                                 K.width, K.height, _CULL_MARGIN, vis)
+    return vis
+
+
+def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
+                     ) -> np.ndarray:
+    """uint8 (n_chunks,): 0 where every point of the chunk certainly falls outside the target
+    camera (behind its near plane or outside the image), so :func:`warp_layers` can skip it
+    without projecting; 1 otherwise (conservative: a 1 may still drop all its points). With
+    ``near_m`` <= 0 nothing is culled."""
+    M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
+    return _visibility(view, M, K, near_m)
+
+
 @nb.njit(parallel=True, fastmath=_FASTMATH, cache=True)
 def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, pix, zs, tiles, use_tiles, tile_px,
-                        tile_of_px, zbuf, cbuf):  # pragma: no cover
+                        tile_of_px, vis, chunk, zbuf, cbuf):  # pragma: no cover
     # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was),
     # project its points (a loop without stores that depend on other points: it vectorizes), then
     # z-buffer them in their (source) order. Splitting the projection from the z-buffer halved
@@ -260,40 +391,49 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, nea
                 cf[:] = 0
             i0 = layer_start[l]
             i1 = layer_start[l + 1]
-            for i in range(i0, i1):  # target pixel (flat v * W + u, -1 = dropped) and depth
-                x = xyz[i, 0]
-                y = xyz[i, 1]
-                z = xyz[i, 2]
-                zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-                xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
-                yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
-                uf = fx * xc / zc + cx + np.float32(0.5)
-                vf = fy * yc / zc + cy + np.float32(0.5)
-                zs[i] = zc
-                # Bounds in float before the int cast (large values would overflow).
-                ok = zc > near and uf >= 0.0 and uf < W and vf >= 0.0 and vf < H
-                pix[i] = np.int64(vf) * W + np.int64(uf) if ok else -1
-            for i in range(i0, i1):
-                p = pix[i]
-                if p < 0:
+            if i1 <= i0:
+                continue
+            # Chunks of points (vis = 0: all certainly outside the target, not projected).
+            c0 = i0 // chunk
+            c1 = (i1 - 1) // chunk + 1
+            for ch in range(c0, c1):
+                if vis[ch] == 0:
                     continue
-                if use_tiles and tile_of_px[p] == 0:
+                for i in range(max(i0, ch * chunk), min(i1, ch * chunk + chunk)):
+                    # target pixel (flat v * W + u, -1 = dropped) and depth
+                    x = xyz[i, 0]
+                    y = xyz[i, 1]
+                    z = xyz[i, 2]
+                    zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
+                    xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
+                    yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
+                    uf = fx * xc / zc + cx + np.float32(0.5)
+                    vf = fy * yc / zc + cy + np.float32(0.5)
+                    zs[i] = zc
+                    # Bounds in float before the int cast (large values would overflow).
+                    ok = zc > near and uf >= 0.0 and uf < W and vf >= 0.0 and vf < H
+                    pix[i] = np.int64(vf) * W + np.int64(uf) if ok else -1
+            for ch in range(c0, c1):
+                if vis[ch] == 0:
                     continue
-                zc = zs[i]
-                cur = zf[p]
-                if cur == 0.0 or zc < cur:
-                    zf[p] = zc
-                    cf[p, 0] = rgb[i, 0]
-                    cf[p, 1] = rgb[i, 1]
-                    cf[p, 2] = rgb[i, 2]
-
-
-_NO_TILES = np.zeros((1, 1), np.uint8)
+                for i in range(max(i0, ch * chunk), min(i1, ch * chunk + chunk)):
+                    p = pix[i]
+                    if p < 0:
+                        continue
+                    if use_tiles and tile_of_px[p] == 0:
+                        continue
+                    zc = zs[i]
+                    cur = zf[p]
+                    if cur == 0.0 or zc < cur:
+                        zf[p] = zc
+                        cf[p, 0] = rgb[i, 0]
+                        cf[p, 1] = rgb[i, 1]
+                        cf[p, 2] = rgb[i, 2]
 
 
 def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
                 out: LayeredImage | None = None, tiles: np.ndarray | None = None,
-                tile_px: int = 16) -> LayeredImage:
+                tile_px: int = 16, cull: bool = True) -> LayeredImage:
     """Warp a prepared view into the target camera, one z-buffered image per layer (numba).
 
     Args:
@@ -308,6 +448,8 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
             the marked tiles are cleared, so the layers are UNDEFINED outside them and exactly
             what a full warp gives inside (:func:`presim.synthesis.composite.warp_tiles` marks
             what a later view's crack pass reads).
+        cull: skip the chunks of points that :func:`chunk_visibility` proves fall outside the
+            target (same output; False projects every point, for tests and benchmarks).
     Returns:
         LayeredImage with depth 0 / color 0 where a layer received no point.
     """
@@ -328,7 +470,12 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         # per pixel: its tile's flag (a byte load per point instead of two integer divisions)
         tile_of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
         tile_of_px = tile_of_px.reshape(-1)
+    if cull:
+        vis = _visibility(view, M, K, near_m)
+    else:
+        vis = np.ones(view.chunk_lo.shape[0], np.uint8)
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
                         np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.pix, out.z,
-                        tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, out.depth_m, out.color)
+                        tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, out.depth_m,
+                        out.color)
     return out
