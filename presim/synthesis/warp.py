@@ -3,16 +3,8 @@
 Per-view data is prepared once (:func:`prepare_view`): the valid pixels of an input depth map are
 back-projected to world points (eq. 3.7, via :func:`presim.geometry.unproject_depth`), given a layer
 index (``num_layers`` equal slices between the map's min and max depth, thesis Fig. 3.8) and sorted
-by layer so each layer is one contiguous slice; within a layer the points follow 8 x 8 pixel blocks
-(:data:`BLOCK_PX`), so every run of :data:`CHUNK_PTS` consecutive points is a compact patch of
-surface with a small world bounding box. Per frame, :func:`warp_layers` projects every point into
-the target camera (eq. 3.8) and z-buffers it in its own layer's image, in the points' order.
-
-Culling (issue 13): before projecting, :func:`chunk_visibility` tests each chunk's box (first each
-super-chunk of :data:`SUPER_CHUNKS` chunks) against the target frustum, and for a later view's
-tiled warp against the marked tiles; a chunk is skipped only when the test proves that the kernel's
-own float32 tests would drop all its points (a relative margin ~100x their rounding), so the
-output is exactly that of warping every point (``cull=False``, tested equal).
+by layer so each layer is one contiguous slice. Per frame, :func:`warp_layers` projects every point
+into the target camera (eq. 3.8) and z-buffers it in its own layer's image.
 
 The numba kernel re-states the pinhole projection of :func:`presim.geometry.project` inline (a call
 per point would cost more than the arithmetic); tests check it against the reference, which uses
@@ -28,17 +20,13 @@ import numpy as np
 
 from presim.geometry import Intrinsics, unproject_depth
 
-__all__ = ["BLOCK_PX", "CHUNK_PTS", "SUPER_CHUNKS", "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds",
-           "chunk_visibility", "layer_slots", "prepare_view", "prepare_view_ref", "warp_layers"]
+__all__ = ["CHUNK_PTS", "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility", "layer_slots",
+           "prepare_view", "prepare_view_ref", "warp_layers"]
 
 CHUNK_PTS = 64
-"""Points per chunk of a prepared view: consecutive points (one 8 x 8 pixel block of one layer, or
-parts of neighbouring blocks) whose world bounding box the warp tests (:func:`chunk_visibility`)
-before it projects them."""
-BLOCK_PX = 8
-"""Side of the pixel blocks that order a prepared view's points within each layer."""
-SUPER_CHUNKS = 16
-"""Chunks per super-chunk, the first level of the culling test."""
+"""Points per chunk of a prepared view: consecutive points (source raster order within a layer, so
+a chunk is a short run of neighbouring source pixels) whose world bounding box the warp tests
+against the target frustum (:func:`chunk_visibility`) before it projects them."""
 
 
 @nb.njit(cache=True)
@@ -62,22 +50,6 @@ def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
     return lo, hi
 
 
-@nb.njit(cache=True)
-def _group_bounds_kernel(lo, hi, group):  # pragma: no cover
-    # Bounds of each run of `group` boxes (lo, hi (m, 3)); NaN bounds propagate (min / max of numpy).
-    m = lo.shape[0]
-    g = (m + group - 1) // group
-    glo = np.empty((g, 3), np.float32)
-    ghi = np.empty((g, 3), np.float32)
-    for s in range(g):
-        a = s * group
-        b = min(m, a + group)
-        for k in range(3):
-            glo[s, k] = lo[a:b, k].min()
-            ghi[s, k] = hi[a:b, k].max()
-    return glo, ghi
-
-
 def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS) -> tuple[np.ndarray, np.ndarray]:
     """World axis-aligned bounds of each run of ``chunk`` consecutive points (the last run may be
     shorter): ``(lo, hi)``, float32 (ceil(n / chunk), 3) each."""
@@ -94,8 +66,7 @@ class ViewPoints:
     """One input view prepared for warping (cached by the Renderer, never rebuilt per frame)."""
 
     xyz_world: np.ndarray
-    """float32 (n, 3) world points of the view's valid depth pixels, sorted by layer (then by
-    :data:`BLOCK_PX` pixel blocks)."""
+    """float32 (n, 3) world points of the view's valid depth pixels, sorted by layer."""
     rgb: np.ndarray
     """uint8 (n, 3) their colors."""
     layer_start: np.ndarray
@@ -107,18 +78,11 @@ class ViewPoints:
     (derived from ``xyz_world`` on construction, :func:`chunk_bounds`)."""
     chunk_hi: np.ndarray = field(init=False, repr=False, compare=False)
     """float32, the upper bounds."""
-    super_lo: np.ndarray = field(init=False, repr=False, compare=False)
-    """float32 (ceil(n_chunks / SUPER_CHUNKS), 3): lower bounds of each run of :data:`SUPER_CHUNKS` chunks."""
-    super_hi: np.ndarray = field(init=False, repr=False, compare=False)
-    """float32, their upper bounds."""
 
     def __post_init__(self) -> None:
         lo, hi = chunk_bounds(self.xyz_world)
         object.__setattr__(self, "chunk_lo", lo)
         object.__setattr__(self, "chunk_hi", hi)
-        slo, shi = _group_bounds_kernel(lo, hi, SUPER_CHUNKS)
-        object.__setattr__(self, "super_lo", slo)
-        object.__setattr__(self, "super_hi", shi)
 
     @property
     def num_layers(self) -> int:
@@ -131,8 +95,8 @@ class ViewPoints:
 
     @property
     def nbytes(self) -> int:
-        return int(self.xyz_world.nbytes + self.rgb.nbytes + self.layer_start.nbytes + 2 * self.chunk_lo.nbytes
-                   + 2 * self.super_lo.nbytes)
+        return int(self.xyz_world.nbytes + self.rgb.nbytes + self.layer_start.nbytes + self.chunk_lo.nbytes
+                   + self.chunk_hi.nbytes)
 
 
 @dataclass(frozen=True)
@@ -182,13 +146,9 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
     pts, mask = unproject_depth(K, depth_m, T_world_cam)
     d = np.asarray(depth_m)[mask]
     layer, rng = assign_layers(d, num_layers)
-    # Sorted by layer, then by BLOCK_PX x BLOCK_PX pixel block (raster order of blocks), then by
-    # raster order inside the block.
-    v, u = np.nonzero(mask)
-    nbu = -(-K.width // BLOCK_PX)
-    block = (v // BLOCK_PX) * nbu + u // BLOCK_PX
-    inner = (v % BLOCK_PX) * BLOCK_PX + u % BLOCK_PX
-    order = np.lexsort((inner, block, layer))
+    # Stable sort of small integer keys: numpy uses a radix sort for 8/16-bit ints (~10x faster).
+    key = layer.astype(np.uint8 if num_layers <= 255 else np.uint16)
+    order = np.argsort(key, kind="stable")
     counts = np.bincount(layer, minlength=num_layers)
     start = np.zeros(num_layers + 1, np.int64)
     start[1:] = np.cumsum(counts)
@@ -197,7 +157,7 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
 
 
 @nb.njit(cache=True)
-def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers, block):  # pragma: no cover
+def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no cover
     H, W = depth.shape
     n = 0
     lo = np.inf
@@ -227,34 +187,29 @@ def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers, block):  # prag
     pos = start[:num_layers].copy()
     xyz = np.empty((n, 3), np.float32)
     rgb = np.empty((n, 3), np.uint8)
-    # Within a layer: blocks of block x block pixels in raster order, raster order inside a block
-    # (runs of consecutive points are compact patches of the surface, see CHUNK_PTS).
-    for v0 in range(0, H, block):
-        for u0 in range(0, W, block):
-            for v in range(v0, min(v0 + block, H)):
-                for u in range(u0, min(u0 + block, W)):
-                    d = depth[v, u]
-                    if not (np.isfinite(d) and d > 0):
-                        continue
-                    z = np.float64(d)
-                    layer = 0
-                    if span > 0:
-                        layer = min(np.int64((z - lo) / span * num_layers), num_layers - 1)
-                    x = (np.float64(u) - cx) / fx * z
-                    y = (np.float64(v) - cy) / fy * z
-                    i = pos[layer]
-                    pos[layer] = i + 1
-                    for k in range(3):
-                        xyz[i, k] = np.float32(x * T[k, 0] + y * T[k, 1] + z * T[k, 2] + T[k, 3])
-                        rgb[i, k] = color[v, u, k]
+    for v in range(H):
+        for u in range(W):
+            d = depth[v, u]
+            if not (np.isfinite(d) and d > 0):
+                continue
+            z = np.float64(d)
+            layer = 0
+            if span > 0:
+                layer = min(np.int64((z - lo) / span * num_layers), num_layers - 1)
+            x = (np.float64(u) - cx) / fx * z
+            y = (np.float64(v) - cy) / fy * z
+            i = pos[layer]
+            pos[layer] = i + 1
+            for k in range(3):
+                xyz[i, k] = np.float32(x * T[k, 0] + y * T[k, 1] + z * T[k, 2] + T[k, 3])
+                rgb[i, k] = color[v, u, k]
     return xyz, rgb, start, lo, hi
 
 
 def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
                  num_layers: int) -> ViewPoints:
-    """Back-project the valid pixels of one RGB-D view, assign layers and sort by layer, then by
-    pixel block (numba, one pass per step; :func:`prepare_view_ref` is the numpy reference, tested
-    equal).
+    """Back-project the valid pixels of one RGB-D view, assign layers and sort by layer (numba, one
+    pass per step; :func:`prepare_view_ref` is the numpy reference, tested equal).
 
     Args:
         color: uint8 (h, w, 3); depth_m: float32 (h, w), 0 = invalid; K: the view's intrinsics.
@@ -269,8 +224,7 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
         raise ValueError(f"num_layers must be >= 1, got {num_layers}")
     xyz, rgb, start, lo, hi = _prepare_kernel(
         np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(color), float(K.fx), float(K.fy),
-        float(K.cx), float(K.cy), np.ascontiguousarray(np.asarray(T_world_cam, np.float64)), int(num_layers),
-        BLOCK_PX)
+        float(K.cx), float(K.cy), np.ascontiguousarray(np.asarray(T_world_cam, np.float64)), int(num_layers))
     rng = (float(lo), float(hi)) if len(xyz) else (0.0, 0.0)
     return ViewPoints(xyz, rgb, start, rng)
 
@@ -347,111 +301,36 @@ def _frustum_planes(M, fx, fy, cx, cy, near, W, H):  # pragma: no cover
     return G, E
 
 
-@nb.njit(cache=True, inline="always")
-def _box_misses_tiles(lo, hi, c, M, fx, fy, cx, cy, E, margin_rel, tile_sum, tile_px, W, H):  # pragma: no cover
-    # True when the chunk's box lies in front of the camera and its projection (the bounding
-    # rectangle of its 8 corners' projections, grown by 1 px plus the rounding margin: u and v are
-    # linear-fractional in the point, so over a box in front of the camera their extremes are at
-    # corners) covers no marked tile (tile_sum: the marks' summed-area table).
-    umin = vmin = np.inf
-    umax = vmax = -np.inf
-    zmin = np.inf
-    for q in range(8):
-        x = np.float64(hi[c, 0] if q & 1 else lo[c, 0])
-        y = np.float64(hi[c, 1] if q & 2 else lo[c, 1])
-        z = np.float64(hi[c, 2] if q & 4 else lo[c, 2])
-        xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
-        yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
-        zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-        if not zc > 0:
-            return False
-        zmin = min(zmin, zc)
-        iz = 1.0 / zc
-        u = fx * xc * iz
-        v = fy * yc * iz
-        umin = min(umin, u)
-        umax = max(umax, u)
-        vmin = min(vmin, v)
-        vmax = max(vmax, v)
-    ax = max(abs(lo[c, 0]), abs(hi[c, 0]))
-    ay = max(abs(lo[c, 1]), abs(hi[c, 1]))
-    az = max(abs(lo[c, 2]), abs(hi[c, 2]))
-    mu = 1.0 + margin_rel * (E[1, 0] * ax + E[1, 1] * ay + E[1, 2] * az + E[1, 3]) / zmin
-    mv = 1.0 + margin_rel * (E[3, 0] * ax + E[3, 1] * ay + E[3, 2] * az + E[3, 3]) / zmin
-    x0 = max(umin + (cx + 0.5) - mu, 0.0)
-    x1 = min(umax + (cx + 0.5) + mu, W - 1.0)
-    y0 = max(vmin + (cy + 0.5) - mv, 0.0)
-    y1 = min(vmax + (cy + 0.5) + mv, H - 1.0)
-    if x1 < x0 or y1 < y0:
-        return False  # (off the image: the frustum test decides)
-    tx0 = np.int64(x0) // tile_px
-    tx1 = np.int64(x1) // tile_px + 1
-    ty0 = np.int64(y0) // tile_px
-    ty1 = np.int64(y1) // tile_px + 1
-    return tile_sum[ty1, tx1] - tile_sum[ty0, tx1] - tile_sum[ty1, tx0] + tile_sum[ty0, tx0] == 0
-
-
-@nb.njit(cache=True, inline="always")
-def _box_frustum(lo, hi, c, G, E, margin_rel):  # pragma: no cover
-    # -1: box c certainly outside the frustum (for one half-space g_k(p) >= 0, even the box's
-    # maximum of g_k is below -margin_rel x E_k, a bound of g_k's magnitude on the box); 1:
-    # certainly inside (every half-space's minimum above that margin); 0: undecided (or a
-    # non-finite bound).
-    for j in range(3):
-        if not (np.isfinite(lo[c, j]) and np.isfinite(hi[c, j])):
-            return 0
-    inside = True
-    for k in range(5):
-        gmax = G[k, 3]
-        gmin = G[k, 3]
-        e = E[k, 3]
-        for j in range(3):
-            a = G[k, j]
-            al = a * np.float64(lo[c, j])
-            ah = a * np.float64(hi[c, j])
-            gmax += max(al, ah)
-            gmin += min(al, ah)
-            e += E[k, j] * max(abs(np.float64(lo[c, j])), abs(np.float64(hi[c, j])))
-        if gmax < -margin_rel * e:
-            return -1
-        inside = inside and gmin > margin_rel * e
-    return 1 if inside else 0
-
-
 @nb.njit(cache=True)
-def _chunk_visibility_kernel(lo, hi, slo, shi, per_super, M, fx, fy, cx, cy, near, W, H, margin_rel, tiles, use_tiles,
-                             tile_px, vis):  # pragma: no cover
-    # A chunk is culled when its box is certainly outside the frustum (_box_frustum: every point
-    # of it is then dropped by the warp kernel's float32 tests too, whose rounding is ~1e-6 of
-    # the margin's bound) or, with tiles, its projection misses every marked tile
-    # (_box_misses_tiles). Super-chunks (per_super chunks, bounds slo / shi) are tested first:
-    # outside or off the tiles culls all their chunks, inside spares their frustum tests.
+def _chunk_visibility_kernel(lo, hi, M, fx, fy, cx, cy, near, W, H, margin_rel, vis):  # pragma: no cover
+    # A chunk is culled when, for one of the frustum's half-spaces g_k(p) >= 0, even the box's
+    # maximum of g_k is below -margin_rel x (a bound of g_k's magnitude: E_k on the box's largest
+    # |coordinates|): every point of the chunk is then dropped by the warp kernel's float32 tests
+    # too (their rounding is ~1e-6 of that bound). Boxes with a non-finite bound are kept.
     G, E = _frustum_planes(M, fx, fy, cx, cy, near, W, H)
-    th, tw = tiles.shape
-    tile_sum = np.zeros((th + 1, tw + 1), np.int64)
-    if use_tiles:
-        for ty in range(th):
-            for tx in range(tw):
-                tile_sum[ty + 1, tx + 1] = (tile_sum[ty, tx + 1] + tile_sum[ty + 1, tx] - tile_sum[ty, tx]
-                                            + np.int64(tiles[ty, tx] != 0))
     m = lo.shape[0]
     n_vis = 0
-    for sc in range(slo.shape[0]):
-        c0 = sc * per_super
-        c1 = min(m, c0 + per_super)
-        fs = _box_frustum(slo, shi, sc, G, E, margin_rel)
-        if fs == -1 or (use_tiles and _box_misses_tiles(slo, shi, sc, M, fx, fy, cx, cy, E, margin_rel, tile_sum,
-                                                        tile_px, W, H)):
-            vis[c0:c1] = 0
-            continue
-        for c in range(c0, c1):
-            keep = np.uint8(1)
-            if fs == 0 and _box_frustum(lo, hi, c, G, E, margin_rel) == -1:
-                keep = np.uint8(0)
-            elif use_tiles and _box_misses_tiles(lo, hi, c, M, fx, fy, cx, cy, E, margin_rel, tile_sum, tile_px, W, H):
-                keep = np.uint8(0)
-            vis[c] = keep
-            n_vis += np.int64(keep)
+    for c in range(m):
+        keep = np.uint8(1)
+        finite = True
+        for j in range(3):
+            if not (np.isfinite(lo[c, j]) and np.isfinite(hi[c, j])):
+                finite = False
+        if finite:
+            for k in range(5):
+                g = G[k, 3]
+                e = E[k, 3]
+                for j in range(3):
+                    a = G[k, j]
+                    lj = np.float64(lo[c, j])
+                    hj = np.float64(hi[c, j])
+                    g += a * lj if a * lj > a * hj else a * hj
+                    e += E[k, j] * max(abs(lj), abs(hj))
+                if g < -margin_rel * e:
+                    keep = np.uint8(0)
+                    break
+        vis[c] = keep
+        n_vis += np.int64(keep)
     return n_vis
 
 
@@ -459,26 +338,23 @@ _NO_TILES = np.zeros((1, 1), np.uint8)
 _CULL_MARGIN = 1e-4  # relative: ~100x the float32 rounding of the kernel's projection
 
 
-def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float, tiles: np.ndarray | None = None,
-                tile_px: int = 16) -> np.ndarray:
+def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float) -> np.ndarray:
     vis = np.ones(view.chunk_lo.shape[0], np.uint8)
     if near_m > 0:
-        _chunk_visibility_kernel(view.chunk_lo, view.chunk_hi, view.super_lo, view.super_hi, SUPER_CHUNKS, M32,
-                                 float(np.float32(K.fx)), float(np.float32(K.fy)), float(np.float32(K.cx)),
-                                 float(np.float32(K.cy)), float(np.float32(near_m)), K.width, K.height, _CULL_MARGIN,
-                                 _NO_TILES if tiles is None else tiles, tiles is not None, int(tile_px), vis)
+        _chunk_visibility_kernel(view.chunk_lo, view.chunk_hi, M32, float(np.float32(K.fx)), float(np.float32(K.fy)),
+                                 float(np.float32(K.cx)), float(np.float32(K.cy)), float(np.float32(near_m)),
+                                 K.width, K.height, _CULL_MARGIN, vis)
     return vis
 
 
-def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
-                     tiles: np.ndarray | None = None, tile_px: int = 16) -> np.ndarray:
+def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
+                     ) -> np.ndarray:
     """uint8 (n_chunks,): 0 where every point of the chunk certainly falls outside the target
-    camera (behind its near plane or outside the image) or, with ``tiles`` (the marks of
-    :func:`warp_layers`), outside every marked tile, so :func:`warp_layers` can skip it without
-    projecting; 1 otherwise (conservative: a 1 may still drop all its points). With ``near_m``
-    <= 0 nothing is culled."""
+    camera (behind its near plane or outside the image), so :func:`warp_layers` can skip it
+    without projecting; 1 otherwise (conservative: a 1 may still drop all its points). With
+    ``near_m`` <= 0 nothing is culled."""
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    return _visibility(view, M, K, near_m, tiles, tile_px)
+    return _visibility(view, M, K, near_m)
 
 
 @nb.njit(parallel=True, fastmath=_FASTMATH, cache=True)
@@ -520,18 +396,10 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, nea
             # Chunks of points (vis = 0: all certainly outside the target, not projected).
             c0 = i0 // chunk
             c1 = (i1 - 1) // chunk + 1
-            ch = c0
-            while ch < c1:  # runs of visible chunks, each one loop
+            for ch in range(c0, c1):
                 if vis[ch] == 0:
-                    ch += 1
                     continue
-                ce = ch + 1
-                while ce < c1 and vis[ce] != 0:
-                    ce += 1
-                ia = max(i0, ch * chunk)
-                ib = min(i1, ce * chunk)
-                ch = ce
-                for i in range(ia, ib):
+                for i in range(max(i0, ch * chunk), min(i1, ch * chunk + chunk)):
                     # target pixel (flat v * W + u, -1 = dropped) and depth
                     x = xyz[i, 0]
                     y = xyz[i, 1]
@@ -545,18 +413,10 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, nea
                     # Bounds in float before the int cast (large values would overflow).
                     ok = zc > near and uf >= 0.0 and uf < W and vf >= 0.0 and vf < H
                     pix[i] = np.int64(vf) * W + np.int64(uf) if ok else -1
-            ch = c0
-            while ch < c1:
+            for ch in range(c0, c1):
                 if vis[ch] == 0:
-                    ch += 1
                     continue
-                ce = ch + 1
-                while ce < c1 and vis[ce] != 0:
-                    ce += 1
-                ia = max(i0, ch * chunk)
-                ib = min(i1, ce * chunk)
-                ch = ce
-                for i in range(ia, ib):
+                for i in range(max(i0, ch * chunk), min(i1, ch * chunk + chunk)):
                     p = pix[i]
                     if p < 0:
                         continue
@@ -611,7 +471,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         tile_of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
         tile_of_px = tile_of_px.reshape(-1)
     if cull:
-        vis = _visibility(view, M, K, near_m, tiles if use else None, tile_px)
+        vis = _visibility(view, M, K, near_m)
     else:
         vis = np.ones(view.chunk_lo.shape[0], np.uint8)
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
