@@ -16,7 +16,7 @@ demo: setup
 	$(PY) -m presim demo $(DEMO_OUT)
 
 test: setup-test
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=20
 
 bench: setup
 	$(PY) benchmarks/run_all.py
