@@ -469,7 +469,7 @@ def _occupancy_front_kernel(d, c, bits, zout, cp):  # pragma: no cover
             c2[u] = c[best, v, u, 2]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _ce(a, i, j):  # pragma: no cover
     x = a[i]
     y = a[j]
@@ -477,7 +477,7 @@ def _ce(a, i, j):  # pragma: no cover
     a[j] = max(x, y)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _sort8(a):  # pragma: no cover
     # Batcher's odd-even merge sort of 8 values (19 branch-free compare-exchanges).
     _ce(a, 0, 1)
@@ -501,7 +501,7 @@ def _sort8(a):  # pragma: no cover
     _ce(a, 5, 6)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     """Lower median (depth, each colour channel) of the non-empty pixels of layer ``l`` in the
     window, whose centre is empty (so at most 8 values): slots past the count are padded with the
@@ -678,7 +678,7 @@ _LOWEST = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.
 """Index of the lowest set bit of a byte (0 for 0)."""
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _nibble_flags_to_byte(f):  # pragma: no cover
     # Bits 4l + 3 (l = 0..7) of f -> bits l of a byte.
     x = (f >> 3) & 0x11111111
@@ -687,7 +687,7 @@ def _nibble_flags_to_byte(f):  # pragma: no cover
     return (x | (x >> 12)) & 0xFF
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
     # The compare-exchanges of _sort8 on scalars (kept in registers); returns sorted[2], sorted[3]
     # (the compiler drops the exchanges that cannot reach those two outputs).
@@ -713,18 +713,18 @@ def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
     return x2, x3
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _nb_depth(d, l, y, x):  # pragma: no cover
     z = d[l, y, x]
     return z if z > 0 else np.float32(np.inf)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _nb_chan(d, c, l, y, x, ch):  # pragma: no cover
     return c[l, y, x, ch] if d[l, y, x] > 0 else np.uint8(255)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _median8_interior(d, c, l, v, u, out_c):  # pragma: no cover
     """:func:`_median8` of the 3x3 window of layer ``l`` at an interior pixel ``(v, u)`` whose centre
     is empty, without branches or buffers: the 8 neighbours are read as they are, empty ones as
@@ -747,7 +747,7 @@ def _median8_interior(d, c, l, v, u, out_c):  # pragma: no cover
     return r3 if hi else r2
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
     # One work item = rows [a, e) x columns [x0, x1) of the output (a band of rows over the whole
     # width, or a run of tiles that hold wanted pixels). Branch-free per pixel and layer (the
