@@ -423,7 +423,6 @@ PACKED_MAX_LAYERS = 8
 """Layers the packed occupancy path supports (4-bit counters in a uint32)."""
 
 _SPREAD = np.array([sum(((b >> l) & 1) << (4 * l) for l in range(8)) for b in range(256)], np.uint32)
-_SPREAD_I64 = _SPREAD.astype(np.int64)
 _GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's bit 3 (no carry: 9 + 3 < 16)
 _BIT3 = np.uint32(0x88888888)
 
@@ -679,15 +678,6 @@ _LOWEST = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.
 
 
 @nb.njit(cache=True)
-def _nibble_flags_to_byte(f):  # pragma: no cover
-    # Bits 4l + 3 (l = 0..7) of f -> bits l of a byte.
-    x = (f >> 3) & 0x11111111
-    x = (x | (x >> 3)) & 0x03030303
-    x = (x | (x >> 6)) & 0x000F000F
-    return (x | (x >> 12)) & 0xFF
-
-
-@nb.njit(cache=True)
 def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
     # The compare-exchanges of _sort8 on scalars (kept in registers); returns sorted[2], sorted[3]
     # (the compiler drops the exchanges that cannot reach those two outputs).
@@ -714,47 +704,62 @@ def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
 
 
 @nb.njit(cache=True)
-def _nb_depth(d, l, y, x):  # pragma: no cover
-    z = d[l, y, x]
-    return z if z > 0 else np.float32(np.inf)
+def _nb_value(df, cf, q):  # pragma: no cover
+    # (depth, r, g, b, 1) of flat pixel q; an empty pixel reads as (+inf, 255, 255, 255, 0). All
+    # loads unconditional and selects after them: no branch on the speckled occupancy.
+    z = df[q]
+    q3 = np.uint64(3) * q
+    r = cf[q3]
+    g = cf[q3 + np.uint64(1)]
+    b = cf[q3 + np.uint64(2)]
+    ok = z > 0
+    e = np.uint8(255)
+    return (z if ok else np.float32(np.inf)), (r if ok else e), (g if ok else e), (b if ok else e), np.int64(ok)
 
 
 @nb.njit(cache=True)
-def _nb_chan(d, c, l, y, x, ch):  # pragma: no cover
-    return c[l, y, x, ch] if d[l, y, x] > 0 else np.uint8(255)
+def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
+    """:func:`_median8` of the 3x3 window at an interior pixel whose centre is empty, without
+    buffers: ``df`` / ``cf`` are one layer's (or image's) depth and colour, flat (colour 3 bytes
+    per pixel), ``p`` the centre's flat index and ``w`` the row length (both uint64: no wraparound
+    code). The 8 neighbours are read once into registers, empty ones as +inf / 255 (the padding
+    :func:`_median8` uses), and ranks 2 and 3 of a sorting network give the lower median of the
+    5..8 non-empty ones. Depth returned, colour into ``out_c``."""
+    one = np.uint64(1)
+    z0, r0, g0, b0, n0 = _nb_value(df, cf, p - w - one)
+    z1, r1, g1, b1, n1 = _nb_value(df, cf, p - w)
+    z2, r2, g2, b2, n2 = _nb_value(df, cf, p - w + one)
+    z3, r3, g3, b3, n3 = _nb_value(df, cf, p - one)
+    z4, r4, g4, b4, n4 = _nb_value(df, cf, p + one)
+    z5, r5, g5, b5, n5 = _nb_value(df, cf, p + w - one)
+    z6, r6, g6, b6, n6 = _nb_value(df, cf, p + w)
+    z7, r7, g7, b7, n7 = _nb_value(df, cf, p + w + one)
+    hi = n0 + n1 + n2 + n3 + n4 + n5 + n6 + n7 >= 7  # lower median of n values: rank 3 for n = 7, 8, else 2
+    s2, s3 = _rank23_of8(r0, r1, r2, r3, r4, r5, r6, r7)
+    out_r = s3 if hi else s2
+    s2, s3 = _rank23_of8(g0, g1, g2, g3, g4, g5, g6, g7)
+    out_g = s3 if hi else s2
+    s2, s3 = _rank23_of8(b0, b1, b2, b3, b4, b5, b6, b7)
+    out_b = s3 if hi else s2
+    t2, t3 = _rank23_of8(z0, z1, z2, z3, z4, z5, z6, z7)
+    out_c[0] = out_r
+    out_c[1] = out_g
+    out_c[2] = out_b
+    return t3 if hi else t2
 
 
 @nb.njit(cache=True)
-def _median8_interior(d, c, l, v, u, out_c):  # pragma: no cover
-    """:func:`_median8` of the 3x3 window of layer ``l`` at an interior pixel ``(v, u)`` whose centre
-    is empty, without branches or buffers: the 8 neighbours are read as they are, empty ones as
-    +inf / 255 (the padding :func:`_median8` uses), and ranks 2 and 3 of a sorting network give the
-    lower median of the 5..8 non-empty ones. Depth returned, colour into ``out_c``."""
-    n = 0
-    for y in range(v - 1, v + 2):
-        for x in range(u - 1, u + 2):
-            n += d[l, y, x] > 0
-    r2, r3 = _rank23_of8(_nb_depth(d, l, v - 1, u - 1), _nb_depth(d, l, v - 1, u), _nb_depth(d, l, v - 1, u + 1),
-                         _nb_depth(d, l, v, u - 1), _nb_depth(d, l, v, u + 1), _nb_depth(d, l, v + 1, u - 1),
-                         _nb_depth(d, l, v + 1, u), _nb_depth(d, l, v + 1, u + 1))
-    hi = n >= 7  # lower median of n values: rank (n - 1) // 2 = 3 for n = 7, 8, else 2
-    for ch in range(3):
-        q2, q3 = _rank23_of8(_nb_chan(d, c, l, v - 1, u - 1, ch), _nb_chan(d, c, l, v - 1, u, ch),
-                             _nb_chan(d, c, l, v - 1, u + 1, ch), _nb_chan(d, c, l, v, u - 1, ch),
-                             _nb_chan(d, c, l, v, u + 1, ch), _nb_chan(d, c, l, v + 1, u - 1, ch),
-                             _nb_chan(d, c, l, v + 1, u, ch), _nb_chan(d, c, l, v + 1, u + 1, ch))
-        out_c[ch] = q3 if hi else q2
-    return r3 if hi else r2
-
-
-@nb.njit(cache=True)
-def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
+def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
     # One work item = rows [a, e) x columns [x0, x1) of the output (a band of rows over the whole
     # width, or a run of tiles that hold wanted pixels). Branch-free per pixel and layer (the
     # occupancy of warped layers is speckled: a branch per pixel and layer mispredicts often)
     # except one test "nothing here at all", which holds over whole regions; the pixels that need
     # a median are first collected into a list. An item reads the layers on its rectangle grown by
-    # 2 pixels (clipped to the image).
+    # 2 pixels (clipped to the image). d and c must be C-contiguous.
+    #
+    # Inner loops index from 0 (k) into row slices taken at the item's offsets, and the gathers
+    # from the layer a pixel takes use unsigned flat offsets: numba then emits no negative-index
+    # wraparound code there (a third less time for the composite loop, docs/synthesis.md).
     L, H, W = d.shape
     r0 = max(a - 1, 0)  # composite rows [r0, r1) x cols [c0, c1): the item and the seam halo
     r1 = min(e + 1, H)
@@ -765,23 +770,43 @@ def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, 
     o0 = max(c0 - 1, 0)
     o1 = min(c1 + 1, W)
     nw = c1 - c0
-    bits = np.empty((s1 - s0, o1 - o0), np.uint8)
+    no = o1 - o0
+    HW = H * W
+    dflat = d.reshape(L * HW)
+    cflat = c.reshape(L * HW * 3)
+    uW = np.uint64(W)
+    # Occupancy: bit l of bits = layer l non-empty; sp = the same bits spread to 4-bit counters
+    # (bit l -> nibble l, = _SPREAD[bits]), so that a 3x3 window's per-layer counts are sums of sp
+    # without carries (<= 9 per nibble). Both from comparisons alone (no table lookups: vectorized).
+    bits = np.empty((s1 - s0, no), np.uint8)
+    sp = np.empty((s1 - s0, no), np.uint32)
     for y in range(s0, s1):
         br = bits[y - s0]
-        d0 = d[0, y]
-        for u in range(o0, o1):
-            br[u - o0] = np.uint8(d0[u] > 0)
+        spr = sp[y - s0]
+        d0 = d[0, y, o0:o1]
+        for k in range(no):
+            o = d0[k] > 0
+            br[k] = np.uint8(o)
+            spr[k] = np.uint32(o)
         for l in range(1, L):
-            dl = d[l, y]
-            for u in range(o0, o1):
-                br[u - o0] |= np.uint8(dl[u] > 0) << np.uint8(l)
+            dl = d[l, y, o0:o1]
+            s8 = np.uint8(l)
+            s32 = np.uint32(4 * l)
+            for k in range(no):
+                o = dl[k] > 0
+                br[k] |= np.uint8(o) << s8
+                spr[k] |= np.uint32(o) << s32
     nr = r1 - r0
     comp_d = np.empty((nr, nw), np.float32)
     comp_c = np.empty((nr, nw, 3), np.uint8)
-    col = np.zeros(nw + 2, np.int64)  # col[u - c0 + 1]: packed counts of column u (0 outside the image)
-    icol = np.zeros(x1 - x0 + 2, np.int32)  # icol[u - x0 + 1]: non-empty composite pixels of column u
+    col = np.zeros(nw + 2, np.uint32)  # col[u - c0 + 1]: packed counts of column u (0 outside the image)
+    off = o0 - c0 + 1  # col index of occupancy column o0 (0, or 1 at the image's left edge)
+    ni = x1 - x0
+    icol = np.zeros(ni + 2, np.int32)  # icol[u - x0 + 1]: non-empty composite pixels of column u
+    ioff = c0 - x0 + 1  # icol index of composite column c0
     med_u = np.empty(nw, np.int64)
     med_l = np.empty(nw, np.int64)
+    mrow = np.empty(nw, np.uint8)
     bd = np.empty(8, np.float32)
     b0 = np.empty(8, np.uint8)
     b1 = np.empty(8, np.uint8)
@@ -790,37 +815,54 @@ def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, 
     for v in range(r0, r1):
         y0 = max(v - 1, 0)
         y1 = min(v + 2, H)
-        for k in range(nw + 2):
-            col[k] = 0
-        for y in range(y0, y1):
-            br = bits[y - s0]
-            for u in range(o0, o1):
-                col[u - c0 + 1] += spread[br[u - o0]]
+        col[0] = 0
+        col[nw + 1] = 0
+        spy = sp[y0 - s0]
+        for k in range(no):
+            col[k + off] = spy[k]
+        for y in range(y0 + 1, y1):
+            spy = sp[y - s0]
+            for k in range(no):
+                col[k + off] += spy[k]
         zr = comp_d[v - r0]
         cr = comp_c[v - r0]
-        brv = bits[v - s0]
+        brk = bits[v - s0, c0 - o0:]
+        vb = v * W + c0
+        dk = dflat[vb:]  # dk[l * HW + k]: layer l at column c0 + k of row v
+        ck = cflat[3 * vb:]
+        needk = need[v, c0:c1] if use_need else need[0, 0:0]
+        # Per pixel: bit l of m = layer l has a value here or takes a median here (uint32
+        # arithmetic on whole rows: vectorized); the gathers follow in a second loop.
+        for k in range(nw):
+            f = (col[k] + col[k + 1] + col[k + 2] + _GE5) & _BIT3
+            x = (f >> np.uint32(3)) & np.uint32(0x11111111)  # bits 4l + 3 of f -> bit l of a byte
+            x = (x | (x >> np.uint32(3))) & np.uint32(0x03030303)
+            x = (x | (x >> np.uint32(6))) & np.uint32(0x000F000F)
+            x = (x | (x >> np.uint32(12))) & np.uint32(0xFF)
+            mrow[k] = np.uint8(x) | brk[k]
+        if use_need:
+            for k in range(nw):
+                mrow[k] = mrow[k] * np.uint8(needk[k])
         nm = 0
-        for u in range(c0, c1):
-            k = u - c0
-            b = np.int64(brv[u - o0])
-            f = (col[k] + col[k + 1] + col[k + 2] + 0x33333333) & 0x88888888
-            m = b | _nibble_flags_to_byte(f)
-            if use_need:
-                m = m * np.int64(need[v, u])
+        for k in range(nw):
+            m = np.int64(mrow[k])
             if m == 0:  # empty and no median due (most pixels outside the covered region):
                 zr[k] = 0.0  # one well-predicted branch beats the gathers below there
                 cr[k, 0] = 0
                 cr[k, 1] = 0
                 cr[k, 2] = 0
                 continue
+            b = np.int64(brk[k])
             l = lowest[m]
             hit = (m >> l) & (b >> l) & 1  # 0 / 1: arithmetic selects below, no branches
-            zr[k] = d[l, v, u] * np.float32(hit)
+            p = np.uint64(l * HW + k)
+            zr[k] = dk[p] * np.float32(hit)
             hc = np.uint8(hit)
-            cr[k, 0] = c[l, v, u, 0] * hc
-            cr[k, 1] = c[l, v, u, 1] * hc
-            cr[k, 2] = c[l, v, u, 2] * hc
-            med_u[nm] = u
+            p3 = np.uint64(3) * p
+            cr[k, 0] = ck[p3] * hc
+            cr[k, 1] = ck[p3 + np.uint64(1)] * hc
+            cr[k, 2] = ck[p3 + np.uint64(2)] * hc
+            med_u[nm] = k + c0
             med_l[nm] = l
             nm += hit ^ 1
         inner_v = 0 < v < H - 1
@@ -828,7 +870,7 @@ def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, 
             u = med_u[i]
             k = u - c0
             if inner_v and 0 < u < W - 1:
-                zr[k] = _median8_interior(d, c, med_l[i], v, u, px)
+                zr[k] = _median8_interior(dflat, cflat, np.uint64(med_l[i] * HW + v * W + u), uW, px)
                 cr[k, 0] = px[0]
                 cr[k, 1] = px[1]
                 cr[k, 2] = px[2]
@@ -841,35 +883,40 @@ def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, 
     # Seam pass over the item: 3x3 switching median of the composite.
     cd3 = comp_d.reshape((1, nr, nw))
     cc3 = comp_c.reshape((1, nr, nw, 3))
+    cdf = comp_d.reshape(nr * nw)
+    ccf = comp_c.reshape(nr * nw * 3)
+    unw = np.uint64(nw)
     for v in range(a, e):
         y0 = max(v - 1, 0)
         y1 = min(v + 2, H)
-        for k in range(x1 - x0 + 2):
+        for k in range(ni + 2):
             icol[k] = 0
         for y in range(y0, y1):
             zy = comp_d[y - r0]
-            for u in range(c0, c1):
-                icol[u - x0 + 1] += np.int32(zy[u - c0] > 0)
-        zr = comp_d[v - r0]
-        cr = comp_c[v - r0]
-        for u in range(x0, x1):
-            dout[v, u] = zr[u - c0]
-            cout[v, u, 0] = cr[u - c0, 0]
-            cout[v, u, 1] = cr[u - c0, 1]
-            cout[v, u, 2] = cr[u - c0, 2]
+            for k in range(nw):
+                icol[k + ioff] += np.int32(zy[k] > 0)
+        zs = comp_d[v - r0, x0 - c0:]  # zs[k]: composite depth at column x0 + k
+        cs = comp_c[v - r0, x0 - c0:]
+        do = dout[v, x0:x1]
+        co = cout[v, x0:x1]
+        for k in range(ni):
+            do[k] = zs[k]
+            co[k, 0] = cs[k, 0]
+            co[k, 1] = cs[k, 1]
+            co[k, 2] = cs[k, 2]
+        mk = mask[v, x0:x1] if use_need else mask[0, 0:0]
         nm = 0
-        for u in range(x0, x1):
-            k = u - x0
-            want = (np.int64(zr[u - c0] > 0) ^ 1) & np.int64(icol[k] + icol[k + 1] + icol[k + 2] >= 5)
+        for k in range(ni):
+            want = (np.int64(zs[k] > 0) ^ 1) & np.int64(icol[k] + icol[k + 1] + icol[k + 2] >= 5)
             if use_need:
-                want = want & np.int64(mask[v, u])
-            med_u[nm] = u
+                want = want & np.int64(mk[k])
+            med_u[nm] = k + x0
             nm += want
         inner_v = 0 < v < H - 1
         for i in range(nm):
             u = med_u[i]
             if inner_v and 0 < u < W - 1:
-                dout[v, u] = _median8_interior(cd3, cc3, 0, v - r0, u - c0, px)
+                dout[v, u] = _median8_interior(cdf, ccf, np.uint64((v - r0) * nw + u - c0), unw, px)
                 cout[v, u, 0] = px[0]
                 cout[v, u, 1] = px[1]
                 cout[v, u, 2] = px[2]
@@ -882,18 +929,18 @@ def _crack_item(d, c, spread, lowest, need, use_need, mask, a, e, x0, x1, dout, 
 
 
 @nb.njit(parallel=True, cache=True)
-def _banded_crack_kernel(d, c, spread, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
+def _banded_crack_kernel(d, c, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
     # Bands of ``band`` rows over the whole width (constant columns: the compiler drops the offsets).
     H, W = d.shape[1], d.shape[2]
     for bi in nb.prange((H + band - 1) // band):
-        _crack_item(d, c, spread, lowest, need, use_need, mask, bi * band, min(bi * band + band, H), 0, W, dout, cout)
+        _crack_item(d, c, lowest, need, use_need, mask, bi * band, min(bi * band + band, H), 0, W, dout, cout)
 
 
 @nb.njit(parallel=True, cache=True)
-def _tiled_crack_kernel(d, c, spread, lowest, need, use_need, mask, items, dout, cout):  # pragma: no cover
+def _tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout):  # pragma: no cover
     # Work items = rows [a, e) x columns [x0, x1) (runs of tiles holding wanted pixels).
     for it in nb.prange(items.shape[0]):
-        _crack_item(d, c, spread, lowest, need, use_need, mask, items[it, 0], items[it, 1], items[it, 2],
+        _crack_item(d, c, lowest, need, use_need, mask, items[it, 0], items[it, 1], items[it, 2],
                     items[it, 3], dout, cout)
 
 
@@ -1009,6 +1056,8 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
     L, H, W = depth_m.shape
     if L > PACKED_MAX_LAYERS:
         raise ValueError(f"filtered_composite_banded: at most {PACKED_MAX_LAYERS} layers, got {L}")
+    depth_m = np.ascontiguousarray(depth_m)  # the kernel indexes the layers flat (no copy when they are)
+    color = np.ascontiguousarray(color)
     use = replace is not None
     explicit_tiles = tile_cols is not None
     if tile_cols is None:
@@ -1026,9 +1075,9 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
     if active is not None and (explicit_tiles or active.mean() <= TILED_MAX_FRAC):
         items = _tile_items_kernel(active, band, tw, H, W)
         if len(items):
-            _tiled_crack_kernel(depth_m, color, _SPREAD_I64, _LOWEST, need, use, mask, items, out_d, out_c)
+            _tiled_crack_kernel(depth_m, color, _LOWEST, need, use, mask, items, out_d, out_c)
     else:
-        _banded_crack_kernel(depth_m, color, _SPREAD_I64, _LOWEST, need, use, mask, band, out_d, out_c)
+        _banded_crack_kernel(depth_m, color, _LOWEST, need, use, mask, band, out_d, out_c)
     return out_d, out_c
 
 
