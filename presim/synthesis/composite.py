@@ -886,6 +886,7 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
     cdf = comp_d.reshape(nr * nw)
     ccf = comp_c.reshape(nr * nw * 3)
     unw = np.uint64(nw)
+    coutf = cout.reshape(H * W * 3)
     for v in range(a, e):
         y0 = max(v - 1, 0)
         y1 = min(v + 2, H)
@@ -896,14 +897,13 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
             for k in range(nw):
                 icol[k + ioff] += np.int32(zy[k] > 0)
         zs = comp_d[v - r0, x0 - c0:]  # zs[k]: composite depth at column x0 + k
-        cs = comp_c[v - r0, x0 - c0:]
         do = dout[v, x0:x1]
-        co = cout[v, x0:x1]
         for k in range(ni):
             do[k] = zs[k]
-            co[k, 0] = cs[k, 0]
-            co[k, 1] = cs[k, 1]
-            co[k, 2] = cs[k, 2]
+        cof = coutf[3 * (v * W + x0):3 * (v * W + x1)]  # the colour row as bytes: one flat copy
+        csf = ccf[3 * ((v - r0) * nw + x0 - c0):]
+        for t in range(3 * ni):
+            cof[t] = csf[t]
         mk = mask[v, x0:x1] if use_need else mask[0, 0:0]
         nm = 0
         for k in range(ni):
