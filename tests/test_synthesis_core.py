@@ -406,6 +406,39 @@ def test_numba_pushpull_matches_opencv_pushpull(shape, known_frac):
     assert np.abs(d_only - d).max() < 1e-5
 
 
+@pytest.mark.parametrize("with_color", [True, False])
+def test_pull0_kernel_is_the_exact_mean_of_known_children(with_color):
+    """Level 0 -> 1 of the numba pull-push: the 2x2 means of the known children (float32 sums in
+    row order, weights = known count / 4), exactly, whatever the unknown pixels hold (0, NaN, inf,
+    negative: they must not leak into the sums)."""
+    from presim.synthesis.fill import _pull0_kernel
+
+    rng = np.random.default_rng(7)
+    H, W = 34, 46
+    known = rng.random((H, W)) < 0.6
+    depth = rng.uniform(0.2, 4.0, (H, W)).astype(np.float32)
+    depth[~known] = rng.choice(np.array([0.0, np.nan, np.inf, -2.0], np.float32), int((~known).sum()))
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    C = 4 if with_color else 1
+    acc = np.full((H // 2, W // 2, C), -1.0, np.float32)
+    w = np.full((H // 2, W // 2), -1.0, np.float32)
+    _pull0_kernel(color if with_color else np.zeros((1, 1, 3), np.uint8), depth, known, with_color, acc, w)
+    children = [(0, 0), (0, 1), (1, 0), (1, 1)]
+    sw = np.zeros((H // 2, W // 2), np.float32)
+    sd = np.zeros((H // 2, W // 2), np.float32)
+    sc = np.zeros((H // 2, W // 2, 3), np.float32)
+    for dy, dx in children:  # the same float32 additions, in the same order, numpy
+        k = known[dy::2, dx::2]
+        sw = sw + np.where(k, np.float32(1), np.float32(0))
+        sd = sd + np.where(k, depth[dy::2, dx::2], np.float32(0))
+        sc = sc + np.where(k[..., None], color[dy::2, dx::2].astype(np.float32), np.float32(0))
+    np.testing.assert_array_equal(w, sw * np.float32(0.25))
+    np.testing.assert_array_equal(acc[..., C - 1], sd * np.float32(0.25))
+    if with_color:
+        np.testing.assert_array_equal(acc[..., :3], sc * np.float32(0.25))
+    assert np.isfinite(acc).all()
+
+
 def test_numba_and_opencv_pushpull_agree_on_a_ramp():
     """Both kernels reproduce a linear ramp inside a hole (the pyramids differ only at odd sizes)."""
     u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)

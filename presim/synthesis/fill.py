@@ -72,35 +72,39 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 @nb.njit(parallel=True, cache=True)
 def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
-    # Level 0 -> 1: means over the in-image 2x2 children (premultiplied values, 0/1 weights).
-    H, W = known.shape
+    # Level 0 -> 1 for even H and W: means over the 2x2 children (premultiplied values, 0/1
+    # weights). The known children are added in row order as selects (an unknown child adds +0.0,
+    # which leaves a sum of non-negative values bit for bit unchanged): no branch on the speckled
+    # mask.
     h2, w2 = w.shape
     C = acc.shape[2]
+    zero = np.float32(0.0)
+    quarter = np.float32(0.25)
     for i in nb.prange(h2):
-        ny = min(2 * i + 2, H) - 2 * i
+        ka = known[2 * i]
+        kb = known[2 * i + 1]
+        da = depth[2 * i]
+        db = depth[2 * i + 1]
+        ca = color[2 * i] if with_color else color[0]
+        cb = color[2 * i + 1] if with_color else color[0]
         for j in range(w2):
-            nx = min(2 * j + 2, W) - 2 * j
-            s0 = np.float32(0.0)
-            s1 = np.float32(0.0)
-            s2 = np.float32(0.0)
-            sd = np.float32(0.0)
-            sw = np.float32(0.0)
-            for y in range(2 * i, 2 * i + ny):
-                for x in range(2 * j, 2 * j + nx):
-                    if known[y, x]:
-                        sw += 1.0
-                        sd += depth[y, x]
-                        if with_color:
-                            s0 += color[y, x, 0]
-                            s1 += color[y, x, 1]
-                            s2 += color[y, x, 2]
-            inv = np.float32(1.0) / np.float32(ny * nx)
+            x0 = 2 * j
+            x1 = x0 + 1
+            k0 = ka[x0]
+            k1 = ka[x1]
+            k2 = kb[x0]
+            k3 = kb[x1]
+            sw = (((zero + (np.float32(1.0) if k0 else zero)) + (np.float32(1.0) if k1 else zero))
+                  + (np.float32(1.0) if k2 else zero)) + (np.float32(1.0) if k3 else zero)
+            sd = (((zero + (da[x0] if k0 else zero)) + (da[x1] if k1 else zero)) + (db[x0] if k2 else zero)) \
+                + (db[x1] if k3 else zero)
             if with_color:
-                acc[i, j, 0] = s0 * inv
-                acc[i, j, 1] = s1 * inv
-                acc[i, j, 2] = s2 * inv
-            acc[i, j, C - 1] = sd * inv
-            w[i, j] = sw * inv
+                for ch in range(3):
+                    s = (((zero + (np.float32(ca[x0, ch]) if k0 else zero)) + (np.float32(ca[x1, ch]) if k1 else zero))
+                         + (np.float32(cb[x0, ch]) if k2 else zero)) + (np.float32(cb[x1, ch]) if k3 else zero)
+                    acc[i, j, ch] = s * quarter
+            acc[i, j, C - 1] = sd * quarter
+            w[i, j] = sw * quarter
 
 
 @nb.njit(cache=True, inline="always")
