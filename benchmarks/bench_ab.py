@@ -4,7 +4,9 @@ Each measurement runs in a child process that imports ``presim`` from one tree (
 an exported copy of the base commit: ``git archive COMMIT | tar -x -C out/base``, or this tree);
 children alternate base, new, base, new ... (``--repeats`` pairs), so load changes on a shared
 machine hit both. Reported per case: median CPU ms per frame / step (process time, all threads)
-and wall ms, and the ratio base / new. Cases (only APIs both trees have):
+and wall ms, the mean wall ms (total time / count: the throughput, which counts the steps that
+stall on a view the robot meets for the first time; a median hides them), and the ratio base / new.
+Cases (only APIs both trees have):
 
 - ``render WxH``: ``Renderer(scene, RenderConfig())`` on bench_render.py's trajectory (midpoints
   of consecutive captured views), after one cold and one warm pass;
@@ -129,12 +131,17 @@ def main() -> int:
                 for k in r:
                     runs[name][k].extend(r[k])
         med = {name: {k: statistics.median(v) for k, v in d.items()} for name, d in runs.items()}
+        mean = {name: statistics.fmean(d["wall_ms"]) for name, d in runs.items()}
+        for name in med:
+            med[name]["mean_wall_ms"] = mean[name]
         res[case] = {"base": med["base"], "new": med["new"], "n_samples": len(runs["new"]["cpu_ms"]),
+                     "mean_wall_ratio_base_over_new": mean["base"] / mean["new"],
                      "cpu_ratio_base_over_new": med["base"]["cpu_ms"] / med["new"]["cpu_ms"],
                      "load_average": os.getloadavg()}
         print(f"{case:16s} CPU ms median: base {med['base']['cpu_ms']:7.1f}  new {med['new']['cpu_ms']:7.1f}  "
               f"-> x{res[case]['cpu_ratio_base_over_new']:.2f}   wall ms: base {med['base']['wall_ms']:7.1f}  "
-              f"new {med['new']['wall_ms']:7.1f}   load {os.getloadavg()[0]:.1f}", flush=True)
+              f"new {med['new']['wall_ms']:7.1f}   mean wall ms: base {mean['base']:7.1f}  new {mean['new']:7.1f} "
+              f"-> x{mean['base'] / mean['new']:.2f}   load {os.getloadavg()[0]:.1f}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({"scene": args.scene, "trees": trees, "results": res}, indent=2))
     return 0

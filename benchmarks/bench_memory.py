@@ -103,7 +103,7 @@ def child(args) -> dict:
             sample()
         renderer, n = sim.renderer, 1
     out.update(peak_mb=_status_mb("VmHWM"), rss_end_mb=_status_mb("VmRSS"), num_envs=n,
-               cache_mb=renderer.cache_bytes / 2**20, cached_views=len(renderer._views), steps=args.steps)
+               cache_mb=renderer.cache_bytes / 2**20, cached_views=len(renderer.view_cache), steps=args.steps)
     out["peak_per_env_mb"] = out["peak_mb"] / n
     out["peak_anon_mb"] = anon[0]
     out["peak_anon_per_env_mb"] = anon[0] / n

@@ -40,3 +40,28 @@ def test_user_settings_win():
     # The user set the wait policy: presim changes nothing, even after torch.
     assert _run("torch", OMP_WAIT_POLICY="ACTIVE") == ["omp", "ACTIVE"]
     assert _run("torch", NUMBA_THREADING_LAYER="omp")[0] == "omp"
+
+
+PREFETCH_SCRIPT = """
+import torch
+import presim, numba, numpy as np
+from presim.geometry import Intrinsics, look_at
+from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.testing import rect_scene as S
+K = Intrinsics.from_fov(160, 120, 60.0)
+r = Renderer(S.make_scene(S.room_rects(), S.orbit_poses(8), K), RenderConfig(max_views=6, min_view_gain=0.0))
+for x in np.linspace(-0.3, 0.3, 7):  # parallel kernels in this thread, views built in the other
+    r.render(look_at((x, -1.0, 1.25), (0.2 * x, 0.5, 0.4)), K.scaled(40, 30))
+r.view_cache.wait()
+print(numba.threading_layer(), r.view_cache.built_ahead)
+"""
+
+
+def test_views_built_ahead_under_the_work_queue_layer():
+    # numba's work queue aborts on parallel kernels launched from two threads at once: the view
+    # cache's background thread must only run serial kernels.
+    e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
+    out = subprocess.run([sys.executable, "-c", PREFETCH_SCRIPT], env=e, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    layer, built = out.stdout.split()
+    assert layer == "workqueue" and int(built) > 0

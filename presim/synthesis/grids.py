@@ -39,7 +39,7 @@ def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
     return pix, np.asarray(z, np.float32)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)  # nogil: also run by the view cache's background thread
 def _project_grid_kernel(xyz, M, fx, fy, cx, cy, W, H, pix, z_out):  # pragma: no cover
     for i in range(xyz.shape[0]):
         x = np.float64(xyz[i, 0])
@@ -78,7 +78,7 @@ def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) 
     return pix, z
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)  # nogil: also run by the view cache's background thread
 def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), z and near
     # float32 (as numpy compares a float32 array with a Python float); pix: the target pixel of each

@@ -87,51 +87,65 @@ def pool_depth_aware_ref(depth_m: np.ndarray, color: np.ndarray, depth_tol: floa
     return d_out, c_out
 
 
+@nb.njit(cache=True, nogil=True)
+def _pool_row(d, c, tol, dout, cout, i):  # pragma: no cover
+    # Row i of the pooled level (see pool_depth_aware_ref).
+    W2 = dout.shape[1]
+    for j in range(W2):
+        dmin = np.inf
+        for a in range(2):
+            for b in range(2):
+                z = d[2 * i + a, 2 * j + b]
+                if z > 0 and z < dmin:
+                    dmin = z
+        if not (dmin < np.inf):
+            dout[i, j] = 0.0
+            cout[i, j, 0] = 0
+            cout[i, j, 1] = 0
+            cout[i, j, 2] = 0
+            continue
+        lim = np.float64(dmin) * (1.0 + tol)
+        n = 0
+        sd = 0.0
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        for a in range(2):
+            for b in range(2):
+                z = d[2 * i + a, 2 * j + b]
+                if z > 0 and z <= lim:
+                    n += 1
+                    sd += np.float64(z)
+                    s0 += np.float64(c[2 * i + a, 2 * j + b, 0])
+                    s1 += np.float64(c[2 * i + a, 2 * j + b, 1])
+                    s2 += np.float64(c[2 * i + a, 2 * j + b, 2])
+        dout[i, j] = np.float32(sd / n)
+        cout[i, j, 0] = np.uint8(np.floor(s0 / n + 0.5))
+        cout[i, j, 1] = np.uint8(np.floor(s1 / n + 0.5))
+        cout[i, j, 2] = np.uint8(np.floor(s2 / n + 0.5))
+
+
 @nb.njit(parallel=True, cache=True)
 def _pool_kernel(d, c, tol, dout, cout):  # pragma: no cover
-    H2, W2 = dout.shape
-    for i in nb.prange(H2):
-        for j in range(W2):
-            dmin = np.inf
-            for a in range(2):
-                for b in range(2):
-                    z = d[2 * i + a, 2 * j + b]
-                    if z > 0 and z < dmin:
-                        dmin = z
-            if not (dmin < np.inf):
-                dout[i, j] = 0.0
-                cout[i, j, 0] = 0
-                cout[i, j, 1] = 0
-                cout[i, j, 2] = 0
-                continue
-            lim = np.float64(dmin) * (1.0 + tol)
-            n = 0
-            sd = 0.0
-            s0 = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            for a in range(2):
-                for b in range(2):
-                    z = d[2 * i + a, 2 * j + b]
-                    if z > 0 and z <= lim:
-                        n += 1
-                        sd += np.float64(z)
-                        s0 += np.float64(c[2 * i + a, 2 * j + b, 0])
-                        s1 += np.float64(c[2 * i + a, 2 * j + b, 1])
-                        s2 += np.float64(c[2 * i + a, 2 * j + b, 2])
-            dout[i, j] = np.float32(sd / n)
-            cout[i, j, 0] = np.uint8(np.floor(s0 / n + 0.5))
-            cout[i, j, 1] = np.uint8(np.floor(s1 / n + 0.5))
-            cout[i, j, 2] = np.uint8(np.floor(s2 / n + 0.5))
+    for i in nb.prange(dout.shape[0]):
+        _pool_row(d, c, tol, dout, cout, i)
 
 
-def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02
+@nb.njit(cache=True, nogil=True)
+def _pool_kernel_serial(d, c, tol, dout, cout):  # pragma: no cover
+    # One thread, without the GIL: for a background thread beside the main thread's parallel kernels.
+    for i in range(dout.shape[0]):
+        _pool_row(d, c, tol, dout, cout, i)
+
+
+def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02, parallel: bool = True
                      ) -> tuple[np.ndarray, np.ndarray]:
     """2x2 depth-aware pooling (numba): per block, average depth and colour of the valid pixels within
     ``depth_tol`` (relative) of the block's nearest depth; 0 where the block has no valid pixel.
 
     Args:
         depth_m: float32 (H, W), 0 (or non-finite) = invalid; color: uint8 (H, W, 3).
+        parallel: False runs one thread without the GIL (a background thread; same output).
     Returns:
         ``(depth (H//2, W//2) float32, color (H//2, W//2, 3) uint8)``.
     """
@@ -140,17 +154,19 @@ def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 
     H2, W2 = d.shape[0] // 2, d.shape[1] // 2
     dout = np.empty((H2, W2), np.float32)
     cout = np.empty((H2, W2, 3), np.uint8)
-    _pool_kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
+    kernel = _pool_kernel if parallel else _pool_kernel_serial
+    kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
     return dout, cout
 
 
-def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02
-                ) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
-    """The image of pyramid level ``level`` (0 = the input): ``(color, depth, intrinsics)``."""
+def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02,
+                parallel: bool = True) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
+    """The image of pyramid level ``level`` (0 = the input): ``(color, depth, intrinsics)``
+    (``parallel``: see :func:`pool_depth_aware`)."""
     for _ in range(level):
         if min(depth_m.shape) < 2:
             break
-        depth_m, color = pool_depth_aware(depth_m, color, depth_tol)
+        depth_m, color = pool_depth_aware(depth_m, color, depth_tol, parallel)
         K = half_intrinsics(K)
     return color, depth_m, K
 

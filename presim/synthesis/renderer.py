@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import mmap
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import cv2
@@ -47,6 +46,7 @@ from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
 from presim.synthesis.threads import frame_threads, numba_threads
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
+from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
 
 __all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
@@ -136,6 +136,11 @@ class RenderConfig:
     ``cv2.inpaint`` (docs/synthesis.md)."""
     cache_mb: float = 1024.0
     """Bound of the per-view point cache (LRU), MiB."""
+    prefetch: bool = True
+    """numba backend: after each frame, prepare in one background thread the first ``max_views``
+    selected views that are not cached yet (at the level of detail this frame picks for them), so
+    that a camera moving through the scene finds them ready (:mod:`presim.synthesis.view_cache`).
+    The images do not depend on it; it uses a second core where the frame leaves one idle."""
     near_m: float = 0.01
     """Points closer than this to the target camera are dropped."""
     next_view_fill_frac: float = 0.0
@@ -362,8 +367,9 @@ class Renderer:
         self._focal_px = float(np.median([np.sqrt(K.fx * K.fy) for K in scene.intrinsics]))
         self._use_refined = bool(config.use_refined_depth and scene.depth_refined is not None)
         self._use_fused = bool(config.use_fused_depth and getattr(scene, "depth_fused", None) is not None)
-        self._views: OrderedDict[int, object] = OrderedDict()
-        self._views_bytes = 0
+        # Prepared views by key (idx at level 0, (idx, level) above), LRU bounded by cache_mb, and
+        # optionally built ahead in a background thread (presim/synthesis/view_cache.py).
+        self._cache = ViewCache(config.cache_mb * 2**20, background=config.prefetch and config.backend == "numba")
         self._grids: dict[int, np.ndarray] = {}
         self._grid_zsrc: dict[int, np.ndarray] = {}  # per view: its grid points' depth in the view (LOD)
         self.last = RenderStats()
@@ -441,27 +447,40 @@ class Renderer:
         _unmap_pages(depth)
         return view
 
-    def _view(self, idx: int, level: int = 0):
-        key = idx if level == 0 else (idx, level)
-        v = self._views.get(key)
-        if v is not None:
-            self._views.move_to_end(key)
-            return v
-        v = self._backend.upload(self._prepare(idx) if level == 0 else self._prepare_level(idx, level),
-                                 self._device)
-        self._views[key] = v
-        self._views_bytes += v.nbytes
-        limit = self.config.cache_mb * 2**20
-        while self._views_bytes > limit and len(self._views) > 1:
-            _, old = self._views.popitem(last=False)
-            self._views_bytes -= old.nbytes
-        return v
+    def _build_view(self, idx: int, level: int, parallel: bool = True):
+        """View ``idx`` at ``level`` prepared and uploaded (``parallel=False``: serial kernels without
+        the GIL, for the background thread; same result)."""
+        view = self._prepare(idx) if level == 0 else self._prepare_level(idx, level, parallel)
+        return self._backend.upload(view, self._device)
 
-    def _prepare_level(self, idx: int, level: int) -> ViewPoints:
+    def _view(self, idx: int, level: int = 0):
+        return self._cache.get(idx if level == 0 else (idx, level), lambda: self._build_view(idx, level))
+
+    def _prefetch(self, candidates: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> None:
+        """Have the background thread make candidates 2..``max_views`` that have no cached level yet
+        ready for this target, each at the level of detail this target picks for it (the thread
+        projects their grids itself). The first candidate is warped right away, so the main thread
+        prepares it itself. Views cached at some level cost only dict lookups here: a per-frame job
+        for every candidate (level tests in the thread) took the GIL from 128x96 frames often enough
+        to make PointNav slower (docs/synthesis.md, "Views prepared ahead")."""
+        cache, levels = self._cache, range(1, self._lod.levels + 1)
+        cands = [int(v) for v in candidates[1:self.config.max_views]
+                 if int(v) not in cache and not any((int(v), k) in cache for k in levels)]
+        if cands:
+            self._cache.ahead(lambda build_ahead: self._prepare_ahead(cands, T_cam_world, K, build_ahead))
+
+    def _prepare_ahead(self, cands: list[int], T_cam_world: np.ndarray, K: Intrinsics, build_ahead) -> None:
+        """Background thread: the views ``cands`` at this target's levels (serial kernels, no GIL)."""
+        grids = FrameGrids(T_cam_world, K, self.grid_points)
+        for v in cands:
+            level = self._lod_level_fast(v, grids)
+            build_ahead(v if level == 0 else (v, level), lambda v=v, level=level: self._build_view(v, level, False))
+
+    def _prepare_level(self, idx: int, level: int, parallel: bool = True) -> ViewPoints:
         color, depth = self._load_frame(idx)
         if idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
-        c, d, K = build_level(color, depth, self.scene.intrinsics[idx], level, self.config.lod_depth_tol)
+        c, d, K = build_level(color, depth, self.scene.intrinsics[idx], level, self.config.lod_depth_tol, parallel)
         view = prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers)
         _unmap_pages(color)
         _unmap_pages(depth)
@@ -502,7 +521,13 @@ class Renderer:
     @property
     def cache_bytes(self) -> int:
         """Bytes held by the per-view point cache."""
-        return self._views_bytes
+        return self._cache.nbytes
+
+    @property
+    def view_cache(self) -> ViewCache:
+        """The per-view point cache (:class:`~presim.synthesis.view_cache.ViewCache`: its size, and
+        how many views the background thread built and the frames took)."""
+        return self._cache
 
     # ---- public API ----------------------------------------------------------------------------
     def select(self, T_world_cam: np.ndarray, K: Intrinsics, grids: FrameGrids | None = None) -> Selection:
@@ -572,6 +597,8 @@ class Renderer:
         view_image = self._backend.view_image
         if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
             get_view, view_image = self._warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
+        if self._cache.background:  # later candidates prepared while this frame runs
+            self._prefetch(sel.view_idx, T_cam_world, K)
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
                                view_image, get_view, self.grid_points, self._workspace,
                                color_transform=self._color_transform,

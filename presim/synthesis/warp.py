@@ -158,7 +158,7 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
                       np.ascontiguousarray(color[mask][order], np.uint8), start, rng)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)  # nogil: views are also prepared in a background thread
 def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no cover
     H, W = depth.shape
     n = 0

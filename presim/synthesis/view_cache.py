@@ -1,0 +1,156 @@
+"""The Renderer's cache of prepared views: LRU, bounded in bytes, optionally filled ahead of need.
+
+A prepared view (:class:`presim.synthesis.warp.ViewPoints`, one per capture frame and level of
+detail) costs 2-9 ms to build at 640x480 (read the frame, pool the level, back-project and sort by
+layer). A robot that drives or walks through a scene keeps meeting views it has not prepared yet,
+and without help each of them stalls the frame that first needs it (the demo drive prepared a new
+view every second step; a PointNav episode's first hundred steps spend ~17 % of their time there).
+
+:class:`ViewCache` can prepare such views **ahead, in one background thread**: after each frame the
+Renderer names the candidates the next frames will likely draw (the current frame's first
+``max_views`` selected views, at the level of detail this frame would pick), and the thread builds
+those not cached yet while the main thread renders. A view the main thread needs is taken from the
+cache, or waited for when the thread is building it right now, or built in the main thread as
+before when the thread has not started it (the queued job is cancelled). The images do not depend
+on who built a view: the build functions are the same, and the thread runs serial numba kernels
+that release the GIL (``nogil=True``; a parallel kernel would share numba's thread pool with the
+main thread's kernels, which the ``workqueue`` threading layer does not allow).
+
+The background thread only helps where a core would otherwise idle: frames of at most
+:data:`presim.synthesis.threads.SERIAL_MAX_PIXELS` pixels render on one numba thread (PointNav's
+128x96), and larger frames leave part of the second core idle in their serial stages. Measurements:
+docs/synthesis.md, "Views prepared ahead".
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, Callable, Hashable
+
+__all__ = ["ViewCache"]
+
+
+class ViewCache:
+    """LRU cache of prepared views bounded in bytes (each value has ``.nbytes``), with optional
+    background preparation (:meth:`prefetch`).
+
+    Args:
+        limit_bytes: the cache evicts least recently used views above this many bytes (it always
+            keeps the newest one).
+        background: allow :meth:`prefetch` (one worker thread, started on first use).
+    """
+
+    def __init__(self, limit_bytes: float, background: bool = False):
+        self.limit_bytes = float(limit_bytes)
+        self.background = bool(background)
+        self._items: OrderedDict[Hashable, Any] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self._pending: dict[Hashable, Future] = {}
+        self._pool: ThreadPoolExecutor | None = None
+        self._queued: Future | None = None  # the background thread's latest job
+        self._ahead: set[Hashable] = set()  # built by the worker, not yet asked for
+        self.built_ahead = 0
+        """Views the background thread built."""
+        self.taken_ahead = 0
+        """Views the main thread took from the background thread (cached or waited for)."""
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the cached views."""
+        return self._bytes
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._items
+
+    def _insert(self, key: Hashable, value: Any, ahead: bool = False) -> Any:
+        """Cache ``value`` under ``key`` (an entry already there wins); evict down to the bound.
+        ``ahead``: built by the background thread."""
+        with self._lock:
+            old = self._items.get(key)
+            if old is not None:
+                self._items.move_to_end(key)
+                return old
+            self._items[key] = value
+            self._bytes += value.nbytes
+            if ahead:
+                self._ahead.add(key)
+                self.built_ahead += 1
+            while self._bytes > self.limit_bytes and len(self._items) > 1:
+                gone_key, gone = self._items.popitem(last=False)
+                self._bytes -= gone.nbytes
+                self._ahead.discard(gone_key)
+            return value
+
+    def get(self, key: Hashable, build: Callable[[], Any]) -> Any:
+        """The view under ``key``: cached, built ahead, or ``build()`` now (then cached)."""
+        with self._lock:
+            v = self._items.get(key)
+            if v is not None:
+                self._items.move_to_end(key)
+                if key in self._ahead:
+                    self._ahead.discard(key)
+                    self.taken_ahead += 1
+                return v
+            fut = self._pending.get(key)
+        if fut is not None:
+            try:
+                v = fut.result()  # the worker is building it now
+            except Exception:  # noqa: BLE001 - build it here: the same error is raised with its context
+                v = None
+            if v is not None:
+                with self._lock:
+                    self._ahead.discard(key)
+                    self.taken_ahead += 1
+                return self._insert(key, v)
+        return self._insert(key, build())
+
+    def ahead(self, job: Callable[[Callable[[Hashable, Callable[[], Any]], None]], None]) -> None:
+        """Run ``job(build_ahead)`` in the background thread (no-op when ``background`` is off); a
+        job still queued from before is dropped (only the newest frame's wishes count). The job calls
+        ``build_ahead(key, build)`` for each view it wants ready; ``build`` must be safe to run beside
+        the main thread."""
+        if not self.background:
+            return
+        with self._lock:
+            if self._queued is not None:
+                self._queued.cancel()  # False when it already runs: then it finishes
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="presim-views")
+            self._queued = self._pool.submit(job, self._build_ahead)
+
+    def _build_ahead(self, key: Hashable, build: Callable[[], Any]) -> None:
+        """Build ``key`` in this (background) thread unless it is cached or being built; a failure
+        is left for the main thread's own build of the view to raise."""
+        with self._lock:
+            if key in self._items or key in self._pending:
+                return
+            fut: Future = Future()
+            fut.set_running_or_notify_cancel()
+            self._pending[key] = fut
+        try:
+            fut.set_result(self._insert(key, build(), ahead=True))
+        except Exception as e:  # noqa: BLE001 - get() builds it again and raises there
+            fut.set_exception(e)
+        finally:
+            with self._lock:
+                self._pending.pop(key, None)
+
+    def wait(self) -> None:
+        """Block until the background thread has done what was asked of it (tests, benchmarks)."""
+        with self._lock:
+            queued = self._queued
+        if queued is not None and not queued.cancelled():
+            queued.result()
+
+    def close(self) -> None:
+        """Stop the background thread (a queued job is dropped; a running one finishes)."""
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
