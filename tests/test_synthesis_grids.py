@@ -125,3 +125,38 @@ def test_fill_area_known_answers_and_reference():
     mask = (rng.random(500) < 0.4).astype(np.uint8)
     np.testing.assert_allclose(_fill_area_kernel(mask, pix, zs, zt, np.float32(0.01)),
                                fill_area_ref(mask, pix, zs, zt, 0.01), rtol=1e-12)
+
+
+def test_overlapping_equals_overlap_above_zero_and_selection_is_unchanged():
+    """FrameGrids.overlapping (stops at the first point inside) = overlaps > 0, projected or not, and
+    a selection with only max_views exact overlaps picks the same views in the same order."""
+    from presim.synthesis.select import select_views
+
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(12, span_m=1.6), K)
+    r = Renderer(scene, RenderConfig(overlap_stride_px=4))
+    ids = list(range(len(scene)))
+    Kt = Intrinsics.from_fov(40, 30, 60.0)
+    n_none = n_some = n_nan = 0
+    for k, T in enumerate([look_at((x, -1.0, 1.25), (3.0 * x, y, 0.4)) for x in (-0.4, 0.0, 0.4)
+                           for y in (0.5, -3.0)]):  # y = -3: looking away from most of the room
+        T_cw = invert(T)
+        want = FrameGrids(T_cw, Kt, r.grid_points).overlaps(ids) > 0
+        g = FrameGrids(T_cw, Kt, r.grid_points)
+        if k % 2:
+            g.project(ids[:3])  # some views projected already: answered from their projection
+        np.testing.assert_array_equal(g.overlapping(ids), want)
+        n_none += int((~want).sum())
+        n_some += int(want.sum())
+        args = (T, Kt, r._centres, r._dirs, r._hfov_deg, r.grid_points)
+        full = select_views(*args, overlaps=g.overlaps)
+        for n_exact in (1, 2, 6):
+            fast = select_views(*args, overlaps=g.overlaps, overlapping=g.overlapping, exact_overlaps=n_exact)
+            np.testing.assert_array_equal(fast.view_idx, full.view_idx)
+            m = min(n_exact, len(full.view_idx))
+            np.testing.assert_array_equal(fast.overlap_frac[:m], full.overlap_frac[:m])
+            assert np.isnan(fast.overlap_frac[m:]).all()
+            n_nan += len(fast.overlap_frac) - m
+        assert (select_views(*args, order="overlap", overlaps=g.overlaps, overlapping=g.overlapping,
+                             exact_overlaps=1).overlap_frac > 0).all()  # overlap order: all computed
+    assert n_none > 0 and n_some > 0 and n_nan > 0  # both answers and the nan tail exercised

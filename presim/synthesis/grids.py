@@ -39,24 +39,39 @@ def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
     return pix, np.asarray(z, np.float32)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H):  # pragma: no cover
+    # Point i's float32 z in the target camera (as transform_points returns for float32 points) and
+    # its flat pixel by the pixel-centre rule, -1 behind the camera or outside the image.
+    x = np.float64(xyz[i, 0])
+    y = np.float64(xyz[i, 1])
+    z = np.float64(xyz[i, 2])
+    zc = np.float32(x * M[2, 0] + y * M[2, 1] + z * M[2, 2] + M[2, 3])
+    if not (zc > 0.0):
+        return np.int64(-1), zc
+    xc = np.float32(x * M[0, 0] + y * M[0, 1] + z * M[0, 2] + M[0, 3])
+    yc = np.float32(x * M[1, 0] + y * M[1, 1] + z * M[1, 2] + M[1, 3])
+    uf = np.floor(fx * np.float64(xc) / np.float64(zc) + cx + 0.5)
+    vf = np.floor(fy * np.float64(yc) / np.float64(zc) + cy + 0.5)
+    if uf >= 0 and uf < W and vf >= 0 and vf < H:
+        return np.int64(vf) * W + np.int64(uf), zc
+    return np.int64(-1), zc
+
+
 @nb.njit(cache=True, nogil=True)  # nogil: also run by the view cache's background thread
 def _project_grid_kernel(xyz, M, fx, fy, cx, cy, W, H, pix, z_out):  # pragma: no cover
     for i in range(xyz.shape[0]):
-        x = np.float64(xyz[i, 0])
-        y = np.float64(xyz[i, 1])
-        z = np.float64(xyz[i, 2])
-        # float32 camera coordinates, as transform_points returns for float32 points.
-        zc = np.float32(x * M[2, 0] + y * M[2, 1] + z * M[2, 2] + M[2, 3])
-        z_out[i] = zc
-        pix[i] = -1
-        if not (zc > 0.0):
-            continue
-        xc = np.float32(x * M[0, 0] + y * M[0, 1] + z * M[0, 2] + M[0, 3])
-        yc = np.float32(x * M[1, 0] + y * M[1, 1] + z * M[1, 2] + M[1, 3])
-        uf = np.floor(fx * np.float64(xc) / np.float64(zc) + cx + 0.5)
-        vf = np.floor(fy * np.float64(yc) / np.float64(zc) + cy + 0.5)
-        if uf >= 0 and uf < W and vf >= 0 and vf < H:
-            pix[i] = np.int64(vf) * W + np.int64(uf)
+        pix[i], z_out[i] = _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H)
+
+
+@nb.njit(cache=True, nogil=True)
+def _any_front_kernel(xyz, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
+    # = _count_front_kernel(*project_grid(...), near) > 0, stopping at the first point that counts.
+    for i in range(xyz.shape[0]):
+        p, zc = _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H)
+        if p >= 0 and zc > near:
+            return True
+    return False
 
 
 def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -169,19 +184,48 @@ class FrameGrids:
         self._grid_points = grid_points
         self._proj: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._px: dict[tuple[int, float], np.ndarray] = {}
+        self._args: tuple | None = None
 
     def project(self, ids: Sequence[int]) -> None:
         """Project the grids of the views ``ids`` not projected yet, all in one kernel call."""
         missing = [int(v) for v in ids if int(v) not in self._proj]
         if not missing:
             return
-        grids = [self._grid_points(v) for v in missing]
-        xyz = grids[0] if len(grids) == 1 else np.concatenate(grids)
-        pix, z = project_grid(xyz, self.T_cam_world, self.K)
+        grids = [np.ascontiguousarray(self._grid_points(v), np.float32) for v in missing]
+        n = sum(len(g) for g in grids)
+        pix = np.empty(n, np.int64)
+        z = np.empty(n, np.float32)
+        args = self._kernel_args()
         o = 0
-        for v, g in zip(missing, grids):
-            self._proj[v] = (pix[o:o + len(g)], z[o:o + len(g)])
+        for v, g in zip(missing, grids):  # each grid straight into its slice of one output (no copy of the inputs)
+            p, zz = pix[o:o + len(g)], z[o:o + len(g)]
+            if len(g):
+                _project_grid_kernel(g, *args, p, zz)
+            self._proj[v] = (p, zz)
             o += len(g)
+
+    def _kernel_args(self) -> tuple:
+        """The projection kernels' camera arguments (``M`` = the 3x4 of ``T_cam_world``, float64)."""
+        if self._args is None:
+            K = self.K
+            M = np.ascontiguousarray(np.asarray(self.T_cam_world, np.float64)[:3, :4])
+            self._args = (M, float(K.fx), float(K.fy), float(K.cx), float(K.cy), int(K.width), int(K.height))
+        return self._args
+
+    def overlapping(self, ids: Sequence[int], near_m: float = 1e-3) -> np.ndarray:
+        """bool (k,): whether each view's overlap (:meth:`overlaps`) is > 0, without projecting the
+        whole grid of a view not projected yet (the test stops at the first grid point inside the
+        target image in front of it; same arithmetic as :func:`project_grid`)."""
+        near = np.float32(near_m)
+        out = np.zeros(len(ids), bool)
+        for i, v in enumerate(ids):
+            got = self._proj.get(int(v))
+            if got is not None:
+                out[i] = _count_front_kernel(got[0], got[1], near) > 0
+                continue
+            g = np.ascontiguousarray(self._grid_points(int(v)), np.float32)
+            out[i] = len(g) > 0 and _any_front_kernel(g, *self._kernel_args(), near)
+        return out
 
     def projection(self, v: int) -> tuple[np.ndarray, np.ndarray]:
         """``(pix, z)`` of view ``v``'s grid (see :func:`project_grid`)."""

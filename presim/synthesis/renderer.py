@@ -536,8 +536,12 @@ class Renderer:
         cfg = self.config
         if grids is None:
             grids = FrameGrids(invert(T_world_cam), K, self.grid_points)
+        # Overlap fractions only for the views the adaptive loop may draw (max_views; with
+        # fixed_views that many); the rest only need "overlaps at all" (same selection).
+        n_exact = cfg.fixed_views if cfg.fixed_views > 0 else cfg.max_views
         return select_views(T_world_cam, K, self._centres, self._dirs, self._hfov_deg, self.grid_points,
-                            cfg.selection, cfg.max_candidates, cfg.view_order, overlaps=grids.overlaps)
+                            cfg.selection, cfg.max_candidates, cfg.view_order, overlaps=grids.overlaps,
+                            overlapping=grids.overlapping, exact_overlaps=n_exact)
 
     def render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
         """Synthesize color + depth at camera pose ``T_world_cam`` (4x4) with intrinsics ``K``."""

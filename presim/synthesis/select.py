@@ -61,11 +61,29 @@ def view_overlap(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrins
     return float(inside.mean())
 
 
+def _first_overlaps(idx: np.ndarray, overlaps: Callable[[np.ndarray], np.ndarray],
+                    overlapping: Callable[[np.ndarray], np.ndarray], n_exact: int) -> np.ndarray:
+    """(k,) overlaps of ``idx`` in order until ``n_exact`` of them are > 0; the views after those get
+    ``overlapping``'s test only: nan where they overlap, 0 where they do not."""
+    ov = np.full(len(idx), np.nan)
+    done = found = 0
+    while done < len(idx) and found < n_exact:
+        part = np.asarray(overlaps(idx[done:done + n_exact - found]), np.float64).reshape(-1)
+        ov[done:done + len(part)] = part
+        found += int(np.count_nonzero(part > 0.0))
+        done += len(part)
+    if done < len(idx):
+        ov[done:][~np.asarray(overlapping(idx[done:]), bool)] = 0.0
+    return ov
+
+
 def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarray,
                  directions_world: np.ndarray, hfov_deg: np.ndarray,
                  grid_points: Callable[[int], np.ndarray], mode: str = "adaptive",
                  max_candidates: int = 10, order: str = "distance",
-                 overlaps: Callable[[np.ndarray], np.ndarray] | None = None) -> Selection:
+                 overlaps: Callable[[np.ndarray], np.ndarray] | None = None,
+                 overlapping: Callable[[np.ndarray], np.ndarray] | None = None,
+                 exact_overlaps: int = 0) -> Selection:
     """Select and order the input views for a target camera.
 
     Args:
@@ -80,6 +98,12 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
         overlaps: optional fast path: ``overlaps(idx)`` -> (k,) :func:`view_overlap` of each view of
             ``idx`` in the target (the Renderer projects all grids in one call,
             :class:`presim.synthesis.grids.FrameGrids`); None = :func:`view_overlap` per view.
+        overlapping: optional fast path with ``exact_overlaps`` > 0 and ``order="distance"``:
+            ``overlapping(idx)`` -> bool (k,) = ``overlaps(idx) > 0`` (cheaper: it may stop at the
+            first grid point that lands in the target). Only the first ``exact_overlaps`` selected
+            views then get their overlap computed (the Renderer passes ``max_views``: the adaptive
+            loop never draws beyond them); later selected views report nan. The selected views and
+            their order are the same.
     """
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")
@@ -104,8 +128,12 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
     if overlaps is None:
         def overlaps(ids: np.ndarray) -> np.ndarray:
             return np.array([view_overlap(grid_points(int(i)), T_cam_world, K) for i in ids], np.float64)
-    ov = np.asarray(overlaps(idx), np.float64).reshape(len(idx))
-    keep = ov > 0.0
+    if overlapping is not None and exact_overlaps > 0 and order == "distance":
+        ov = _first_overlaps(idx, overlaps, overlapping, exact_overlaps)
+        keep = ~(ov <= 0.0)  # nan: overlaps, fraction not computed
+    else:
+        ov = np.asarray(overlaps(idx), np.float64).reshape(len(idx))
+        keep = ov > 0.0
     idx, ov = idx[keep], ov[keep]
     if len(idx) == 0:  # fallback (step 4): the views looking most like the target, any distance
         idx = np.lexsort((dist, angle))[:k]
