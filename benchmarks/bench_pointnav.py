@@ -44,6 +44,21 @@ def _steps_per_s(step, n: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
+def load_sim_scene(path: str | None):
+    """``(folder, Scene)``: the saved scene at ``path``, or (None) the sample scene (seed 0, 30 frames
+    640x480), built once into the temp directory as benchmarks/bench_sim.py does."""
+    import tempfile
+
+    from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
+    from presim.capture.store import load_scene
+
+    if path is None:
+        path = str(Path(tempfile.gettempdir()) / "presim_bench_sim_sample_seed0_640x480_30")
+        if not (Path(path) / "scene.json").is_file():
+            build_sample_scene(path, seed=0, config=SampleSceneConfig(num_frames=30), overwrite=True)
+    return path, load_scene(path)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", help="saved scene folder with a floor (default: the sample scene, seed 0, "
@@ -55,7 +70,6 @@ def main() -> int:
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args()
     os.environ["PRESIM_NO_PROGRESS"] = "1"
-    from presim.capture.store import load_scene
     from presim.sensors.camera import CameraSpec
     from presim.sim.envs import PointNavEnv
     from presim.sim.robot import default_robot
@@ -64,15 +78,7 @@ def main() -> int:
     from presim.sim.vector_env import PointNavVectorEnv
     from presim.synthesis.renderer import RenderConfig, Renderer
 
-    if args.scene is None:
-        import tempfile
-
-        from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
-
-        args.scene = str(Path(tempfile.gettempdir()) / "presim_bench_sim_sample_seed0_640x480_30")
-        if not (Path(args.scene) / "scene.json").is_file():
-            build_sample_scene(args.scene, seed=0, config=SampleSceneConfig(num_frames=30), overwrite=True)
-    scene = load_scene(args.scene)
+    args.scene, scene = load_sim_scene(args.scene)
     print(f"scene {args.scene}  cpus {os.cpu_count()}  load average {os.getloadavg()}", flush=True)
     res: dict[str, dict] = {}
 

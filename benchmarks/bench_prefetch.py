@@ -80,17 +80,9 @@ def main() -> int:
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args()
     os.environ["PRESIM_NO_PROGRESS"] = "1"
-    from presim.capture.store import load_scene
+    from bench_pointnav import load_sim_scene  # this folder is on sys.path when run as a script
 
-    if args.scene is None:
-        import tempfile
-
-        from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
-
-        args.scene = str(Path(tempfile.gettempdir()) / "presim_bench_sim_sample_seed0_640x480_30")
-        if not (Path(args.scene) / "scene.json").is_file():
-            build_sample_scene(args.scene, seed=0, config=SampleSceneConfig(num_frames=30), overwrite=True)
-    scene = load_scene(args.scene)
+    args.scene, scene = load_sim_scene(args.scene)
     print(f"scene {args.scene}  load average {os.getloadavg()}", flush=True)
     res = {}
     for case, make, n in (("pointnav 128x96", _pointnav, args.pointnav_steps), ("demo drive 640x480", _drive,
