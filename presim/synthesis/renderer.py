@@ -137,10 +137,11 @@ class RenderConfig:
     cache_mb: float = 1024.0
     """Bound of the per-view point cache (LRU), MiB."""
     prefetch: bool = True
-    """numba backend: after each frame, prepare in one background thread the first ``max_views``
-    selected views that are not cached yet (at the level of detail this frame picks for them), so
-    that a camera moving through the scene finds them ready (:mod:`presim.synthesis.view_cache`).
-    The images do not depend on it; it uses a second core where the frame leaves one idle."""
+    """numba backend: when a frame starts, hand the selected candidates 2..``max_views`` that have
+    no cached level yet to one background thread, which prepares them at the level of detail this
+    frame picks for them while the frame renders, so that a camera moving through the scene finds
+    them ready (:mod:`presim.synthesis.view_cache`). The images do not depend on it; it uses a
+    second core where the frame leaves one idle."""
     near_m: float = 0.01
     """Points closer than this to the target camera are dropped."""
     next_view_fill_frac: float = 0.0
