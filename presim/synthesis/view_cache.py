@@ -6,10 +6,10 @@ layer). A robot that drives or walks through a scene keeps meeting views it has 
 and without help each of them stalls the frame that first needs it (the demo drive prepared a new
 view every second step; a PointNav episode's first hundred steps spend ~17 % of their time there).
 
-:class:`ViewCache` can prepare such views **ahead, in one background thread**: after each frame the
-Renderer names the candidates the next frames will likely draw (the current frame's first
-``max_views`` selected views, at the level of detail this frame would pick), and the thread builds
-those not cached yet while the main thread renders. A view the main thread needs is taken from the
+:class:`ViewCache` can prepare such views **ahead, in one background thread**: when a frame starts,
+the Renderer hands over the selected candidates 2..``max_views`` that have no cached level yet (the
+first is warped at once), and the thread picks the level of detail this frame would pick for each
+and builds it while the main thread renders. A view the main thread needs is taken from the
 cache, or waited for when the thread is building it right now, or built in the main thread as
 before when the thread has not started it (the queued job is cancelled). The images do not depend
 on who built a view: the build functions are the same, and the thread runs serial numba kernels
