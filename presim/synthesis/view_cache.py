@@ -11,7 +11,8 @@ the Renderer hands over the selected candidates 2..``max_views`` that have no ca
 first is warped at once), and the thread picks the level of detail this frame would pick for each
 and builds it while the main thread renders. A view the main thread needs is taken from the
 cache, or waited for when the thread is building it right now, or built in the main thread as
-before when the thread has not started it (the queued job is cancelled). The images do not depend
+before when the thread has not reached it (the thread then skips it; a job still queued when the
+next frame hands over its own is dropped). The images do not depend
 on who built a view: the build functions are the same, and the thread runs serial numba kernels
 that release the GIL (``nogil=True``; a parallel kernel would share numba's thread pool with the
 main thread's kernels, which the ``workqueue`` threading layer does not allow).
