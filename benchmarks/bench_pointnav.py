@@ -7,8 +7,10 @@ configurations (so load changes on a shared machine hit both), medians reported:
   random (seeded) actions; baseline = the same env with the pre-LOD renderer
   (``RenderConfig(lod_levels=0, reuse_move_m=0)``, "today").
 - ``pointnav vector N``: :class:`presim.sim.vector_env.PointNavVectorEnv` env-steps/s (N robots
-  per step), with ``torch_batch`` (one batch per step) and with ``numba`` (frames one by one);
-  ratio to the single env.
+  per step), with ``torch_batch`` (one batch per step), with ``numba`` (frames spread over
+  ``RenderConfig.batch_threads`` = auto threads) and with ``numba 1 thread`` (frames one after
+  another); ratio to the single env. Each robot takes as many steps as the single env's robot (3
+  warm-up steps, then ``--steps`` per repeat), so both meet new capture views at the same rate.
 - ``demo drive``: the simulator loop of ``presim demo`` / ``presim drive`` (default robot, one
   640x480 camera at 10 Hz, dt 0.1 s, the built-in seeded route), steps/s, new vs today.
 
@@ -116,20 +118,23 @@ def main() -> int:
           flush=True)
 
     # ---- vector env ----------------------------------------------------------------------------
-    for backend in ("torch_batch", "numba"):
-        venv = PointNavVectorEnv(scene, num_envs=args.num_envs, render=RenderConfig(backend=backend))
+    for backend, threads in (("torch_batch", 0), ("numba", 0), ("numba", 1)):
+        venv = PointNavVectorEnv(scene, num_envs=args.num_envs, render=RenderConfig(backend=backend,
+                                                                                   batch_threads=threads))
         venv.reset(seed=0)
         rng = np.random.default_rng(0)
-        for _ in range(2):
+        for _ in range(3):
             venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32))
         rs = [_steps_per_s(lambda: venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32)),
-                           max(2, args.steps // 4)) * args.num_envs for _ in range(args.repeats)]
+                           args.steps) * args.num_envs for _ in range(args.repeats)]
         med = statistics.median(rs)
         cpu_env = statistics.median(CPU_MS[-args.repeats:]) / args.num_envs
-        key = f"pointnav vector {args.num_envs} {backend}"
+        name = backend if threads != 1 else f"{backend} 1 thread"
+        key = f"pointnav vector {args.num_envs} {name}"
         res[key] = {"env_steps_per_s_median": med, "ratio_vs_single": med / single, "runs": rs,
-                    "cpu_ms_per_env_step_median": cpu_env}
-        print(f"PointNav vector env x{args.num_envs} ({backend:11s}): {med:7.1f} env-steps/s  = "
+                    "cpu_ms_per_env_step_median": cpu_env,
+                    "frame_threads": venv.renderer.batch_threads(args.num_envs)}
+        print(f"PointNav vector env x{args.num_envs} ({name:15s}): {med:7.1f} env-steps/s  = "
               f"x{med / single:.2f} the single env   CPU ms/env-step {cpu_env:.1f}", flush=True)
         venv.close()
 

@@ -7,10 +7,10 @@ import os
 import numpy as np
 import pytest
 
-from presim.capture.store import save_scene
+from presim.capture.store import load_scene, save_scene
 from presim.sim.envs import PointNavEnv
 from presim.sim.vector_env import PointNavVectorEnv
-from presim.synthesis.renderer import RenderConfig
+from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
@@ -42,6 +42,33 @@ def test_vector_env_matches_single_envs_with_the_per_frame_renderer(toy_path):
             np.testing.assert_array_equal(obs["depth"][i], o["depth"])
             assert rew[i] == pytest.approx(r) and term[i] == te and trunc[i] == tr
             assert info["contact"][i] == inf["contact"]
+    venv.close()
+    for e in singles:
+        e.close()
+
+
+def test_vector_env_on_two_threads_with_temporal_reuse_matches_single_envs(toy_path):
+    """Frames spread over two threads (``batch_threads=2``) with the selection reuse on (each env
+    is its own camera stream): observations equal single envs stepped alone, step after step, also
+    while the robots turn in place (moves small enough for the reuse)."""
+    cfg = RenderConfig(batch_threads=2, reuse_move_m=0.05, reuse_turn_deg=20.0)
+    venv = PointNavVectorEnv(toy_path, num_envs=3, discrete=True, width=32, height=24, render=cfg)
+    assert venv.renderer.batch_threads(3) == 2
+    scene = load_scene(toy_path)
+    singles = [PointNavEnv(scene, discrete=True, width=32, height=24, renderer=Renderer(scene, cfg)) for _ in range(3)]
+    venv.reset(seed=11)
+    for i, e in enumerate(singles):
+        e.reset(seed=11 + i)
+    reused = 0
+    for t in range(6):
+        acts = np.array([(t + i) % 3 + 1 for i in range(3)])  # forward / turns
+        obs, *_ = venv.step(acts)
+        reused += venv.renderer.last.reused_selection
+        for i, e in enumerate(singles):
+            o, *_ = e.step(int(acts[i]))
+            np.testing.assert_array_equal(obs["rgb"][i], o["rgb"])
+            np.testing.assert_array_equal(obs["depth"][i], o["depth"])
+    assert reused > 0  # the per-stream reuse was exercised
     venv.close()
     for e in singles:
         e.close()

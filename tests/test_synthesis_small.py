@@ -130,6 +130,7 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
 
     from presim.geometry import Intrinsics, look_at
     from presim.synthesis import renderer as R
+    from presim.synthesis.threads import serial_now
     from presim.testing import rect_scene as S
 
     K = Intrinsics.from_fov(64, 48, 60.0)
@@ -139,7 +140,7 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     core = R.synthesize_frame
 
     def spy(*a, **kw):
-        seen.append(numba.get_num_threads())
+        seen.append((numba.get_num_threads(), serial_now()))
         return core(*a, **kw)
 
     monkeypatch.setattr(R, "synthesize_frame", spy)
@@ -148,7 +149,52 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     forced = R.Renderer(scene, R.RenderConfig(threads=numba.config.NUMBA_NUM_THREADS)).render(T, K)
     wide = Intrinsics(fx=K.fx, fy=K.fy, cx=199.5, cy=149.5, width=400, height=300)  # no zoom: 120 000 px
     R.Renderer(scene, R.RenderConfig()).render(T, wide)
-    assert seen == [1, numba.config.NUMBA_NUM_THREADS, before]
-    assert numba.get_num_threads() == before
+    n = numba.config.NUMBA_NUM_THREADS
+    # one thread = the serial twins of the parallel kernels (serial_now); more = the parallel ones
+    assert seen == [(1, True), (n, n == 1), (before, before == 1)]
+    assert numba.get_num_threads() == before and not serial_now()
     np.testing.assert_array_equal(auto.color, forced.color)
     np.testing.assert_array_equal(auto.depth_m, forced.depth_m)
+
+
+def test_twin_kernels_dispatch_by_the_threads_mode_and_agree():
+    """A parallel kernel declared with parallel_kernel runs its serial twin inside serial_kernels()
+    / numba_threads(1) (and in threads started there only when they ask), the parallel one
+    otherwise; both give the same output, and the serial twin runs without the GIL."""
+    import threading
+
+    from presim.synthesis.lod import _pool_kernel, pool_depth_aware
+    from presim.synthesis.threads import TwinKernel, numba_threads, serial_kernels, serial_now
+
+    assert isinstance(_pool_kernel, TwinKernel)
+    assert _pool_kernel.serial.targetoptions.get("nogil") and _pool_kernel.parallel.targetoptions.get("parallel")
+    rng = np.random.default_rng(3)
+    d = rng.uniform(0.5, 3.0, (40, 52)).astype(np.float32)
+    d[rng.random(d.shape) < 0.2] = 0.0
+    c = rng.integers(0, 256, (40, 52, 3), dtype=np.uint8)
+    calls = []
+    orig = {twin: getattr(_pool_kernel, twin) for twin in ("parallel", "serial")}
+    for twin, k in orig.items():
+        setattr(_pool_kernel, twin, lambda *a, _k=k, _t=twin: (calls.append(_t), _k(*a))[1])
+    try:
+        par = pool_depth_aware(d, c, 0.02)
+        with serial_kernels():
+            ser = pool_depth_aware(d, c, 0.02)
+            assert serial_now()
+            with numba_threads(2):  # asking for threads inside serial mode keeps the twins serial
+                assert serial_now()
+            seen = []
+            t = threading.Thread(target=lambda: seen.append(serial_now()))  # per Python thread
+            t.start()
+            t.join()
+            assert seen == [False]
+        with numba_threads(1):
+            one = pool_depth_aware(d, c, 0.02)
+        assert not serial_now()
+    finally:
+        for twin, k in orig.items():
+            setattr(_pool_kernel, twin, k)
+    assert calls == ["parallel", "serial", "serial"]
+    for a, b in ((par, ser), (par, one)):
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])

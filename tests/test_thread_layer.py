@@ -65,3 +65,29 @@ def test_views_built_ahead_under_the_work_queue_layer():
     assert out.returncode == 0, out.stderr
     layer, built = out.stdout.split()
     assert layer == "workqueue" and int(built) > 0
+
+
+BATCH_SCRIPT = """
+import torch
+import presim, numba, numpy as np
+from presim.geometry import Intrinsics, look_at
+from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.threads import SERIAL_MAX_PIXELS
+from presim.testing import rect_scene as S
+K = Intrinsics.from_fov(256, 200, 60.0)
+assert K.width * K.height > SERIAL_MAX_PIXELS  # a size whose frames use parallel kernels in render()
+r = Renderer(S.make_scene(S.room_rects(), S.orbit_poses(6), K.scaled(128, 100)), RenderConfig(batch_threads=2))
+poses = np.stack([look_at((x, -1.0, 1.25), (0.2 * x, 0.5, 0.4)) for x in np.linspace(-0.3, 0.3, 4)])
+for _ in range(3):
+    outs = r.render_batch(poses, K)
+print(numba.threading_layer(), r.batch_threads(len(poses)), sum(int(o.valid.sum()) > 0 for o in outs))
+"""
+
+
+def test_frames_rendered_on_two_threads_under_the_work_queue_layer():
+    # render_batch's frame threads must run only the serial twins of the parallel kernels: numba's
+    # work queue aborts the process when two threads launch parallel kernels at once.
+    e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
+    out = subprocess.run([sys.executable, "-c", BATCH_SCRIPT], env=e, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["workqueue", "2", "4"]

@@ -22,6 +22,7 @@ import numba as nb
 import numpy as np
 
 from presim.synthesis.crack_filter import gather_window, sort_window
+from presim.synthesis.threads import parallel_kernel
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
            "filtered_composite_packed", "filtered_composite_banded", "warp_tiles", "tile_any", "TILED_MIN_PIXELS",
@@ -29,7 +30,7 @@ __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_compo
            "analyse_hole_mask"]
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _composite_kernel(d, c, dout, cout):  # pragma: no cover
     L, H, W = d.shape
     for v in nb.prange(H):
@@ -81,7 +82,7 @@ def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.nd
                      np.empty(acc_depth_m.shape, np.uint8))
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
     # The merge (where replace and the view has a value, take the view's pixel; for the first view
     # only its source ids) + the hole mask of the result (1 where the accumulated depth is not > 0)
@@ -136,7 +137,7 @@ class HoleStats:
     """bool (H, W): pixels of holes of at least ``big_hole_px`` (None if not asked)."""
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _areas_kernel(labels, n):  # pragma: no cover
     # Pixel count per label (label 0 = background is counted too, and ignored by the caller).
     # Counted per run of equal labels along a row: one add per run instead of a chain of
@@ -157,7 +158,7 @@ def _areas_kernel(labels, n):  # pragma: no cover
     return areas
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _big_lut_kernel(labels, n, big_hole_px):  # pragma: no cover
     # Areas of the n labels (_areas_kernel), the largest hole (label >= 1), and the lookup table
     # label -> 1 if a hole of at least big_hole_px pixels (label 0 = background -> 0).
@@ -174,7 +175,7 @@ def _big_lut_kernel(labels, n, big_hole_px):  # pragma: no cover
     return lut, largest, any_big
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _big_kernel(labels, big_lut, big):  # pragma: no cover
     H, W = labels.shape
     for v in nb.prange(H):
@@ -244,7 +245,7 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
     return HoleStats(n_hole / float(H * W), largest, replace, big)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, out_c):  # pragma: no cover
     """Switching-median value of layer l at (v, u): depth (0 if it stays empty); color in out_c."""
     L, H, W = d.shape
@@ -264,7 +265,7 @@ def _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, out_c):  # pragma: 
     return bd[k]
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _masked_layers_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
     L, H, W = d.shape
     n_win = (2 * r + 1) * (2 * r + 1)
@@ -291,7 +292,7 @@ def _masked_layers_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
                     break
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _masked_single_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
     H, W = d.shape
     n_win = (2 * r + 1) * (2 * r + 1)
@@ -345,7 +346,7 @@ def filtered_composite_masked(depth_m: np.ndarray, color: np.ndarray, replace: n
     return out_d, out_c
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _fused_filter_composite_kernel(d, c, r, dout, cout):  # pragma: no cover
     L, H, W = d.shape
     n_win = (2 * r + 1) * (2 * r + 1)
@@ -427,7 +428,7 @@ _GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's b
 _BIT3 = np.uint32(0x88888888)
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _occupancy_kernel(d, bits):  # pragma: no cover
     L, H, W = d.shape
     for v in nb.prange(H):
@@ -439,7 +440,7 @@ def _occupancy_kernel(d, bits):  # pragma: no cover
             bits[v, u] = b
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _occupancy_front_kernel(d, c, bits, zout, cp):  # pragma: no cover
     # _occupancy_kernel plus, from the same reads, the front-most surface of the layers (smallest
     # depth; ties to the lower layer): depth into zout (H, W), colour into the planes cp (3, H, W).
@@ -468,7 +469,7 @@ def _occupancy_front_kernel(d, c, bits, zout, cp):  # pragma: no cover
             c2[u] = c[best, v, u, 2]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _ce(a, i, j):  # pragma: no cover
     x = a[i]
     y = a[j]
@@ -476,7 +477,7 @@ def _ce(a, i, j):  # pragma: no cover
     a[j] = max(x, y)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _sort8(a):  # pragma: no cover
     # Batcher's odd-even merge sort of 8 values (19 branch-free compare-exchanges).
     _ce(a, 0, 1)
@@ -500,7 +501,7 @@ def _sort8(a):  # pragma: no cover
     _ce(a, 5, 6)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     """Lower median (depth, each colour channel) of the non-empty pixels of layer ``l`` in the
     window, whose centre is empty (so at most 8 values): slots past the count are padded with the
@@ -518,7 +519,7 @@ def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     return (n - 1) // 2
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  # pragma: no cover
     # Per-layer 3x3 switching median fused with the front-to-back composite, via packed counts.
     L, H, W = d.shape
@@ -564,7 +565,7 @@ def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  #
 _ONES3 = np.ones((3, 3), np.uint8)
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _packed_seam_kernel(d, c, mask, use_mask, dout, cout):  # pragma: no cover
     # 3x3 switching median of one image (the seam pass): each row of dout / cout is first a copy
     # of d / c, then its cracks get the median.
@@ -677,7 +678,7 @@ _LOWEST = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.
 """Index of the lowest set bit of a byte (0 for 0)."""
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
     # The compare-exchanges of _sort8 on scalars (kept in registers); returns sorted[2], sorted[3]
     # (the compiler drops the exchanges that cannot reach those two outputs).
@@ -703,7 +704,7 @@ def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
     return x2, x3
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _nb_value(df, cf, q):  # pragma: no cover
     # (depth, r, g, b, 1) of flat pixel q; an empty pixel reads as (+inf, 255, 255, 255, 0). All
     # loads unconditional and selects after them: no branch on the speckled occupancy.
@@ -717,7 +718,7 @@ def _nb_value(df, cf, q):  # pragma: no cover
     return (z if ok else np.float32(np.inf)), (r if ok else e), (g if ok else e), (b if ok else e), np.int64(ok)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
     """:func:`_median8` of the 3x3 window at an interior pixel whose centre is empty, without
     buffers: ``df`` / ``cf`` are one layer's (or image's) depth and colour, flat (colour 3 bytes
@@ -748,7 +749,7 @@ def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
     return t3 if hi else t2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
     # One work item = rows [a, e) x columns [x0, x1) of the output (a band of rows over the whole
     # width, or a run of tiles that hold wanted pixels). Branch-free per pixel and layer (the
@@ -928,7 +929,7 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
             cout[v, u, 2] = b2[j]
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _banded_crack_kernel(d, c, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
     # Bands of ``band`` rows over the whole width (constant columns: the compiler drops the offsets).
     H, W = d.shape[1], d.shape[2]
@@ -936,7 +937,7 @@ def _banded_crack_kernel(d, c, lowest, need, use_need, mask, band, dout, cout): 
         _crack_item(d, c, lowest, need, use_need, mask, bi * band, min(bi * band + band, H), 0, W, dout, cout)
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout):  # pragma: no cover
     # Work items = rows [a, e) x columns [x0, x1) (runs of tiles holding wanted pixels).
     for it in nb.prange(items.shape[0]):
@@ -944,7 +945,7 @@ def _tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout): 
                     items[it, 3], dout, cout)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _tile_any_kernel(mask, words, tile_h, tile_w, grow):  # pragma: no cover
     # Per tile: its rectangle grown by ``grow`` (clipped). With ``words`` (the mask's rows as
     # uint64, W % 8 == 0), an all-zero cover of 8-pixel words skips the tile (most tiles of a
@@ -1007,7 +1008,7 @@ def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarra
     return _tile_any_kernel(m, words, int(tile_h), int(tile_w), int(grow))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _tile_items_kernel(active, tile_h, tile_w, H, W):  # pragma: no cover
     # Runs of consecutive active tiles along each row of tiles -> (n, 4): rows [a, e), cols [x0, x1).
     th, tw = active.shape

@@ -16,6 +16,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from presim.synthesis.threads import parallel_kernel
+
 __all__ = ["CRACK_FILTERS", "crack_filter"]
 
 CRACK_FILTERS = ("switching_median", "median", "none")
@@ -60,7 +62,7 @@ def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
     return (n - 1) // 2
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
     # dout / cout arrive as copies of din / cin; only filled cracks are written.
     # Occupancy counts per window come from column sums + a running sum along the row (O(1) per
@@ -96,7 +98,7 @@ def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
             cout[l, v, u, 2] = b2[k]
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _plain_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
     L, H, W = din.shape
     n_win = (2 * r + 1) * (2 * r + 1)

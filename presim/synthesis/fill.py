@@ -29,6 +29,7 @@ import numba as nb
 import numpy as np
 
 from presim.synthesis.telea import telea_inpaint
+from presim.synthesis.threads import parallel_kernel
 
 __all__ = ["FILL_METHODS", "FILL_KERNELS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
 
@@ -70,7 +71,7 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out[..., 0] if squeeze else out
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
     # Level 0 -> 1 for even H and W: means over the 2x2 children (premultiplied values, 0/1
     # weights). The known children are added in row order as selects (an unknown child adds +0.0,
@@ -115,7 +116,7 @@ def _taps(i, n_coarse):  # pragma: no cover
     return y0, min(y0 + 1, n_coarse - 1), np.float32(y - y0)
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no cover
     # Level 0: only the unknown pixels are written (outputs arrive as copies of the inputs).
     H, W = known.shape
@@ -135,7 +136,7 @@ def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no
                     color_out[i, j, ch] = np.uint8(min(max(up + 0.5, 0.0), 255.0))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _blend_level_kernel(acc, w, up, out):  # pragma: no cover
     # One push step of pushpull_fill: acc / max(w, 1e-12) * a + up * (1 - a), a = clip(w, 0, 1);
     # float32 throughout, no fused multiply-add (same rounding as the numpy expression).

@@ -120,7 +120,7 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     return np.float64(np.float32(lo + hi) / np.float32(2.0))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _count_front_kernel(pix, z, near):  # pragma: no cover
     # np.count_nonzero((pix >= 0) & (z > near)) (near float32, as numpy compares it with float32 z).
     n = 0
@@ -129,7 +129,7 @@ def _count_front_kernel(pix, z, near):  # pragma: no cover
     return n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _front_pixels_kernel(pix, z, near):  # pragma: no cover
     # pix[(pix >= 0) & (z > near)], in order.
     out = np.empty(pix.shape[0], np.int64)
@@ -141,7 +141,7 @@ def _front_pixels_kernel(pix, z, near):  # pragma: no cover
     return out[:m].copy()
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def count_in_mask(mask_flat, px):  # pragma: no cover
     """``np.count_nonzero(mask_flat[px])`` (numba: no gathered copy)."""
     n = 0
@@ -150,7 +150,7 @@ def count_in_mask(mask_flat, px):  # pragma: no cover
     return n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _fill_area_kernel(mask_flat, pix, z_src, z_t, near):  # pragma: no cover
     # sum over points with pix >= 0, both depths > near and mask_flat[pix] of (z_src / z_t)^2 (float64)
     s = 0.0

@@ -34,6 +34,7 @@ import numpy as np
 
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
+from presim.synthesis.threads import parallel_kernel
 
 __all__ = ["LodConfig", "pool_depth_aware", "pool_depth_aware_ref", "half_intrinsics", "build_level",
            "footprint_ratio", "choose_level"]
@@ -125,16 +126,9 @@ def _pool_row(d, c, tol, dout, cout, i):  # pragma: no cover
         cout[i, j, 2] = np.uint8(np.floor(s2 / n + 0.5))
 
 
-@nb.njit(parallel=True, cache=True)
+@parallel_kernel(cache=True)
 def _pool_kernel(d, c, tol, dout, cout):  # pragma: no cover
     for i in nb.prange(dout.shape[0]):
-        _pool_row(d, c, tol, dout, cout, i)
-
-
-@nb.njit(cache=True, nogil=True)
-def _pool_kernel_serial(d, c, tol, dout, cout):  # pragma: no cover
-    # One thread, without the GIL: for a background thread beside the main thread's parallel kernels.
-    for i in range(dout.shape[0]):
         _pool_row(d, c, tol, dout, cout, i)
 
 
@@ -145,7 +139,9 @@ def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 
 
     Args:
         depth_m: float32 (H, W), 0 (or non-finite) = invalid; color: uint8 (H, W, 3).
-        parallel: False runs one thread without the GIL (a background thread; same output).
+        parallel: False runs the kernel's serial twin, one thread without the GIL (a background
+            thread; same output); True runs it as this thread's mode says
+            (:func:`presim.synthesis.threads.serial_kernels`).
     Returns:
         ``(depth (H//2, W//2) float32, color (H//2, W//2, 3) uint8)``.
     """
@@ -154,7 +150,7 @@ def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 
     H2, W2 = d.shape[0] // 2, d.shape[1] // 2
     dout = np.empty((H2, W2), np.float32)
     cout = np.empty((H2, W2, 3), np.uint8)
-    kernel = _pool_kernel if parallel else _pool_kernel_serial
+    kernel = _pool_kernel if parallel else _pool_kernel.serial
     kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
     return dout, cout
 

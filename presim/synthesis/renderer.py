@@ -26,10 +26,13 @@ from __future__ import annotations
 
 import dataclasses
 import mmap
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
+import numba
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
@@ -44,7 +47,7 @@ from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
-from presim.synthesis.threads import frame_threads, numba_threads
+from presim.synthesis.threads import frame_threads, numba_threads, serial_kernels
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
@@ -193,6 +196,10 @@ class RenderConfig:
     batch_views: int = 3
     """``backend="torch_batch"``: :meth:`Renderer.render_batch` renders every frame from this many
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
+    batch_threads: int = 0
+    """numba backend: :meth:`Renderer.render_batch` spreads its frames over this many threads, each
+    rendering whole frames with the serial, GIL-free twins of the parallel kernels (same images as
+    :meth:`Renderer.render`); 0 = auto (numba's thread count), 1 = one frame after another."""
     # ---- photometric correction (presim/synthesis/photometric.py, `presim photometric`) ----
     use_photometric: bool = True
     """Map every capture frame to one output exposure with ``scene.photometric`` when present
@@ -254,6 +261,7 @@ class RenderConfig:
             (0.0 <= self.min_view_gain < 1.0, "min_view_gain must be in [0, 1)"),
             (self.threads >= 0, "threads must be >= 0"),
             (self.batch_views >= 1, "batch_views must be >= 1"),
+            (self.batch_threads >= 0, "batch_threads must be >= 0"),
             (self.blend_views >= 1, "blend_views must be >= 1"),
             (0.0 < self.blend_depth_tol < 1.0, "blend_depth_tol must be in (0, 1)"),
             (self.blend_feather_px >= 1.0, "blend_feather_px must be >= 1"),
@@ -355,6 +363,24 @@ class _WarpCapture:
         return self._stacks["d"][n], self._stacks["c"][n]
 
 
+class _Scratch:
+    """Buffers one rendering thread reuses across views and frames: the numba warp buffers, the
+    blend's per-view stacks and the loop's warps kept for blending."""
+
+    def __init__(self, feather_px: float):
+        self.workspace = Workspace()
+        self.blend_stacks: dict = {}
+        self.warp_capture = _WarpCapture(self.blend_stacks, feather_px)
+
+
+@dataclass
+class _Stream:
+    """What one camera stream carries from frame to frame: the previous frame's pose, intrinsics and
+    view selection (temporal reuse, ``RenderConfig.reuse_move_m``)."""
+
+    prev: tuple[np.ndarray, Intrinsics, Selection] | None = None
+
+
 class Renderer:
     """Renders RGB-D images of a scene at arbitrary poses and intrinsics from its captured views."""
 
@@ -375,13 +401,18 @@ class Renderer:
         self._grid_zsrc: dict[int, np.ndarray] = {}  # per view: its grid points' depth in the view (LOD)
         self.last = RenderStats()
         self._frame_config = config.frame_config()
-        self._workspace = Workspace()  # warp buffers reused across views and frames (numba backend)
         self._backend = get_backend(config.backend)
         self._device = self._backend.resolve_device(config.torch_device)
         self._lod = config.lod_config()
         self._src_focal = np.array([np.sqrt(K.fx * K.fy) for K in scene.intrinsics])
         self._T_cam_world_src: np.ndarray | None = None  # per view, built on first LOD use
-        self._prev: tuple[np.ndarray, Intrinsics, Selection] | None = None  # temporal reuse
+        # Per camera stream (temporal reuse): render() is stream 0; render_batch() frame b is stream b.
+        self._stream = _Stream()
+        self._batch_streams: list[_Stream] = []
+        # Per rendering thread: buffers reused across frames (render(): this one).
+        self._scratch = _Scratch(config.blend_feather_px)
+        self._thread_scratch = threading.local()
+        self._batch_pool: ThreadPoolExecutor | None = None
         # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
         # Applied to each capture frame's pixels when its view is prepared (cached with the view: no
         # per-frame cost); the core's per-view color_transform hook is left free.
@@ -395,8 +426,6 @@ class Renderer:
         self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
-        self._blend_stacks: dict = {}  # per-view depth/color/feather stacks, reused across frames
-        self._warp_capture = _WarpCapture(self._blend_stacks, config.blend_feather_px)  # the loop's warps, for blending
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
@@ -472,10 +501,11 @@ class Renderer:
 
     def _prepare_ahead(self, cands: list[int], T_cam_world: np.ndarray, K: Intrinsics, build_ahead) -> None:
         """Background thread: the views ``cands`` at this target's levels (serial kernels, no GIL)."""
-        grids = FrameGrids(T_cam_world, K, self.grid_points)
-        for v in cands:
-            level = self._lod_level_fast(v, grids)
-            build_ahead(v if level == 0 else (v, level), lambda v=v, level=level: self._build_view(v, level, False))
+        with serial_kernels():
+            grids = FrameGrids(T_cam_world, K, self.grid_points)
+            for v in cands:
+                level = self._lod_level_fast(v, grids)
+                build_ahead(v if level == 0 else (v, level), lambda v=v, level=level: self._build_view(v, level, False))
 
     def _prepare_level(self, idx: int, level: int, parallel: bool = True) -> ViewPoints:
         color, depth = self._load_frame(idx)
@@ -548,29 +578,45 @@ class Renderer:
         """Synthesize color + depth at camera pose ``T_world_cam`` (4x4) with intrinsics ``K``."""
         if not isinstance(K, Intrinsics):
             raise ValueError(f"K must be presim.geometry.Intrinsics, got {type(K).__name__}")
-        T_world_cam = check_rigid(T_world_cam, "target pose T_world_cam")
+        out, self.last = self._render_one(check_rigid(T_world_cam, "target pose T_world_cam"), K, self._stream,
+                                          self._scratch)
+        return out
+
+    def _render_one(self, T_world_cam: np.ndarray, K: Intrinsics, stream: _Stream, scratch: _Scratch
+                    ) -> tuple[RGBD, RenderStats]:
+        """One frame (pose already checked) of camera stream ``stream`` with the buffers ``scratch``."""
         scale = min(1.0, self.config.max_zoom * self._focal_px / np.sqrt(K.fx * K.fy))
         # Beyond max_zoom the frame is rendered at the capture's sampling and upsampled.
         K_in = K if scale >= 1.0 else K.scaled(max(1, round(K.width * scale)), max(1, round(K.height * scale)))
         with numba_threads(frame_threads(K_in.width, K_in.height, self.config.threads)):
-            out = self._render(T_world_cam, K_in)
+            out, stats = self._render(T_world_cam, K_in, stream, scratch)
         if K_in is K:
-            return out
+            return out, stats
         t = time.perf_counter()
         size = (K.width, K.height)
         color = cv2.resize(out.color, size, interpolation=cv2.INTER_LINEAR)
         depth = cv2.resize(out.depth_m, size, interpolation=cv2.INTER_NEAREST)
         valid = cv2.resize(out.valid.view(np.uint8), size, interpolation=cv2.INTER_NEAREST).view(bool)
         src = cv2.resize(out.source_view, size, interpolation=cv2.INTER_NEAREST)
-        self.last.ms["upsample"] = (time.perf_counter() - t) * 1e3
-        return RGBD(color, depth, valid, src, K, T_world_cam, float(1.0 - valid.mean()))
+        stats.ms["upsample"] = (time.perf_counter() - t) * 1e3
+        return RGBD(color, depth, valid, src, K, T_world_cam, float(1.0 - valid.mean())), stats
 
-    def _reusable(self, T_world_cam: np.ndarray, K: Intrinsics) -> Selection | None:
-        """The previous frame's selection when the camera moved little (temporal coherence)."""
+    @property
+    def _workspace(self) -> Workspace:
+        """The warp buffers of :meth:`render` (tests)."""
+        return self._scratch.workspace
+
+    @property
+    def _warp_capture(self) -> _WarpCapture:
+        """The loop's warps kept for blending by :meth:`render` (tests)."""
+        return self._scratch.warp_capture
+
+    def _reusable(self, T_world_cam: np.ndarray, K: Intrinsics, stream: _Stream) -> Selection | None:
+        """The stream's previous selection when the camera moved little (temporal coherence)."""
         cfg = self.config
-        if self._prev is None or cfg.reuse_move_m <= 0:
+        if stream.prev is None or cfg.reuse_move_m <= 0:
             return None
-        T_prev, K_prev, sel = self._prev
+        T_prev, K_prev, sel = stream.prev
         if K_prev != K or np.linalg.norm(T_world_cam[:3, 3] - T_prev[:3, 3]) > cfg.reuse_move_m:
             return None
         cos = (np.trace(T_prev[:3, :3].T @ T_world_cam[:3, :3]) - 1.0) / 2.0
@@ -578,11 +624,12 @@ class Renderer:
             return None
         return sel
 
-    def _render(self, T_world_cam: np.ndarray, K: Intrinsics) -> RGBD:
+    def _render(self, T_world_cam: np.ndarray, K: Intrinsics, stream: _Stream, scratch: _Scratch
+                ) -> tuple[RGBD, RenderStats]:
         t0 = time.perf_counter()
         T_cam_world = invert(T_world_cam)
         grids = FrameGrids(T_cam_world, K, self.grid_points)  # each grid projected once this frame
-        sel = self._reusable(T_world_cam, K)
+        sel = self._reusable(T_world_cam, K, stream)
         reused = sel is not None
         if sel is None:
             sel = self.select(T_world_cam, K, grids)
@@ -590,7 +637,7 @@ class Renderer:
                 p = self._sharpness.order(sel.view_idx)
                 sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
                                           angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
-            self._prev = (T_world_cam.copy(), K, sel)
+            stream.prev = (T_world_cam.copy(), K, sel)
         select_ms = (time.perf_counter() - t0) * 1e3
         get_view = self._view
         levels: dict[int, int] = {}
@@ -601,23 +648,24 @@ class Renderer:
         near = self.config.near_m
         view_image = self._backend.view_image
         if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
-            get_view, view_image = self._warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
+            get_view, view_image = scratch.warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
         if self._cache.background:  # later candidates prepared while this frame runs
             self._prefetch(sel.view_idx, T_cam_world, K)
         res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
-                               view_image, get_view, self.grid_points, self._workspace,
+                               view_image, get_view, self.grid_points, scratch.workspace,
                                color_transform=self._color_transform,
-                               blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx),
+                               blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
                                grid_px=lambda v: grids.pixels(v, near),
                                grid_fill=lambda v, big: self._grid_fill(v, grids, big))
         res.ms["select"] += select_ms
-        self.last = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
-                                ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
-                                reused_selection=reused)
+        stats = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
+                            ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
+                            reused_selection=reused)
         color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
-        return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac)
+        return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac), stats
 
-    def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, candidates):
+    def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, candidates,
+                    scratch: _Scratch):
         """The core's ``blend`` hook for one target camera (None when blending is off): blends the
         views the loop warped, then the remaining selected candidates, up to ``blend_views``."""
         if self._blend_config is None:
@@ -625,7 +673,7 @@ class Renderer:
         near = self.config.near_m
 
         def front_image(v: int, depth_out: np.ndarray, color_out: np.ndarray) -> None:
-            got = self._warp_capture.get(v)
+            got = scratch.warp_capture.get(v)
             if got is not None:  # the loop warped it already (usually into this very slot)
                 if not np.shares_memory(got[0], depth_out):
                     np.copyto(depth_out, got[0])
@@ -643,7 +691,7 @@ class Renderer:
             views = list(views) + [int(v) for v in candidates if int(v) not in views]
             return blend_frame(views, color, depth, source, T_world_cam, K, self._blend_config, front_image,
                                lambda v: self._centres[v], self._view_quality, self._color_transform,
-                               buffers=self._blend_stacks)
+                               buffers=scratch.blend_stacks)
 
         return run
 
@@ -652,18 +700,21 @@ class Renderer:
 
         With ``backend="torch_batch"`` all B frames are rendered in one batch on torch (CUDA when
         present, else CPU; :mod:`presim.synthesis.batch_torch`: ``batch_views`` views per frame, no
-        adaptive loop); other backends render the poses one by one. ``last.ms`` then holds the
-        batch's stage times."""
+        adaptive loop); ``last.ms`` then holds the batch's stage times. Other backends render the
+        poses frame by frame, each exactly as :meth:`render` would: frame ``b`` of a batch continues
+        camera stream ``b`` of the previous batch (the temporal reuse of the view selection,
+        ``reuse_move_m``, applies per stream), and on the numba backend the frames are spread over
+        ``batch_threads`` threads (:meth:`_render_threaded`); ``last`` holds the last frame's stats."""
         T = np.asarray(T_world_cams, dtype=np.float64)
         if T.ndim != 3 or T.shape[1:] != (4, 4):
             raise ValueError(f"T_world_cams must be (B, 4, 4), got {T.shape}")
-        if self._backend.frame_batch is None or len(T) == 0:
-            return [self.render(t, K) for t in T]
         if not isinstance(K, Intrinsics):
             raise ValueError(f"K must be presim.geometry.Intrinsics, got {type(K).__name__}")
-        T = np.stack([check_rigid(t, "target pose T_world_cam") for t in T])
+        T = np.stack([check_rigid(t, "target pose T_world_cam") for t in T]) if len(T) else T
+        if self._backend.frame_batch is None or len(T) == 0:
+            return self._render_threaded(T, K)
         if self.config.max_zoom * self._focal_px < np.sqrt(K.fx * K.fy):
-            return [self.render(t, K) for t in T]  # zoomed-in targets: per frame (internal size differs)
+            return self._render_threaded(T, K)  # zoomed-in targets: per frame (internal size differs)
         from presim.synthesis.batch_torch import BatchConfig
 
         cfg = self.config
@@ -685,3 +736,46 @@ class Renderer:
         self.last = RenderStats(views=frames[-1].views, selection=sels[-1], ms=ms,
                                 batch_views=[list(f.views) for f in frames])
         return [RGBD(f.color, f.depth_m, f.valid, f.source_view, K, t, f.hole_frac) for f, t in zip(frames, T)]
+
+    def _render_threaded(self, T: np.ndarray, K: Intrinsics) -> list[RGBD]:
+        """Frames of checked poses ``T`` (B, 4, 4), frame ``b`` in camera stream ``b``; on the numba
+        backend on up to ``batch_threads`` threads.
+
+        Each thread renders whole frames with its own buffers and the serial twins of the parallel
+        kernels, which release the GIL (:mod:`presim.synthesis.threads`), so that the threads overlap
+        in the compiled stages; the per-view cache is shared (a view another thread is building is
+        waited for, not built twice). Each frame equals what :meth:`render` gives for its stream:
+        nothing a frame reads depends on which thread rendered it or on the other frames."""
+        B = len(T)
+        while len(self._batch_streams) < B:
+            self._batch_streams.append(_Stream())
+        streams = self._batch_streams
+        n = self.batch_threads(B)
+        if n <= 1:
+            outs = [self._render_one(T[b], K, streams[b], self._scratch) for b in range(B)]
+        else:
+            if self._batch_pool is None or self._batch_pool._max_workers != n:
+                if self._batch_pool is not None:
+                    self._batch_pool.shutdown(wait=True)
+                self._batch_pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="presim-frames")
+
+            def frame(b: int) -> tuple[RGBD, RenderStats]:
+                scratch = getattr(self._thread_scratch, "scratch", None)
+                if scratch is None:
+                    scratch = self._thread_scratch.scratch = _Scratch(self.config.blend_feather_px)
+                with serial_kernels():
+                    return self._render_one(T[b], K, streams[b], scratch)
+
+            outs = list(self._batch_pool.map(frame, range(B)))
+        if outs:
+            self.last = outs[-1][1]
+        return [o[0] for o in outs]
+
+    def batch_threads(self, batch: int) -> int:
+        """Threads :meth:`render_batch` uses for ``batch`` frames rendered frame by frame: 1 unless
+        the backend is numba; ``RenderConfig.batch_threads`` when > 0, else (auto) numba's thread
+        count; never more than ``batch``."""
+        if self.config.backend != "numba" or batch <= 1:
+            return 1
+        n = self.config.batch_threads if self.config.batch_threads > 0 else numba.get_num_threads()
+        return max(1, min(n, batch))

@@ -41,7 +41,7 @@ _INSIDE = 2
 _CHANGE = 3
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _heap_push(heap, n, key):  # pragma: no cover
     # Binary min-heap of int64 keys in heap[:n]; returns the new n.
     k = n
@@ -56,7 +56,7 @@ def _heap_push(heap, n, key):  # pragma: no cover
     return n + 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _heap_pop(heap, n):  # pragma: no cover
     # Removes the smallest key; returns (it, the new n). n must be > 0.
     top = heap[0]
@@ -86,7 +86,7 @@ def _key(bits, t, seq):  # pragma: no cover
     return (np.int64(bits.view(np.uint32)[0]) << 32) | seq
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _seed(heap, seq_px, band, bits):  # pragma: no cover
     # The band enters the queue at time 0, in raster order (push order = its index); returns n.
     n = 0
@@ -139,7 +139,7 @@ def _arrival(f, t, i, j):  # pragma: no cover
     return min(a, b)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
     # img: (H, W, 3) uint8, inpainted in place; hole_idx: the holes' flat indices in raster order;
     # dst_tab: 1 / |r|^3 over the (2 rng + 1)^2 window.

@@ -8,16 +8,31 @@ few tens of microseconds, so the wake-ups cost more than the second thread gives
 renders 1.45x and the sample scene 1.13x faster (wall) on one thread there; from 256x256 on two
 threads are as fast or faster (docs/synthesis.md, "Threads per frame"). The output does not depend
 on the thread count (every kernel's result is thread-count independent, tested).
+
+**Serial twins.** Every parallel kernel of the synthesis is declared with :func:`parallel_kernel`,
+which compiles its Python function twice: with ``parallel=True`` (``prange`` spread over numba's
+threads) and serially (``prange`` = ``range``) with ``nogil=True``. A Python thread inside
+:func:`numba_threads` ``(1)`` (every frame of at most :data:`SERIAL_MAX_PIXELS` pixels) or
+:func:`serial_kernels` runs the serial twins: the same arithmetic in the same order, so the same
+output, without a parallel launch and without holding the GIL. That is what lets several Python
+threads render small frames at once (:meth:`presim.synthesis.renderer.Renderer.render_batch` with
+``RenderConfig.batch_threads``, the vector environment), and the view cache's background thread
+build views beside a rendering thread, under any numba threading layer (``workqueue`` forbids
+parallel kernels launched from two threads at once).
 """
 
 from __future__ import annotations
 
+import functools
+import threading
+import types
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Any, Callable, Iterator
 
 import numba
 
-__all__ = ["SERIAL_MAX_PIXELS", "frame_threads", "numba_threads"]
+__all__ = ["SERIAL_MAX_PIXELS", "frame_threads", "numba_threads", "serial_kernels", "serial_now",
+           "parallel_kernel", "TwinKernel"]
 
 SERIAL_MAX_PIXELS = 40_000
 """Frames of at most this many pixels render on one numba thread when ``RenderConfig.threads`` is
@@ -42,15 +57,65 @@ def frame_threads(width: int, height: int, threads: int = 0) -> int:
     return 1 if width * height <= SERIAL_MAX_PIXELS else numba.get_num_threads()
 
 
+_local = threading.local()  # .serial: this Python thread runs the serial twins
+
+
+def serial_now() -> bool:
+    """True when this Python thread runs the serial twins of the parallel kernels."""
+    return getattr(_local, "serial", False)
+
+
 @contextmanager
-def numba_threads(n: int) -> Iterator[None]:
-    """Run the block with ``n`` numba threads in this thread, then restore the previous count."""
-    prev = numba.get_num_threads()
-    if n == prev:
-        yield
-        return
-    numba.set_num_threads(n)
+def serial_kernels(on: bool = True) -> Iterator[None]:
+    """Run the block's parallel kernels as their serial, GIL-free twins in this Python thread
+    (``on`` False: as they are), then restore the previous mode."""
+    prev = serial_now()
+    _local.serial = bool(on)
     try:
         yield
     finally:
-        numba.set_num_threads(prev)
+        _local.serial = prev
+
+
+@contextmanager
+def numba_threads(n: int) -> Iterator[None]:
+    """Run the block with ``n`` numba threads in this thread, then restore the previous count.
+    With ``n`` = 1 the block's parallel kernels run as their serial twins (:func:`serial_kernels`:
+    same output, no parallel launch, the GIL released)."""
+    prev = numba.get_num_threads()
+    with serial_kernels(n == 1 or serial_now()):
+        if n == prev:
+            yield
+            return
+        numba.set_num_threads(n)
+        try:
+            yield
+        finally:
+            numba.set_num_threads(prev)
+
+
+class TwinKernel:
+    """A numba kernel compiled twice from one Python function (see the module doc): ``parallel``
+    (``parallel=True``) and ``serial`` (``prange`` runs as ``range``, ``nogil=True``). Calling it runs
+    the serial twin in a thread inside :func:`serial_kernels`, else the parallel one. Both are
+    compiled lazily, on first call, and cached on disk separately."""
+
+    def __init__(self, fn: Callable, **options: Any):
+        self.py_func = fn
+        self.parallel = numba.njit(parallel=True, **options)(fn)
+        # A copy under its own name, so that numba's on-disk cache keeps the two compilations apart.
+        twin = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
+                                  fn.__closure__)
+        twin.__qualname__ = fn.__qualname__ + "_serial"
+        twin.__module__ = fn.__module__
+        self.serial = numba.njit(nogil=True, **options)(twin)
+        functools.update_wrapper(self, fn)
+
+    def __call__(self, *args: Any) -> Any:
+        return (self.serial if getattr(_local, "serial", False) else self.parallel)(*args)
+
+
+def parallel_kernel(**options: Any) -> Callable[[Callable], TwinKernel]:
+    """Decorator: ``@parallel_kernel(cache=True, fastmath=...)`` instead of
+    ``@numba.njit(parallel=True, ...)`` makes a :class:`TwinKernel`."""
+    return lambda fn: TwinKernel(fn, **options)

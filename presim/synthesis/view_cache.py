@@ -89,7 +89,9 @@ class ViewCache:
             return value
 
     def get(self, key: Hashable, build: Callable[[], Any]) -> Any:
-        """The view under ``key``: cached, built ahead, or ``build()`` now (then cached)."""
+        """The view under ``key``: cached, built ahead, or ``build()`` now (then cached). A view that
+        another thread (the background thread, or another thread rendering frames) is building is
+        waited for, not built twice."""
         with self._lock:
             v = self._items.get(key)
             if v is not None:
@@ -99,17 +101,32 @@ class ViewCache:
                     self.taken_ahead += 1
                 return v
             fut = self._pending.get(key)
+            if fut is None:  # this thread builds it; others wait for it
+                mine = self._pending[key] = Future()
+                mine.set_running_or_notify_cancel()
         if fut is not None:
             try:
-                v = fut.result()  # the worker is building it now
+                v = fut.result()  # another thread is building it now
             except Exception:  # noqa: BLE001 - build it here: the same error is raised with its context
                 v = None
             if v is not None:
                 with self._lock:
-                    self._ahead.discard(key)
-                    self.taken_ahead += 1
+                    if key in self._ahead:
+                        self._ahead.discard(key)
+                        self.taken_ahead += 1
                 return self._insert(key, v)
-        return self._insert(key, build())
+            return self._insert(key, build())
+        try:
+            v = self._insert(key, build())
+        except BaseException as e:
+            mine.set_exception(e)
+            raise
+        else:
+            mine.set_result(v)
+            return v
+        finally:
+            with self._lock:
+                self._pending.pop(key, None)
 
     def ahead(self, job: Callable[[Callable[[Hashable, Callable[[], Any]], None]], None]) -> None:
         """Run ``job(build_ahead)`` in the background thread (no-op when ``background`` is off); a

@@ -21,6 +21,7 @@ import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics, unproject_depth
+from presim.synthesis.threads import parallel_kernel
 
 __all__ = ["CHUNK_PTS", "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility", "layer_slots",
            "prepare_view", "prepare_view_ref", "warp_layers"]
@@ -31,7 +32,7 @@ a chunk is a short run of neighbouring source pixels) whose world bounding box t
 against the target frustum (:func:`chunk_visibility`) before it projects them."""
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
     n = xyz.shape[0]
     m = (n + chunk - 1) // chunk
@@ -235,7 +236,7 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _layer_slots_kernel(layer_start, n_slots):  # pragma: no cover
     L = layer_start.shape[0] - 1
     counts = np.empty(L, np.int64)
@@ -277,7 +278,7 @@ def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.n
     return _layer_slots_kernel(ls, max(1, min(int(n_slots), ls.shape[0] - 1)))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _frustum_planes(M, fx, fy, cx, cy, near, W, H):  # pragma: no cover
     # The warp kernel's keep tests as 5 linear functions of the world point, g_k(p) = G_k . (p, 1)
     # >= 0 (float64, from the kernel's float32 M and intrinsics): z > near, u >= 0, u < W, v >= 0,
@@ -303,7 +304,7 @@ def _frustum_planes(M, fx, fy, cx, cy, near, W, H):  # pragma: no cover
     return G, E
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _chunk_visibility_kernel(lo, hi, M, fx, fy, cx, cy, near, W, H, margin_rel, vis):  # pragma: no cover
     # A chunk is culled when, for one of the frustum's half-spaces g_k(p) >= 0, even the box's
     # maximum of g_k is below -margin_rel x (a bound of g_k's magnitude: E_k on the box's largest
@@ -359,7 +360,7 @@ def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, n
     return _visibility(view, M, K, near_m)
 
 
-@nb.njit(parallel=True, fastmath=_FASTMATH, cache=True)
+@parallel_kernel(fastmath=_FASTMATH, cache=True)
 def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, pix, zs, tiles, use_tiles, tile_px,
                         tile_of_px, vis, chunk, zbuf, cbuf):  # pragma: no cover
     # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was),
