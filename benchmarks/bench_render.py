@@ -26,6 +26,14 @@ of an unloaded core), and the peak RSS of the process (numba's allocations bypas
     .venv/bin/python benchmarks/bench_render.py --scene out/sample --frames 40
     .venv/bin/python benchmarks/bench_render.py --scene out/apc --sizes 640x480,256x256,128x128 --json out/r.json
     .venv/bin/python benchmarks/bench_render.py --compare-blend     # + blending/colour correction cost
+    .venv/bin/python benchmarks/bench_render.py --scene out/apc --sizes 128x128 --batch 8   # + render_batch
+
+``--batch B`` also renders each case's poses with :meth:`Renderer.render_batch` in chunks of B poses
+(frames spread over ``RenderConfig.batch_threads`` = auto threads, each frame on the serial twins of
+the kernels) and, alternating pass by pass in the same run, the same chunks frame by frame with
+:meth:`Renderer.render` (a second renderer, same config); both warm. Reported as
+``results[...]["batch"]``: frames/s and wall / CPU ms per frame (medians over chunks) and the ratio
+batch / frame by frame: the throughput of many poses at once (vector environments, datasets).
 
 ``--compare-blend`` instead renders every case with the default pipeline and with blending,
 sharpness-aware views and photometric correction (``RenderConfig(blend=True, sharpness=True)`` on
@@ -222,6 +230,39 @@ def compare_blend(name: str, size: str, scene: Scene, K: Intrinsics, poses: np.n
             f"{s}={x:.1f}" for s, x in v["stages_ms_median"].items() if x > 0))
 
 
+def bench_batch(scene: Scene, K: Intrinsics, poses: np.ndarray, batch: int, passes: int = 2) -> dict:
+    """``render_batch`` in chunks of ``batch`` poses against the same chunks rendered frame by frame
+    (another renderer, same config), both warm, passes alternating; medians per chunk."""
+    rs = {"batch": Renderer(scene, RenderConfig()), "single": Renderer(scene, RenderConfig())}
+    chunks = [poses[a:a + batch] for a in range(0, len(poses), batch)]
+
+    def run(name: str, acc: dict | None) -> None:
+        for c in chunks:
+            t0, c0 = time.perf_counter(), time.process_time()
+            if name == "batch":
+                rs[name].render_batch(c, K)
+            else:
+                for T in c:
+                    rs[name].render(T, K)
+            if acc is not None:
+                acc[name]["ms"].append((time.perf_counter() - t0) * 1e3 / len(c))
+                acc[name]["cpu"].append((time.process_time() - c0) * 1e3 / len(c))
+
+    for name in rs:  # cold pass (prepares the views), then one warm pass
+        run(name, None)
+        run(name, None)
+    acc = {name: {"ms": [], "cpu": []} for name in rs}
+    for p in range(passes):
+        for name in (("batch", "single") if p % 2 == 0 else ("single", "batch")):
+            run(name, acc)
+    med = {name: float(np.median(a["ms"])) for name, a in acc.items()}
+    return {"batch": batch, "threads": rs["batch"].batch_threads(batch), "fps_median": 1e3 / med["batch"],
+            "ms_per_frame_median": med["batch"], "cpu_ms_per_frame_median": float(np.median(acc["batch"]["cpu"])),
+            "single_fps_median": 1e3 / med["single"], "single_ms_per_frame_median": med["single"],
+            "single_cpu_ms_per_frame_median": float(np.median(acc["single"]["cpu"])),
+            "speedup_vs_single": med["single"] / med["batch"]}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", help="saved scene folder (default: synthetic room + apc capture)")
@@ -234,6 +275,8 @@ def main() -> int:
                     help="skip the same-run pass with the pre-LOD pipeline (lod_levels=0, no selection reuse)")
     ap.add_argument("--kernels-before", action="store_true",
                     help="also time the default pipeline with the crack/fill kernels before issue 13 item 2, same run")
+    ap.add_argument("--batch", type=int, default=0,
+                    help="also time render_batch in chunks of this many poses against frame by frame, same run")
     ap.add_argument("--compare-blend", action="store_true",
                     help="also time blending + sharpness + photometric correction against the default, same run")
     args = ap.parse_args()
@@ -275,6 +318,12 @@ def main() -> int:
                       f"{kb['fps_median']:5.1f} fps  CPU {kb['cpu_ms_median']:7.1f} ms  -> wall "
                       f"x{res['speedup_vs_kernels_before']:.2f}  CPU x{res['cpu_speedup_vs_kernels_before']:.2f}  | " + " ".join(
                           f"{k}={v:.1f}" for k, v in kb["stages_ms_median"].items() if v > 0))
+            if args.batch > 0:
+                b = res["batch"] = bench_batch(scene, K, poses, args.batch, args.passes)
+                print(f"{'':26s} {'':9s} render_batch of {b['batch']} on {b['threads']} threads: "
+                      f"{b['ms_per_frame_median']:7.2f} ms/frame {b['fps_median']:6.1f} fps  CPU "
+                      f"{b['cpu_ms_per_frame_median']:.2f} ms  | frame by frame {b['single_ms_per_frame_median']:.2f} ms "
+                      f"{b['single_fps_median']:.1f} fps  -> x{b['speedup_vs_single']:.2f}")
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak RSS: {peak_mb:.0f} MB")
     if args.json:

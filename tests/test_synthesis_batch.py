@@ -52,3 +52,39 @@ def test_render_batch_fills_and_other_backends_loop():
     np.testing.assert_array_equal(loop[1].color, Renderer(scene, RenderConfig()).render(poses[1], Kc).color)
     with pytest.raises(ValueError, match="B, 4, 4"):
         r.render_batch(np.eye(4), Kc)
+
+
+@pytest.mark.parametrize("size", [(64, 48), (256, 192)])  # one thread per frame in render(); two (parallel kernels)
+def test_frames_on_threads_equal_render_per_stream(size):
+    """numba render_batch on two threads: frame b of every batch equals what render() gives for
+    camera stream b (its own renderer, same config, the selection reuse on), at a small size and
+    at one whose frames run parallel kernels in render() (serial twins in the batch threads)."""
+    from presim.synthesis.threads import SERIAL_MAX_PIXELS
+
+    Kc = Intrinsics.from_fov(64, 48, 60.0)
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(5), Kc)
+    K = Intrinsics.from_fov(*size, 60.0)
+    assert (K.width * K.height > SERIAL_MAX_PIXELS) == (size[0] > 64)
+    cfg = RenderConfig(batch_threads=2, reuse_move_m=0.02, reuse_turn_deg=2.0, max_zoom=8.0)
+    r = Renderer(scene, cfg)
+    assert r.batch_threads(5) == 2 and r.batch_threads(1) == 1
+    assert Renderer(scene, RenderConfig(backend="reference")).batch_threads(5) == 1
+    streams = [Renderer(scene, cfg) for _ in range(5)]
+    base = _poses()
+    reused = []
+    for step in range(3):  # small moves: streams reuse their own previous selection
+        poses = base.copy()
+        poses[:, 0, 3] += 0.005 * step
+        outs = r.render_batch(poses, K)
+        assert len(r.last.batch_views) == 5 and r.last.batch_views[-1] == r.last.views
+        assert r.last.reused_selection == (step > 0)  # frame 4 continues stream 4, not frame 3
+        for b, (T, o) in enumerate(zip(poses, outs)):
+            e = streams[b].render(T, K)
+            reused.append(streams[b].last.reused_selection)
+            np.testing.assert_array_equal(o.color, e.color)
+            np.testing.assert_array_equal(o.depth_m, e.depth_m)
+            np.testing.assert_array_equal(o.source_view, e.source_view)
+            assert r.last.batch_views[b] == streams[b].last.views
+    assert sum(reused) >= 5  # the reuse was exercised on the streams
+    with pytest.raises(ValueError, match="batch_threads"):
+        RenderConfig(batch_threads=-1)

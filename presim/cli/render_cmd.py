@@ -39,7 +39,8 @@ def register(sub) -> None:
                         "(CUDA when present, else CPU; each frame from its first 3 selected views, no "
                         "adaptive loop)")
     p.add_argument("--batch-size", type=int, default=16,
-                   help="poses per batch with --backend torch_batch (default 16)")
+                   help="poses per batch (default 16): one torch_batch call, or with numba the frames of a "
+                        "batch spread over numba's threads (each frame as if rendered alone)")
     p.add_argument("--min-view-gain", type=float, default=None, metavar="F",
                    help="adaptive loop: warp a further view only when it is predicted to fill at least this "
                         "fraction of the image (default 0.005; 0 = the thesis's loop, every view that can fill "

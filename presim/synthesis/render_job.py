@@ -45,8 +45,11 @@ def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarra
     """Render every pose ``T_world_cams`` (B, 4, 4) with intrinsics ``K`` into the folder ``out``
     (created), each file atomically; ``stamps_s`` (B,) go to the timestamps and TUM files.
 
-    With ``config.backend == "torch_batch"`` the poses are rendered ``batch_size`` at a time through
-    :meth:`Renderer.render_batch` (``ms_per_frame_median`` is then the median of batch time / frames).
+    The poses are rendered ``batch_size`` at a time through :meth:`Renderer.render_batch` when that
+    batches (``config.backend == "torch_batch"``) or spreads frames over threads (numba with
+    ``batch_threads`` resolving to > 1: each frame as :meth:`Renderer.render` renders it, 1.1-1.5x
+    the frames/s on 2 cores, docs/synthesis.md); ``ms_per_frame_median`` is then the median of
+    batch time / frames. Otherwise one pose at a time.
 
     Depth PNGs are uint16 millimetres (0 = unknown; filled pixels keep their filled depth, the valid
     mask tells them apart; depths that do not fit are written 0 and counted in ``depth_clipped_px``).
@@ -59,7 +62,7 @@ def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarra
     if batch_size < 1:
         raise ValueError(f"batch size must be >= 1, got {batch_size}")
     holes, views, ms = [], [], []
-    batched = config.backend == "torch_batch"
+    batched = config.backend == "torch_batch" or r.batch_threads(batch_size) > 1
     step = batch_size if batched else 1
     bar = progress(total=len(T_world_cams), desc="render", unit="frame")
     for i0 in range(0, len(T_world_cams), step):

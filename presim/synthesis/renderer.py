@@ -309,7 +309,7 @@ class RenderStats:
     reused_selection: bool = False
     """The selection was the previous frame's (temporal coherence)."""
     batch_views: list[list[int]] = field(default_factory=list)
-    """:meth:`Renderer.render_batch` on a batched backend: the views of every frame of the batch."""
+    """After :meth:`Renderer.render_batch`: the views of every frame of the batch."""
 
 
 class _WarpCapture:
@@ -704,7 +704,8 @@ class Renderer:
         poses frame by frame, each exactly as :meth:`render` would: frame ``b`` of a batch continues
         camera stream ``b`` of the previous batch (the temporal reuse of the view selection,
         ``reuse_move_m``, applies per stream), and on the numba backend the frames are spread over
-        ``batch_threads`` threads (:meth:`_render_threaded`); ``last`` holds the last frame's stats."""
+        ``batch_threads`` threads (:meth:`_render_threaded`); ``last`` holds the last frame's stats
+        and every frame's views (``last.batch_views``)."""
         T = np.asarray(T_world_cams, dtype=np.float64)
         if T.ndim != 3 or T.shape[1:] != (4, 4):
             raise ValueError(f"T_world_cams must be (B, 4, 4), got {T.shape}")
@@ -767,8 +768,8 @@ class Renderer:
                     return self._render_one(T[b], K, streams[b], scratch)
 
             outs = list(self._batch_pool.map(frame, range(B)))
-        if outs:
-            self.last = outs[-1][1]
+        if outs:  # the last frame's stats, and every frame's views
+            self.last = dataclasses.replace(outs[-1][1], batch_views=[list(o[1].views) for o in outs])
         return [o[0] for o in outs]
 
     def batch_threads(self, batch: int) -> int:
