@@ -194,6 +194,13 @@ def _ellipse(k: int) -> np.ndarray:
     return se
 
 
+_CCL = getattr(cv2, "CCL_SPAGHETTI", cv2.CCL_DEFAULT)
+"""OpenCV's labelling algorithm for the hole analysis: Spaghetti (Bolelli et al. 2019) took 282 us
+per 640x480 hole mask of the apc capture against 410 us for ``cv2.connectedComponents``' default
+(BBDT 338, SAUF 471; 128x128: 13.7 against 15.5 us). Only which pixels share a component is used,
+and that does not depend on the algorithm."""
+
+
 def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
                   want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
     """Hole statistics of a coverage mask, and the mask of pixels the next view may replace.
@@ -228,7 +235,7 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
     if n_hole <= stop_px or not (want_largest or want_replace):
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
     ltype = cv2.CV_16U if n_hole < 65535 else cv2.CV_32S
-    n, labels = cv2.connectedComponents(holes, connectivity=8, ltype=ltype)
+    n, labels = cv2.connectedComponentsWithAlgorithm(holes, 8, ltype, _CCL)
     big_lut, largest, any_big = _big_lut_kernel(labels, n, big_hole_px)
     largest = int(largest)
     replace = big = None
