@@ -7,7 +7,10 @@ all N robots (control, collision, odometry: per env, cheap), then renders the N 
 one :meth:`Renderer.render_batch` call: on ``backend="torch_batch"`` (the default when CUDA is
 present; pass ``render=RenderConfig(backend="torch_batch")`` to force it on CPU) that is one batch
 of tensor operations; with another backend (``"numba"``, the default without CUDA) the N frames are
-rendered one after another by the per-frame core.
+rendered by the per-frame core, spread over ``RenderConfig.batch_threads`` threads (auto: numba's
+thread count) that run the serial, GIL-free twins of the kernels. Each env is its own camera stream
+(the selection reuse of ``reuse_move_m`` applies per robot), so every env's images equal those of a
+single env stepped alone.
 
 Gymnasium 1.x vector API: ``reset(seed=..., options=...) -> (obs, infos)``,
 ``step(actions) -> (obs, rewards, terminations, truncations, infos)``; observations are the single
@@ -38,9 +41,9 @@ __all__ = ["default_batch_backend", "PointNavVectorEnv"]
 
 
 def default_batch_backend() -> str:
-    """``"torch_batch"`` when torch sees a CUDA device, else ``"numba"`` (frames one by one on the
-    CPU: on the 2-core test machine the numba per-frame core was faster than torch's CPU batch,
-    see docs/synthesis.md)."""
+    """``"torch_batch"`` when torch sees a CUDA device, else ``"numba"`` (the per-frame core, frames
+    on threads: on the 2-core test machine it was faster than torch's CPU batch, see
+    docs/synthesis.md)."""
     try:
         import torch
     except ImportError:  # pragma: no cover - torch is part of the install
