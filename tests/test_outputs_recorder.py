@@ -262,6 +262,7 @@ _SIGINT_SCRIPT = textwrap.dedent("""
     import sys, time
     from pathlib import Path
     from presim.outputs.sinks import build_sinks
+    from presim.sim.types import deliver
     from presim.testing.steps import synthetic_info, synthetic_steps
     out = Path(sys.argv[1])
     sinks = build_sinks(out, None, out / "view.rrd")
@@ -269,8 +270,7 @@ _SIGINT_SCRIPT = textwrap.dedent("""
         s.open(synthetic_info())
     try:
         for i, r in enumerate(synthetic_steps(100000, width=40, height=30)):
-            for s in sinks:
-                s.on_step(r)
+            deliver(sinks, r)  # as the simulator hands a step to its sinks
             if i == 5:
                 (out / "started").write_text("x")
             time.sleep(0.01)
@@ -278,6 +278,45 @@ _SIGINT_SCRIPT = textwrap.dedent("""
         for s in sinks:
             s.close()
 """)
+
+
+def test_ctrl_c_while_a_step_is_handed_over_reaches_every_sink():
+    """A SIGINT that arrives between two sinks' on_step: the step still reaches the later sinks,
+    then KeyboardInterrupt is raised (without deliver the second sink would miss the step and the
+    recordings would differ by one); the default handler is back afterwards."""
+    from presim.sim.types import deliver
+
+    got = []
+
+    class _Sink:
+        def __init__(self, name, interrupt=False):
+            self.name, self.interrupt = name, interrupt
+
+        def on_step(self, r):
+            got.append((self.name, r))
+            if self.interrupt:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)  # the signal is taken here, inside the first sink
+
+    with pytest.raises(KeyboardInterrupt):
+        deliver([_Sink("mcap", interrupt=True), _Sink("folder")], 7)
+    assert got == [("mcap", 7), ("folder", 7)]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    terms = []  # a SIGTERM handler (presim commands raise the interrupt there) is held back too
+    old = signal.signal(signal.SIGTERM, lambda signum, frame: terms.append(len(got)))
+    try:
+        class _Term(_Sink):
+            def on_step(self, r):
+                got.append((self.name, r))
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+
+        deliver([_Term("mcap"), _Sink("folder")], 9)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert got[-2:] == [("mcap", 9), ("folder", 9)] and terms == [len(got)]
+    deliver([_Sink("mcap"), _Sink("folder")], 8)  # no signal: no exception
+    assert got[-2:] == [("mcap", 8), ("folder", 8)]
 
 
 def test_ctrl_c_leaves_closed_mcap_capture_and_rrd(tmp_path):

@@ -30,7 +30,7 @@ from presim.sensors.odometry import OdometryConfig, WheelOdometry, integrate_pla
 from presim.sim.controllers import Action, BaseLimits, joint_position_step, limit_base_command, limit_free_twist, wrap_angle
 from presim.sim.occupancy import OccupancyConfig, OccupancyMap, build_occupancy_map, move_base
 from presim.sim.robot import Robot, default_robot, free_camera_rig
-from presim.sim.types import CameraObservation, JointStates, Odometry, SimInfo, Sink, StepResult
+from presim.sim.types import CameraObservation, JointStates, Odometry, SimInfo, Sink, StepResult, deliver
 from presim.synthesis.renderer import RenderConfig, Renderer
 
 __all__ = ["SIM_RENDER_CACHE_MB", "SimConfig", "Simulator", "Action"]
@@ -407,8 +407,7 @@ class Simulator:
             timings_ms=timings,
         )
         t3 = time.perf_counter()
-        for s in self.sinks:
-            s.on_step(result)
+        deliver(self.sinks, result)  # to every sink or to none on Ctrl-C
         timings["sinks"] = (time.perf_counter() - t3) * 1e3
         timings["total"] = sum(v for k, v in timings.items() if k != "total")
         return result

@@ -4,14 +4,16 @@
 
 from __future__ import annotations
 
+import signal
+import threading
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Iterable, Protocol
 
 import numpy as np
 
 from presim.geometry import Intrinsics
 
-__all__ = ["CameraObservation", "JointStates", "Odometry", "StepResult", "Sink", "SimInfo"]
+__all__ = ["CameraObservation", "JointStates", "Odometry", "StepResult", "Sink", "SimInfo", "deliver"]
 
 
 @dataclass(frozen=True)
@@ -107,3 +109,31 @@ class Sink(Protocol):
     def on_step(self, result: StepResult) -> None: ...
 
     def close(self) -> None: ...
+
+
+def deliver(sinks: Iterable[Sink], result: StepResult) -> None:
+    """Hand one step to every sink, all of them or none when the run is interrupted: a SIGINT (or a
+    SIGTERM, which ``presim`` commands turn into the same interrupt) that comes while the step is
+    handed over reaches its Python handler only after the last sink got the step, so the recordings
+    a Ctrl-C stops (MCAP, capture folder, rerun file) hold the same steps. Only signals with a
+    Python handler are held back, and only in the main thread (elsewhere the sinks are just called
+    in order)."""
+    held = []
+    if threading.current_thread() is threading.main_thread():
+        held = [(sig, h) for sig in (signal.SIGINT, signal.SIGTERM)
+                if callable(h := signal.getsignal(sig))]
+    if not held:
+        for s in sinks:
+            s.on_step(result)
+        return
+    caught: list[int] = []
+    for sig, _ in held:
+        signal.signal(sig, lambda signum, frame: caught.append(signum))
+    try:
+        for s in sinks:
+            s.on_step(result)
+    finally:
+        for sig, h in held:
+            signal.signal(sig, h)
+    for signum in caught[:1]:  # the first one, as it would have been handled
+        dict(held)[signum](signum, None)
