@@ -413,6 +413,7 @@ class Renderer:
         self._scratch = _Scratch(config.blend_feather_px)
         self._thread_scratch = threading.local()
         self._batch_pool: ThreadPoolExecutor | None = None
+        self._batch_pool_threads = 0
         # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
         # Applied to each capture frame's pixels when its view is prepared (cached with the view: no
         # per-frame cost); the core's per-view color_transform hook is left free.
@@ -755,10 +756,11 @@ class Renderer:
         if n <= 1:
             outs = [self._render_one(T[b], K, streams[b], self._scratch) for b in range(B)]
         else:
-            if self._batch_pool is None or self._batch_pool._max_workers != n:
+            if self._batch_pool is None or self._batch_pool_threads != n:
                 if self._batch_pool is not None:
                     self._batch_pool.shutdown(wait=True)
                 self._batch_pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="presim-frames")
+                self._batch_pool_threads = n
 
             def frame(b: int) -> tuple[RGBD, RenderStats]:
                 scratch = getattr(self._thread_scratch, "scratch", None)
