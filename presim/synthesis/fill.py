@@ -118,22 +118,31 @@ def _taps(i, n_coarse):  # pragma: no cover
 
 @parallel_kernel(cache=True)
 def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no cover
-    # Level 0: only the unknown pixels are written (outputs arrive as copies of the inputs).
+    # Level 0: only the unknown pixels are written (outputs arrive as copies of the inputs). The
+    # column taps are computed once per column (the same values _taps gives per pixel).
     H, W = known.shape
     hc, wc, C = est_c.shape
+    tx0 = np.empty(W, np.int64)
+    tx1 = np.empty(W, np.int64)
+    tfx = np.empty(W, np.float32)
+    for j in range(W):
+        tx0[j], tx1[j], tfx[j] = _taps(j, wc)
     for i in nb.prange(H):
         y0, y1, fy = _taps(i, hc)
         for j in range(W):
             if known[i, j]:
                 continue
-            x0, x1, fx = _taps(j, wc)
-            for ch in range(C):
-                up = ((est_c[y0, x0, ch] * (1 - fx) + est_c[y0, x1, ch] * fx) * (1 - fy)
-                      + (est_c[y1, x0, ch] * (1 - fx) + est_c[y1, x1, ch] * fx) * fy)
-                if ch == C - 1:
-                    depth_out[i, j] = up
-                elif with_color:
+            x0 = tx0[j]
+            x1 = tx1[j]
+            fx = tfx[j]
+            if with_color:
+                for ch in range(3):
+                    up = ((est_c[y0, x0, ch] * (1 - fx) + est_c[y0, x1, ch] * fx) * (1 - fy)
+                          + (est_c[y1, x0, ch] * (1 - fx) + est_c[y1, x1, ch] * fx) * fy)
                     color_out[i, j, ch] = np.uint8(min(max(up + 0.5, 0.0), 255.0))
+            ch = C - 1
+            depth_out[i, j] = ((est_c[y0, x0, ch] * (1 - fx) + est_c[y0, x1, ch] * fx) * (1 - fy)
+                               + (est_c[y1, x0, ch] * (1 - fx) + est_c[y1, x1, ch] * fx) * fy)
 
 
 @nb.njit(cache=True, nogil=True)
