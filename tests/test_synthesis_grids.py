@@ -127,6 +127,42 @@ def test_fill_area_known_answers_and_reference():
                                fill_area_ref(mask, pix, zs, zt, 0.01), rtol=1e-12)
 
 
+def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
+    """FrameGrids.hole_scores (all pending candidates in one kernel call) = count_in_mask of each
+    view's front pixels and its fill_area, exactly (same points, same order); views projected in
+    separate calls, views with no point in the image and bool / uint8 masks included."""
+    from presim.synthesis.grids import count_in_mask
+
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(8, span_m=1.6), K)
+    r = Renderer(scene, RenderConfig(overlap_stride_px=4))
+    near = r.config.near_m
+    stride = float(r.config.overlap_stride_px)
+    T = look_at(np.array([0.3, -0.2, 0.1]), np.array([0.0, 0.0, 2.0]))
+    Kt = Intrinsics.from_fov(40, 30, 70.0)
+    rng = np.random.default_rng(5)
+    checked = 0
+    for T_cam_world in (invert(T), invert(scene.T_world_cam[3]), invert(T @ look_at(np.zeros(3), np.array([0.0, 0.0, -1.0])))):
+        grids = FrameGrids(T_cam_world, Kt, r.grid_points)
+        grids.project([0, 1])  # some views projected earlier, in another call
+        for frac in (0.0, 0.3, 1.0):
+            for dtype in (np.uint8, bool):
+                mask = (rng.random(Kt.width * Kt.height) < frac).astype(dtype)
+                ids = [5, 0, 7, 2, 1]
+                for near_m in (near, 1.2):  # 1.2 m: drops part of the grids (in the image, too near)
+                    counts, fills = grids.hole_scores(ids, mask, r._grid_zsrc_of,
+                                                      lambda v: float(r._src_focal[v]), near_m, stride)
+                    for v, n, f in zip(ids, counts, fills):
+                        assert n == count_in_mask(mask, grids.pixels(v, near_m))
+                        assert f == grids.fill_area(v, mask, r._grid_zsrc_of(v), float(r._src_focal[v]), near_m,
+                                                    stride)
+                        checked += n
+    assert checked > 100
+    empty = FrameGrids(invert(T), Kt, r.grid_points)
+    assert empty.hole_scores([], np.ones(Kt.width * Kt.height, np.uint8), r._grid_zsrc_of,
+                             lambda v: 1.0, near, stride) == ([], [])
+
+
 def test_overlapping_equals_overlap_above_zero_and_selection_is_unchanged():
     """FrameGrids.overlapping (stops at the first point inside) = overlaps > 0, projected or not, and
     a selection with only max_views exact overlaps picks the same views in the same order."""

@@ -350,7 +350,9 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
                      blend: Callable[[list[int], np.ndarray, np.ndarray, np.ndarray],
                                      tuple[np.ndarray, float]] | None = None,
                      grid_px: Callable[[int], np.ndarray] | None = None,
-                     grid_fill: Callable[[int, np.ndarray], float] | None = None) -> FrameResult:
+                     grid_fill: Callable[[int, np.ndarray], float] | None = None,
+                     hole_scores: Callable[[list[int], np.ndarray], tuple[list[int], list[float]]] | None = None
+                     ) -> FrameResult:
     """The adaptive loop (thesis §3.4.2-3.4.4) and the final fill for one target camera.
 
     Args:
@@ -375,6 +377,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
             point's ``(overlap stride x z_src / z_target x f_target / f_src)^2``,
             :meth:`presim.synthesis.grids.FrameGrids.fill_area`); with ``config.min_view_gain`` > 0
             a candidate is warped only when it reaches ``min_view_gain x H x W`` (None: that rule is off).
+        hole_scores: optional fast path of both tests for all pending candidates at once:
+            ``hole_scores(ids, big_flat)`` -> ``(counts, fills)`` with ``counts[k]`` = the number of
+            ``grid_px(ids[k])`` on ``big_flat`` and ``fills[k]`` = ``grid_fill(ids[k], big_flat)``
+            (the Renderer: :meth:`presim.synthesis.grids.FrameGrids.hole_scores`, one kernel call).
     Returns:
         :class:`FrameResult`.
     """
@@ -407,15 +413,21 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
             # Next view by how many of its sampled grid points land in the big holes; none lands
             # there -> no candidate can help, stop.
             t = time.perf_counter()
-            for v in pending:  # each candidate's grid is projected once per frame
-                if v not in px_of:
-                    px_of[v] = grid_px(v)
             big_flat = big.reshape(-1)
-            counts = [int(count_in_mask(big_flat, px_of[v])) for v in pending]
-            if cfg.min_view_gain > 0 and grid_fill is not None:
-                # Diminishing returns: a candidate must be predicted to fill enough of the image.
-                need = cfg.min_view_gain * H * W
-                counts = [n if n > 0 and grid_fill(v, big_flat) >= need else 0 for n, v in zip(counts, pending)]
+            gain = cfg.min_view_gain > 0 and (grid_fill is not None or hole_scores is not None)
+            need = cfg.min_view_gain * H * W
+            if hole_scores is not None:
+                counts, fills = hole_scores(pending, big_flat)
+                if gain:
+                    counts = [n if n > 0 and f >= need else 0 for n, f in zip(counts, fills)]
+            else:
+                for v in pending:  # each candidate's grid is projected once per frame
+                    if v not in px_of:
+                        px_of[v] = grid_px(v)
+                counts = [int(count_in_mask(big_flat, px_of[v])) for v in pending]
+                if gain:
+                    # Diminishing returns: a candidate must be predicted to fill enough of the image.
+                    counts = [n if n > 0 and grid_fill(v, big_flat) >= need else 0 for n, v in zip(counts, pending)]
             ms["select"] += (time.perf_counter() - t) * 1e3
             cmax = max(counts)
             if cmax == 0:

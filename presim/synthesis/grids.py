@@ -171,6 +171,28 @@ def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t
     return float(np.sum((z_src[ok].astype(np.float64) / z_t[ok].astype(np.float64)) ** 2))
 
 
+@nb.njit(cache=True, nogil=True)
+def _hole_scores_kernel(mask_flat, pix, z_t, z_src, near, counts, sums):  # pragma: no cover
+    # For each view k (tuples of its grid's pix / z_t / z_src): counts[k] = count_in_mask(mask_flat,
+    # its front pixels (pix >= 0, z_t > near)) and sums[k] = _fill_area_kernel(mask_flat, ...): the
+    # same points in the same order, so the same integer and the same float64 sum.
+    for k in range(len(pix)):
+        pk = pix[k]
+        tk = z_t[k]
+        sk = z_src[k]
+        n = 0
+        s = 0.0
+        for i in range(pk.shape[0]):
+            p = pk[i]
+            if p >= 0 and tk[i] > near and mask_flat[p] != 0:
+                n += 1
+                if sk[i] > near:
+                    r = np.float64(sk[i]) / np.float64(tk[i])
+                    s += r * r
+        counts[k] = n
+        sums[k] = s
+
+
 class FrameGrids:
     """The views' grids projected into one target camera, each view at most once (see module doc).
 
@@ -264,6 +286,28 @@ class FrameGrids:
         if med != med:  # no grid point in front of both cameras and inside the target image
             return float("nan")
         return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)
+
+    def hole_scores(self, ids: Sequence[int], mask_flat: np.ndarray, z_src: Callable[[int], np.ndarray],
+                    f_src_px: Callable[[int], float], near_m: float, stride_px: float
+                    ) -> tuple[list[int], list[float]]:
+        """For each view of ``ids``, in one kernel call: how many of its grid points land on
+        ``mask_flat`` (= ``count_in_mask(mask_flat, self.pixels(v, near_m))``) and the target pixels
+        they stand for (= :meth:`fill_area`; ``z_src(v)`` / ``f_src_px(v)``: the view's cached source
+        depths and focal length). The adaptive loop asks this for every pending candidate after each
+        warped view; one call instead of two per candidate (tested equal)."""
+        ids = [int(v) for v in ids]
+        self.project(ids)
+        m = mask_flat.view(np.uint8) if mask_flat.dtype == np.bool_ else mask_flat
+        counts = np.zeros(len(ids), np.int64)
+        sums = np.zeros(len(ids), np.float64)
+        if ids:
+            _hole_scores_kernel(m, tuple(self._proj[v][0] for v in ids), tuple(self._proj[v][1] for v in ids),
+                                tuple(np.ascontiguousarray(z_src(v), np.float32) for v in ids),
+                                np.float32(near_m), counts, sums)
+        f_t = np.sqrt(self.K.fx * self.K.fy)
+        fills = [float(s * (stride_px * f_t / f_src_px(v)) ** 2) if len(self._proj[v][1]) else 0.0
+                 for v, s in zip(ids, sums.tolist())]
+        return counts.tolist(), fills
 
     def fill_area(self, v: int, mask_flat: np.ndarray, z_src: np.ndarray, f_src_px: float, near_m: float,
                   stride_px: float) -> float:

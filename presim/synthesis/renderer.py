@@ -657,7 +657,10 @@ class Renderer:
                                color_transform=self._color_transform,
                                blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
                                grid_px=lambda v: grids.pixels(v, near),
-                               grid_fill=lambda v, big: self._grid_fill(v, grids, big))
+                               grid_fill=lambda v, big: self._grid_fill(v, grids, big),
+                               hole_scores=lambda ids, big: grids.hole_scores(
+                                   ids, big, self._grid_zsrc_of, lambda v: float(self._src_focal[v]),
+                                   near, float(self.config.overlap_stride_px)))
         res.ms["select"] += select_ms
         stats = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                             ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
