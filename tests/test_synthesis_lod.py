@@ -35,11 +35,25 @@ def test_pool_numba_matches_reference_exactly():
     d[rng.random(d.shape) < 0.3] = 0.0
     d[5:9, 10:20] = 1.0 + rng.uniform(0, 0.03, (4, 10)).astype(np.float32)  # near-ties within the band
     c = rng.integers(0, 256, (37, 50, 3), dtype=np.uint8)
+    bad = rng.random(d.shape)
+    d[bad < 0.04] = np.nan  # non-finite and negative depths: invalid, as in the reference
+    d[(bad >= 0.04) & (bad < 0.07)] = np.inf
+    d[(bad >= 0.07) & (bad < 0.08)] = -np.inf
+    d[(bad >= 0.08) & (bad < 0.09)] = -1.0
+    d[20:22, 0:2] = np.inf  # a block of +inf only: empty
+    counts = set()
     for tol in (0.0, 0.02, 0.5):
-        a_d, a_c = pool_depth_aware(d, c, tol)
         b_d, b_c = pool_depth_aware_ref(d, c, tol)
-        np.testing.assert_array_equal(a_d, b_d)
-        np.testing.assert_array_equal(a_c, b_c)
+        for parallel in (True, False):
+            a_d, a_c = pool_depth_aware(d, c, tol, parallel)
+            np.testing.assert_array_equal(a_d, b_d)
+            np.testing.assert_array_equal(a_c, b_c)
+        blocks = d[:36, :50].reshape(18, 2, 25, 2).transpose(0, 2, 1, 3).reshape(18, 25, 4)
+        ok = np.isfinite(blocks) & (blocks > 0)
+        dmin = np.where(ok, blocks, np.inf).min(-1, keepdims=True)
+        counts |= set(np.unique((ok & (blocks <= dmin.astype(np.float64) * (1 + tol))).sum(-1)).tolist())
+    assert b_d[10, 0] == 0 and (b_c[10, 0] == 0).all()
+    assert counts == {0, 1, 2, 3, 4}  # blocks averaging 1, 2, 3 and 4 pixels all met
 
 
 def test_half_intrinsics_places_pooled_points_on_the_surface():

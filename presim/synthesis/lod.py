@@ -108,22 +108,33 @@ def _pool_row(d, c, tol, dout, cout, i):  # pragma: no cover
         lim = np.float64(dmin) * (1.0 + tol)
         n = 0
         sd = 0.0
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
+        # colour sums in integers: exact, so the same float64 as summing the values as floats
+        i0 = 0
+        i1 = 0
+        i2 = 0
         for a in range(2):
             for b in range(2):
                 z = d[2 * i + a, 2 * j + b]
                 if z > 0 and z <= lim:
                     n += 1
                     sd += np.float64(z)
-                    s0 += np.float64(c[2 * i + a, 2 * j + b, 0])
-                    s1 += np.float64(c[2 * i + a, 2 * j + b, 1])
-                    s2 += np.float64(c[2 * i + a, 2 * j + b, 2])
-        dout[i, j] = np.float32(sd / n)
-        cout[i, j, 0] = np.uint8(np.floor(s0 / n + 0.5))
-        cout[i, j, 1] = np.uint8(np.floor(s1 / n + 0.5))
-        cout[i, j, 2] = np.uint8(np.floor(s2 / n + 0.5))
+                    i0 += np.int64(c[2 * i + a, 2 * j + b, 0])
+                    i1 += np.int64(c[2 * i + a, 2 * j + b, 1])
+                    i2 += np.int64(c[2 * i + a, 2 * j + b, 2])
+        s0 = np.float64(i0)
+        s1 = np.float64(i1)
+        s2 = np.float64(i2)
+        if n == 3:
+            dout[i, j] = np.float32(sd / 3.0)
+            cout[i, j, 0] = np.uint8(np.floor(s0 / 3.0 + 0.5))
+            cout[i, j, 1] = np.uint8(np.floor(s1 / 3.0 + 0.5))
+            cout[i, j, 2] = np.uint8(np.floor(s2 / 3.0 + 0.5))
+        else:  # n = 1, 2, 4: x * (1 / n) = x / n exactly (a power of two), without four divisions
+            inv = 1.0 if n == 1 else (0.5 if n == 2 else 0.25)
+            dout[i, j] = np.float32(sd * inv)
+            cout[i, j, 0] = np.uint8(np.floor(s0 * inv + 0.5))
+            cout[i, j, 1] = np.uint8(np.floor(s1 * inv + 0.5))
+            cout[i, j, 2] = np.uint8(np.floor(s2 * inv + 0.5))
 
 
 @parallel_kernel(cache=True)
@@ -145,8 +156,9 @@ def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 
     Returns:
         ``(depth (H//2, W//2) float32, color (H//2, W//2, 3) uint8)``.
     """
+    # Non-finite depths need no pass of their own: NaN and -inf fail the kernel's z > 0, and +inf
+    # is never a block's nearest depth nor within its band, so they count as invalid (tested).
     d = np.ascontiguousarray(depth_m, np.float32)
-    d = np.where(np.isfinite(d), d, np.float32(0.0)) if not np.isfinite(d).all() else d
     H2, W2 = d.shape[0] // 2, d.shape[1] // 2
     dout = np.empty((H2, W2), np.float32)
     cout = np.empty((H2, W2, 3), np.uint8)
