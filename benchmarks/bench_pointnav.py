@@ -1,7 +1,10 @@
 """Environment throughput in one run: PointNav single env, PointNav vector env of N, the demo drive.
 
 Every figure is measured beside its baseline in the same run, repeats alternating between the
-configurations (so load changes on a shared machine hit both), medians reported:
+configurations (so load changes on a shared machine hit both), medians reported. The single envs
+and the vector envs are all built first; each repeat then measures every one of them in turn (the
+order rotated per repeat), and the vector env's ratio to the single env is also given as the median
+of the per-repeat ratios (``ratio_vs_single_paired_median``):
 
 - ``pointnav single``: ``PreSim-PointNav-v0`` (``PointNavEnv``, default 128x96 camera) steps/s with
   random (seeded) actions; baseline = the same env with the pre-LOD renderer
@@ -9,8 +12,15 @@ configurations (so load changes on a shared machine hit both), medians reported:
 - ``pointnav vector N``: :class:`presim.sim.vector_env.PointNavVectorEnv` env-steps/s (N robots
   per step), with ``torch_batch`` (one batch per step), with ``numba`` (frames spread over
   ``RenderConfig.batch_threads`` = auto threads) and with ``numba 1 thread`` (frames one after
-  another); ratio to the single env. Each robot takes as many steps as the single env's robot (3
-  warm-up steps, then ``--steps`` per repeat), so both meet new capture views at the same rate.
+  another); ratio to the single env. Each robot takes as many steps as the single env's robot
+  (``--warmup-steps``, then ``--steps`` per repeat), so both meet new capture views at the same rate.
+- **Cold and steady state.** Every env first takes one untimed step (it loads the compiled
+  kernels), then ``--warmup-steps`` timed steps (default 3), reported as ``cold_steps_per_s``
+  (single env) / ``cold_env_steps_per_s`` (vector env): that rate includes preparing the capture
+  views the robot meets for the first time (the per-view cache fills) and is what a short run sees.
+  With ``--warmup-steps 200`` the measured repeats are the steady state of a long run (an RL job's
+  millions of steps): the cache is full, and views are still rebuilt when it evicts (its bound,
+  ``SIM_RENDER_CACHE_MB``, holds).
 - ``demo drive``: the simulator loop of ``presim demo`` / ``presim drive`` (default robot, one
   640x480 camera at 10 Hz, dt 0.1 s, the built-in seeded route), steps/s, new vs today.
 
@@ -66,11 +76,22 @@ def main() -> int:
     ap.add_argument("--scene", help="saved scene folder with a floor (default: the sample scene, seed 0, "
                     "30 frames, built once into the temp directory as benchmarks/bench_sim.py does)")
     ap.add_argument("--steps", type=int, default=20, help="steps per measured repeat")
+    ap.add_argument("--warmup-steps", type=int, default=3,
+                    help="steps each env takes before the measured repeats (timed: the cold rate); "
+                    "200 measures the steady state of a long run")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--num-envs", type=int, default=8)
     ap.add_argument("--drive-steps", type=int, default=10)
+    ap.add_argument("--vector", default="torch_batch,numba,numba-1-thread",
+                    help="vector env renderers to measure, comma-separated, of torch_batch, numba, "
+                    "numba-1-thread ('' = none)")
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args()
+    for name in ("steps", "warmup_steps", "repeats", "num_envs", "drive_steps"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if any(v and v not in ("torch_batch", "numba", "numba-1-thread") for v in args.vector.split(",")):
+        ap.error(f"--vector: unknown renderer in {args.vector!r} (torch_batch, numba, numba-1-thread)")
     os.environ["PRESIM_NO_PROGRESS"] = "1"
     from presim.sensors.camera import CameraSpec
     from presim.sim.envs import PointNavEnv
@@ -84,58 +105,71 @@ def main() -> int:
     print(f"scene {args.scene}  cpus {os.cpu_count()}  load average {os.getloadavg()}", flush=True)
     res: dict[str, dict] = {}
 
-    # ---- single env: new vs today ------------------------------------------------------------
+    # ---- single env (new, today) and vector envs: every repeat measures each of them in turn ------
+    steppers: dict[str, tuple] = {}  # name -> (step function, env-steps per call)
     envs = {"new": PointNavEnv(scene),
             "today": PointNavEnv(scene, renderer=Renderer(scene, RenderConfig(**TODAY)))}
-    rngs = {}
     for name, env in envs.items():
         env.reset(seed=0)
-        rngs[name] = np.random.default_rng(0)
-        for _ in range(3):
-            env.step(env.action_space.sample())
-    rates = {name: [] for name in envs}
-    cpu = {name: [] for name in envs}
-    for _ in range(args.repeats):
-        for name, env in envs.items():
-            rng = rngs[name]
+        rng = np.random.default_rng(0)
 
-            def step(env=env, rng=rng):
-                _, _, te, tr, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
-                if te or tr:
-                    env.reset()
-            rates[name].append(_steps_per_s(step, args.steps))
-            cpu[name].append(CPU_MS[-1])
+        def step(env=env, rng=rng):
+            _, _, te, tr, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+            if te or tr:
+                env.reset()
+        steppers[name] = (step, 1)
+    vector = {"torch_batch": ("torch_batch", 0), "numba": ("numba", 0), "numba-1-thread": ("numba", 1)}
+    venvs = {}
+    for v in (v for v in args.vector.split(",") if v):
+        backend, threads = vector[v]
+        venv = PointNavVectorEnv(scene, num_envs=args.num_envs, render=RenderConfig(backend=backend,
+                                                                                   batch_threads=threads))
+        venv.reset(seed=0)
+        rng = np.random.default_rng(0)
+
+        def vstep(venv=venv, rng=rng):
+            venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32))
+        name = backend if threads != 1 else f"{backend} 1 thread"
+        venvs[name] = venv
+        steppers[name] = (vstep, args.num_envs)
+    cold = {}
+    for name, (step, per) in steppers.items():
+        step()  # untimed: loads the compiled kernels
+        cold[name] = _steps_per_s(step, args.warmup_steps) * per
+    rates = {name: [] for name in steppers}
+    cpu = {name: [] for name in steppers}
+    order = list(steppers)
+    for rep in range(args.repeats):
+        for name in order[rep % len(order):] + order[:rep % len(order)]:  # rotated: no fixed position
+            step, per = steppers[name]
+            rates[name].append(_steps_per_s(step, args.steps) * per)
+            cpu[name].append(CPU_MS[-1] / per)
     single = statistics.median(rates["new"])
     res["pointnav single"] = {"steps_per_s_median": single, "today_steps_per_s_median": statistics.median(rates["today"]),
                               "speedup_vs_today": single / statistics.median(rates["today"]),
                               "runs": rates["new"], "today_runs": rates["today"],
                               "cpu_ms_per_step_median": statistics.median(cpu["new"]),
-                              "today_cpu_ms_per_step_median": statistics.median(cpu["today"])}
+                              "today_cpu_ms_per_step_median": statistics.median(cpu["today"]),
+                              "warmup_steps": args.warmup_steps, "cold_steps_per_s": cold["new"],
+                              "today_cold_steps_per_s": cold["today"]}
     r1 = res["pointnav single"]
     print(f"PointNav single env 128x96 : {single:7.1f} steps/s   today {statistics.median(rates['today']):7.1f}  "
           f"-> x{r1['speedup_vs_today']:.2f}   CPU ms/step {r1['cpu_ms_per_step_median']:.1f} vs today "
-          f"{r1['today_cpu_ms_per_step_median']:.1f} -> x{r1['today_cpu_ms_per_step_median'] / r1['cpu_ms_per_step_median']:.2f}",
-          flush=True)
-
-    # ---- vector env ----------------------------------------------------------------------------
-    for backend, threads in (("torch_batch", 0), ("numba", 0), ("numba", 1)):
-        venv = PointNavVectorEnv(scene, num_envs=args.num_envs, render=RenderConfig(backend=backend,
-                                                                                   batch_threads=threads))
-        venv.reset(seed=0)
-        rng = np.random.default_rng(0)
-        for _ in range(3):
-            venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32))
-        rs = [_steps_per_s(lambda: venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32)),
-                           args.steps) * args.num_envs for _ in range(args.repeats)]
-        med = statistics.median(rs)
-        cpu_env = statistics.median(CPU_MS[-args.repeats:]) / args.num_envs
-        name = backend if threads != 1 else f"{backend} 1 thread"
-        key = f"pointnav vector {args.num_envs} {name}"
-        res[key] = {"env_steps_per_s_median": med, "ratio_vs_single": med / single, "runs": rs,
-                    "cpu_ms_per_env_step_median": cpu_env,
-                    "frame_threads": venv.renderer.batch_threads(args.num_envs)}
+          f"{r1['today_cpu_ms_per_step_median']:.1f} -> x{r1['today_cpu_ms_per_step_median'] / r1['cpu_ms_per_step_median']:.2f}"
+          f"   (first {args.warmup_steps} steps: {cold['new']:.1f}, today {cold['today']:.1f})", flush=True)
+    for name, venv in venvs.items():
+        med = statistics.median(rates[name])
+        cpu_env = statistics.median(cpu[name])
+        # ratio of each repeat to the single env's repeat of the same round (same load)
+        pair = statistics.median(v / s for v, s in zip(rates[name], rates["new"]))
+        res[f"pointnav vector {args.num_envs} {name}"] = {
+            "env_steps_per_s_median": med, "ratio_vs_single": med / single, "ratio_vs_single_paired_median": pair,
+            "runs": rates[name], "cpu_ms_per_env_step_median": cpu_env,
+            "frame_threads": venv.renderer.batch_threads(args.num_envs),
+            "cold_env_steps_per_s": cold[name], "cold_ratio_vs_single": cold[name] / cold["new"]}
         print(f"PointNav vector env x{args.num_envs} ({name:15s}): {med:7.1f} env-steps/s  = "
-              f"x{med / single:.2f} the single env   CPU ms/env-step {cpu_env:.1f}", flush=True)
+              f"x{med / single:.2f} the single env (paired x{pair:.2f})   CPU ms/env-step {cpu_env:.1f}   "
+              f"(first {args.warmup_steps} steps: {cold[name]:.1f} = x{cold[name] / cold['new']:.2f})", flush=True)
         venv.close()
 
     # ---- demo drive: 640x480 camera, built-in route -------------------------------------------
