@@ -7,8 +7,9 @@ What it renders (all deterministic):
 - the built-in sample scene (320x240, 16 frames, built once into ``--work``) and
   ``../shared/data/apc_cardboard_bin_kinfu50`` (imported with the kinfu importer, raw depth): three
   midpoint poses each, with the numba backend under several RenderConfigs (defaults, fixed views,
-  one layer, plain median, no crack filter, no fill, max_zoom on a 2x target), and the torch (CPU)
-  and reference backends at a reduced target size (the reference is slow);
+  one layer, plain median, no crack filter, no fill, max_zoom on a 2x target), at a half and a
+  quarter target size (levels of detail), and the torch (CPU) and reference backends at a reduced
+  target size (the reference is slow);
 - ``capture.reprojection.forward_warp`` / ``reprojection_mae`` on apc frame pairs;
 - ``depth.refine.refine_depth`` (numba and reference) on a tiny two-plane case.
 
@@ -84,8 +85,19 @@ def _render_scene(tag: str, scene, pairs, out: dict) -> None:
     rgbd = r.render(poses[0], K2)
     out[f"{tag}/zoom/color"] = rgbd.color
     out[f"{tag}/zoom/depth"] = rgbd.depth_m
-    # torch (CPU) and reference backends on a small target (the reference loops in Python).
+    # Small targets with the default numba pipeline: coarser levels of detail (pooled views), one
+    # thread, the fused hole scores of the adaptive loop.
     Ks = K.scaled(K.width // 4, K.height // 4)
+    r = Renderer(scene, RenderConfig(**EXTRA))
+    for i, T in enumerate(poses):
+        for size, Kt in (("quarter", Ks), ("half", K.scaled(K.width // 2, K.height // 2))):
+            rgbd = r.render(T, Kt)
+            key = f"{tag}/small-{size}/{i}"
+            out[key + "/color"] = rgbd.color
+            out[key + "/depth"] = rgbd.depth_m
+            out[key + "/views"] = np.asarray(r.last.views, np.int64)
+            out[key + "/levels"] = np.asarray(r.last.lod_levels, np.int64)
+    # torch (CPU) and reference backends on a small target (the reference loops in Python).
     for backend in ("torch", "reference"):
         try:
             r = Renderer(scene, RenderConfig(backend=backend, torch_device="cpu" if backend == "torch" else None,
