@@ -11,9 +11,12 @@ of the per-repeat ratios (``ratio_vs_single_paired_median``):
   (``RenderConfig(lod_levels=0, reuse_move_m=0)``, "today").
 - ``pointnav vector N``: :class:`presim.sim.vector_env.PointNavVectorEnv` env-steps/s (N robots
   per step), with ``torch_batch`` (one batch per step), with ``numba`` (frames spread over
-  ``RenderConfig.batch_threads`` = auto threads) and with ``numba 1 thread`` (frames one after
-  another); ratio to the single env. Each robot takes as many steps as the single env's robot
-  (``--warmup-steps``, then ``--steps`` per repeat), so both meet new capture views at the same rate.
+  ``RenderConfig.batch_threads`` = auto threads), with ``numba 1 thread`` (frames one after
+  another) and with ``numba W workers`` (``workers=W`` = max(2, cores) processes, each rendering
+  its robots one after another); ratio to the single env. CPU ms per env-step counts this process
+  only, so for the workers it is the main process's share, not the workers'. Each robot takes as
+  many steps as the single env's robot (``--warmup-steps``, then ``--steps`` per repeat), so both
+  meet new capture views at the same rate.
 - **Cold and steady state.** Every env first takes one untimed step (it loads the compiled
   kernels), then ``--warmup-steps`` timed steps (default 3), reported as ``cold_steps_per_s``
   (single env) / ``cold_env_steps_per_s`` (vector env): that rate includes preparing the capture
@@ -82,16 +85,16 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--num-envs", type=int, default=8)
     ap.add_argument("--drive-steps", type=int, default=10)
-    ap.add_argument("--vector", default="torch_batch,numba,numba-1-thread",
+    ap.add_argument("--vector", default="torch_batch,numba,numba-1-thread,numba-workers",
                     help="vector env renderers to measure, comma-separated, of torch_batch, numba, "
-                    "numba-1-thread ('' = none)")
+                    "numba-1-thread, numba-workers (robots split over max(2, cores) worker processes) ('' = none)")
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args()
     for name in ("steps", "warmup_steps", "repeats", "num_envs", "drive_steps"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if any(v and v not in ("torch_batch", "numba", "numba-1-thread") for v in args.vector.split(",")):
-        ap.error(f"--vector: unknown renderer in {args.vector!r} (torch_batch, numba, numba-1-thread)")
+    if any(v and v not in ("torch_batch", "numba", "numba-1-thread", "numba-workers") for v in args.vector.split(",")):
+        ap.error(f"--vector: unknown renderer in {args.vector!r} (torch_batch, numba, numba-1-thread, numba-workers)")
     os.environ["PRESIM_NO_PROGRESS"] = "1"
     from presim.sensors.camera import CameraSpec
     from presim.sim.envs import PointNavEnv
@@ -118,18 +121,21 @@ def main() -> int:
             if te or tr:
                 env.reset()
         steppers[name] = (step, 1)
-    vector = {"torch_batch": ("torch_batch", 0), "numba": ("numba", 0), "numba-1-thread": ("numba", 1)}
+    workers = max(2, os.cpu_count() or 1)
+    vector = {"torch_batch": ("torch_batch", 0, 0), "numba": ("numba", 0, 0), "numba-1-thread": ("numba", 1, 0),
+              "numba-workers": ("numba", 1, workers)}
     venvs = {}
     for v in (v for v in args.vector.split(",") if v):
-        backend, threads = vector[v]
-        venv = PointNavVectorEnv(scene, num_envs=args.num_envs, render=RenderConfig(backend=backend,
-                                                                                   batch_threads=threads))
+        backend, threads, nproc = vector[v]
+        venv = PointNavVectorEnv(scene if not nproc else args.scene, num_envs=args.num_envs,
+                                 render=RenderConfig(backend=backend, batch_threads=threads), workers=nproc)
         venv.reset(seed=0)
         rng = np.random.default_rng(0)
 
         def vstep(venv=venv, rng=rng):
             venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32))
         name = backend if threads != 1 else f"{backend} 1 thread"
+        name = f"{backend} {nproc} workers" if nproc else name
         venvs[name] = venv
         steppers[name] = (vstep, args.num_envs)
     cold = {}
@@ -165,7 +171,8 @@ def main() -> int:
         res[f"pointnav vector {args.num_envs} {name}"] = {
             "env_steps_per_s_median": med, "ratio_vs_single": med / single, "ratio_vs_single_paired_median": pair,
             "runs": rates[name], "cpu_ms_per_env_step_median": cpu_env,
-            "frame_threads": venv.renderer.batch_threads(args.num_envs),
+            "frame_threads": venv.renderer.batch_threads(args.num_envs) if venv.renderer is not None else 1,
+            "worker_processes": venv.workers,
             "cold_env_steps_per_s": cold[name], "cold_ratio_vs_single": cold[name] / cold["new"]}
         print(f"PointNav vector env x{args.num_envs} ({name:15s}): {med:7.1f} env-steps/s  = "
               f"x{med / single:.2f} the single env (paired x{pair:.2f})   CPU ms/env-step {cpu_env:.1f}   "

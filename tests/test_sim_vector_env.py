@@ -92,3 +92,40 @@ def test_vector_env_torch_batch_and_autoreset(toy_path):
     with pytest.raises(ValueError, match="actions"):
         venv.step(np.zeros((2, 2), np.float32))
     venv.close()
+
+
+def test_vector_env_on_worker_processes_matches_the_in_process_env(toy_path):
+    """``workers=2``: the robots split over two spawned processes (2 + 1) give the in-process
+    env's observations, rewards, flags and infos, through an autoreset; a worker's error reaches
+    the caller with its traceback; close() ends the processes."""
+    from presim.sim.envs import PointNavConfig
+
+    kw = dict(num_envs=3, discrete=True, width=32, height=24, config=PointNavConfig(max_episode_steps=3))
+    local = PointNavVectorEnv(toy_path, **kw)
+    venv = PointNavVectorEnv(toy_path, workers=2, **kw)
+    try:
+        assert venv.workers == 2 and venv.renderer is None and venv._pool.slices == [(0, 2), (2, 3)]
+        assert venv.single_observation_space == local.single_observation_space
+        obs, _ = venv.reset(seed=7)
+        ref, _ = local.reset(seed=7)
+        for k in ref:
+            np.testing.assert_array_equal(obs[k], ref[k])
+        for t in range(5):  # the 4th step autoresets every robot (max_episode_steps = 3)
+            acts = np.array([(t + i) % 3 + 1 for i in range(3)])
+            got, want = venv.step(acts), local.step(acts)
+            for k in want[0]:
+                np.testing.assert_array_equal(got[0][k], want[0][k])
+            for j in (1, 2, 3):
+                np.testing.assert_array_equal(got[j], want[j])
+            for k in want[4]:
+                np.testing.assert_array_equal(got[4][k], want[4][k])
+        assert venv.observation_space.contains(got[0])
+        with pytest.raises(RuntimeError, match=r"worker 1 \(robots 2..2\) failed:(.|\n)*discrete action must be 0..3"):
+            venv.step(np.array([1, 1, 7]))
+        procs = list(venv._pool.procs)
+    finally:
+        venv.close()
+        local.close()
+    assert procs and not any(p.is_alive() for p in procs)
+    with pytest.raises(ValueError, match="workers"):
+        PointNavVectorEnv(toy_path, num_envs=2, workers=-1)

@@ -12,6 +12,18 @@ thread count) that run the serial, GIL-free twins of the kernels. Each env is it
 (the selection reuse of ``reuse_move_m`` applies per robot), so every env's images equal those of a
 single env stepped alone.
 
+**Worker processes** (``workers=W``, W >= 2): the N robots are split over W processes (robots
+0..N/W-1 in the first, and so on), each holding its own loaded scene, renderer and per-view cache
+and rendering its robots' frames one after another on one thread; the main process only sends the
+actions and gathers the observations. Python's lock on the interpreter (the GIL) lets two threads
+of one process render small frames only ~1.3x as fast as one (the Python between the kernels runs
+one thread at a time), processes do not share it (docs/synthesis.md, "Vector env on worker
+processes"). Observations, rewards and flags equal the in-process env's (same seeds per robot,
+tested). The workers start with the ``spawn`` method (no fork of a process with running threads),
+a few seconds each, so a script that makes one needs the usual ``if __name__ == "__main__":``
+guard; ``close()`` stops them (they are daemons: they also end with the main process). Memory: one
+scene and one cache per worker (``SIM_RENDER_CACHE_MB`` each by default).
+
 Gymnasium 1.x vector API: ``reset(seed=..., options=...) -> (obs, infos)``,
 ``step(actions) -> (obs, rewards, terminations, truncations, infos)``; observations are the single
 env's ``Dict(rgb, depth, goal)`` stacked along a leading axis; autoreset is ``NEXT_STEP`` (the step
@@ -22,10 +34,14 @@ after an episode ended resets that env and returns its first observation with re
     >>> venv = PointNavVectorEnv("out/sample", num_envs=8)                       # doctest: +SKIP
     >>> obs, infos = venv.reset(seed=0); obs["rgb"].shape                        # doctest: +SKIP
     (8, 96, 128, 3)
+    >>> venv = PointNavVectorEnv("out/sample", num_envs=8, workers=2)            # doctest: +SKIP
 """
 
 from __future__ import annotations
 
+import dataclasses
+import multiprocessing
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -57,21 +73,39 @@ class PointNavVectorEnv(VectorEnv):
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
 
     def __init__(self, scene: str | Path | Scene, num_envs: int = 8, discrete: bool = False, width: int = 128,
-                 height: int = 96, config: PointNavConfig | None = None, render: RenderConfig | None = None):
+                 height: int = 96, config: PointNavConfig | None = None, render: RenderConfig | None = None,
+                 workers: int = 0):
+        """Args (besides the single env's): ``num_envs`` robots; ``render``: the shared renderer's
+        config (default: :func:`default_batch_backend`, cache bounded by ``SIM_RENDER_CACHE_MB``);
+        ``workers``: 0 or 1 = all robots in this process, W >= 2 = split over W worker processes
+        (at most ``num_envs``; see the module doc). ``renderer`` and ``envs`` are None then."""
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if workers < 0:
+            raise ValueError(f"workers must be >= 0, got {workers}")
         cfg = config or PointNavConfig()
         if cfg.depth_noise:
             raise ValueError("PointNavVectorEnv: depth_noise is not supported (use PointNavEnv)")
-        scene_obj = _load(scene)
+        scene_obj = _load(scene)  # also in the workers' case: a bad scene fails here, in this process
         rcfg = render or RenderConfig(backend=default_batch_backend(), cache_mb=SIM_RENDER_CACHE_MB)
-        self.renderer = Renderer(scene_obj, rcfg)
-        self.envs = [PointNavEnv(scene_obj, discrete, width, height, cfg, render_camera=False,
-                                 renderer=self.renderer) for _ in range(num_envs)]
         self.num_envs = num_envs
-        self.K = self.envs[0].camera_K
-        self.single_observation_space = self.envs[0].observation_space
-        self.single_action_space = self.envs[0].action_space
+        self.workers = min(workers, num_envs) if workers > 1 else 0
+        self._pool: _WorkerPool | None = None
+        if self.workers:
+            # each worker renders its robots one after another on one thread (the cores are the workers')
+            wcfg = dataclasses.replace(rcfg, batch_threads=1) if rcfg.backend != "torch_batch" else rcfg
+            self.renderer = None
+            self.envs = None
+            self._pool = _WorkerPool(scene if not isinstance(scene, Scene) else scene_obj, num_envs,
+                                     (discrete, width, height, cfg, wcfg), self.workers)
+            self.single_observation_space, self.single_action_space, self.K = self._pool.spaces
+        else:
+            self.renderer = Renderer(scene_obj, rcfg)
+            self.envs = [PointNavEnv(scene_obj, discrete, width, height, cfg, render_camera=False,
+                                     renderer=self.renderer) for _ in range(num_envs)]
+            self.K = self.envs[0].camera_K
+            self.single_observation_space = self.envs[0].observation_space
+            self.single_action_space = self.envs[0].action_space
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._done = np.zeros(num_envs, bool)
@@ -92,15 +126,19 @@ class PointNavVectorEnv(VectorEnv):
             seeds = list(seed)
             if len(seeds) != self.num_envs:
                 raise ValueError(f"reset: {len(seeds)} seeds for {self.num_envs} envs")
+        self._done[:] = False
+        if self._pool is not None:
+            return self._pool.reset(seeds, options), {}
         for e, s in zip(self.envs, seeds):
             e.reset(seed=s, options=options)
-        self._done[:] = False
         return self._stack(self._render_all()), {}
 
     def step(self, actions):
         actions = np.asarray(actions)
         if len(actions) != self.num_envs:
             raise ValueError(f"step: {len(actions)} actions for {self.num_envs} envs")
+        if self._pool is not None:
+            return self._pool.step(actions)
         n = self.num_envs
         rew = np.zeros(n, np.float64)
         term = np.zeros(n, bool)
@@ -118,5 +156,117 @@ class PointNavVectorEnv(VectorEnv):
         return self._stack(self._render_all()), rew, term, trunc, info
 
     def close_extras(self, **kwargs) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            return
         for e in self.envs:
             e.close()
+
+
+def _worker_main(conn, scene, n: int, env_args: tuple, numba_threads: int) -> None:
+    """A worker process: an in-process :class:`PointNavVectorEnv` of ``n`` robots answering the
+    main process's ``("reset", (seeds, options))`` / ``("step", actions)`` / ``("close", None)``
+    with ``("ok", result)`` or ``("error", traceback text)``."""
+    try:
+        import numba
+
+        numba.set_num_threads(max(1, min(numba_threads, numba.config.NUMBA_NUM_THREADS)))
+        venv = PointNavVectorEnv(scene, n, *env_args, workers=0)
+        conn.send(("ok", (venv.single_observation_space, venv.single_action_space, venv.K)))
+    except BaseException:  # noqa: BLE001 - reported to the main process, which raises it
+        conn.send(("error", traceback.format_exc()))
+        return
+    while True:
+        try:
+            cmd, arg = conn.recv()
+        except (EOFError, OSError):  # the main process went away
+            break
+        try:
+            if cmd == "reset":
+                out = venv.reset(seed=arg[0], options=arg[1])[0]
+            elif cmd == "step":
+                out = venv.step(arg)
+            elif cmd == "close":
+                venv.close()
+                conn.send(("ok", None))
+                break
+            else:
+                raise ValueError(f"unknown command {cmd!r}")
+            conn.send(("ok", out))
+        except BaseException:  # noqa: BLE001
+            conn.send(("error", traceback.format_exc()))
+
+
+class _WorkerPool:
+    """W worker processes holding consecutive slices of the robots (see the module doc)."""
+
+    def __init__(self, scene, num_envs: int, env_args: tuple, workers: int):
+        import os
+
+        bounds = np.linspace(0, num_envs, workers + 1).round().astype(int)
+        self.slices = [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+        ctx = multiprocessing.get_context("spawn")
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        self.conns, self.procs = [], []
+        try:
+            for a, b in self.slices:
+                here, there = ctx.Pipe()
+                p = ctx.Process(target=_worker_main, args=(there, scene, b - a, env_args, threads), daemon=True,
+                                name=f"presim-vector-env-{a}-{b}")
+                p.start()
+                there.close()
+                self.conns.append(here)
+                self.procs.append(p)
+            self.spaces = self._gather()[0]
+        except BaseException:
+            self.close()
+            raise
+
+    def _gather(self) -> list:
+        """Every worker's answer, in order; a worker's error is raised here with its traceback."""
+        out = []
+        for w, conn in enumerate(self.conns):
+            try:
+                status, val = conn.recv()
+            except (EOFError, OSError) as e:
+                raise RuntimeError(f"PointNavVectorEnv worker {w} (robots {self.slices[w][0]}.."
+                                   f"{self.slices[w][1] - 1}) died (exit code {self.procs[w].exitcode})") from e
+            if status == "error":
+                raise RuntimeError(f"PointNavVectorEnv worker {w} (robots {self.slices[w][0]}.."
+                                   f"{self.slices[w][1] - 1}) failed:\n{val}")
+            out.append(val)
+        return out
+
+    def reset(self, seeds: list, options) -> dict:
+        for conn, (a, b) in zip(self.conns, self.slices):
+            conn.send(("reset", (list(seeds[a:b]), options)))
+        obs = self._gather()
+        return {k: np.concatenate([o[k] for o in obs]) for k in obs[0]}
+
+    def step(self, actions: np.ndarray):
+        for conn, (a, b) in zip(self.conns, self.slices):
+            conn.send(("step", actions[a:b]))
+        parts = self._gather()
+        obs = {k: np.concatenate([p[0][k] for p in parts]) for k in parts[0][0]}
+        info = {k: np.concatenate([p[4][k] for p in parts]) for k in parts[0][4]}
+        return (obs, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]),
+                np.concatenate([p[3] for p in parts]), info)
+
+    def close(self) -> None:
+        for conn in self.conns:
+            try:
+                conn.send(("close", None))
+            except (OSError, ValueError):
+                pass
+        for conn, p in zip(self.conns, self.procs):
+            try:
+                if conn.poll(10.0):
+                    conn.recv()
+            except (EOFError, OSError):
+                pass
+            p.join(timeout=10.0)
+            if p.is_alive():
+                p.terminate()
+                p.join(timeout=5.0)
+            conn.close()
+        self.conns, self.procs = [], []
