@@ -122,7 +122,27 @@ def test_vector_env_on_worker_processes_matches_the_in_process_env(toy_path):
         assert venv.observation_space.contains(got[0])
         with pytest.raises(RuntimeError, match=r"worker 1 \(robots 2..2\) failed:(.|\n)*discrete action must be 0..3"):
             venv.step(np.array([1, 1, 7]))
-        procs = list(venv._pool.procs)
+        # every worker's answer was read: the env stays usable and in step (no answer left over)
+        got, want = venv.reset(seed=9)[0], local.reset(seed=9)[0]
+        for k in want:
+            np.testing.assert_array_equal(got[k], want[k])
+        got, want = venv.step(np.array([2, 3, 1])), local.step(np.array([2, 3, 1]))
+        np.testing.assert_array_equal(got[0]["rgb"], want[0]["rgb"])
+        np.testing.assert_array_equal(got[1], want[1])
+        # interrupted between sending and gathering (Ctrl-C): answers may be left in the pipes, so
+        # the env refuses to go on instead of handing out a previous step's observations
+        pool = venv._pool
+        gather = pool._gather
+
+        def interrupted():
+            raise KeyboardInterrupt
+        pool._gather = interrupted
+        with pytest.raises(KeyboardInterrupt):
+            venv.step(np.array([1, 1, 1]))
+        pool._gather = gather
+        with pytest.raises(RuntimeError, match="interrupted"):
+            venv.step(np.array([1, 1, 1]))
+        procs = list(pool.procs)
     finally:
         venv.close()
         local.close()

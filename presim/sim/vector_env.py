@@ -53,7 +53,7 @@ from presim.sim.envs import PointNavConfig, PointNavEnv, _load
 from presim.sim.simulator import SIM_RENDER_CACHE_MB
 from presim.synthesis.renderer import RenderConfig, Renderer
 
-__all__ = ["default_batch_backend", "PointNavVectorEnv"]
+__all__ = ["default_batch_backend", "PointNavVectorEnv", "WorkerError"]
 
 
 def default_batch_backend() -> str:
@@ -167,6 +167,11 @@ def _worker_main(conn, scene, n: int, env_args: tuple, numba_threads: int) -> No
     """A worker process: an in-process :class:`PointNavVectorEnv` of ``n`` robots answering the
     main process's ``("reset", (seeds, options))`` / ``("step", actions)`` / ``("close", None)``
     with ``("ok", result)`` or ``("error", traceback text)``."""
+    import signal
+
+    # Ctrl-C in a terminal reaches the whole process group: the main process handles it (and
+    # closes the workers); a worker interrupted mid-step would only leave its robots half stepped.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         import numba
 
@@ -197,6 +202,10 @@ def _worker_main(conn, scene, n: int, env_args: tuple, numba_threads: int) -> No
             conn.send(("error", traceback.format_exc()))
 
 
+class WorkerError(RuntimeError):
+    """An exception inside a :class:`PointNavVectorEnv` worker process (its traceback is in the message)."""
+
+
 class _WorkerPool:
     """W worker processes holding consecutive slices of the robots (see the module doc)."""
 
@@ -208,6 +217,7 @@ class _WorkerPool:
         ctx = multiprocessing.get_context("spawn")
         threads = max(1, (os.cpu_count() or 1) // workers)
         self.conns, self.procs = [], []
+        self.broken = False
         try:
             for a, b in self.slices:
                 here, there = ctx.Pipe()
@@ -224,29 +234,45 @@ class _WorkerPool:
 
     def _gather(self) -> list:
         """Every worker's answer, in order; a worker's error is raised here with its traceback."""
-        out = []
-        for w, conn in enumerate(self.conns):
+        out, failed = [], None
+        for w, conn in enumerate(self.conns):  # every answer is read, so none is left for the next call
             try:
                 status, val = conn.recv()
             except (EOFError, OSError) as e:
+                self.procs[w].join(timeout=1.0)
                 raise RuntimeError(f"PointNavVectorEnv worker {w} (robots {self.slices[w][0]}.."
                                    f"{self.slices[w][1] - 1}) died (exit code {self.procs[w].exitcode})") from e
-            if status == "error":
-                raise RuntimeError(f"PointNavVectorEnv worker {w} (robots {self.slices[w][0]}.."
-                                   f"{self.slices[w][1] - 1}) failed:\n{val}")
+            if status == "error" and failed is None:
+                failed = (w, val)
             out.append(val)
+        if failed is not None:
+            w, tb = failed
+            raise WorkerError(f"PointNavVectorEnv worker {w} (robots {self.slices[w][0]}..{self.slices[w][1] - 1}) "
+                              f"failed:\n{tb}")
         return out
 
+    def _call(self, cmd: str, args: list) -> list:
+        """Send each worker its command, then gather the answers. An interruption in between (Ctrl-C)
+        would leave answers in the pipes for the next call, so the pool refuses further calls."""
+        if self.broken:
+            raise RuntimeError("PointNavVectorEnv: a step or reset of the worker processes was interrupted; "
+                               "close() this env and make a new one")
+        try:
+            for conn, arg in zip(self.conns, args):
+                conn.send((cmd, arg))
+            return self._gather()
+        except WorkerError:  # the pipes are clean: the env stays usable (the other robots did step)
+            raise
+        except BaseException:
+            self.broken = True
+            raise
+
     def reset(self, seeds: list, options) -> dict:
-        for conn, (a, b) in zip(self.conns, self.slices):
-            conn.send(("reset", (list(seeds[a:b]), options)))
-        obs = self._gather()
+        obs = self._call("reset", [(list(seeds[a:b]), options) for a, b in self.slices])
         return {k: np.concatenate([o[k] for o in obs]) for k in obs[0]}
 
     def step(self, actions: np.ndarray):
-        for conn, (a, b) in zip(self.conns, self.slices):
-            conn.send(("step", actions[a:b]))
-        parts = self._gather()
+        parts = self._call("step", [actions[a:b] for a, b in self.slices])
         obs = {k: np.concatenate([p[0][k] for p in parts]) for k in parts[0][0]}
         info = {k: np.concatenate([p[4][k] for p in parts]) for k in parts[0][4]}
         return (obs, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]),
