@@ -6,6 +6,9 @@ Each case runs in its own child process (the peak, VmHWM, is per process), on a 
   actions; needs a scene with a floor;
 - ``vector``: ``PointNavVectorEnv`` of ``--num-envs`` robots (one shared scene and renderer);
   per env = peak / N;
+- ``vector-workers``: the same vector env with ``workers=2`` (robots split over two processes, each
+  with its own scene and renderer); the peaks of the main process and of both workers are summed
+  (an upper bound: each process's VmHWM may fall at a different time);
 - ``vga``: the simulator with one 640x480 camera (``presim drive``'s default) visiting every
   captured view: the free camera rig placed, step by step, at the midpoint of consecutive captured
   poses (the worst case for the per-view cache: each step needs new views). Works on any scene.
@@ -33,11 +36,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-CASES = ("pointnav", "vector", "vga")
+CASES = ("pointnav", "vector", "vector-workers", "vga")
 
 
-def _status_mb(key: str) -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
+def _status_mb(key: str, pid: int | str = "self") -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith(key + ":"):
             return int(line.split()[1]) / 1024.0
     return float("nan")
@@ -89,6 +92,23 @@ def child(args) -> dict:
             venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32))
             sample()
         renderer, n = venv.renderer, args.num_envs
+    elif args.child == "vector-workers":
+        venv = PointNavVectorEnv(args.scene if not args.frames else scene, num_envs=args.num_envs,
+                                 render=RenderConfig(backend="numba", cache_mb=rcfg.cache_mb), workers=2)
+        out["rss_created_mb"] = _status_mb("VmRSS")
+        venv.reset(seed=0)
+        for _ in range(args.steps):
+            venv.step(rng.uniform(-1, 1, (args.num_envs, 2)).astype(np.float32))
+            sample()
+        workers = [_status_mb("VmHWM", pid) for pid in venv.worker_pids]
+        anon_w = [_status_mb("RssAnon", pid) for pid in venv.worker_pids]
+        n = args.num_envs
+        out.update(peak_mb=_status_mb("VmHWM") + sum(workers), worker_peaks_mb=workers, rss_end_mb=_status_mb("VmRSS"),
+                   num_envs=n, cache_mb=float("nan"), cached_views=-1, steps=args.steps,
+                   peak_per_env_mb=(_status_mb("VmHWM") + sum(workers)) / n, peak_anon_mb=anon[0] + sum(anon_w),
+                   peak_anon_per_env_mb=(anon[0] + sum(anon_w)) / n)
+        venv.close()
+        return out
     else:
         sim = Simulator(scene, free_camera_rig(), SimConfig(cameras=(CameraSpec(width=640, height=480),), render=rcfg))
         out["rss_created_mb"] = _status_mb("VmRSS")

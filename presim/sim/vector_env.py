@@ -22,7 +22,9 @@ processes"). Observations, rewards and flags equal the in-process env's (same se
 tested). The workers start with the ``spawn`` method (no fork of a process with running threads),
 a few seconds each, so a script that makes one needs the usual ``if __name__ == "__main__":``
 guard; ``close()`` stops them (they are daemons: they also end with the main process). Memory: one
-scene and one cache per worker (``SIM_RENDER_CACHE_MB`` each by default).
+scene and one cache per worker (``SIM_RENDER_CACHE_MB`` each by default). Pass the scene's folder:
+each worker then memory-maps its pixel arrays (shared page cache); a ``Scene`` object is pickled
+into every worker with its frames copied (133 MB for the 60-frame VGA sample scene).
 
 Gymnasium 1.x vector API: ``reset(seed=..., options=...) -> (obs, infos)``,
 ``step(actions) -> (obs, rewards, terminations, truncations, infos)``; observations are the single
@@ -96,7 +98,7 @@ class PointNavVectorEnv(VectorEnv):
             wcfg = dataclasses.replace(rcfg, batch_threads=1) if rcfg.backend != "torch_batch" else rcfg
             self.renderer = None
             self.envs = None
-            self._pool = _WorkerPool(scene if not isinstance(scene, Scene) else scene_obj, num_envs,
+            self._pool = _WorkerPool(scene if isinstance(scene, Scene) else str(Path(scene).resolve()), num_envs,
                                      (discrete, width, height, cfg, wcfg), self.workers)
             self.single_observation_space, self.single_action_space, self.K = self._pool.spaces
         else:
@@ -109,6 +111,11 @@ class PointNavVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._done = np.zeros(num_envs, bool)
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """Process ids of the worker processes (empty without workers)."""
+        return [p.pid for p in self._pool.procs] if self._pool is not None else []
 
     def _render_all(self) -> list[dict]:
         poses = np.stack([e.camera_pose() for e in self.envs])
