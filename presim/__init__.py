@@ -65,7 +65,10 @@ def register_gym_envs() -> None:
 
     for env_id, discrete in GYM_ENV_IDS:
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="presim.sim.envs:PointNavEnv", kwargs={"discrete": discrete})
+            # gym.make_vec(id, num_envs=N, scene=..., [workers=W]) makes the batched PointNavVectorEnv
+            # (vectorization_mode="sync" / "async": gymnasium's wrappers of N single envs)
+            gym.register(id=env_id, entry_point="presim.sim.envs:PointNavEnv", kwargs={"discrete": discrete},
+                         vector_entry_point="presim.sim.vector_env:PointNavVectorEnv")
 
 
 class _GymHook:

@@ -84,3 +84,26 @@ def test_vector_envs(kind, toy_path):
         assert not np.array_equal(obs["goal"][0], obs["goal"][1])
     finally:
         venv.close()
+
+
+def test_make_vec_gives_the_batched_vector_env(toy_path):
+    """``gym.make_vec`` on a PreSim id makes :class:`PointNavVectorEnv` (its vector entry point);
+    ``vectorization_mode="sync"`` still gives gymnasium's SyncVectorEnv of single envs."""
+    from presim.sim.vector_env import PointNavVectorEnv
+
+    venv = gym.make_vec("PreSim-PointNavDiscrete-v0", num_envs=2, scene=toy_path, width=32, height=24)
+    try:
+        assert isinstance(venv.unwrapped, PointNavVectorEnv) and venv.unwrapped.workers == 0
+        obs, _ = venv.reset(seed=3)
+        assert obs["rgb"].shape == (2, 24, 32, 3) and venv.action_space.shape == (2,)
+        obs, rew, *_ = venv.step(np.array([1, 2]))
+        assert rew.shape == (2,) and venv.observation_space.contains(obs)
+    finally:
+        venv.close()
+    sync = gym.make_vec("PreSim-PointNav-v0", num_envs=2, vectorization_mode="sync", scene=toy_path, width=32,
+                        height=24)
+    try:
+        assert isinstance(sync, gym.vector.SyncVectorEnv)
+        assert sync.reset(seed=1)[0]["depth"].shape == (2, 24, 32, 1)
+    finally:
+        sync.close()

@@ -17,6 +17,11 @@ Example:
     >>> import gymnasium as gym, presim                                       # doctest: +SKIP
     >>> env = gym.make("PreSim-PointNav-v0", scene="out/sample", width=64, height=48)   # doctest: +SKIP
     >>> obs, info = env.reset(seed=0)                                         # doctest: +SKIP
+    >>> venv = gym.make_vec("PreSim-PointNav-v0", num_envs=8, scene="out/sample", workers=2)  # doctest: +SKIP
+
+``gym.make_vec`` on these ids makes :class:`presim.sim.vector_env.PointNavVectorEnv` (their vector
+entry point: robots rendered in batches, optionally on worker processes); pass
+``vectorization_mode="sync"`` or ``"async"`` for gymnasium's wrappers of N single envs.
 """
 
 from __future__ import annotations
