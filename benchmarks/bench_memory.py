@@ -104,7 +104,7 @@ def child(args) -> dict:
         anon_w = [_status_mb("RssAnon", pid) for pid in venv.worker_pids]
         n = args.num_envs
         out.update(peak_mb=_status_mb("VmHWM") + sum(workers), worker_peaks_mb=workers, rss_end_mb=_status_mb("VmRSS"),
-                   num_envs=n, cache_mb=float("nan"), cached_views=-1, steps=args.steps,
+                   num_envs=n, cache_mb=None, cached_views=-1, steps=args.steps,
                    peak_per_env_mb=(_status_mb("VmHWM") + sum(workers)) / n, peak_anon_mb=anon[0] + sum(anon_w),
                    peak_anon_per_env_mb=(anon[0] + sum(anon_w)) / n)
         venv.close()
@@ -167,7 +167,8 @@ def main() -> int:
         print(f"{case:9s} envs {r['num_envs']}  frames {r['frames']}  imported {r['rss_imported_mb']:6.0f} MB  "
               f"created {r['rss_created_mb']:6.0f} MB  peak {r['peak_mb']:6.0f} MB  per env {r['peak_per_env_mb']:6.0f} MB  "
               f"private (anon) peak {r['peak_anon_mb']:6.0f} MB = {r['peak_anon_per_env_mb']:5.0f}/env  "
-              f"point cache {r['cache_mb']:5.0f} MB ({r['cached_views']} views)", flush=True)
+              + (f"point cache {r['cache_mb']:5.0f} MB ({r['cached_views']} views)" if r["cached_views"] >= 0 else
+                 f"workers' peaks {' + '.join(f'{w:.0f}' for w in r['worker_peaks_mb'])} MB"), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({"scene": args.scene, "results": results,
                                                "load_average_end": os.getloadavg()}, indent=2))
