@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import os
 import traceback
 from pathlib import Path
 
@@ -217,8 +218,6 @@ class _WorkerPool:
     """W worker processes holding consecutive slices of the robots (see the module doc)."""
 
     def __init__(self, scene, num_envs: int, env_args: tuple, workers: int):
-        import os
-
         bounds = np.linspace(0, num_envs, workers + 1).round().astype(int)
         self.slices = [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
         ctx = multiprocessing.get_context("spawn")

@@ -546,7 +546,8 @@ class Renderer:
         return choose_level(r0, self._lod)
 
     def _grid_fill(self, idx: int, grids: FrameGrids, mask_flat: np.ndarray) -> float:
-        """Target pixels that view ``idx``'s grid points landing on ``mask_flat`` stand for."""
+        """Target pixels that view ``idx``'s grid points landing on ``mask_flat`` stand for (one view at a
+        time: the reference of the fill areas of :meth:`FrameGrids.hole_scores`, which the frames use)."""
         return grids.fill_area(idx, mask_flat, self._grid_zsrc_of(idx), float(self._src_focal[idx]),
                                self.config.near_m, float(self.config.overlap_stride_px))
 
@@ -656,8 +657,6 @@ class Renderer:
                                view_image, get_view, self.grid_points, scratch.workspace,
                                color_transform=self._color_transform,
                                blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
-                               grid_px=lambda v: grids.pixels(v, near),
-                               grid_fill=lambda v, big: self._grid_fill(v, grids, big),
                                hole_scores=lambda ids, big: grids.hole_scores(
                                    ids, big, self._grid_zsrc_of, lambda v: float(self._src_focal[v]),
                                    near, float(self.config.overlap_stride_px)))
