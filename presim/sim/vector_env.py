@@ -210,6 +210,13 @@ def _worker_main(conn, scene, n: int, env_args: tuple, numba_threads: int) -> No
             conn.send(("error", traceback.format_exc()))
 
 
+def _joined(parts: list):
+    """The workers' batches (arrays, or dicts of arrays) joined along the robot axis, in worker order."""
+    if isinstance(parts[0], dict):
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return np.concatenate(parts)
+
+
 class WorkerError(RuntimeError):
     """An exception inside a :class:`PointNavVectorEnv` worker process (its traceback is in the message)."""
 
@@ -274,15 +281,11 @@ class _WorkerPool:
             raise
 
     def reset(self, seeds: list, options) -> dict:
-        obs = self._call("reset", [(list(seeds[a:b]), options) for a, b in self.slices])
-        return {k: np.concatenate([o[k] for o in obs]) for k in obs[0]}
+        return _joined(self._call("reset", [(list(seeds[a:b]), options) for a, b in self.slices]))
 
     def step(self, actions: np.ndarray):
         parts = self._call("step", [actions[a:b] for a, b in self.slices])
-        obs = {k: np.concatenate([p[0][k] for p in parts]) for k in parts[0][0]}
-        info = {k: np.concatenate([p[4][k] for p in parts]) for k in parts[0][4]}
-        return (obs, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]),
-                np.concatenate([p[3] for p in parts]), info)
+        return tuple(_joined([p[j] for p in parts]) for j in range(5))
 
     def close(self) -> None:
         for conn in self.conns:
