@@ -5,8 +5,9 @@ back-projected to world points (eq. 3.7, via :func:`presim.geometry.unproject_de
 index (``num_layers`` equal slices between the map's min and max depth, thesis Fig. 3.8) and sorted
 by layer so each layer is one contiguous slice. Per frame, :func:`warp_layers` projects the points
 into the target camera (eq. 3.8) and z-buffers each in its own layer's image, skipping the runs of
-:data:`CHUNK_PTS` points whose bounding box :func:`chunk_visibility` proves outside the target (same
-output as projecting every point: ``cull=False``, tested).
+:data:`CHUNK_PTS` points whose bounds :func:`chunk_visibility` prove outside the target, or, for a
+later view warped only into some tiles, outside those tiles (same output as projecting every point:
+``cull=False``, tested).
 
 The numba kernel re-states the pinhole projection of :func:`presim.geometry.project` inline (a call
 per point would cost more than the arithmetic); tests check it against the reference, which uses
@@ -26,18 +27,18 @@ from presim.synthesis.threads import parallel_kernel
 __all__ = ["CHUNK_PTS", "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility", "layer_slots",
            "prepare_view", "prepare_view_ref", "warp_layers"]
 
-CHUNK_PTS = 64
+CHUNK_PTS = 32
 """Points per chunk of a prepared view: consecutive points (source raster order within a layer, so
-a chunk is a short run of neighbouring source pixels) whose world bounding box the warp tests
-against the target frustum (:func:`chunk_visibility`) before it projects them."""
+a chunk is a short run of neighbouring source pixels) whose bounds the warp tests against the
+target frustum and its tiles (:func:`chunk_visibility`) before it projects them."""
 
 
 @nb.njit(cache=True, nogil=True)
 def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
     n = xyz.shape[0]
     m = (n + chunk - 1) // chunk
-    lo = np.empty((m, 3), np.float32)
-    hi = np.empty((m, 3), np.float32)
+    lo = np.empty((3, m), np.float32)
+    hi = np.empty((3, m), np.float32)
     for c in range(m):
         a = c * chunk
         b = min(n, a + chunk)
@@ -48,20 +49,112 @@ def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
                 x = xyz[i, k]
                 mn = min(mn, x)
                 mx = max(mx, x)
-            lo[c, k] = mn
-            hi[c, k] = mx
+            lo[k, c] = mn
+            hi[k, c] = mx
     return lo, hi
 
 
-def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS) -> tuple[np.ndarray, np.ndarray]:
-    """World axis-aligned bounds of each run of ``chunk`` consecutive points (the last run may be
-    shorter): ``(lo, hi)``, float32 (ceil(n / chunk), 3) each."""
+@nb.njit(cache=True, nogil=True)
+def _down32(x):  # pragma: no cover
+    # the largest float32 <= x (float64 x, finite)
+    f = np.float32(x)
+    return np.nextafter(f, np.float32(-np.inf)) if np.float64(f) > x else f
+
+
+@nb.njit(cache=True, nogil=True)
+def _up32(x):  # pragma: no cover
+    # the smallest float32 >= x
+    f = np.float32(x)
+    return np.nextafter(f, np.float32(np.inf)) if np.float64(f) < x else f
+
+
+@nb.njit(cache=True, nogil=True)
+def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
+    # Per chunk: ranges of x / z, y / z and z of its points in the source camera (R: world ->
+    # source, float64). A chunk with a point not strictly in front of the source camera (or a
+    # non-finite one) gets infinite bounds: the warp then always keeps it.
+    n = xyz.shape[0]
+    m = (n + chunk - 1) // chunk
+    lo = np.empty((3, m), np.float32)
+    hi = np.empty((3, m), np.float32)
+    for c in range(m):
+        a = c * chunk
+        b = min(n, a + chunk)
+        a0 = np.inf
+        a1 = -np.inf
+        b0 = np.inf
+        b1 = -np.inf
+        z0 = np.inf
+        z1 = -np.inf
+        ok = True
+        for i in range(a, b):
+            x = np.float64(xyz[i, 0])
+            y = np.float64(xyz[i, 1])
+            z = np.float64(xyz[i, 2])
+            xs = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + R[0, 3]
+            ys = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + R[1, 3]
+            zs = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + R[2, 3]
+            if not (zs > 0.0 and np.isfinite(zs) and np.isfinite(xs) and np.isfinite(ys)):
+                ok = False
+                break
+            p = xs / zs
+            q = ys / zs
+            a0 = min(a0, p)
+            a1 = max(a1, p)
+            b0 = min(b0, q)
+            b1 = max(b1, q)
+            z0 = min(z0, zs)
+            z1 = max(z1, zs)
+        if ok:  # float32, rounded outwards
+            lo[0, c] = _down32(a0)
+            lo[1, c] = _down32(b0)
+            lo[2, c] = _down32(z0)
+            hi[0, c] = _up32(a1)
+            hi[1, c] = _up32(b1)
+            hi[2, c] = _up32(z1)
+        else:
+            for k in range(3):
+                lo[k, c] = -np.inf
+                hi[k, c] = np.inf
+    return lo, hi
+
+
+@nb.njit(cache=True, nogil=True)
+def _abs_max_kernel(xyz):  # pragma: no cover
+    a = 0.0
+    for i in range(xyz.shape[0]):
+        for k in range(3):
+            x = abs(np.float64(xyz[i, k]))
+            if not x <= a:  # also NaN
+                a = x if np.isfinite(x) else np.inf
+    return a
+
+
+def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS, T_world_src: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of each run of ``chunk`` consecutive points (the last run may be shorter): ``(lo, hi)``,
+    float32 (3, ceil(n / chunk)) each (a row per coordinate: the warp's tests run over chunks;
+    rounded outwards from float64 where not exact).
+
+    Without ``T_world_src``: the world axis-aligned box. With it (the 4x4 pose of the camera the
+    points were seen from): the ranges of ``(x / z, y / z, z)`` in that camera, a frustum piece
+    whose 8 corners span every point of the chunk (its image in another camera is the convex hull
+    of the corners' images). A run of source pixels is much thinner in that frame than in the
+    world axes (apc capture: its box projects 2-8x smaller into a nearby target); a chunk with a
+    point not in front of the source camera gets infinite bounds (never culled).
+    """
     xyz = np.ascontiguousarray(xyz_world, np.float32)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"chunk_bounds: need (n, 3) points, got {xyz.shape}")
     if chunk < 1:
         raise ValueError(f"chunk_bounds: chunk must be >= 1, got {chunk}")
-    return _chunk_bounds_kernel(xyz, int(chunk))
+    if T_world_src is None:
+        return _chunk_bounds_kernel(xyz, int(chunk))
+    T = np.asarray(T_world_src, np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"chunk_bounds: T_world_src must be a finite 4x4 pose, got shape {T.shape}")
+    R = np.ascontiguousarray(np.linalg.inv(T)[:3, :4])
+    return _chunk_bounds_src_kernel(xyz, R, int(chunk))
 
 
 @dataclass(frozen=True)
@@ -76,16 +169,38 @@ class ViewPoints:
     """int64 (L + 1,): points of layer l are ``[layer_start[l], layer_start[l + 1])``."""
     depth_range_m: tuple[float, float]
     """(min, max) valid depth of the view, metres (the layer split)."""
+    T_world_src: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """4x4 pose of the camera the points were seen from (:func:`prepare_view` sets it), or None.
+    Only the chunk bounds use it: with a pose they are taken in that camera's frame (tighter)."""
     chunk_lo: np.ndarray = field(init=False, repr=False, compare=False)
-    """float32 (ceil(n / CHUNK_PTS), 3): world lower bounds of each run of :data:`CHUNK_PTS` points
-    (derived from ``xyz_world`` on construction, :func:`chunk_bounds`)."""
+    """float32 (3, ceil(n / CHUNK_PTS)): lower bounds of each run of :data:`CHUNK_PTS` points,
+    derived from ``xyz_world`` on construction (:func:`chunk_bounds`): of ``(x / z, y / z, z)`` in
+    the source camera when ``T_world_src`` is given, else of the world coordinates."""
     chunk_hi: np.ndarray = field(init=False, repr=False, compare=False)
     """float32, the upper bounds."""
+    chunk_to_world: np.ndarray = field(init=False, repr=False, compare=False)
+    """float64 (3, 4): the frame of the bounds -> world (``T_world_src[:3]``, or the identity)."""
+    chunk_abs_max: float = field(init=False, repr=False, compare=False)
+    """Largest absolute world coordinate of the points (inf when one is not finite): bounds the
+    rounding of their projection (:func:`chunk_visibility`'s margins)."""
 
     def __post_init__(self) -> None:
-        lo, hi = chunk_bounds(self.xyz_world)
+        T = self.T_world_src
+        if T is not None:
+            T = np.asarray(T, np.float64)
+            object.__setattr__(self, "T_world_src", T)
+        lo, hi = chunk_bounds(self.xyz_world, T_world_src=T)
         object.__setattr__(self, "chunk_lo", lo)
         object.__setattr__(self, "chunk_hi", hi)
+        object.__setattr__(self, "chunk_to_world", np.ascontiguousarray((np.eye(4) if T is None else T)[:3, :4]))
+        xyz = self.xyz_world
+        object.__setattr__(self, "chunk_abs_max", float(_abs_max_kernel(np.ascontiguousarray(xyz, np.float32)))
+                           if len(xyz) else 0.0)
+
+    @property
+    def chunk_projective(self) -> bool:
+        """The chunk bounds are of ``(x / z, y / z, z)`` in the source camera (else world boxes)."""
+        return self.T_world_src is not None
 
     @property
     def num_layers(self) -> int:
@@ -99,7 +214,7 @@ class ViewPoints:
     @property
     def nbytes(self) -> int:
         return int(self.xyz_world.nbytes + self.rgb.nbytes + self.layer_start.nbytes + self.chunk_lo.nbytes
-                   + self.chunk_hi.nbytes)
+                   + self.chunk_hi.nbytes + self.chunk_to_world.nbytes)
 
 
 @dataclass(frozen=True)
@@ -156,7 +271,7 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
     start = np.zeros(num_layers + 1, np.int64)
     start[1:] = np.cumsum(counts)
     return ViewPoints(np.ascontiguousarray(pts[order], np.float32),
-                      np.ascontiguousarray(color[mask][order], np.uint8), start, rng)
+                      np.ascontiguousarray(color[mask][order], np.uint8), start, rng, T_world_cam)
 
 
 @nb.njit(cache=True, nogil=True)  # nogil: views are also prepared in a background thread
@@ -229,7 +344,7 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
         np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(color), float(K.fx), float(K.fy),
         float(K.cx), float(K.cy), np.ascontiguousarray(np.asarray(T_world_cam, np.float64)), int(num_layers))
     rng = (float(lo), float(hi)) if len(xyz) else (0.0, 0.0)
-    return ViewPoints(xyz, rgb, start, rng)
+    return ViewPoints(xyz, rgb, start, rng, T_world_cam)
 
 
 # fastmath without "nnan"/"ninf": the kernel relies on comparisons that must stay IEEE-exact.
@@ -278,86 +393,206 @@ def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.n
     return _layer_slots_kernel(ls, max(1, min(int(n_slots), ls.shape[0] - 1)))
 
 
-@nb.njit(cache=True, nogil=True)
-def _frustum_planes(M, fx, fy, cx, cy, near, W, H):  # pragma: no cover
-    # The warp kernel's keep tests as 5 linear functions of the world point, g_k(p) = G_k . (p, 1)
-    # >= 0 (float64, from the kernel's float32 M and intrinsics): z > near, u >= 0, u < W, v >= 0,
-    # v < H, with u = fx x / z + cx + 0.5 multiplied out by z > 0; and E: the same functions with
-    # absolute coefficients (a bound of each term's magnitude, for the rounding margin).
-    G = np.empty((5, 4))
-    E = np.empty((5, 4))
-    for j in range(4):
-        r0 = np.float64(M[0, j])
-        r1 = np.float64(M[1, j])
-        r2 = np.float64(M[2, j])
-        nz = near if j == 3 else 0.0
-        G[0, j] = r2 - nz
-        G[1, j] = fx * r0 + (cx + 0.5) * r2
-        G[2, j] = (W - cx - 0.5) * r2 - fx * r0
-        G[3, j] = fy * r1 + (cy + 0.5) * r2
-        G[4, j] = (H - cy - 0.5) * r2 - fy * r1
-        E[0, j] = abs(r2) + abs(nz)
-        E[1, j] = fx * abs(r0) + (abs(cx) + 0.5 + W) * abs(r2)
-        E[2, j] = E[1, j]
-        E[3, j] = fy * abs(r1) + (abs(cy) + 0.5 + H) * abs(r2)
-        E[4, j] = E[3, j]
-    return G, E
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _corner_boxes(L0, L1, L2, H0, H1, H2, projective, f00, f01, f02, f03, f10, f11, f12, f13, f20, f21, f22, f23,
+                  fx, fy, box):  # pragma: no cover
+    # Per chunk c: box[:, c] = the range of its 8 corners' fx x / z and fy y / z (pixels before
+    # + c + 0.5) and of their z in the target. Only min / max and arithmetic in the loop, so that
+    # it vectorizes (with abs(), or with 4 more ranges, it did not: ~120 against ~26 us per 4 400
+    # chunks).
+    m = L0.shape[0]
+    for c in range(m):
+        a0 = np.inf
+        a1 = -np.inf
+        b0 = np.inf
+        b1 = -np.inf
+        zm = np.inf
+        zx = -np.inf
+        for ia in range(2):
+            fa = H0[c] if ia else L0[c]
+            for ib in range(2):
+                fb = H1[c] if ib else L1[c]
+                for iz in range(2):
+                    z = H2[c] if iz else L2[c]
+                    f0 = fa * z if projective else fa
+                    f1 = fb * z if projective else fb
+                    t0 = f00 * f0 + f01 * f1 + f02 * z + f03
+                    t1 = f10 * f0 + f11 * f1 + f12 * z + f13
+                    t2 = f20 * f0 + f21 * f1 + f22 * z + f23
+                    u = fx * t0 / t2
+                    v = fy * t1 / t2
+                    a0 = min(a0, u)
+                    a1 = max(a1, u)
+                    b0 = min(b0, v)
+                    b1 = max(b1, v)
+                    zm = min(zm, t2)
+                    zx = max(zx, t2)
+        box[0, c] = a0
+        box[1, c] = a1
+        box[2, c] = b0
+        box[3, c] = b1
+        box[4, c] = zm
+        box[5, c] = zx
 
 
-@nb.njit(cache=True, nogil=True)
-def _chunk_visibility_kernel(lo, hi, M, fx, fy, cx, cy, near, W, H, margin_rel, vis):  # pragma: no cover
-    # A chunk is culled when, for one of the frustum's half-spaces g_k(p) >= 0, even the box's
-    # maximum of g_k is below -margin_rel x (a bound of g_k's magnitude: E_k on the box's largest
-    # |coordinates|): every point of the chunk is then dropped by the warp kernel's float32 tests
-    # too (their rounding is ~1e-6 of that bound). Boxes with a non-finite bound are kept.
-    G, E = _frustum_planes(M, fx, fy, cx, cy, near, W, H)
-    m = lo.shape[0]
+@nb.njit(cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division branch (the loops vectorize)
+def _chunk_keep_kernel(lo, hi, projective, F, fx, fy, cx, cy, near, W, H, mag, margin_rel, sat, tile_px,
+                       use_tiles, vis):  # pragma: no cover
+    # Per chunk, from its bounds (rows of lo / hi: one per coordinate; F: their frame -> target
+    # camera, float64 of the kernel's float32 world -> target matrix times the frame's pose; world
+    # boxes: corners (x, y, z); source-frame bounds: corners (a z, b z, z) of a frustum piece that
+    # holds every point of the chunk). The loops over chunks are branch-free so that they vectorize.
+    # 1. Frustum: the warp kernel's keep tests as 5 linear functions of the target point,
+    #    g_k >= 0: z > near, u >= 0, u < W, v >= 0, v < H (u = fx x / z + cx + 0.5 multiplied out
+    #    by z > 0); G_k = the same functions of the frame point. Their maximum over a box is at a
+    #    corner chosen per coefficient sign; over a frustum piece, g = z (G0 a + G1 b + G2) + G3 is
+    #    largest at z0 or z1 with the bracket at its largest. Culled when for one k even that
+    #    maximum is below -margin_rel x a bound of g_k's magnitude (mag: bounds of |x|, |y|, |z| of
+    #    any target point of the view before cancellation; the kernel's float32 rounding is ~1e-7
+    #    of them).
+    # 2. Tiles (a later view warped only into marked tiles): with every corner in front of the
+    #    near plane, the points' pixels lie in the box of the corners' pixels (the image of the
+    #    hull is the hull of the corners' images); culled when that box, widened by a rounding
+    #    margin, meets no marked tile (sat: summed-area table of the marks).
+    # Bounds with a non-finite value are kept (x - x == 0 only for finite x).
+    m = lo.shape[1]
+    P = np.zeros((5, 4))
+    P[0, 2] = 1.0
+    P[0, 3] = -near
+    P[1, 0] = fx
+    P[1, 2] = cx + 0.5
+    P[2, 0] = -fx
+    P[2, 2] = W - cx - 0.5
+    P[3, 1] = fy
+    P[3, 2] = cy + 0.5
+    P[4, 1] = -fy
+    P[4, 2] = H - cy - 0.5
+    G = np.zeros((5, 4))
+    e = np.empty(5)
+    for k in range(5):
+        for j in range(4):
+            acc = P[k, 3] if j == 3 else 0.0
+            for r in range(3):
+                acc += P[k, r] * F[r, j]
+            G[k, j] = acc
+        e[k] = -margin_rel * (abs(P[k, 0]) * mag[0] + abs(P[k, 1]) * mag[1] + abs(P[k, 2]) * mag[2] + abs(P[k, 3]))
+    L0 = lo[0]
+    L1 = lo[1]
+    L2 = lo[2]
+    H0 = hi[0]
+    H1 = hi[1]
+    H2 = hi[2]
+    for c in range(m):
+        l0 = L0[c]
+        l1 = L1[c]
+        l2 = L2[c]
+        h0 = H0[c]
+        h1 = H1[c]
+        h2 = H2[c]
+        finite = ((l0 - l0 == 0.0) & (l1 - l1 == 0.0) & (l2 - l2 == 0.0) & (h0 - h0 == 0.0) & (h1 - h1 == 0.0)
+                  & (h2 - h2 == 0.0))
+        keep = True
+        for k in range(5):
+            if projective:
+                h = G[k, 2] + max(G[k, 0] * l0, G[k, 0] * h0) + max(G[k, 1] * l1, G[k, 1] * h1)
+                g = G[k, 3] + max(l2 * h, h2 * h)
+            else:
+                g = (G[k, 3] + max(G[k, 0] * l0, G[k, 0] * h0) + max(G[k, 1] * l1, G[k, 1] * h1)
+                     + max(G[k, 2] * l2, G[k, 2] * h2))
+            keep = keep & (g >= e[k])
+        vis[c] = np.uint8(keep | (not finite))
+    if use_tiles:
+        box = np.empty((6, m))
+        _corner_boxes(L0, L1, L2, H0, H1, H2, projective, F[0, 0], F[0, 1], F[0, 2], F[0, 3], F[1, 0], F[1, 1],
+                      F[1, 2], F[1, 3], F[2, 0], F[2, 1], F[2, 2], F[2, 3], fx, fy, box)
+        z_safe = near + margin_rel * (mag[2] + abs(near))
+        tpx = np.float64(tile_px)
+        tw1 = np.float64(sat.shape[1] - 2)  # the last tile column / row
+        th1 = np.float64(sat.shape[0] - 2)
+        pad_u = margin_rel * (abs(cx) + W + 1.0) + 1.0
+        pad_v = margin_rel * (abs(cy) + H + 1.0) + 1.0
+        ou = cx + 0.5  # the kernel's pixel offset
+        ov = cy + 0.5
+        mu = margin_rel * fx
+        mv = margin_rel * fy
+        for c in range(m):  # tile range of each chunk's widened pixel box (branch-free: vectorizes)
+            zm = box[4, c]
+            # A point's pixel in the kernel: its x, y, z carry errors of ~1e-7 of mag; the margin
+            # is ~1000x that (and a pixel). Its |x| <= max |fx x / z| / fx x (largest z).
+            iz = 1.0 / zm
+            xabs = max(box[1, c], -box[0, c]) * box[5, c] / fx
+            yabs = max(box[3, c], -box[2, c]) * box[5, c] / fy
+            du = mu * (mag[0] + xabs * mag[2] * iz) * iz
+            dv = mv * (mag[1] + yabs * mag[2] * iz) * iz
+            ua = box[0, c] + ou - du - pad_u
+            ub = box[1, c] + ou + du + pad_u
+            va = box[2, c] + ov - dv - pad_v
+            vb = box[3, c] + ov + dv + pad_v
+            # (out of the image: an empty range, a > b; the tile of a clamped pixel is floor(p / tile))
+            box[0, c] = min(np.floor(max(ua, 0.0) / tpx), tw1 + 1.0)
+            box[1, c] = min(np.floor(min(ub, W - 1.0) / tpx), tw1) if ub >= 0.0 else -1.0
+            box[2, c] = min(np.floor(max(va, 0.0) / tpx), th1 + 1.0)
+            box[3, c] = min(np.floor(min(vb, H - 1.0) / tpx), th1) if vb >= 0.0 else -1.0
+        for c in range(m):
+            if vis[c] == 0 or not box[4, c] > z_safe:  # culled already, or a corner near / behind the camera
+                continue
+            # ranges with a NaN (a non-finite box) are kept; empty ones (outside the image) culled
+            if not (box[0, c] == box[0, c] and box[1, c] == box[1, c] and box[2, c] == box[2, c]
+                    and box[3, c] == box[3, c]):
+                continue
+            if box[0, c] > box[1, c] or box[2, c] > box[3, c]:
+                vis[c] = 0
+                continue
+            xa = np.int64(box[0, c])
+            xb = np.int64(box[1, c])
+            ya = np.int64(box[2, c])
+            yb = np.int64(box[3, c])
+            if sat[yb + 1, xb + 1] - sat[ya, xb + 1] - sat[yb + 1, xa] + sat[ya, xa] == 0:
+                vis[c] = 0
     n_vis = 0
     for c in range(m):
-        keep = np.uint8(1)
-        finite = True
-        for j in range(3):
-            if not (np.isfinite(lo[c, j]) and np.isfinite(hi[c, j])):
-                finite = False
-        if finite:
-            for k in range(5):
-                g = G[k, 3]
-                e = E[k, 3]
-                for j in range(3):
-                    a = G[k, j]
-                    lj = np.float64(lo[c, j])
-                    hj = np.float64(hi[c, j])
-                    g += a * lj if a * lj > a * hj else a * hj
-                    e += E[k, j] * max(abs(lj), abs(hj))
-                if g < -margin_rel * e:
-                    keep = np.uint8(0)
-                    break
-        vis[c] = keep
-        n_vis += np.int64(keep)
+        n_vis += np.int64(vis[c])
     return n_vis
 
 
 _NO_TILES = np.zeros((1, 1), np.uint8)
+_NO_SAT = np.zeros((2, 2), np.int32)
 _CULL_MARGIN = 1e-4  # relative: ~100x the float32 rounding of the kernel's projection
 
 
-def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float) -> np.ndarray:
-    vis = np.ones(view.chunk_lo.shape[0], np.uint8)
-    if near_m > 0:
-        _chunk_visibility_kernel(view.chunk_lo, view.chunk_hi, M32, float(np.float32(K.fx)), float(np.float32(K.fy)),
-                                 float(np.float32(K.cx)), float(np.float32(K.cy)), float(np.float32(near_m)),
-                                 K.width, K.height, _CULL_MARGIN, vis)
+def _tile_sat(tiles: np.ndarray) -> np.ndarray:
+    """int32 (th + 1, tw + 1) summed-area table of the tile marks (0 on the first row / column)."""
+    sat = np.zeros((tiles.shape[0] + 1, tiles.shape[1] + 1), np.int32)
+    np.cumsum(np.cumsum(tiles, 0, dtype=np.int32), 1, out=sat[1:, 1:])
+    return sat
+
+
+def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float, tiles: np.ndarray | None = None,
+                tile_px: int = 16) -> np.ndarray:
+    vis = np.ones(view.chunk_lo.shape[1], np.uint8)
+    A = view.chunk_abs_max
+    if near_m > 0 and np.isfinite(A):
+        M = M32.astype(np.float64)
+        F = M[:, :3] @ view.chunk_to_world  # the bounds' frame -> target
+        F[:, 3] += M[:, 3]
+        mag = np.abs(M[:, :3]).sum(1) * A + np.abs(M[:, 3])  # bounds of |x|, |y|, |z| terms in the target
+        use = tiles is not None
+        _chunk_keep_kernel(view.chunk_lo, view.chunk_hi, view.chunk_projective, F, float(np.float32(K.fx)),
+                           float(np.float32(K.fy)), float(np.float32(K.cx)), float(np.float32(K.cy)),
+                           float(np.float32(near_m)), K.width, K.height, mag, _CULL_MARGIN,
+                           _tile_sat(tiles) if use else _NO_SAT, int(tile_px), use, vis)
     return vis
 
 
-def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
-                     ) -> np.ndarray:
+def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
+                     tiles: np.ndarray | None = None, tile_px: int = 16) -> np.ndarray:
     """uint8 (n_chunks,): 0 where every point of the chunk certainly falls outside the target
-    camera (behind its near plane or outside the image), so :func:`warp_layers` can skip it
-    without projecting; 1 otherwise (conservative: a 1 may still drop all its points). With
-    ``near_m`` <= 0 nothing is culled."""
+    camera (behind its near plane or outside the image), or, with ``tiles`` (uint8 marks of
+    ``tile_px`` x ``tile_px`` tiles, as :func:`warp_layers` takes them), outside every marked tile,
+    so :func:`warp_layers` can skip it without projecting; 1 otherwise (conservative: a 1 may
+    still drop all its points). With ``near_m`` <= 0 nothing is culled."""
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    return _visibility(view, M, K, near_m)
+    return _visibility(view, M, K, near_m, tiles, tile_px)
 
 
 @parallel_kernel(fastmath=_FASTMATH, cache=True)
@@ -452,7 +687,8 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
             what a full warp gives inside (:func:`presim.synthesis.composite.warp_tiles` marks
             what a later view's crack pass reads).
         cull: skip the chunks of points that :func:`chunk_visibility` proves fall outside the
-            target (same output; False projects every point, for tests and benchmarks).
+            target, or outside the marked ``tiles`` (same output; False projects every point, for
+            tests and benchmarks).
     Returns:
         LayeredImage with depth 0 / color 0 where a layer received no point.
     """
@@ -474,9 +710,9 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         tile_of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
         tile_of_px = tile_of_px.reshape(-1)
     if cull:
-        vis = _visibility(view, M, K, near_m)
+        vis = _visibility(view, M, K, near_m, tiles, tile_px)
     else:
-        vis = np.ones(view.chunk_lo.shape[0], np.uint8)
+        vis = np.ones(view.chunk_lo.shape[1], np.uint8)
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
                         np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.pix, out.z,
                         tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, out.depth_m,
