@@ -395,7 +395,7 @@ def test_chunk_bounds_match_numpy():
         np.testing.assert_array_equal(lo[:, c], part.min(0))
         np.testing.assert_array_equal(hi[:, c], part.max(0))
     # In a source camera's frame: ranges of x / z, y / z and z, against numpy (float32, rounded
-    # outwards: they contain the float64 ranges, within one float32 step).
+    # outwards: they contain the float64 ranges, within 3 float32 steps).
     T_src = look_at((0.3, -4.0, 0.5), (0.0, 0.0, 0.0))
     p = transform_points(invert(T_src), xyz.astype(np.float64))
     lo, hi = chunk_bounds(xyz, T_world_src=T_src)
@@ -404,8 +404,8 @@ def test_chunk_bounds_match_numpy():
     for c in range(6):
         part = abz[c * CHUNK_PTS:(c + 1) * CHUNK_PTS]
         assert (lo[:, c] <= part.min(0)).all() and (hi[:, c] >= part.max(0)).all()
-        np.testing.assert_allclose(lo[:, c], part.min(0), rtol=2.5e-7)
-        np.testing.assert_allclose(hi[:, c], part.max(0), rtol=2.5e-7)
+        np.testing.assert_allclose(lo[:, c], part.min(0), rtol=5e-7)
+        np.testing.assert_allclose(hi[:, c], part.max(0), rtol=5e-7)
     # A chunk with a point behind the source camera is unbounded (never culled).
     behind = xyz.copy()
     behind[CHUNK_PTS + 3] = transform_points(T_src, np.array([[0.0, 0.0, -1.0]]))[0]

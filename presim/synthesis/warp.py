@@ -56,27 +56,41 @@ def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True)
 def _down32(x):  # pragma: no cover
-    # the largest float32 <= x (float64 x, finite)
-    f = np.float32(x)
-    return np.nextafter(f, np.float32(-np.inf)) if np.float64(f) > x else f
+    # a float32 <= x (finite float64 x), within 3 float32 steps: x moved down by 2^-22 |x| (>= one
+    # step of float32 at x and at the moved value) before rounding to nearest. Cheaper than
+    # nextafter (a library call) and as good for bounds.
+    return np.float32(x - abs(x) * 2.384185791015625e-07 - 1e-37)
 
 
 @nb.njit(cache=True, nogil=True)
 def _up32(x):  # pragma: no cover
-    # the smallest float32 >= x
-    f = np.float32(x)
-    return np.nextafter(f, np.float32(np.inf)) if np.float64(f) < x else f
+    # a float32 >= x, within 3 float32 steps
+    return np.float32(x + abs(x) * 2.384185791015625e-07 + 1e-37)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
     # Per chunk: ranges of x / z, y / z and z of its points in the source camera (R: world ->
-    # source, float64). A chunk with a point not strictly in front of the source camera (or a
-    # non-finite one) gets infinite bounds: the warp then always keeps it.
+    # source, float64), rounded outwards to float32 (x / z through a reciprocal: its ~1e-16 error
+    # is far below the culling margins). A chunk with a point not strictly in front of the source
+    # camera (or a non-finite one) gets infinite bounds: the warp then always keeps it. No branch
+    # in the point loop (~1.0 against ~1.9 ms per 280 000 points with an early exit).
     n = xyz.shape[0]
     m = (n + chunk - 1) // chunk
     lo = np.empty((3, m), np.float32)
     hi = np.empty((3, m), np.float32)
+    r00 = R[0, 0]
+    r01 = R[0, 1]
+    r02 = R[0, 2]
+    r03 = R[0, 3]
+    r10 = R[1, 0]
+    r11 = R[1, 1]
+    r12 = R[1, 2]
+    r13 = R[1, 3]
+    r20 = R[2, 0]
+    r21 = R[2, 1]
+    r22 = R[2, 2]
+    r23 = R[2, 3]
     for c in range(m):
         a = c * chunk
         b = min(n, a + chunk)
@@ -86,26 +100,27 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
         b1 = -np.inf
         z0 = np.inf
         z1 = -np.inf
-        ok = True
+        bad = 0.0
         for i in range(a, b):
             x = np.float64(xyz[i, 0])
             y = np.float64(xyz[i, 1])
             z = np.float64(xyz[i, 2])
-            xs = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + R[0, 3]
-            ys = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + R[1, 3]
-            zs = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + R[2, 3]
-            if not (zs > 0.0 and np.isfinite(zs) and np.isfinite(xs) and np.isfinite(ys)):
-                ok = False
-                break
-            p = xs / zs
-            q = ys / zs
+            xs = r00 * x + r01 * y + r02 * z + r03
+            ys = r10 * x + r11 * y + r12 * z + r13
+            zs = r20 * x + r21 * y + r22 * z + r23
+            iz = 1.0 / zs
+            p = xs * iz
+            q = ys * iz
             a0 = min(a0, p)
             a1 = max(a1, p)
             b0 = min(b0, q)
             b1 = max(b1, q)
             z0 = min(z0, zs)
             z1 = max(z1, zs)
-        if ok:  # float32, rounded outwards
+            bad += zs - zs  # NaN once a point is not finite
+        finite = ((a0 - a0 == 0.0) and (a1 - a1 == 0.0) and (b0 - b0 == 0.0) and (b1 - b1 == 0.0)
+                  and (z1 - z1 == 0.0) and bad == 0.0)
+        if z0 > 0.0 and finite:
             lo[0, c] = _down32(a0)
             lo[1, c] = _down32(b0)
             lo[2, c] = _down32(z0)
@@ -119,15 +134,13 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
     return lo, hi
 
 
-@nb.njit(cache=True, nogil=True)
-def _abs_max_kernel(xyz):  # pragma: no cover
-    a = 0.0
-    for i in range(xyz.shape[0]):
-        for k in range(3):
-            x = abs(np.float64(xyz[i, k]))
-            if not x <= a:  # also NaN
-                a = x if np.isfinite(x) else np.inf
-    return a
+def _chunk_bounds_abs(xyz_world: np.ndarray, T_world_src: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`chunk_bounds` (``CHUNK_PTS``) and the points' largest |world coordinate| (inf when one
+    is not finite, 0 without points)."""
+    xyz = np.ascontiguousarray(xyz_world, np.float32)
+    lo, hi = chunk_bounds(xyz, T_world_src=T_world_src)
+    A = max(-float(xyz.min()), float(xyz.max())) if len(xyz) else 0.0
+    return lo, hi, A if np.isfinite(A) else np.inf
 
 
 def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS, T_world_src: np.ndarray | None = None
@@ -173,9 +186,9 @@ class ViewPoints:
     """4x4 pose of the camera the points were seen from (:func:`prepare_view` sets it), or None.
     Only the chunk bounds use it: with a pose they are taken in that camera's frame (tighter)."""
     chunk_lo: np.ndarray = field(init=False, repr=False, compare=False)
-    """float32 (3, ceil(n / CHUNK_PTS)): lower bounds of each run of :data:`CHUNK_PTS` points,
-    derived from ``xyz_world`` on construction (:func:`chunk_bounds`): of ``(x / z, y / z, z)`` in
-    the source camera when ``T_world_src`` is given, else of the world coordinates."""
+    """float32 (3, ceil(n / CHUNK_PTS)): lower bounds of each run of :data:`CHUNK_PTS` points
+    (:func:`chunk_bounds`): of ``(x / z, y / z, z)`` in the source camera when
+    ``T_world_src`` is given, else of the world coordinates. Every point lies within them."""
     chunk_hi: np.ndarray = field(init=False, repr=False, compare=False)
     """float32, the upper bounds."""
     chunk_to_world: np.ndarray = field(init=False, repr=False, compare=False)
@@ -189,13 +202,11 @@ class ViewPoints:
         if T is not None:
             T = np.asarray(T, np.float64)
             object.__setattr__(self, "T_world_src", T)
-        lo, hi = chunk_bounds(self.xyz_world, T_world_src=T)
+        lo, hi, A = _chunk_bounds_abs(self.xyz_world, T)
         object.__setattr__(self, "chunk_lo", lo)
         object.__setattr__(self, "chunk_hi", hi)
         object.__setattr__(self, "chunk_to_world", np.ascontiguousarray((np.eye(4) if T is None else T)[:3, :4]))
-        xyz = self.xyz_world
-        object.__setattr__(self, "chunk_abs_max", float(_abs_max_kernel(np.ascontiguousarray(xyz, np.float32)))
-                           if len(xyz) else 0.0)
+        object.__setattr__(self, "chunk_abs_max", float(A))
 
     @property
     def chunk_projective(self) -> bool:
