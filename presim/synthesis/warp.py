@@ -447,12 +447,11 @@ def _corner_boxes(L0, L1, L2, H0, H1, H2, projective, f00, f01, f02, f03, f10, f
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division branch (the loops vectorize)
-def _chunk_keep_kernel(lo, hi, projective, F, fx, fy, cx, cy, near, W, H, mag, margin_rel, sat, tile_px,
+def _chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H, margin_rel, sat, tile_px,
                        use_tiles, vis):  # pragma: no cover
-    # Per chunk, from its bounds (rows of lo / hi: one per coordinate; F: their frame -> target
-    # camera, float64 of the kernel's float32 world -> target matrix times the frame's pose; world
-    # boxes: corners (x, y, z); source-frame bounds: corners (a z, b z, z) of a frustum piece that
-    # holds every point of the chunk). The loops over chunks are branch-free so that they vectorize.
+    # Per chunk, from its bounds (rows of lo / hi: one per coordinate; world boxes: corners
+    # (x, y, z); source-frame bounds: corners (a z, b z, z) of a frustum piece that holds every
+    # point of the chunk). The loops over chunks are branch-free so that they vectorize.
     # 1. Frustum: the warp kernel's keep tests as 5 linear functions of the target point,
     #    g_k >= 0: z > near, u >= 0, u < W, v >= 0, v < H (u = fx x / z + cx + 0.5 multiplied out
     #    by z > 0); G_k = the same functions of the frame point. Their maximum over a box is at a
@@ -466,6 +465,21 @@ def _chunk_keep_kernel(lo, hi, projective, F, fx, fy, cx, cy, near, W, H, mag, m
     #    hull is the hull of the corners' images); culled when that box, widened by a rounding
     #    margin, meets no marked tile (sat: summed-area table of the marks).
     # Bounds with a non-finite value are kept (x - x == 0 only for finite x).
+    # F = M S: the bounds' frame -> target (M: the warp kernel's float32 world -> target matrix in
+    # float64; S: the frame -> world); mag[r]: a bound of |M[r, :3] w| + |M[r, 3]| for every world
+    # point w of the view (|w_j| <= A).
+    F = np.empty((3, 4))
+    mag = np.empty(3)
+    for r in range(3):
+        acc = 0.0
+        for j in range(4):
+            t = np.float64(M32[r, 3]) if j == 3 else 0.0
+            for k in range(3):
+                t += np.float64(M32[r, k]) * S[k, j]
+            F[r, j] = t
+        for k in range(3):
+            acc += abs(np.float64(M32[r, k]))
+        mag[r] = acc * A + abs(np.float64(M32[r, 3]))
     m = lo.shape[1]
     P = np.zeros((5, 4))
     P[0, 2] = 1.0
@@ -582,15 +596,11 @@ def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float,
                 tile_px: int = 16) -> np.ndarray:
     vis = np.ones(view.chunk_lo.shape[1], np.uint8)
     A = view.chunk_abs_max
-    if near_m > 0 and np.isfinite(A):
-        M = M32.astype(np.float64)
-        F = M[:, :3] @ view.chunk_to_world  # the bounds' frame -> target
-        F[:, 3] += M[:, 3]
-        mag = np.abs(M[:, :3]).sum(1) * A + np.abs(M[:, 3])  # bounds of |x|, |y|, |z| terms in the target
+    if near_m > 0 and A < np.inf:
         use = tiles is not None
-        _chunk_keep_kernel(view.chunk_lo, view.chunk_hi, view.chunk_projective, F, float(np.float32(K.fx)),
-                           float(np.float32(K.fy)), float(np.float32(K.cx)), float(np.float32(K.cy)),
-                           float(np.float32(near_m)), K.width, K.height, mag, _CULL_MARGIN,
+        _chunk_keep_kernel(view.chunk_lo, view.chunk_hi, view.chunk_projective, M32, view.chunk_to_world, A,
+                           float(np.float32(K.fx)), float(np.float32(K.fy)), float(np.float32(K.cx)),
+                           float(np.float32(K.cy)), float(np.float32(near_m)), K.width, K.height, _CULL_MARGIN,
                            _tile_sat(tiles) if use else _NO_SAT, int(tile_px), use, vis)
     return vis
 
