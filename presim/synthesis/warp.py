@@ -68,6 +68,12 @@ def _up32(x):  # pragma: no cover
     return np.float32(x + abs(x) * 2.384185791015625e-07 + 1e-37)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _grow(lo, hi, x):  # pragma: no cover
+    # the range [lo, hi] grown to hold x
+    return min(lo, x), max(hi, x)
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
     # Per chunk: ranges of x / z, y / z and z of its points in the source camera (R: world ->
@@ -79,27 +85,13 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
     m = (n + chunk - 1) // chunk
     lo = np.empty((3, m), np.float32)
     hi = np.empty((3, m), np.float32)
-    r00 = R[0, 0]
-    r01 = R[0, 1]
-    r02 = R[0, 2]
-    r03 = R[0, 3]
-    r10 = R[1, 0]
-    r11 = R[1, 1]
-    r12 = R[1, 2]
-    r13 = R[1, 3]
-    r20 = R[2, 0]
-    r21 = R[2, 1]
-    r22 = R[2, 2]
-    r23 = R[2, 3]
+    r00, r01, r02, r03 = R[0, 0], R[0, 1], R[0, 2], R[0, 3]  # scalars: the loop keeps them in registers
+    r10, r11, r12, r13 = R[1, 0], R[1, 1], R[1, 2], R[1, 3]
+    r20, r21, r22, r23 = R[2, 0], R[2, 1], R[2, 2], R[2, 3]
     for c in range(m):
         a = c * chunk
         b = min(n, a + chunk)
-        a0 = np.inf
-        a1 = -np.inf
-        b0 = np.inf
-        b1 = -np.inf
-        z0 = np.inf
-        z1 = -np.inf
+        a0, a1, b0, b1, z0, z1 = np.inf, -np.inf, np.inf, -np.inf, np.inf, -np.inf  # running ranges
         bad = 0.0
         for i in range(a, b):
             x = np.float64(xyz[i, 0])
@@ -111,12 +103,9 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
             iz = 1.0 / zs
             p = xs * iz
             q = ys * iz
-            a0 = min(a0, p)
-            a1 = max(a1, p)
-            b0 = min(b0, q)
-            b1 = max(b1, q)
-            z0 = min(z0, zs)
-            z1 = max(z1, zs)
+            a0, a1 = _grow(a0, a1, p)
+            b0, b1 = _grow(b0, b1, q)
+            z0, z1 = _grow(z0, z1, zs)
             bad += zs - zs  # NaN once a point is not finite
         finite = ((a0 - a0 == 0.0) and (a1 - a1 == 0.0) and (b0 - b0 == 0.0) and (b1 - b1 == 0.0)
                   and (z1 - z1 == 0.0) and bad == 0.0)
@@ -413,12 +402,7 @@ def _corner_boxes(L0, L1, L2, H0, H1, H2, projective, f00, f01, f02, f03, f10, f
     # chunks).
     m = L0.shape[0]
     for c in range(m):
-        a0 = np.inf
-        a1 = -np.inf
-        b0 = np.inf
-        b1 = -np.inf
-        zm = np.inf
-        zx = -np.inf
+        a0, a1, b0, b1, zm, zx = np.inf, -np.inf, np.inf, -np.inf, np.inf, -np.inf  # running ranges
         for ia in range(2):
             fa = H0[c] if ia else L0[c]
             for ib in range(2):
@@ -432,12 +416,9 @@ def _corner_boxes(L0, L1, L2, H0, H1, H2, projective, f00, f01, f02, f03, f10, f
                     t2 = f20 * f0 + f21 * f1 + f22 * z + f23
                     u = fx * t0 / t2
                     v = fy * t1 / t2
-                    a0 = min(a0, u)
-                    a1 = max(a1, u)
-                    b0 = min(b0, v)
-                    b1 = max(b1, v)
-                    zm = min(zm, t2)
-                    zx = max(zx, t2)
+                    a0, a1 = _grow(a0, a1, u)
+                    b0, b1 = _grow(b0, b1, v)
+                    zm, zx = _grow(zm, zx, t2)
         box[0, c] = a0
         box[1, c] = a1
         box[2, c] = b0
@@ -501,19 +482,11 @@ def _chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H
                 acc += P[k, r] * F[r, j]
             G[k, j] = acc
         e[k] = -margin_rel * (abs(P[k, 0]) * mag[0] + abs(P[k, 1]) * mag[1] + abs(P[k, 2]) * mag[2] + abs(P[k, 3]))
-    L0 = lo[0]
-    L1 = lo[1]
-    L2 = lo[2]
-    H0 = hi[0]
-    H1 = hi[1]
-    H2 = hi[2]
+    L0, L1, L2 = lo[0], lo[1], lo[2]
+    H0, H1, H2 = hi[0], hi[1], hi[2]
     for c in range(m):
-        l0 = L0[c]
-        l1 = L1[c]
-        l2 = L2[c]
-        h0 = H0[c]
-        h1 = H1[c]
-        h2 = H2[c]
+        l0, l1, l2 = L0[c], L1[c], L2[c]
+        h0, h1, h2 = H0[c], H1[c], H2[c]
         finite = ((l0 - l0 == 0.0) & (l1 - l1 == 0.0) & (l2 - l2 == 0.0) & (h0 - h0 == 0.0) & (h1 - h1 == 0.0)
                   & (h2 - h2 == 0.0))
         keep = True
