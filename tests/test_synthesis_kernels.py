@@ -553,6 +553,10 @@ def test_source_frame_bounds_cull_more_than_world_boxes():
     ta = chunk_visibility(vp, T_near, K_SMALL, tiles=tiles, tile_px=8)
     tb = chunk_visibility(world, T_near, K_SMALL, tiles=tiles, tile_px=8)
     assert 0 < ta.sum() < tb.sum()
+    with pytest.raises(ValueError, match="chunk_visibility: tiles must be uint8"):
+        chunk_visibility(vp, T_near, K_SMALL, tiles=tiles[:-1], tile_px=8)
+    with pytest.raises(ValueError, match="tiles must be uint8"):
+        chunk_visibility(vp, T_near, K_SMALL, tiles=tiles.astype(bool), tile_px=8)
     for v in (vp, world):  # and both warps equal the full warp on the marked tiles
         full = warp_layers(v, T_near, K_SMALL, 1e-3, cull=False)
         fd = full.depth_m.copy()

@@ -585,8 +585,20 @@ def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, n
     ``tile_px`` x ``tile_px`` tiles, as :func:`warp_layers` takes them), outside every marked tile,
     so :func:`warp_layers` can skip it without projecting; 1 otherwise (conservative: a 1 may
     still drop all its points). With ``near_m`` <= 0 nothing is culled."""
+    if tiles is not None:
+        _check_tiles(tiles, K, tile_px, "chunk_visibility")
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     return _visibility(view, M, K, near_m, tiles, tile_px)
+
+
+def _check_tiles(tiles: np.ndarray, K: Intrinsics, tile_px: int, who: str) -> None:
+    """Raise unless ``tiles`` marks the ``tile_px`` x ``tile_px`` tiles of a K-sized image (uint8)."""
+    if tile_px < 1:
+        raise ValueError(f"{who}: tile_px must be >= 1, got {tile_px}")
+    want = (-(-K.height // tile_px), -(-K.width // tile_px))
+    if not isinstance(tiles, np.ndarray) or tiles.shape != want or tiles.dtype != np.uint8:
+        raise ValueError(f"{who}: tiles must be uint8 {want}, got {getattr(tiles, 'dtype', type(tiles))} "
+                         f"{getattr(tiles, 'shape', '')}")
 
 
 @parallel_kernel(fastmath=_FASTMATH, cache=True)
@@ -697,9 +709,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     use = tiles is not None
     tile_of_px = _NO_TILES.reshape(-1)
     if use:
-        want = (-(-K.height // tile_px), -(-K.width // tile_px))
-        if tiles.shape != want or tiles.dtype != np.uint8:
-            raise ValueError(f"warp_layers: tiles must be uint8 {want}, got {tiles.dtype} {tiles.shape}")
+        _check_tiles(tiles, K, tile_px, "warp_layers")
         # per pixel: its tile's flag (a byte load per point instead of two integer divisions)
         tile_of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
         tile_of_px = tile_of_px.reshape(-1)
