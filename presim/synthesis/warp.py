@@ -109,10 +109,11 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
             bad += zs - zs  # NaN once a point is not finite
         finite = ((a0 - a0 == 0.0) and (a1 - a1 == 0.0) and (b0 - b0 == 0.0) and (b1 - b1 == 0.0)
                   and (z1 - z1 == 0.0) and bad == 0.0)
-        if z0 > 0.0 and finite:
+        z_lo = _down32(z0)
+        if z_lo > 0 and finite:  # the frustum test needs z > 0 on the whole piece
             lo[0, c] = _down32(a0)
             lo[1, c] = _down32(b0)
-            lo[2, c] = _down32(z0)
+            lo[2, c] = z_lo
             hi[0, c] = _up32(a1)
             hi[1, c] = _up32(b1)
             hi[2, c] = _up32(z1)
