@@ -4,6 +4,7 @@ replaces."""
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -104,8 +105,6 @@ def test_grid_count_kernels_equal_numpy():
 def test_frame_threads_rule():
     """Auto: one numba thread up to SERIAL_MAX_PIXELS, the caller's count above; explicit counts are
     capped at numba's pool; a negative count is an error (here and in RenderConfig)."""
-    import numba
-
     from presim.synthesis.renderer import RenderConfig
     from presim.synthesis.threads import SERIAL_MAX_PIXELS, frame_threads, numba_threads
 
@@ -126,8 +125,6 @@ def test_frame_threads_rule():
 def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     """A small frame's core runs with one numba thread (auto), a large one with the caller's count,
     the caller's count is restored afterwards, and forcing two threads gives the same image."""
-    import numba
-
     from presim.geometry import Intrinsics, look_at
     from presim.synthesis import renderer as R
     from presim.synthesis.threads import serial_now
@@ -155,6 +152,46 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     assert numba.get_num_threads() == before and not serial_now()
     np.testing.assert_array_equal(auto.color, forced.color)
     np.testing.assert_array_equal(auto.depth_m, forced.depth_m)
+
+
+def test_light_kernels_run_their_serial_twin_below_their_size():
+    """A TwinKernel with serial_below runs the serial twin when its size argument is smaller (and in
+    serial mode), the parallel one otherwise; the per-view light kernels declare their sizes, and
+    their output does not depend on which twin ran."""
+    from presim.synthesis import composite as C
+    from presim.synthesis import fill as F
+    from presim.synthesis.threads import LIGHT_SERIAL_BELOW, TwinKernel, parallel_kernel, serial_kernels
+
+    def _double(a, out):  # pragma: no cover
+        for i in numba.prange(a.shape[0]):
+            out[i] = 2 * a[i]
+
+    k = parallel_kernel(serial_below=100, size_arg=1)(_double)
+    assert isinstance(k, TwinKernel) and (k.serial_below, k.size_arg) == (100, 1)
+    calls = []
+    par, ser = k.parallel, k.serial
+    k.parallel = lambda *a: (calls.append("parallel"), par(*a))[1]
+    k.serial = lambda *a: (calls.append("serial"), ser(*a))[1]
+    for n in (99, 100, 5000):
+        out = np.zeros(n)
+        k(np.arange(n, dtype=np.float64), out)
+        np.testing.assert_array_equal(out, 2 * np.arange(n))
+    with serial_kernels():
+        k(np.arange(500.0), np.zeros(500))
+    assert calls == ["serial", "parallel", "parallel", "serial"]
+    # the declared sizes: per pixel of the image each one passes over
+    assert (C._big_kernel.serial_below, C._big_kernel.size_arg) == (LIGHT_SERIAL_BELOW["map"], 0)
+    assert (C._merge_holes_kernel.serial_below, C._merge_holes_kernel.size_arg) == (LIGHT_SERIAL_BELOW["pass"], 0)
+    assert (F._pull0_kernel.serial_below, F._pull0_kernel.size_arg) == (LIGHT_SERIAL_BELOW["pass"], 1)
+    assert (F._push0_kernel.serial_below, F._push0_kernel.size_arg) == (LIGHT_SERIAL_BELOW["pass"], 0)
+    rng = np.random.default_rng(5)
+    labels = rng.integers(0, 7, (90, 70)).astype(np.uint16)
+    lut = rng.integers(0, 2, 7).astype(np.uint8)
+    a, b = np.empty((90, 70), np.uint8), np.empty((90, 70), np.uint8)
+    C._big_kernel.parallel(labels, lut, a)
+    C._big_kernel(labels, lut, b)  # 6300 px: the serial twin
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a, lut[labels])
 
 
 def test_twin_kernels_dispatch_by_the_threads_mode_and_agree():

@@ -22,7 +22,7 @@ import numba as nb
 import numpy as np
 
 from presim.synthesis.crack_filter import gather_window, sort_window
-from presim.synthesis.threads import parallel_kernel
+from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
            "filtered_composite_packed", "filtered_composite_banded", "warp_tiles", "tile_any", "TILED_MIN_PIXELS",
@@ -82,7 +82,7 @@ def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.nd
                      np.empty(acc_depth_m.shape, np.uint8))
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"])
 def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
     # The merge (where replace and the view has a value, take the view's pixel; for the first view
     # only its source ids) + the hole mask of the result (1 where the accumulated depth is not > 0)
@@ -175,7 +175,7 @@ def _big_lut_kernel(labels, n, big_hole_px):  # pragma: no cover
     return lut, largest, any_big
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["map"])
 def _big_kernel(labels, big_lut, big):  # pragma: no cover
     H, W = labels.shape
     for v in nb.prange(H):

@@ -29,7 +29,7 @@ import numba as nb
 import numpy as np
 
 from presim.synthesis.telea import telea_inpaint
-from presim.synthesis.threads import parallel_kernel
+from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
 __all__ = ["FILL_METHODS", "FILL_KERNELS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
 
@@ -71,7 +71,7 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out[..., 0] if squeeze else out
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], size_arg=1)  # size of depth
 def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
     # Level 0 -> 1 for even H and W: means over the 2x2 children (premultiplied values, 0/1
     # weights). The known children are added in row order as selects (an unknown child adds +0.0,
@@ -116,7 +116,7 @@ def _taps(i, n_coarse):  # pragma: no cover
     return y0, min(y0 + 1, n_coarse - 1), np.float32(y - y0)
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"])
 def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no cover
     # Level 0: only the unknown pixels are written (outputs arrive as copies of the inputs). The
     # column taps are computed once per column (the same values _taps gives per pixel).

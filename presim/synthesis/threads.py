@@ -31,7 +31,7 @@ from typing import Any, Callable, Iterator
 
 import numba
 
-__all__ = ["SERIAL_MAX_PIXELS", "frame_threads", "numba_threads", "serial_kernels", "serial_now",
+__all__ = ["SERIAL_MAX_PIXELS", "LIGHT_SERIAL_BELOW", "frame_threads", "numba_threads", "serial_kernels", "serial_now",
            "parallel_kernel", "TwinKernel"]
 
 SERIAL_MAX_PIXELS = 40_000
@@ -40,6 +40,15 @@ SERIAL_MAX_PIXELS = 40_000
 against two threads: 128x128 1.13-1.61x and 160x120 1.35x in favour of one thread; 256x256
 (65 536 px) was a draw (apc capture 1.08x for one thread, the sample scene 0.80x in an A/B run);
 320x240 and up 0.77-0.82x (two threads win)."""
+
+
+LIGHT_SERIAL_BELOW = {"map": 1 << 20, "pass": 150_000}
+"""``serial_below`` of the light per-view kernels (pixels), measured on the 2-core machine with
+two threads, wall µs per call, parallel against serial twin (docs/synthesis.md, "Light kernels on
+one thread"): ``"map"``, a lookup per pixel (the big-hole mask: 256x256 77 → 23, 320x240 93 → 32,
+640x480 158 → 120); ``"pass"``, a pass that reads and writes several images (the merge + hole mask,
+the fill's full-size pull and push: merge 256x256 112 → 64, 320x240 133 → 88, but 640x480 313 →
+333 and 640x360 228 → 296)."""
 
 
 def frame_threads(width: int, height: int, threads: int = 0) -> int:
@@ -98,10 +107,17 @@ class TwinKernel:
     """A numba kernel compiled twice from one Python function (see the module doc): ``parallel``
     (``parallel=True``) and ``serial`` (``prange`` runs as ``range``, ``nogil=True``). Calling it runs
     the serial twin in a thread inside :func:`serial_kernels`, else the parallel one. Both are
-    compiled lazily, on first call, and cached on disk separately."""
+    compiled lazily, on first call, and cached on disk separately.
 
-    def __init__(self, fn: Callable, **options: Any):
+    ``serial_below`` (> 0): a light kernel whose work is one cheap pass over an image also runs its
+    serial twin when the array argument number ``size_arg`` has fewer than ``serial_below``
+    elements: waking the second thread costs more than half of such a pass there (same output;
+    :data:`LIGHT_SERIAL_BELOW`)."""
+
+    def __init__(self, fn: Callable, serial_below: int = 0, size_arg: int = 0, **options: Any):
         self.py_func = fn
+        self.serial_below = int(serial_below)
+        self.size_arg = int(size_arg)
         self.parallel = numba.njit(parallel=True, **options)(fn)
         # A copy under its own name, so that numba's on-disk cache keeps the two compilations apart.
         twin = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
@@ -112,10 +128,13 @@ class TwinKernel:
         functools.update_wrapper(self, fn)
 
     def __call__(self, *args: Any) -> Any:
-        return (self.serial if getattr(_local, "serial", False) else self.parallel)(*args)
+        if getattr(_local, "serial", False) or (self.serial_below and args[self.size_arg].size < self.serial_below):
+            return self.serial(*args)
+        return self.parallel(*args)
 
 
-def parallel_kernel(**options: Any) -> Callable[[Callable], TwinKernel]:
+def parallel_kernel(serial_below: int = 0, size_arg: int = 0, **options: Any) -> Callable[[Callable], TwinKernel]:
     """Decorator: ``@parallel_kernel(cache=True, fastmath=...)`` instead of
-    ``@numba.njit(parallel=True, ...)`` makes a :class:`TwinKernel`."""
-    return lambda fn: TwinKernel(fn, **options)
+    ``@numba.njit(parallel=True, ...)`` makes a :class:`TwinKernel` (``serial_below`` / ``size_arg``:
+    see there)."""
+    return lambda fn: TwinKernel(fn, serial_below, size_arg, **options)
