@@ -278,6 +278,7 @@ def test_synthesize_frame_stops_when_no_candidate_can_fill_and_fixed_views():
     # No candidate at all: an empty (filled-with-nothing) frame.
     res = synthesize_frame([], np.eye(4), K8, FrameConfig(), _scripted(images, []), lambda i: i, grids.__getitem__)
     assert res.views == [] and res.hole_frac == 1.0 and not res.color.any()
+    assert (res.source_view == -1).all() and not res.valid.any() and not res.depth_m.any()
 
 
 def test_grid_pixels_uses_the_pixel_centre_rule():

@@ -39,6 +39,35 @@ def test_project_grid_matches_reference():
     assert (a_pix >= 0).sum() > 1000 and (a_pix == -1).sum() > 1000  # both branches exercised
 
 
+def test_median_ratio_kernel_is_numpys_median_exactly():
+    """The LOD footprint's median (quickselect in place) is bit for bit np.median of the float32
+    ratios of the points that count: odd and even counts, ties, sorted and reversed inputs, one
+    point, none (nan)."""
+    from presim.synthesis.grids import _median_ratio_kernel
+
+    rng = np.random.default_rng(11)
+    near = np.float32(0.01)
+    for trial in range(400):
+        n = int(rng.integers(0, 300)) if trial % 4 else int(rng.integers(1, 5))
+        if trial % 5 == 0:  # many ties
+            z_src = rng.choice(np.array([0.5, 1.0, 1.5, 0.005], np.float32), n)
+        else:
+            z_src = rng.uniform(-0.2, 3.0, n).astype(np.float32)
+        z_t = rng.uniform(-0.2, 3.0, n).astype(np.float32)
+        z_t[trial % 3::7] = 1.0
+        pix = rng.integers(-1, 50, n).astype(np.int64)
+        if trial % 11 == 0:
+            order = np.argsort(z_src / z_t)
+            z_src, z_t, pix = z_src[order[::-1]].copy(), z_t[order[::-1]].copy(), pix[order[::-1]].copy()
+        ok = (z_src > near) & (z_t > near) & (pix >= 0)
+        got = _median_ratio_kernel(z_src, z_t, pix, near)
+        if not ok.any():
+            assert np.isnan(got)
+            continue
+        want = np.median(z_src[ok] / z_t[ok])
+        assert got == np.float64(want), (trial, int(ok.sum()), got, want)
+
+
 def test_frame_grids_answers_equal_the_reference_functions():
     """Overlap, hole-test pixels and LOD footprint from one projection = the per-question references."""
     K = Intrinsics.from_fov(64, 48, 60.0)
@@ -130,7 +159,7 @@ def test_fill_area_known_answers_and_reference():
 def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
     """FrameGrids.hole_scores (all pending candidates in one kernel call) = count_in_mask of each
     view's front pixels and its fill_area, exactly (same points, same order); views projected in
-    separate calls, views with no point in the image and bool / uint8 masks included."""
+    separate calls or all in one, views with no point in the image and bool / uint8 masks included."""
     from presim.synthesis.grids import count_in_mask
 
     K = Intrinsics.from_fov(64, 48, 60.0)
@@ -142,9 +171,10 @@ def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
     Kt = Intrinsics.from_fov(40, 30, 70.0)
     rng = np.random.default_rng(5)
     checked = 0
-    for T_cam_world in (invert(T), invert(scene.T_world_cam[3]), invert(T @ look_at(np.zeros(3), np.array([0.0, 0.0, -1.0])))):
+    cams = (invert(T), invert(scene.T_world_cam[3]), invert(T @ look_at(np.zeros(3), np.array([0.0, 0.0, -1.0]))))
+    for T_cam_world, earlier in zip(cams * 2, [[0, 1]] * 3 + [[]] * 3):
         grids = FrameGrids(T_cam_world, Kt, r.grid_points)
-        grids.project([0, 1])  # some views projected earlier, in another call
+        grids.project(earlier)  # some views projected earlier, in another call (or all in one)
         for frac in (0.0, 0.3, 1.0):
             for dtype in (np.uint8, bool):
                 mask = (rng.random(Kt.width * Kt.height) < frac).astype(dtype)

@@ -392,9 +392,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     # The adaptive loop considers the first max_views candidates (bounds the frame time).
     pending = [int(v) for v in list(candidates)[:cfg.max_views if adaptive else cfg.fixed_views]]
     n_target = len(pending)
-    acc_d = np.zeros((H, W), np.float32)
-    acc_c = np.zeros((H, W, 3), np.uint8)
-    acc_src = np.full((H, W), -1, np.int32)
+    # The first view's image becomes the accumulator and its merge writes every source id; a frame
+    # without any view gets empty buffers after the loop.
+    acc_d = acc_c = None
+    acc_src = np.empty((H, W), np.int32)
     holes = None  # uint8 (H, W) hole mask of the accumulated image, 1 = empty (after the first view)
     views: list[int] = []
     hole_fracs: list[float] = []
@@ -462,7 +463,10 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         ms["holes"] += (time.perf_counter() - t) * 1e3
         if last or (adaptive and hs.largest_hole_px <= stop_px):
             break
-    if holes is None:
+    if holes is None:  # no view warped
+        acc_d = np.zeros((H, W), np.float32)
+        acc_c = np.zeros((H, W, 3), np.uint8)
+        acc_src.fill(-1)
         valid = acc_d > 0
         hole_frac = float(1.0 - valid.mean())
     else:  # the last merge's hole mask; the same float operations as 1 - valid.mean()
@@ -471,8 +475,6 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
     if blend is not None and len(views) > 1:  # ---- blend hook (presim/synthesis/blend.py) ----
         acc_c, ms["blend"] = blend(views, acc_c, acc_d, acc_src)
     t = time.perf_counter()
-    if not views:
-        acc_c = np.zeros((H, W, 3), np.uint8)
     if cfg.fill_holes and hole_frac > 0:
         acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, kernel=cfg.fill_kernel)
     ms["fill"] = (time.perf_counter() - t) * 1e3

@@ -98,8 +98,8 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), z and near
     # float32 (as numpy compares a float32 array with a Python float); pix: the target pixel of each
     # point (-1 outside the image); nan when no point is ok. Exact order
-    # statistics (selection); an even count averages the two middle values as np.median does
-    # (their float32 sum, halved).
+    # statistics (quickselect in place); an even count averages the two middle values as np.median
+    # does (their float32 sum, halved).
     n = z_src.shape[0]
     r = np.empty(n, np.float32)
     m = 0
@@ -112,12 +112,52 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     if m == 0:
         return np.nan
     k = m // 2
-    part = np.partition(r[:m], k)
-    hi = part[k]
+    _select_kth(r, m, k)  # in place: r[:k] <= r[k] <= r[k + 1:m] (no copy, unlike np.partition)
+    hi = r[k]
     if m % 2:
         return np.float64(hi)
-    lo = part[:k].max()
+    lo = r[0]
+    for i in range(1, k):  # the largest of the lower part: the (k - 1)-th order statistic
+        lo = max(lo, r[i])
     return np.float64(np.float32(lo + hi) / np.float32(2.0))
+
+
+@nb.njit(cache=True, nogil=True)
+def _select_kth(a, m, k):  # pragma: no cover
+    # Quickselect (Hoare partition, median-of-3 pivot) on a[:m] in place, for values without NaN:
+    # afterwards a[k] is the k-th smallest and a[:k] <= a[k] <= a[k + 1:m]. An order statistic is
+    # one value whatever the algorithm, so the median equals np.partition's (tested).
+    lo = 0
+    hi = m
+    while hi - lo > 1:
+        x = a[lo]
+        y = a[(lo + hi - 1) // 2]
+        z = a[hi - 1]
+        if x > y:
+            x, y = y, x
+        if y > z:
+            y = z
+        if x > y:
+            y = x
+        i = lo
+        j = hi - 1
+        while i <= j:
+            while a[i] < y:
+                i += 1
+            while a[j] > y:
+                j -= 1
+            if i <= j:
+                t = a[i]
+                a[i] = a[j]
+                a[j] = t
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j + 1
+        elif k >= i:
+            lo = i
+        else:
+            return
 
 
 @nb.njit(cache=True, nogil=True)
@@ -172,25 +212,36 @@ def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t
 
 
 @nb.njit(cache=True, nogil=True)
-def _hole_scores_kernel(mask_flat, pix, z_t, z_src, near, counts, sums):  # pragma: no cover
-    # For each view k (tuples of its grid's pix / z_t / z_src): counts[k] = count_in_mask(mask_flat,
-    # its front pixels (pix >= 0, z_t > near)) and sums[k] = _fill_area_kernel(mask_flat, ...): the
-    # same points in the same order, so the same integer and the same float64 sum.
-    for k in range(len(pix)):
-        pk = pix[k]
-        tk = z_t[k]
-        sk = z_src[k]
+def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums):  # pragma: no cover
+    # For each view k (its grid's points are [starts[k], ends[k]) of pix / z_t / z_src):
+    # counts[k] = count_in_mask(mask_flat, its front pixels (pix >= 0, z_t > near)) and sums[k] =
+    # _fill_area_kernel(mask_flat, ...): the same points in the same order, so the same integer and
+    # the same float64 sum.
+    for k in range(starts.shape[0]):
         n = 0
         s = 0.0
-        for i in range(pk.shape[0]):
-            p = pk[i]
-            if p >= 0 and tk[i] > near and mask_flat[p] != 0:
+        for i in range(starts[k], ends[k]):
+            p = pix[i]
+            if p >= 0 and z_t[i] > near and mask_flat[p] != 0:
                 n += 1
-                if sk[i] > near:
-                    r = np.float64(sk[i]) / np.float64(tk[i])
+                if z_src[i] > near:
+                    r = np.float64(z_src[i]) / np.float64(z_t[i])
                     s += r * r
         counts[k] = n
         sums[k] = s
+
+
+def _flat_f32(parts: list[np.ndarray], n: int) -> np.ndarray:
+    """The arrays of ``parts`` (each cast to float32 as ``np.ascontiguousarray(a, np.float32)``),
+    end to end in one float32 (n,) array."""
+    out = np.empty(n, np.float32)
+    o = 0
+    for a in parts:
+        out[o:o + len(a)] = a
+        o += len(a)
+    if o != n:
+        raise ValueError(f"source depths: {o} values for {n} grid points")
+    return out
 
 
 class FrameGrids:
@@ -205,6 +256,11 @@ class FrameGrids:
         self.T_cam_world, self.K = T_cam_world, K
         self._grid_points = grid_points
         self._proj: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # Each project() call writes its views' grids into one buffer: view -> (buffer, start, end),
+        # buffer -> its views in order and (for hole_scores) their source depths in the same layout.
+        self._where: dict[int, tuple[int, int, int]] = {}
+        self._bufs: list[tuple[np.ndarray, np.ndarray, list[int]]] = []
+        self._zsrc_of_buf: dict[int, np.ndarray] = {}
         self._px: dict[tuple[int, float], np.ndarray] = {}
         self._args: tuple | None = None
 
@@ -219,11 +275,14 @@ class FrameGrids:
         z = np.empty(n, np.float32)
         args = self._kernel_args()
         o = 0
+        b = len(self._bufs)
+        self._bufs.append((pix, z, missing))
         for v, g in zip(missing, grids):  # each grid straight into its slice of one output (no copy of the inputs)
             p, zz = pix[o:o + len(g)], z[o:o + len(g)]
             if len(g):
                 _project_grid_kernel(g, *args, p, zz)
             self._proj[v] = (p, zz)
+            self._where[v] = (b, o, o + len(g))
             o += len(g)
 
     def _kernel_args(self) -> tuple:
@@ -294,16 +353,30 @@ class FrameGrids:
         ``mask_flat`` (= ``count_in_mask(mask_flat, self.pixels(v, near_m))``) and the target pixels
         they stand for (= :meth:`fill_area`; ``z_src(v)`` / ``f_src_px(v)``: the view's cached source
         depths and focal length). The adaptive loop asks this for every pending candidate after each
-        warped view; one call instead of two per candidate (tested equal)."""
+        warped view; one call instead of two per candidate (tested equal). ``z_src`` must give a view
+        the same depths at every call on this object (they are gathered once per projection buffer)."""
         ids = [int(v) for v in ids]
         self.project(ids)
         m = mask_flat.view(np.uint8) if mask_flat.dtype == np.bool_ else mask_flat
         counts = np.zeros(len(ids), np.int64)
         sums = np.zeros(len(ids), np.float64)
         if ids:
-            _hole_scores_kernel(m, tuple(self._proj[v][0] for v in ids), tuple(self._proj[v][1] for v in ids),
-                                tuple(np.ascontiguousarray(z_src(v), np.float32) for v in ids),
-                                np.float32(near_m), counts, sums)
+            where = [self._where[v] for v in ids]
+            b = where[0][0]
+            if all(w[0] == b for w in where):  # the usual case: one buffer, flat, no copy
+                pix, z_t, views = self._bufs[b]
+                zs = self._zsrc_of_buf.get(b)
+                if zs is None:
+                    zs = self._zsrc_of_buf[b] = _flat_f32([z_src(v) for v in views], len(z_t))
+                starts = np.array([w[1] for w in where], np.int64)
+                ends = np.array([w[2] for w in where], np.int64)
+            else:  # views projected in several calls: their pieces, gathered
+                pix = np.concatenate([self._proj[v][0] for v in ids])
+                z_t = np.concatenate([self._proj[v][1] for v in ids])
+                zs = _flat_f32([z_src(v) for v in ids], len(z_t))
+                ends = np.cumsum([len(self._proj[v][1]) for v in ids], dtype=np.int64)
+                starts = ends - np.array([len(self._proj[v][1]) for v in ids], np.int64)
+            _hole_scores_kernel(m, pix, z_t, zs, starts, ends, np.float32(near_m), counts, sums)
         f_t = np.sqrt(self.K.fx * self.K.fy)
         fills = [float(s * (stride_px * f_t / f_src_px(v)) ** 2) if len(self._proj[v][1]) else 0.0
                  for v, s in zip(ids, sums.tolist())]
