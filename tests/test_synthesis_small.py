@@ -44,6 +44,40 @@ def test_merge_view_holes_equals_merge_then_mask():
     assert n == np.count_nonzero(~(ref[0] > 0))
 
 
+def test_merge_into_holes_equals_merge_view_holes():
+    """A later view's merge that updates the previous hole mask in place (visiting only the
+    replaceable pixels, 8 at a time when the width allows) = the full merge + mask + count, over a
+    chain of views; widths with and without the 8-pixel words, NaN depths, empty replace masks."""
+    from presim.synthesis.composite import merge_into_holes
+
+    rng = np.random.default_rng(9)
+    for H, W in ((21, 26), (17, 24), (9, 64), (1, 8)):
+        d0 = np.where(rng.random((H, W)) < 0.5, rng.random((H, W)) + 0.1, 0).astype(np.float32)
+        d0.flat[::13] = np.nan
+        c0 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        ref = [d0.copy(), c0.copy(), np.empty((H, W), np.int32)]
+        new = [d0.copy(), c0.copy(), np.empty((H, W), np.int32)]
+        h_ref = np.empty((H, W), np.uint8)
+        h_new = np.empty((H, W), np.uint8)
+        n_ref = merge_view_holes(ref[0], ref[1], ref[2], None, ref[0], ref[1], 1, h_ref)
+        n_new = merge_view_holes(new[0], new[1], new[2], None, new[0], new[1], 1, h_new)
+        for k in range(2, 7):
+            replace = analyse_hole_mask(h_ref.copy(), n_ref, 4, 1).replace
+            if k == 4:
+                replace = np.zeros((H, W), bool)
+            d = np.where(rng.random((H, W)) < 0.4, rng.random((H, W)) + 0.1, 0).astype(np.float32)
+            d.flat[::7] = np.nan
+            c = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+            n_ref = merge_view_holes(*ref, replace, d, c, k, h_ref)
+            n_new -= merge_into_holes(*new, replace, d, c, k, h_new)
+            for a, b in zip(ref, new):
+                np.testing.assert_array_equal(a, b)
+            np.testing.assert_array_equal(h_ref, h_new)
+            np.testing.assert_array_equal(h_new, (~(new[0] > 0)).view(np.uint8))
+            assert n_new == n_ref
+        assert n_ref < np.count_nonzero(~(d0 > 0))  # the chain filled some holes
+
+
 def test_analyse_hole_mask_equals_analyse_holes():
     rng = np.random.default_rng(7)
     for p in (0.02, 0.3, 0.6):

@@ -26,7 +26,7 @@ from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
 __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_composite", "filtered_composite_masked",
            "filtered_composite_packed", "filtered_composite_banded", "warp_tiles", "tile_any", "TILED_MIN_PIXELS",
-           "TILED_MAX_FRAC", "merge_view", "merge_view_holes", "analyse_holes",
+           "TILED_MAX_FRAC", "merge_view", "merge_view_holes", "merge_into_holes", "analyse_holes",
            "analyse_hole_mask"]
 
 
@@ -121,6 +121,57 @@ def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source:
     first = replace is None
     return int(_merge_holes_kernel(acc_depth_m, acc_color, acc_source, _NO_MASK if first else replace, depth_m,
                                    color, np.int32(view_id), first, holes))
+
+
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["map"])
+def _merge_into_holes_kernel(acc_d, acc_c, acc_src, replace, words, d, c, view_id, holes):  # pragma: no cover
+    # The merge of a later view, updating the previous hole mask in place: a pixel stops being a
+    # hole exactly where the merge writes a depth > 0 (elsewhere the accumulator is unchanged).
+    # Returns the number of hole pixels filled. Reads the replace mask (8 pixels at a time as
+    # ``words``, the rows as uint64, when W % 8 == 0), the rest only where it is set.
+    H, W = acc_d.shape
+    nw = words.shape[1]
+    filled = 0
+    for v in nb.prange(H):
+        wrow = words[v]
+        for k in range(nw if nw > 0 else 1):
+            if nw > 0:
+                if wrow[k] == 0:
+                    continue
+                ua = 8 * k
+                ub = ua + 8
+            else:
+                ua = 0
+                ub = W
+            for u in range(ua, ub):
+                if replace[v, u] and d[v, u] > 0:
+                    acc_d[v, u] = d[v, u]
+                    acc_c[v, u, 0] = c[v, u, 0]
+                    acc_c[v, u, 1] = c[v, u, 1]
+                    acc_c[v, u, 2] = c[v, u, 2]
+                    acc_src[v, u] = view_id
+                    filled += np.int64(holes[v, u])
+                    holes[v, u] = 0
+    return filled
+
+
+def merge_into_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
+                     replace: np.ndarray, depth_m: np.ndarray, color: np.ndarray, view_id: int,
+                     holes: np.ndarray) -> int:
+    """:func:`merge_view`, and ``holes`` (uint8 (H, W), the accumulator's hole mask before the merge,
+    as :func:`merge_view_holes` or this function left it) updated in place to the merged image's
+    (1 where ``acc_depth_m`` is not > 0). Only the replaceable pixels are visited besides the
+    mask itself: what a later view of the adaptive loop needs (same result as
+    :func:`merge_view_holes`, tested).
+
+    Returns:
+        The number of hole pixels the view filled (the new hole count is the old one minus this).
+    """
+    H, W = acc_depth_m.shape
+    r8 = replace.view(np.uint8)
+    words = r8.view(np.uint64) if W % 8 == 0 and r8.flags.c_contiguous else np.zeros((H, 0), np.uint64)
+    return int(_merge_into_holes_kernel(acc_depth_m, acc_color, acc_source, r8, words, depth_m, color,
+                                        np.int32(view_id), holes))
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ from presim.synthesis import kernels_reference as ref
 from presim.synthesis.composite import (PACKED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX,
                                         analyse_hole_mask, composite_layers, filtered_composite,
                                         filtered_composite_banded, filtered_composite_masked, filtered_composite_packed,
-                                        merge_view_holes, warp_tiles)
+                                        merge_into_holes, merge_view_holes, warp_tiles)
 from presim.synthesis.crack_filter import CRACK_FILTERS, crack_filter
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS, fill_holes
 from presim.synthesis.grids import count_in_mask
@@ -450,10 +450,12 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
             c = color_transform(vi, c)
         t = time.perf_counter()
         if replace is None:
+            # the first view's image is the accumulator: its source ids + hole mask + hole count, one pass
             acc_d, acc_c = d, c
-        holes = np.empty((H, W), np.uint8)
-        # merge (the first view's image is the accumulator) + hole mask + hole count, one pass
-        n_hole = merge_view_holes(acc_d, acc_c, acc_src, replace, d, c, vi, holes)
+            holes = np.empty((H, W), np.uint8)
+            n_hole = merge_view_holes(acc_d, acc_c, acc_src, None, d, c, vi, holes)
+        else:  # merge on the replaceable pixels, the hole mask updated in place
+            n_hole -= merge_into_holes(acc_d, acc_c, acc_src, replace, d, c, vi, holes)
         views.append(vi)
         last = len(views) == n_target or not pending
         hs = analyse_hole_mask(holes, n_hole, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
