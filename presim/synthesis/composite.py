@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import cv2
@@ -1047,7 +1048,47 @@ def _tile_any_kernel(mask, words, tile_h, tile_w, grow):  # pragma: no cover
     return out
 
 
+@nb.njit(cache=True, nogil=True)
+def _tile_any_words_kernel(words, H, W, tile_h, tile_w, grow):  # pragma: no cover
+    # tile_any from the mask's rows as uint64 words (8 pixels each, little-endian: pixel 8k + j is
+    # byte j of word k): per row of tiles, the OR of the words of its grown rows; per tile, the OR
+    # of the words its grown columns touch, the bytes outside them masked off. A nonzero byte
+    # survives an OR, so the result is nonzero exactly when a pixel of the rectangle is.
+    th = (H + tile_h - 1) // tile_h
+    tw = (W + tile_w - 1) // tile_w
+    nw = words.shape[1]
+    out = np.zeros((th, tw), np.uint8)
+    band = np.empty(nw, np.uint64)
+    ones = np.uint64(0xFFFFFFFFFFFFFFFF)
+    one = np.uint64(1)
+    zero = np.uint64(0)
+    for ty in range(th):
+        ya = max(ty * tile_h - grow, 0)
+        yb = min((ty + 1) * tile_h + grow, H)
+        band[:] = zero
+        for v in range(ya, yb):
+            wrow = words[v]
+            for k in range(nw):
+                band[k] |= wrow[k]
+        for tx in range(tw):
+            xa = max(tx * tile_w - grow, 0)
+            xb = min((tx + 1) * tile_w + grow, W)
+            wa = xa // 8
+            wb = (xb + 7) // 8
+            acc = zero
+            for k in range(wa, wb):
+                w = band[k]
+                if k == wa:  # drop the pixels left of xa
+                    w &= ones << np.uint64(8 * (xa - 8 * wa))
+                if k == wb - 1 and xb < 8 * wb:  # and those from xb on
+                    w &= (one << np.uint64(8 * (xb - 8 * k))) - one
+                acc |= w
+            out[ty, tx] = acc != zero
+    return out
+
+
 _NO_WORDS = np.zeros((1, 0), np.uint64)
+_LITTLE = sys.byteorder == "little"
 
 
 def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
@@ -1055,15 +1096,21 @@ def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarra
     bool, H x W) lies within ``grow`` pixels (Chebyshev distance) of the tile (numba; reference
     :func:`presim.synthesis.kernels_reference.tile_any_ref`).
 
-    Each tile looks at its rectangle grown by ``grow``: when W is a multiple of 8, first as 8-pixel
-    words (an all-zero cover skips the tile), then pixel by pixel up to the first nonzero one. So a
-    sparse mask costs a few word reads per tile and a dense one a few pixel reads; marking tiles
-    from every nonzero pixel cost ~5 ns per nonzero pixel (1.4 ms for a 640x480 mask 30 % full).
+    Each tile looks at its rectangle grown by ``grow``. When W is a multiple of 8: the OR of the
+    rows of each row of tiles as 8-pixel words, then per tile the OR of the words it covers (one
+    pass over the mask whatever its density: 13 against 102 us per 640x480 replace mask of the apc
+    capture for the per-tile scan below, median of 66). Otherwise each tile scans its rectangle
+    pixel by pixel up to the first nonzero one; marking tiles from every nonzero pixel cost ~5 ns
+    per nonzero pixel (1.4 ms for a 640x480 mask 30 % full).
     """
     m = np.ascontiguousarray(mask).view(np.uint8)
     H, W = m.shape
-    words = m.reshape(H, W // 8, 8).view(np.uint64).reshape(H, W // 8) if W % 8 == 0 and W else _NO_WORDS
-    return _tile_any_kernel(m, words, int(tile_h), int(tile_w), int(grow))
+    if W % 8 == 0 and W and H:
+        words = m.reshape(H, W // 8, 8).view(np.uint64).reshape(H, W // 8)
+        if _LITTLE:
+            return _tile_any_words_kernel(words, H, W, int(tile_h), int(tile_w), int(grow))
+        return _tile_any_kernel(m, words, int(tile_h), int(tile_w), int(grow))
+    return _tile_any_kernel(m, _NO_WORDS, int(tile_h), int(tile_w), int(grow))
 
 
 @nb.njit(cache=True, nogil=True)
