@@ -453,13 +453,15 @@ def test_numba_and_opencv_pushpull_agree_on_a_ramp():
     assert np.abs(dn[holes] - do[holes]).max() < 1e-3
 
 
-@pytest.mark.parametrize("seed,hole_frac", [(0, 0.1), (1, 0.45), (2, 0.7)])
-def test_analyse_holes_matches_scipy_labelling(seed, hole_frac):
-    """Largest hole, big mask and replace mask against scipy's 8-connected labelling + dilation."""
+@pytest.mark.parametrize("seed,hole_frac,shape", [(0, 0.1, (H, W)), (1, 0.45, (H, W)), (2, 0.7, (H, W)),
+                                                   (3, 0.3, (37, 50)), (4, 0.05, (8, 8))])
+def test_analyse_holes_matches_scipy_labelling(seed, hole_frac, shape):
+    """Largest hole, big mask and replace mask against scipy's 8-connected labelling + dilation
+    (widths that are multiples of 8, read 8 pixels at a time, and one that is not)."""
     from scipy import ndimage
 
     rng = np.random.default_rng(seed)
-    holes = ndimage.binary_opening(rng.random((H, W)) < hole_frac) | (rng.random((H, W)) < 0.02)
+    holes = ndimage.binary_opening(rng.random(shape) < hole_frac) | (rng.random(shape) < 0.02)
     valid = ~holes
     hs = analyse_holes(valid, big_hole_px=16, hole_dilation_px=2)
     lab, n = ndimage.label(holes, structure=np.ones((3, 3)))

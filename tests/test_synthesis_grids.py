@@ -39,35 +39,6 @@ def test_project_grid_matches_reference():
     assert (a_pix >= 0).sum() > 1000 and (a_pix == -1).sum() > 1000  # both branches exercised
 
 
-def test_median_ratio_kernel_is_numpys_median_exactly():
-    """The LOD footprint's median (quickselect in place) is bit for bit np.median of the float32
-    ratios of the points that count: odd and even counts, ties, sorted and reversed inputs, one
-    point, none (nan)."""
-    from presim.synthesis.grids import _median_ratio_kernel
-
-    rng = np.random.default_rng(11)
-    near = np.float32(0.01)
-    for trial in range(400):
-        n = int(rng.integers(0, 300)) if trial % 4 else int(rng.integers(1, 5))
-        if trial % 5 == 0:  # many ties
-            z_src = rng.choice(np.array([0.5, 1.0, 1.5, 0.005], np.float32), n)
-        else:
-            z_src = rng.uniform(-0.2, 3.0, n).astype(np.float32)
-        z_t = rng.uniform(-0.2, 3.0, n).astype(np.float32)
-        z_t[trial % 3::7] = 1.0
-        pix = rng.integers(-1, 50, n).astype(np.int64)
-        if trial % 11 == 0:
-            order = np.argsort(z_src / z_t)
-            z_src, z_t, pix = z_src[order[::-1]].copy(), z_t[order[::-1]].copy(), pix[order[::-1]].copy()
-        ok = (z_src > near) & (z_t > near) & (pix >= 0)
-        got = _median_ratio_kernel(z_src, z_t, pix, near)
-        if not ok.any():
-            assert np.isnan(got)
-            continue
-        want = np.median(z_src[ok] / z_t[ok])
-        assert got == np.float64(want), (trial, int(ok.sum()), got, want)
-
-
 def test_frame_grids_answers_equal_the_reference_functions():
     """Overlap, hole-test pixels and LOD footprint from one projection = the per-question references."""
     K = Intrinsics.from_fov(64, 48, 60.0)

@@ -97,16 +97,20 @@ def test_analyse_hole_mask_equals_analyse_holes():
 
 def test_median_ratio_kernel_equals_numpy_median():
     """LOD footprint median: numpy's ``np.median(z_s[ok] / z_t[ok])`` with ``ok`` from float32
-    comparisons and the in-image test, exactly (odd / even counts, ties, none ok -> nan)."""
+    comparisons and the in-image test, exactly (odd / even counts, ties, inputs in increasing and
+    decreasing order, a few points and a few hundred, none ok -> nan; the kernel selects in place)."""
     from presim.synthesis.grids import _median_ratio_kernel
 
     rng = np.random.default_rng(0)
     for t in range(400):
-        n = int(rng.integers(0, 40))
+        n = int(rng.integers(0, 40 if t % 2 else 400))
         zs = rng.uniform(-0.5, 3, n).astype(np.float32)
         zt = rng.uniform(-0.5, 3, n).astype(np.float32)
         if t % 3 == 0 and n:
             zs[: n // 2] = zs[0]
+        if t % 5 == 0:  # sorted by ratio, increasing or decreasing (quickselect's worst orders)
+            o = np.argsort(zs / zt, kind="stable")[:: 1 if t % 10 else -1]
+            zs, zt = zs[o].copy(), zt[o].copy()
         near = 0.1  # float32(0.1) > 0.1: numpy compares in float32
         zs[: n // 4] = np.float32(near)
         pix = np.where(rng.random(n) < 0.2, -1, rng.integers(0, 1000, n)).astype(np.int64)  # -1: outside
@@ -222,8 +226,9 @@ def test_light_kernels_run_their_serial_twin_below_their_size():
     labels = rng.integers(0, 7, (90, 70)).astype(np.uint16)
     lut = rng.integers(0, 2, 7).astype(np.uint8)
     a, b = np.empty((90, 70), np.uint8), np.empty((90, 70), np.uint8)
-    C._big_kernel.parallel(labels, lut, a)
-    C._big_kernel(labels, lut, b)  # 6300 px: the serial twin
+    no_words = np.zeros((90, 0), np.uint64)
+    C._big_kernel.parallel(labels, lut, a, no_words)
+    C._big_kernel(labels, lut, b, no_words)  # 6300 px: the serial twin
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a, lut[labels])
 

@@ -190,17 +190,28 @@ class HoleStats:
 
 
 @nb.njit(cache=True, nogil=True)
-def _areas_kernel(labels, n):  # pragma: no cover
-    # Pixel count per label (label 0 = background is counted too, and ignored by the caller).
-    # Counted per run of equal labels along a row: one add per run instead of a chain of
-    # increments of the same counter, pixel after pixel.
+def _areas_kernel(labels, n, words):  # pragma: no cover
+    # Pixel count per label (labels >= 1 exact; label 0 = background is counted partly and ignored
+    # by the caller). With ``words`` (the hole mask's rows as uint64, 8 pixels each; W % 8 == 0),
+    # the 8-pixel groups without a hole pixel are skipped (labels are 0 there). Otherwise counted
+    # per run of equal labels along a row: one add per run instead of a chain of increments of the
+    # same counter, pixel after pixel.
     areas = np.zeros(n, np.int64)
     H, W = labels.shape
+    nw = words.shape[1]
     for v in range(H):
-        prev = labels[v, 0]
+        lrow = labels[v]
+        if nw > 0:
+            wrow = words[v]
+            for k in range(nw):
+                if wrow[k] != 0:
+                    for u in range(8 * k, 8 * k + 8):
+                        areas[lrow[u]] += 1
+            continue
+        prev = lrow[0]
         run = 0
         for u in range(W):
-            lab = labels[v, u]
+            lab = lrow[u]
             if lab != prev:
                 areas[prev] += run
                 prev = lab
@@ -211,10 +222,10 @@ def _areas_kernel(labels, n):  # pragma: no cover
 
 
 @nb.njit(cache=True, nogil=True)
-def _big_lut_kernel(labels, n, big_hole_px):  # pragma: no cover
+def _big_lut_kernel(labels, n, big_hole_px, words):  # pragma: no cover
     # Areas of the n labels (_areas_kernel), the largest hole (label >= 1), and the lookup table
     # label -> 1 if a hole of at least big_hole_px pixels (label 0 = background -> 0).
-    areas = _areas_kernel(labels, n)
+    areas = _areas_kernel(labels, n, words)
     lut = np.zeros(n, np.uint8)
     largest = 0
     any_big = False
@@ -228,11 +239,33 @@ def _big_lut_kernel(labels, n, big_hole_px):  # pragma: no cover
 
 
 @parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["map"])
-def _big_kernel(labels, big_lut, big):  # pragma: no cover
+def _big_kernel(labels, big_lut, big, words):  # pragma: no cover
+    # big = big_lut[labels]; with ``words`` (as in _areas_kernel) the 8-pixel groups without a hole
+    # pixel are written 0 without reading their labels (label 0 -> 0).
     H, W = labels.shape
+    nw = words.shape[1]
     for v in nb.prange(H):
-        for u in range(W):
-            big[v, u] = big_lut[labels[v, u]]
+        if nw > 0:
+            wrow = words[v]
+            for k in range(nw):
+                if wrow[k] == 0:
+                    for u in range(8 * k, 8 * k + 8):
+                        big[v, u] = 0
+                else:
+                    for u in range(8 * k, 8 * k + 8):
+                        big[v, u] = big_lut[labels[v, u]]
+        else:
+            for u in range(W):
+                big[v, u] = big_lut[labels[v, u]]
+
+
+def _hole_words(holes: np.ndarray) -> np.ndarray:
+    """The rows of a C-contiguous uint8 (H, W) hole mask as uint64 words (8 pixels each) when
+    W % 8 == 0, else an (H, 0) array (the kernels then read every pixel)."""
+    H, W = holes.shape
+    if W % 8 == 0 and W and holes.flags.c_contiguous:
+        return holes.view(np.uint64)
+    return np.zeros((H, 0), np.uint64)
 
 
 _ELLIPSES: dict[int, np.ndarray] = {}
@@ -288,12 +321,13 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
     ltype = cv2.CV_16U if n_hole < 65535 else cv2.CV_32S
     n, labels = cv2.connectedComponentsWithAlgorithm(holes, 8, ltype, _CCL)
-    big_lut, largest, any_big = _big_lut_kernel(labels, n, big_hole_px)
+    words = _hole_words(holes)
+    big_lut, largest, any_big = _big_lut_kernel(labels, n, big_hole_px, words)
     largest = int(largest)
     replace = big = None
     if want_replace:
         big = np.empty((H, W), np.uint8)
-        _big_kernel(labels, big_lut, big)
+        _big_kernel(labels, big_lut, big, words)
         if hole_dilation_px > 0 and any_big:
             k = 2 * hole_dilation_px + 1
             replace = cv2.bitwise_or(holes, cv2.dilate(big, _ellipse(k)))
