@@ -95,6 +95,42 @@ def test_analyse_hole_mask_equals_analyse_holes():
                     np.testing.assert_array_equal(x, y)
 
 
+def test_hole_runs_components_equal_scipy_labelling():
+    """The run + union-find labelling of the hole analysis = scipy's 8-connected labelling on
+    random masks (sparse to full, clustered, widths with and without 8-pixel groups, one row, one
+    column), a checkerboard and diagonal chains (8-connected across corners only): largest area,
+    any big, and the big-hole mask; an n_hole below the mask's count is refused."""
+    from scipy import ndimage
+
+    from presim.synthesis.composite import _hole_runs_kernel, _hole_words
+
+    rng = np.random.default_rng(21)
+    masks = []
+    for t in range(300):
+        H = int(rng.integers(1, 50))
+        W = 8 * int(rng.integers(1, 9)) if t % 2 else int(rng.integers(1, 60))
+        m = rng.random((H, W)) < rng.uniform(0.0, 1.0)
+        if t % 3 == 0:
+            m = ndimage.binary_opening(m) | (rng.random((H, W)) < 0.03)
+        masks.append(m)
+    masks += [np.indices((20, 24)).sum(0) % 2 == 0, np.eye(17, 40, dtype=bool) | np.eye(17, 40, 3, dtype=bool),
+              np.ones((1, 33), bool), np.ones((29, 1), bool), np.zeros((5, 16), bool)]
+    for m in masks:
+        holes = np.ascontiguousarray(m.astype(np.uint8))
+        for big_px in (1, 16):
+            big = np.empty(holes.shape, np.uint8)
+            largest, any_big = _hole_runs_kernel(holes, _hole_words(holes), int(holes.sum()), big_px, big)
+            lab, n = ndimage.label(m, structure=np.ones((3, 3)))
+            areas = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+            assert largest == (areas.max() if n else 0)
+            ref = np.isin(lab, 1 + np.flatnonzero(areas >= big_px))
+            np.testing.assert_array_equal(big.view(bool), ref)
+            assert any_big == bool(ref.any())
+    holes = np.ones((4, 8), np.uint8)
+    with pytest.raises(ValueError, match="n_hole"):
+        _hole_runs_kernel(holes, _hole_words(holes), 3, 16, np.empty((0, 0), np.uint8))
+
+
 def test_median_ratio_kernel_equals_numpy_median():
     """LOD footprint median: numpy's ``np.median(z_s[ok] / z_t[ok])`` with ``ok`` from float32
     comparisons and the in-image test, exactly (odd / even counts, ties, inputs in increasing and
@@ -218,19 +254,25 @@ def test_light_kernels_run_their_serial_twin_below_their_size():
         k(np.arange(500.0), np.zeros(500))
     assert calls == ["serial", "parallel", "parallel", "serial"]
     # the declared sizes: per pixel of the image each one passes over
-    assert (C._big_kernel.serial_below, C._big_kernel.size_arg) == (LIGHT_SERIAL_BELOW["map"], 0)
     assert (C._merge_holes_kernel.serial_below, C._merge_holes_kernel.size_arg) == (LIGHT_SERIAL_BELOW["pass"], 0)
+    assert (C._merge_into_holes_kernel.serial_below, C._merge_into_holes_kernel.size_arg) == (LIGHT_SERIAL_BELOW["map"], 0)
     assert (F._pull0_kernel.serial_below, F._pull0_kernel.size_arg) == (LIGHT_SERIAL_BELOW["pass"], 1)
     assert (F._push0_kernel.serial_below, F._push0_kernel.size_arg) == (LIGHT_SERIAL_BELOW["pass"], 0)
     rng = np.random.default_rng(5)
-    labels = rng.integers(0, 7, (90, 70)).astype(np.uint16)
-    lut = rng.integers(0, 2, 7).astype(np.uint8)
-    a, b = np.empty((90, 70), np.uint8), np.empty((90, 70), np.uint8)
-    no_words = np.zeros((90, 0), np.uint64)
-    C._big_kernel.parallel(labels, lut, a, no_words)
-    C._big_kernel(labels, lut, b, no_words)  # 6300 px: the serial twin
-    np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(a, lut[labels])
+    H, W = 90, 70
+    acc = [rng.random((H, W)).astype(np.float32), rng.integers(0, 256, (H, W, 3), dtype=np.uint8),
+           np.zeros((H, W), np.int32)]
+    d = np.where(rng.random((H, W)) < 0.5, 1.0, 0.0).astype(np.float32)
+    replace = rng.random((H, W)) < 0.3
+    outs = []
+    for twin in (C._merge_holes_kernel.parallel, C._merge_holes_kernel):  # 6300 px: the serial twin
+        a = [x.copy() for x in acc]
+        holes = np.empty((H, W), np.uint8)
+        n = twin(*a, replace, d, acc[1], np.int32(3), False, holes)
+        outs.append((a, holes, n))
+    for x, y in zip(outs[0][0] + [outs[0][1]], outs[1][0] + [outs[1][1]]):
+        np.testing.assert_array_equal(x, y)
+    assert outs[0][2] == outs[1][2]
 
 
 def test_twin_kernels_dispatch_by_the_threads_mode_and_agree():

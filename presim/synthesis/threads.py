@@ -45,10 +45,11 @@ against two threads: 128x128 1.13-1.61x and 160x120 1.35x in favour of one threa
 LIGHT_SERIAL_BELOW = {"map": 1 << 20, "pass": 150_000}
 """``serial_below`` of the light per-view kernels (pixels), measured on the 2-core machine with
 two threads, wall µs per call, parallel against serial twin (docs/synthesis.md, "Light kernels on
-one thread"): ``"map"``, a lookup per pixel (the big-hole mask: 256x256 77 → 23, 320x240 93 → 32,
-640x480 158 → 120); ``"pass"``, a pass that reads and writes several images (the merge + hole mask,
-the fill's full-size pull and push: merge 256x256 112 → 64, 320x240 133 → 88, but 640x480 313 →
-333 and 640x360 228 → 296)."""
+one thread"): ``"map"``, a pass that reads one mask and touches little else (a later view's merge
+on its replaceable pixels, apc capture: 256x256 90 → 46, 640x480 134 → 106); ``"pass"``, a pass
+that reads and writes several images (the first view's merge + hole mask, the fill's full-size
+pull and push: merge 256x256 112 → 64, 320x240 133 → 88, but 640x480 313 → 333 and 640x360
+228 → 296)."""
 
 
 def frame_threads(width: int, height: int, threads: int = 0) -> int:
