@@ -83,6 +83,16 @@ def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.nd
                      np.empty(acc_depth_m.shape, np.uint8))
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id):  # pragma: no cover
+    # The accumulator's pixel (v, u) := the view's, and its source id.
+    acc_d[v, u] = d[v, u]
+    acc_c[v, u, 0] = c[v, u, 0]
+    acc_c[v, u, 1] = c[v, u, 1]
+    acc_c[v, u, 2] = c[v, u, 2]
+    acc_src[v, u] = view_id
+
+
 @parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"])
 def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
     # The merge (where replace and the view has a value, take the view's pixel; for the first view
@@ -95,11 +105,7 @@ def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, ho
             if first:
                 acc_src[v, u] = view_id if d[v, u] > 0 else np.int32(-1)
             elif replace[v, u] and d[v, u] > 0:
-                acc_d[v, u] = d[v, u]
-                acc_c[v, u, 0] = c[v, u, 0]
-                acc_c[v, u, 1] = c[v, u, 1]
-                acc_c[v, u, 2] = c[v, u, 2]
-                acc_src[v, u] = view_id
+                _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id)
             h = np.uint8(0) if acc_d[v, u] > 0 else np.uint8(1)
             holes[v, u] = h
             n += np.int64(h)
@@ -146,11 +152,7 @@ def _merge_into_holes_kernel(acc_d, acc_c, acc_src, replace, words, d, c, view_i
                 ub = W
             for u in range(ua, ub):
                 if replace[v, u] and d[v, u] > 0:
-                    acc_d[v, u] = d[v, u]
-                    acc_c[v, u, 0] = c[v, u, 0]
-                    acc_c[v, u, 1] = c[v, u, 1]
-                    acc_c[v, u, 2] = c[v, u, 2]
-                    acc_src[v, u] = view_id
+                    _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id)
                     filled += np.int64(holes[v, u])
                     holes[v, u] = 0
     return filled
