@@ -102,7 +102,7 @@ def test_hole_runs_components_equal_scipy_labelling():
     any big, and the big-hole mask; an n_hole below the mask's count is refused."""
     from scipy import ndimage
 
-    from presim.synthesis.composite import _hole_runs_kernel, _hole_words
+    from presim.synthesis.composite import _hole_runs_kernel, _row_words
 
     rng = np.random.default_rng(21)
     masks = []
@@ -119,7 +119,7 @@ def test_hole_runs_components_equal_scipy_labelling():
         holes = np.ascontiguousarray(m.astype(np.uint8))
         for big_px in (1, 16):
             big = np.empty(holes.shape, np.uint8)
-            largest, any_big = _hole_runs_kernel(holes, _hole_words(holes), int(holes.sum()), big_px, big)
+            largest, any_big = _hole_runs_kernel(holes, _row_words(holes), int(holes.sum()), big_px, big)
             lab, n = ndimage.label(m, structure=np.ones((3, 3)))
             areas = np.bincount(lab.ravel(), minlength=n + 1)[1:]
             assert largest == (areas.max() if n else 0)
@@ -128,7 +128,7 @@ def test_hole_runs_components_equal_scipy_labelling():
             assert any_big == bool(ref.any())
     holes = np.ones((4, 8), np.uint8)
     with pytest.raises(ValueError, match="n_hole"):
-        _hole_runs_kernel(holes, _hole_words(holes), 3, 16, np.empty((0, 0), np.uint8))
+        _hole_runs_kernel(holes, _row_words(holes), 3, 16, np.empty((0, 0), np.uint8))
 
 
 def test_median_ratio_kernel_equals_numpy_median():

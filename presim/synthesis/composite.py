@@ -170,10 +170,8 @@ def merge_into_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source:
     Returns:
         The number of hole pixels the view filled (the new hole count is the old one minus this).
     """
-    H, W = acc_depth_m.shape
     r8 = replace.view(np.uint8)
-    words = r8.view(np.uint64) if W % 8 == 0 and r8.flags.c_contiguous else np.zeros((H, 0), np.uint64)
-    return int(_merge_into_holes_kernel(acc_depth_m, acc_color, acc_source, r8, words, depth_m, color,
+    return int(_merge_into_holes_kernel(acc_depth_m, acc_color, acc_source, r8, _row_words(r8), depth_m, color,
                                         np.int32(view_id), holes))
 
 
@@ -280,12 +278,12 @@ def _hole_runs_kernel(holes, words, n_hole, big_hole_px, big):  # pragma: no cov
     return largest, any_big
 
 
-def _hole_words(holes: np.ndarray) -> np.ndarray:
-    """The rows of a C-contiguous uint8 (H, W) hole mask as uint64 words (8 pixels each) when
-    W % 8 == 0, else an (H, 0) array (the kernels then read every pixel)."""
-    H, W = holes.shape
-    if W % 8 == 0 and W and holes.flags.c_contiguous:
-        return holes.view(np.uint64)
+def _row_words(mask: np.ndarray) -> np.ndarray:
+    """The rows of a C-contiguous uint8 (H, W) mask as uint64 words (8 pixels each) when W is a
+    positive multiple of 8, else an (H, 0) array (the kernels then read every pixel)."""
+    H, W = mask.shape
+    if W % 8 == 0 and W and mask.flags.c_contiguous:
+        return mask.view(np.uint64)
     return np.zeros((H, 0), np.uint64)
 
 
@@ -337,7 +335,7 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
     holes = np.ascontiguousarray(holes)
     big = np.empty((H, W) if want_replace else (0, 0), np.uint8)
-    largest, any_big = _hole_runs_kernel(holes, _hole_words(holes), int(n_hole), int(big_hole_px), big)
+    largest, any_big = _hole_runs_kernel(holes, _row_words(holes), int(n_hole), int(big_hole_px), big)
     largest = int(largest)
     replace = None
     if not want_replace:
@@ -1136,7 +1134,6 @@ def _tile_any_words_kernel(words, H, W, tile_h, tile_w, grow):  # pragma: no cov
     return out
 
 
-_NO_WORDS = np.zeros((1, 0), np.uint64)
 _LITTLE = sys.byteorder == "little"
 
 
@@ -1154,12 +1151,10 @@ def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarra
     """
     m = np.ascontiguousarray(mask).view(np.uint8)
     H, W = m.shape
-    if W % 8 == 0 and W and H:
-        words = m.reshape(H, W // 8, 8).view(np.uint64).reshape(H, W // 8)
-        if _LITTLE:
-            return _tile_any_words_kernel(words, H, W, int(tile_h), int(tile_w), int(grow))
-        return _tile_any_kernel(m, words, int(tile_h), int(tile_w), int(grow))
-    return _tile_any_kernel(m, _NO_WORDS, int(tile_h), int(tile_w), int(grow))
+    words = _row_words(m)
+    if words.shape[1] and _LITTLE:
+        return _tile_any_words_kernel(words, H, W, int(tile_h), int(tile_w), int(grow))
+    return _tile_any_kernel(m, words, int(tile_h), int(tile_w), int(grow))
 
 
 @nb.njit(cache=True, nogil=True)
