@@ -1052,14 +1052,12 @@ def _tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout): 
 
 
 @nb.njit(cache=True, nogil=True)
-def _tile_any_kernel(mask, words, tile_h, tile_w, grow):  # pragma: no cover
-    # Per tile: its rectangle grown by ``grow`` (clipped). With ``words`` (the mask's rows as
-    # uint64, W % 8 == 0), an all-zero cover of 8-pixel words skips the tile (most tiles of a
-    # sparse mask); otherwise a byte scan that stops at the first nonzero pixel (dense masks).
+def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
+    # Per tile: its rectangle grown by ``grow`` (clipped), scanned pixel by pixel up to the first
+    # nonzero one (widths that are not a multiple of 8, or a big-endian machine).
     H, W = mask.shape
     th = (H + tile_h - 1) // tile_h
     tw = (W + tile_w - 1) // tile_w
-    use_words = words.shape[1] > 0
     out = np.zeros((th, tw), np.uint8)
     for ty in range(th):
         ya = max(ty * tile_h - grow, 0)
@@ -1067,20 +1065,6 @@ def _tile_any_kernel(mask, words, tile_h, tile_w, grow):  # pragma: no cover
         for tx in range(tw):
             xa = max(tx * tile_w - grow, 0)
             xb = min((tx + 1) * tile_w + grow, W)
-            if use_words:
-                wa = xa // 8
-                wb = (xb + 7) // 8
-                nz = False
-                for v in range(ya, yb):
-                    wrow = words[v]
-                    for k in range(wa, wb):
-                        if wrow[k] != 0:
-                            nz = True
-                            break
-                    if nz:
-                        break
-                if not nz:
-                    continue
             found = False
             for v in range(ya, yb):
                 row = mask[v]
@@ -1154,7 +1138,7 @@ def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarra
     words = _row_words(m)
     if words.shape[1] and _LITTLE:
         return _tile_any_words_kernel(words, H, W, int(tile_h), int(tile_w), int(grow))
-    return _tile_any_kernel(m, words, int(tile_h), int(tile_w), int(grow))
+    return _tile_any_kernel(m, int(tile_h), int(tile_w), int(grow))
 
 
 @nb.njit(cache=True, nogil=True)
