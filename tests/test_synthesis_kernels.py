@@ -298,23 +298,27 @@ def test_tiled_crack_pass_and_masked_warp_match_reference(band, tile_cols):
 
 
 def test_tile_any_matches_reference():
-    """tile_any (ORs of 8-pixel words when the width allows, else a pixel scan with early exit) = the
-    dilate-then-block-any reference, for sparse, clustered and dense masks, tile sizes that do and do
-    not divide the image, grow 0-5 (wider than some tiles)."""
-    from presim.synthesis.composite import tile_any
+    """tile_any (ORs of 8-pixel words, rows zero-padded when the width is not a multiple of 8) and
+    the pixel scan with early exit (big-endian machines) = the dilate-then-block-any reference, for
+    sparse, clustered and dense masks, tile sizes that do and do not divide the image, grow 0-5
+    (wider than some tiles)."""
+    from presim.synthesis.composite import _tile_any_kernel, tile_any
     from presim.synthesis.kernels_reference import tile_any_ref
 
     rng = np.random.default_rng(7)
     n = 0
-    for H, W in ((1, 1), (7, 13), (48, 64), (61, 96), (5, 8), (33, 40)):  # W % 8 == 0: the words
+    for H, W in ((1, 1), (7, 13), (48, 64), (61, 96), (5, 8), (33, 40)):  # W % 8 == 0: no padding
         for density in (0.0, 0.002, 0.05, 0.6, 1.0):
             m = (rng.random((H, W)) < density).astype(np.uint8)
             if density == 0.05:  # clusters: a block of set pixels
                 m[H // 3:H // 3 + 4, W // 2:W // 2 + 5] = 1
             for th, tw in ((4, 4), (5, 7), (16, 32), (32, 3)):
                 for grow in (0, 1, 2, 3, 5):
-                    np.testing.assert_array_equal(tile_any(m, th, tw, grow), tile_any_ref(m, th, tw, grow),
+                    ref = tile_any_ref(m, th, tw, grow)
+                    np.testing.assert_array_equal(tile_any(m, th, tw, grow), ref,
                                                   err_msg=f"{H}x{W} d={density} tile {th}x{tw} grow {grow}")
+                    np.testing.assert_array_equal(_tile_any_kernel(m, th, tw, grow), ref,
+                                                  err_msg=f"pixel scan {H}x{W} d={density} tile {th}x{tw} grow {grow}")
                     n += 1
     assert n == 6 * 5 * 4 * 5
 

@@ -44,14 +44,19 @@ def test_merge_view_holes_equals_merge_then_mask():
     assert n == np.count_nonzero(~(ref[0] > 0))
 
 
-def test_merge_into_holes_equals_merge_view_holes():
+@pytest.mark.parametrize("words", ["words", "pixels"])
+def test_merge_into_holes_equals_merge_view_holes(words, monkeypatch):
     """A later view's merge that updates the previous hole mask in place (visiting only the
-    replaceable pixels, 8 at a time when the width allows) = the full merge + mask + count, over a
-    chain of views; widths with and without the 8-pixel words, NaN depths, empty replace masks."""
+    replaceable pixels, 8 at a time) = the full merge + mask + count, over a chain of views; widths
+    that are and are not multiples of 8 (zero-padded words), and the kernel's pixel-by-pixel path
+    (no words); NaN depths, empty replace masks."""
+    from presim.synthesis import composite
     from presim.synthesis.composite import merge_into_holes
 
+    if words == "pixels":
+        monkeypatch.setattr(composite, "_row_words", lambda m: np.zeros((m.shape[0], 0), np.uint64))
     rng = np.random.default_rng(9)
-    for H, W in ((21, 26), (17, 24), (9, 64), (1, 8)):
+    for H, W in ((21, 26), (17, 24), (9, 64), (1, 8), (6, 3), (4, 9)):
         d0 = np.where(rng.random((H, W)) < 0.5, rng.random((H, W)) + 0.1, 0).astype(np.float32)
         d0.flat[::13] = np.nan
         c0 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
@@ -117,18 +122,39 @@ def test_hole_runs_components_equal_scipy_labelling():
               np.ones((1, 33), bool), np.ones((29, 1), bool), np.zeros((5, 16), bool)]
     for m in masks:
         holes = np.ascontiguousarray(m.astype(np.uint8))
-        for big_px in (1, 16):
-            big = np.empty(holes.shape, np.uint8)
-            largest, any_big = _hole_runs_kernel(holes, _row_words(holes), int(holes.sum()), big_px, big)
-            lab, n = ndimage.label(m, structure=np.ones((3, 3)))
-            areas = np.bincount(lab.ravel(), minlength=n + 1)[1:]
-            assert largest == (areas.max() if n else 0)
-            ref = np.isin(lab, 1 + np.flatnonzero(areas >= big_px))
-            np.testing.assert_array_equal(big.view(bool), ref)
-            assert any_big == bool(ref.any())
+        lab, n = ndimage.label(m, structure=np.ones((3, 3)))
+        areas = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+        # zero groups skipped as words (zero-padded past W when W % 8 != 0), and pixel by pixel
+        for words in (_row_words(holes), np.zeros((holes.shape[0], 0), np.uint64)):
+            for big_px in (1, 16):
+                big = np.empty(holes.shape, np.uint8)
+                largest, any_big = _hole_runs_kernel(holes, words, int(holes.sum()), big_px, big)
+                assert largest == (areas.max() if n else 0)
+                ref = np.isin(lab, 1 + np.flatnonzero(areas >= big_px))
+                np.testing.assert_array_equal(big.view(bool), ref)
+                assert any_big == bool(ref.any())
     holes = np.ones((4, 8), np.uint8)
     with pytest.raises(ValueError, match="n_hole"):
         _hole_runs_kernel(holes, _row_words(holes), 3, 16, np.empty((0, 0), np.uint8))
+
+
+def test_row_words_are_the_rows_zero_padded_to_8_pixels():
+    """_row_words: a C-contiguous mask whose width is a multiple of 8 is viewed as uint64 rows (no
+    copy); any other width, or a strided mask, is copied into rows zero-padded to a multiple of 8;
+    the bytes of the words are the mask's pixels in order."""
+    from presim.synthesis.composite import _row_words
+
+    rng = np.random.default_rng(3)
+    for H, W in ((3, 16), (5, 13), (1, 1), (4, 7), (2, 638)):
+        m = (rng.random((H, W)) < 0.5).astype(np.uint8)
+        for mask in (m, np.repeat(m, 2, axis=1)[:, ::2]):  # contiguous, strided
+            w = _row_words(mask)
+            assert w.dtype == np.uint64 and w.shape == (H, -(-W // 8))
+            b = w.view(np.uint8).reshape(H, -1)
+            np.testing.assert_array_equal(b[:, :W], m)
+            assert not b[:, W:].any()
+            assert np.shares_memory(w, mask) == (W % 8 == 0 and mask.flags.c_contiguous)
+    assert _row_words(np.zeros((4, 0), np.uint8)).shape == (4, 0)
 
 
 def test_median_ratio_kernel_equals_numpy_median():
