@@ -254,6 +254,34 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     np.testing.assert_array_equal(auto.depth_m, forced.depth_m)
 
 
+def test_synthesis_kernels_use_numpy_error_model():
+    """Every numba kernel of the synthesis (both twins of a TwinKernel) is compiled with numpy's
+    error model: no ZeroDivisionError branch in the loops, which keeps LLVM from vectorizing any
+    loop with a division or a modulo (docs/synthesis.md, "numpy's error model")."""
+    import importlib
+
+    from numba.core.registry import CPUDispatcher
+
+    from presim.synthesis.threads import TwinKernel
+
+    seen = 0
+    for name in ("blend", "composite", "crack_filter", "fill", "grids", "lod", "telea", "warp"):
+        mod = importlib.import_module(f"presim.synthesis.{name}")
+        for attr, obj in vars(mod).items():
+            if isinstance(obj, TwinKernel):
+                dispatchers = [obj.parallel, obj.serial]
+            elif isinstance(obj, CPUDispatcher):
+                dispatchers = [obj]
+            else:
+                continue
+            if getattr(obj, "__module__", mod.__name__) != mod.__name__:
+                continue  # imported from another module: checked there
+            for d in dispatchers:
+                assert d.targetoptions.get("error_model") == "numpy", f"{name}.{attr}"
+                seen += 1
+    assert seen >= 60
+
+
 def test_light_kernels_run_their_serial_twin_below_their_size():
     """A TwinKernel with serial_below runs the serial twin when its size argument is smaller (and in
     serial mode), the parallel one otherwise; the per-view light kernels declare their sizes, and

@@ -151,7 +151,7 @@ def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: flo
                        np.float32(K.cy), np.float32(near_m), depth_out, color_out.transpose(2, 0, 1))
 
 
-@nb.njit(fastmath=_WARP_FASTMATH, cache=True, nogil=True)  # the warp kernel's flags: bit-equal projections
+@nb.njit(fastmath=_WARP_FASTMATH, cache=True, nogil=True, error_model="numpy")  # the warp kernel's flags: bit-equal projections
 def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
     # Same arithmetic as presim.synthesis.warp._warp_layers_kernel with one layer (tested equal);
     # colours into the planes cbuf (3, H, W).
@@ -190,7 +190,7 @@ def front_of_layers(layer_depth_m: np.ndarray, layer_color: np.ndarray, depth_ou
     _front_of_layers_kernel(layer_depth_m, layer_color, depth_out, color_out.transpose(2, 0, 1))
 
 
-@parallel_kernel(fastmath=True, cache=True)
+@parallel_kernel(fastmath=True, cache=True, error_model="numpy")
 def _front_of_layers_kernel(ld, lc, zout, cp):  # pragma: no cover
     # Per row: depths first (branch-free, vectorises), then one colour gather from the chosen layer
     # into the three colour planes ``cp`` (3, H, W).

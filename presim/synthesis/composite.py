@@ -31,7 +31,7 @@ __all__ = ["HoleStats", "PACKED_MAX_LAYERS", "composite_layers", "filtered_compo
            "analyse_hole_mask"]
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _composite_kernel(d, c, dout, cout):  # pragma: no cover
     L, H, W = d.shape
     for v in nb.prange(H):
@@ -83,7 +83,7 @@ def merge_view(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.nd
                      np.empty(acc_depth_m.shape, np.uint8))
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id):  # pragma: no cover
     # The accumulator's pixel (v, u) := the view's, and its source id.
     acc_d[v, u] = d[v, u]
@@ -93,7 +93,7 @@ def _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id):  # pragma: no cover
     acc_src[v, u] = view_id
 
 
-@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"])
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], error_model="numpy")
 def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
     # The merge (where replace and the view has a value, take the view's pixel; for the first view
     # only its source ids) + the hole mask of the result (1 where the accumulated depth is not > 0)
@@ -130,7 +130,7 @@ def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source:
                                    color, np.int32(view_id), first, holes))
 
 
-@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["map"])
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["map"], error_model="numpy")
 def _merge_into_holes_kernel(acc_d, acc_c, acc_src, replace, words, d, c, view_id, holes):  # pragma: no cover
     # The merge of a later view, updating the previous hole mask in place: a pixel stops being a
     # hole exactly where the merge writes a depth > 0 (elsewhere the accumulator is unchanged).
@@ -190,7 +190,7 @@ class HoleStats:
     """bool (H, W): pixels of holes of at least ``big_hole_px`` (None if not asked)."""
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _root(parent, i):  # pragma: no cover
     # Union-find root of run i, halving the path on the way.
     while parent[i] != i:
@@ -199,7 +199,7 @@ def _root(parent, i):  # pragma: no cover
     return i
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _hole_runs_kernel(holes, words, n_hole, big_hole_px, big):  # pragma: no cover
     # 8-connected components of the nonzero pixels of holes (uint8 (H, W)): the runs of each row,
     # each joined (union-find) with the runs of the row above that overlap it or touch it
@@ -358,7 +358,7 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
     return HoleStats(n_hole / float(H * W), largest, replace, big)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, out_c):  # pragma: no cover
     """Switching-median value of layer l at (v, u): depth (0 if it stays empty); color in out_c."""
     L, H, W = d.shape
@@ -378,7 +378,7 @@ def _layer_value_at(d, c, l, v, u, r, n_win, bd, b0, b1, b2, out_c):  # pragma: 
     return bd[k]
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _masked_layers_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
     L, H, W = d.shape
     n_win = (2 * r + 1) * (2 * r + 1)
@@ -405,7 +405,7 @@ def _masked_layers_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
                     break
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _masked_single_kernel(d, c, mask, r, dout, cout):  # pragma: no cover
     H, W = d.shape
     n_win = (2 * r + 1) * (2 * r + 1)
@@ -459,7 +459,7 @@ def filtered_composite_masked(depth_m: np.ndarray, color: np.ndarray, replace: n
     return out_d, out_c
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _fused_filter_composite_kernel(d, c, r, dout, cout):  # pragma: no cover
     L, H, W = d.shape
     n_win = (2 * r + 1) * (2 * r + 1)
@@ -541,7 +541,7 @@ _GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's b
 _BIT3 = np.uint32(0x88888888)
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _occupancy_kernel(d, bits):  # pragma: no cover
     L, H, W = d.shape
     for v in nb.prange(H):
@@ -553,7 +553,7 @@ def _occupancy_kernel(d, bits):  # pragma: no cover
             bits[v, u] = b
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _occupancy_front_kernel(d, c, bits, zout, cp):  # pragma: no cover
     # _occupancy_kernel plus, from the same reads, the front-most surface of the layers (smallest
     # depth; ties to the lower layer): depth into zout (H, W), colour into the planes cp (3, H, W).
@@ -582,7 +582,7 @@ def _occupancy_front_kernel(d, c, bits, zout, cp):  # pragma: no cover
             c2[u] = c[best, v, u, 2]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _ce(a, i, j):  # pragma: no cover
     x = a[i]
     y = a[j]
@@ -590,7 +590,7 @@ def _ce(a, i, j):  # pragma: no cover
     a[j] = max(x, y)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _sort8(a):  # pragma: no cover
     # Batcher's odd-even merge sort of 8 values (19 branch-free compare-exchanges).
     _ce(a, 0, 1)
@@ -614,7 +614,7 @@ def _sort8(a):  # pragma: no cover
     _ce(a, 5, 6)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     """Lower median (depth, each colour channel) of the non-empty pixels of layer ``l`` in the
     window, whose centre is empty (so at most 8 values): slots past the count are padded with the
@@ -632,7 +632,7 @@ def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     return (n - 1) // 2
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  # pragma: no cover
     # Per-layer 3x3 switching median fused with the front-to-back composite, via packed counts.
     L, H, W = d.shape
@@ -678,7 +678,7 @@ def _packed_composite_kernel(d, c, bits, spread, need, use_need, dout, cout):  #
 _ONES3 = np.ones((3, 3), np.uint8)
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _packed_seam_kernel(d, c, mask, use_mask, dout, cout):  # pragma: no cover
     # 3x3 switching median of one image (the seam pass): each row of dout / cout is first a copy
     # of d / c, then its cracks get the median.
@@ -791,7 +791,7 @@ _LOWEST = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.
 """Index of the lowest set bit of a byte (0 for 0)."""
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
     # The compare-exchanges of _sort8 on scalars (kept in registers); returns sorted[2], sorted[3]
     # (the compiler drops the exchanges that cannot reach those two outputs).
@@ -817,7 +817,7 @@ def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
     return x2, x3
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _nb_value(df, cf, q):  # pragma: no cover
     # (depth, r, g, b, 1) of flat pixel q; an empty pixel reads as (+inf, 255, 255, 255, 0). All
     # loads unconditional and selects after them: no branch on the speckled occupancy.
@@ -831,7 +831,7 @@ def _nb_value(df, cf, q):  # pragma: no cover
     return (z if ok else np.float32(np.inf)), (r if ok else e), (g if ok else e), (b if ok else e), np.int64(ok)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
     """:func:`_median8` of the 3x3 window at an interior pixel whose centre is empty, without
     buffers: ``df`` / ``cf`` are one layer's (or image's) depth and colour, flat (colour 3 bytes
@@ -862,7 +862,7 @@ def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
     return t3 if hi else t2
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
     # One work item = rows [a, e) x columns [x0, x1) of the output (a band of rows over the whole
     # width, or a run of tiles that hold wanted pixels). Branch-free per pixel and layer (the
@@ -1042,7 +1042,7 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
             cout[v, u, 2] = b2[j]
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _banded_crack_kernel(d, c, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
     # Bands of ``band`` rows over the whole width (constant columns: the compiler drops the offsets).
     H, W = d.shape[1], d.shape[2]
@@ -1050,7 +1050,7 @@ def _banded_crack_kernel(d, c, lowest, need, use_need, mask, band, dout, cout): 
         _crack_item(d, c, lowest, need, use_need, mask, bi * band, min(bi * band + band, H), 0, W, dout, cout)
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout):  # pragma: no cover
     # Work items = rows [a, e) x columns [x0, x1) (runs of tiles holding wanted pixels).
     for it in nb.prange(items.shape[0]):
@@ -1058,7 +1058,7 @@ def _tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout): 
                     items[it, 3], dout, cout)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
     # Per tile: its rectangle grown by ``grow`` (clipped), scanned pixel by pixel up to the first
     # nonzero one (widths that are not a multiple of 8, or a big-endian machine).
@@ -1086,7 +1086,7 @@ def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
     return out
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _tile_any_words_kernel(words, H, W, tile_h, tile_w, grow):  # pragma: no cover
     # tile_any from the mask's rows as uint64 words (8 pixels each, little-endian: pixel 8k + j is
     # byte j of word k): per row of tiles, the OR of the words of its grown rows; per tile, the OR
@@ -1148,7 +1148,7 @@ def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarra
     return _tile_any_kernel(m, int(tile_h), int(tile_w), int(grow))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _tile_items_kernel(active, tile_h, tile_w, H, W):  # pragma: no cover
     # Runs of consecutive active tiles along each row of tiles -> (n, 4): rows [a, e), cols [x0, x1).
     th, tw = active.shape

@@ -23,7 +23,7 @@ __all__ = ["CRACK_FILTERS", "crack_filter"]
 CRACK_FILTERS = ("switching_median", "median", "none")
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _insertion_sort(a, n):  # pragma: no cover
     for i in range(1, n):
         key = a[i]
@@ -34,7 +34,7 @@ def _insertion_sort(a, n):  # pragma: no cover
         a[j + 1] = key
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     """Copy the non-empty (depth > 0) pixels of layer ``l`` in rows [y0, y1) x cols [x0, x1) into
     the buffers (depth, 3 color channels); returns their number."""
@@ -51,7 +51,7 @@ def gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
     return n
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
     """Sort the first n entries of depth and of each color channel on their own (per-channel
     median, as eq. 3.9); returns the lower median's index."""
@@ -62,7 +62,7 @@ def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
     return (n - 1) // 2
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
     # dout / cout arrive as copies of din / cin; only filled cracks are written.
     # Occupancy counts per window come from column sums + a running sum along the row (O(1) per
@@ -98,7 +98,7 @@ def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
             cout[l, v, u, 2] = b2[k]
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _plain_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
     L, H, W = din.shape
     n_win = (2 * r + 1) * (2 * r + 1)

@@ -71,7 +71,7 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out[..., 0] if squeeze else out
 
 
-@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], size_arg=1)  # size of depth
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], size_arg=1, error_model="numpy")  # size of depth
 def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
     # Level 0 -> 1 for even H and W: means over the 2x2 children (premultiplied values, 0/1
     # weights). The known children are added in row order as selects (an unknown child adds +0.0,
@@ -108,7 +108,7 @@ def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
             w[i, j] = sw * quarter
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _taps(i, n_coarse):  # pragma: no cover
     # Bilinear taps of fine index i in the coarser level: coordinate (i + 0.5) / 2 - 0.5, clamped.
     y = min(max((i + 0.5) * 0.5 - 0.5, 0.0), n_coarse - 1.0)
@@ -116,7 +116,7 @@ def _taps(i, n_coarse):  # pragma: no cover
     return y0, min(y0 + 1, n_coarse - 1), np.float32(y - y0)
 
 
-@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"])
+@parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], error_model="numpy")
 def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no cover
     # Level 0: only the unknown pixels are written (outputs arrive as copies of the inputs). The
     # column taps are computed once per column (the same values _taps gives per pixel).
@@ -145,7 +145,7 @@ def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no
                                + (est_c[y1, x0, ch] * (1 - fx) + est_c[y1, x1, ch] * fx) * fy)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _blend_level_kernel(acc, w, up, out):  # pragma: no cover
     # One push step of pushpull_fill: acc / max(w, 1e-12) * a + up * (1 - a), a = clip(w, 0, 1);
     # float32 throughout, no fused multiply-add (same rounding as the numpy expression).

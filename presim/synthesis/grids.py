@@ -39,7 +39,7 @@ def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
     return pix, np.asarray(z, np.float32)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H):  # pragma: no cover
     # Point i's float32 z in the target camera (as transform_points returns for float32 points) and
     # its flat pixel by the pixel-centre rule, -1 behind the camera or outside the image.
@@ -58,13 +58,13 @@ def _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H):  # pragma: no cover
     return np.int64(-1), zc
 
 
-@nb.njit(cache=True, nogil=True)  # nogil: also run by the view cache's background thread
+@nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: also run by the view cache's background thread
 def _project_grid_kernel(xyz, M, fx, fy, cx, cy, W, H, pix, z_out):  # pragma: no cover
     for i in range(xyz.shape[0]):
         pix[i], z_out[i] = _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _any_front_kernel(xyz, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
     # = _count_front_kernel(*project_grid(...), near) > 0, stopping at the first point that counts.
     for i in range(xyz.shape[0]):
@@ -93,7 +93,7 @@ def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) 
     return pix, z
 
 
-@nb.njit(cache=True, nogil=True)  # nogil: also run by the view cache's background thread
+@nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: also run by the view cache's background thread
 def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), z and near
     # float32 (as numpy compares a float32 array with a Python float); pix: the target pixel of each
@@ -122,7 +122,7 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     return np.float64(np.float32(lo + hi) / np.float32(2.0))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _select_kth(a, m, k):  # pragma: no cover
     # Quickselect (Hoare partition, median-of-3 pivot) on a[:m] in place, for values without NaN:
     # afterwards a[k] is the k-th smallest and a[:k] <= a[k] <= a[k + 1:m]. An order statistic is
@@ -160,7 +160,7 @@ def _select_kth(a, m, k):  # pragma: no cover
             return
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _count_front_kernel(pix, z, near):  # pragma: no cover
     # np.count_nonzero((pix >= 0) & (z > near)) (near float32, as numpy compares it with float32 z).
     n = 0
@@ -169,7 +169,7 @@ def _count_front_kernel(pix, z, near):  # pragma: no cover
     return n
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _front_pixels_kernel(pix, z, near):  # pragma: no cover
     # pix[(pix >= 0) & (z > near)], in order.
     out = np.empty(pix.shape[0], np.int64)
@@ -181,7 +181,7 @@ def _front_pixels_kernel(pix, z, near):  # pragma: no cover
     return out[:m].copy()
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def count_in_mask(mask_flat, px):  # pragma: no cover
     """``np.count_nonzero(mask_flat[px])`` (numba: no gathered copy)."""
     n = 0
@@ -190,7 +190,7 @@ def count_in_mask(mask_flat, px):  # pragma: no cover
     return n
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _fill_area_kernel(mask_flat, pix, z_src, z_t, near):  # pragma: no cover
     # sum over points with pix >= 0, both depths > near and mask_flat[pix] of (z_src / z_t)^2 (float64)
     s = 0.0
@@ -211,7 +211,7 @@ def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t
     return float(np.sum((z_src[ok].astype(np.float64) / z_t[ok].astype(np.float64)) ** 2))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums):  # pragma: no cover
     # For each view k (its grid's points are [starts[k], ends[k]) of pix / z_t / z_src):
     # counts[k] = count_in_mask(mask_flat, its front pixels (pix >= 0, z_t > near)) and sums[k] =

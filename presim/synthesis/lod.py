@@ -88,7 +88,7 @@ def pool_depth_aware_ref(depth_m: np.ndarray, color: np.ndarray, depth_tol: floa
     return d_out, c_out
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _pool_row(d, c, tol, dout, cout, i):  # pragma: no cover
     # Row i of the pooled level (see pool_depth_aware_ref).
     W2 = dout.shape[1]
@@ -137,7 +137,7 @@ def _pool_row(d, c, tol, dout, cout, i):  # pragma: no cover
             cout[i, j, 2] = np.uint8(np.floor(s2 * inv + 0.5))
 
 
-@parallel_kernel(cache=True)
+@parallel_kernel(cache=True, error_model="numpy")
 def _pool_kernel(d, c, tol, dout, cout):  # pragma: no cover
     for i in nb.prange(dout.shape[0]):
         _pool_row(d, c, tol, dout, cout, i)

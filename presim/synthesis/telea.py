@@ -41,7 +41,7 @@ _INSIDE = 2
 _CHANGE = 3
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _heap_push(heap, n, key):  # pragma: no cover
     # Binary min-heap of int64 keys in heap[:n]; returns the new n.
     k = n
@@ -56,7 +56,7 @@ def _heap_push(heap, n, key):  # pragma: no cover
     return n + 1
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _heap_pop(heap, n):  # pragma: no cover
     # Removes the smallest key; returns (it, the new n). n must be > 0.
     top = heap[0]
@@ -79,14 +79,14 @@ def _heap_pop(heap, n):  # pragma: no cover
     return top, n
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _key(bits, t, seq):  # pragma: no cover
     # (arrival time, push order) as one int64: a non-negative float32's bit pattern orders like it.
     bits[0] = t
     return (np.int64(bits.view(np.uint32)[0]) << 32) | seq
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _seed(heap, seq_px, band, bits):  # pragma: no cover
     # The band enters the queue at time 0, in raster order (push order = its index); returns n.
     n = 0
@@ -96,14 +96,14 @@ def _seed(heap, seq_px, band, bits):  # pragma: no cover
     return n
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _push_pixel(heap, n, seq_px, seq, bits, t, p):  # pragma: no cover
     # Queues padded pixel p (flat) at time t as push number seq; returns the new n.
     seq_px[seq] = p
     return _heap_push(heap, n, _key(bits, t, seq))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _pop_pixel(heap, n, seq_px, ew):  # pragma: no cover
     # Pops the earliest entry; returns (its padded row, column, the new n).
     key, n = _heap_pop(heap, n)
@@ -111,7 +111,7 @@ def _pop_pixel(heap, n, seq_px, ew):  # pragma: no cover
     return p // ew, p % ew, n
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _solve(f, t, i1, j1, i2, j2):  # pragma: no cover
     # One-sided / two-sided eikonal update from neighbours (i1, j1) and (i2, j2), in double.
     a11 = np.float64(t[i1, j1])
@@ -132,14 +132,14 @@ def _solve(f, t, i1, j1, i2, j2):  # pragma: no cover
     return np.float32(sol)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _arrival(f, t, i, j):  # pragma: no cover
     a = min(_solve(f, t, i - 1, j, i, j - 1), _solve(f, t, i + 1, j, i, j - 1))
     b = min(_solve(f, t, i - 1, j, i, j + 1), _solve(f, t, i + 1, j, i, j + 1))
     return min(a, b)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
     # img: (H, W, 3) uint8, inpainted in place; hole_idx: the holes' flat indices in raster order;
     # dst_tab: 1 / |r|^3 over the (2 rng + 1)^2 window.

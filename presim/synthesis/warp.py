@@ -33,7 +33,7 @@ a chunk is a short run of neighbouring source pixels) whose bounds the warp test
 target frustum and its tiles (:func:`chunk_visibility`) before it projects them."""
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
     n = xyz.shape[0]
     m = (n + chunk - 1) // chunk
@@ -54,7 +54,7 @@ def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
     return lo, hi
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _down32(x):  # pragma: no cover
     # a float32 <= x (finite float64 x), within 3 float32 steps: x moved down by 2^-22 |x| (>= one
     # step of float32 at x and at the moved value) before rounding to nearest. Cheaper than
@@ -62,13 +62,13 @@ def _down32(x):  # pragma: no cover
     return np.float32(x - abs(x) * 2.384185791015625e-07 - 1e-37)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _up32(x):  # pragma: no cover
     # a float32 >= x, within 3 float32 steps
     return np.float32(x + abs(x) * 2.384185791015625e-07 + 1e-37)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _grow(lo, hi, x):  # pragma: no cover
     # the range [lo, hi] grown to hold x
     return min(lo, x), max(hi, x)
@@ -275,7 +275,7 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
                       np.ascontiguousarray(color[mask][order], np.uint8), start, rng, T_world_cam)
 
 
-@nb.njit(cache=True, nogil=True)  # nogil: views are also prepared in a background thread
+@nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: views are also prepared in a background thread
 def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no cover
     H, W = depth.shape
     n = 0
@@ -352,7 +352,7 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _layer_slots_kernel(layer_start, n_slots):  # pragma: no cover
     L = layer_start.shape[0] - 1
     counts = np.empty(L, np.int64)
@@ -602,7 +602,7 @@ def _check_tiles(tiles: np.ndarray, K: Intrinsics, tile_px: int, who: str) -> No
                          f"{getattr(tiles, 'shape', '')}")
 
 
-@parallel_kernel(fastmath=_FASTMATH, cache=True)
+@parallel_kernel(fastmath=_FASTMATH, cache=True, error_model="numpy")
 def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, pix, zs, tiles, use_tiles, tile_px,
                         tile_of_px, vis, chunk, zbuf, cbuf):  # pragma: no cover
     # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was),
