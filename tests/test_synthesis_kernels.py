@@ -472,6 +472,44 @@ def test_culled_warp_is_exactly_the_full_warp():
     assert (culled > 0).sum() >= 10 and (culled < 1).sum() >= 10 and ((culled > 0) & (culled < 1)).any()
 
 
+def test_warp_in_blocks_equals_the_one_pass_z_buffer(monkeypatch):
+    """The warp projects the kept chunks' points a block at a time (WARP_BLOCK_PTS): any block size
+    gives the same layers (block boundaries anywhere in the layers, culled chunks between them),
+    and one layer equals the one-pass scalar z-buffer of the blend (front_image_points)."""
+    from dataclasses import replace
+
+    from presim.synthesis import warp as W
+    from presim.synthesis.blend import front_image_points
+
+    rng = np.random.default_rng(11)
+    block0 = W.WARP_BLOCK_PTS
+    for L in (1, 4):
+        vp, T0 = _room_view(L=L)
+        assert vp.xyz_world.shape[0] > 4 * block0
+        cams = [(T0, K_SMALL)]
+        for _ in range(6):
+            K = Intrinsics.from_fov(int(rng.integers(8, 120)), int(rng.integers(8, 90)), float(rng.uniform(30, 110)))
+            eye = rng.uniform((-1.0, -1.5, 0.2), (1.0, 0.8, 1.8))
+            cams.append((invert(look_at(eye, eye + rng.normal(size=3))), K))
+        for T_cam_world, K in cams:
+            outs = []
+            for block in (W.CHUNK_PTS, 3 * W.CHUNK_PTS, block0, 1 << 20):
+                monkeypatch.setattr(W, "WARP_BLOCK_PTS", block)
+                a = warp_layers(vp, T_cam_world, K, 1e-3)
+                outs.append((a.depth_m.copy(), a.color.copy()))
+            for d, c in outs[1:]:
+                np.testing.assert_array_equal(d, outs[0][0])
+                np.testing.assert_array_equal(c, outs[0][1])
+            if L == 1:
+                d = np.empty((K.height, K.width), np.float32)
+                c = np.empty((K.height, K.width, 3), np.uint8)
+                front_image_points(vp, T_cam_world, K, 1e-3, d, c)
+                np.testing.assert_array_equal(d, outs[0][0][0])
+                np.testing.assert_array_equal(c, outs[0][1][0])
+    one = replace(vp, layer_start=np.array([0, vp.layer_start[-1]], np.int64))
+    assert (warp_layers(one, T0, K_SMALL, 1e-3).depth_m > 0).mean() > 0.3
+
+
 def test_culled_tiled_warp_is_exactly_the_full_warp_on_the_marked_tiles():
     """A tiled warp (later views) with culled chunks: the marked tiles (the only defined part of
     a tiled warp) equal the full warp's, for random marks and tile sizes."""

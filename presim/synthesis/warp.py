@@ -226,10 +226,6 @@ class LayeredImage:
     """float32 (L, H, W) z-depth, 0 = empty."""
     color: np.ndarray
     """uint8 (L, H, W, 3)."""
-    pix: np.ndarray | None = None
-    """Scratch of :func:`warp_layers` (int64, at least one per point): each point's flat target pixel."""
-    z: np.ndarray | None = None
-    """Scratch of :func:`warp_layers` (float32): each point's target depth."""
 
 
 def assign_layers(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tuple[float, float]]:
@@ -602,21 +598,43 @@ def _check_tiles(tiles: np.ndarray, K: Intrinsics, tile_px: int, who: str) -> No
                          f"{getattr(tiles, 'shape', '')}")
 
 
+WARP_BLOCK_PTS = 256
+"""Points the warp kernel projects at a time (whole chunks): their coordinates are copied into
+per-thread arrays of one coordinate each, on which the projection loop vectorizes. Projecting
+straight from the (n, 3) point array did not vectorize (stride-3 loads): 4.7-4.9 ns per point on
+one thread against ~2 (docs/synthesis.md, "Projection in blocks")."""
+assert WARP_BLOCK_PTS % CHUNK_PTS == 0 and WARP_BLOCK_PTS >= CHUNK_PTS  # a block holds whole chunks
+
+
 @parallel_kernel(fastmath=_FASTMATH, cache=True, error_model="numpy")
-def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, pix, zs, tiles, use_tiles, tile_px,
-                        tile_of_px, vis, chunk, zbuf, cbuf):  # pragma: no cover
+def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, tiles, use_tiles, tile_px,
+                        tile_of_px, vis, chunk, block, zbuf, cbuf):  # pragma: no cover
     # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was),
-    # project its points (a loop without stores that depend on other points: it vectorizes), then
-    # z-buffer them in their (source) order. Splitting the projection from the z-buffer halved
-    # the CPU time of one loop doing both (docs/synthesis.md).
+    # then per block of up to ``block`` points of its kept chunks: copy their coordinates into
+    # one array per coordinate, project them (a loop without branches or stores that depend on
+    # other points: it vectorizes), then z-buffer them in their (source) order. The z-buffer sees
+    # the points in the same order as one pass over the layer would.
     L, H, W = zbuf.shape
     th, tw = tiles.shape
+    Wf = np.float32(W)
+    Hf = np.float32(H)
+    zero = np.float32(0.0)
+    half = np.float32(0.5)
+    m00, m01, m02, m03 = M[0, 0], M[0, 1], M[0, 2], M[0, 3]
+    m10, m11, m12, m13 = M[1, 0], M[1, 1], M[1, 2], M[1, 3]
+    m20, m21, m22, m23 = M[2, 0], M[2, 1], M[2, 2], M[2, 3]
     # (the thread count comes in as an argument: nb.get_num_threads() in here makes the kernel uncacheable)
     order, slot_start = _layer_slots_kernel(layer_start, max(1, min(n_threads, L)))
     # One slot (a group of layers of similar total point count) per thread: the layers of a
     # capture hold very different numbers of points (apc: ~50 k, 40 k, 10 k, 3 k), and equal
     # chunks of the layer range would leave one thread with most of them.
     for s in nb.prange(slot_start.shape[0] - 1):
+        bx = np.empty(block, np.float32)
+        by = np.empty(block, np.float32)
+        bz = np.empty(block, np.float32)
+        bi = np.empty(block, np.int64)    # point index
+        bp = np.empty(block, np.int64)    # target pixel (flat v * W + u, -1 = dropped)
+        bd = np.empty(block, np.float32)  # target depth
         for j in range(slot_start[s], slot_start[s + 1]):
             l = order[j]
             zf = zbuf[l].reshape(H * W)
@@ -639,37 +657,43 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, nea
             if i1 <= i0:
                 continue
             # Chunks of points (vis = 0: all certainly outside the target, not projected).
-            c0 = i0 // chunk
+            ch = i0 // chunk
             c1 = (i1 - 1) // chunk + 1
-            for ch in range(c0, c1):
-                if vis[ch] == 0:
-                    continue
-                for i in range(max(i0, ch * chunk), min(i1, ch * chunk + chunk)):
-                    # target pixel (flat v * W + u, -1 = dropped) and depth
-                    x = xyz[i, 0]
-                    y = xyz[i, 1]
-                    z = xyz[i, 2]
-                    zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-                    xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
-                    yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
-                    uf = fx * xc / zc + cx + np.float32(0.5)
-                    vf = fy * yc / zc + cy + np.float32(0.5)
-                    zs[i] = zc
-                    # Bounds in float before the int cast (large values would overflow).
-                    ok = zc > near and uf >= 0.0 and uf < W and vf >= 0.0 and vf < H
-                    pix[i] = np.int64(vf) * W + np.int64(uf) if ok else -1
-            for ch in range(c0, c1):
-                if vis[ch] == 0:
-                    continue
-                for i in range(max(i0, ch * chunk), min(i1, ch * chunk + chunk)):
-                    p = pix[i]
+            while ch < c1:
+                m = 0
+                while ch < c1 and m + chunk <= block:
+                    if vis[ch] != 0:
+                        for i in range(max(i0, ch * chunk), min(i1, ch * chunk + chunk)):
+                            bx[m] = xyz[i, 0]
+                            by[m] = xyz[i, 1]
+                            bz[m] = xyz[i, 2]
+                            bi[m] = i
+                            m += 1
+                    ch += 1
+                for k in range(m):
+                    x = bx[k]
+                    y = by[k]
+                    z = bz[k]
+                    zc = m20 * x + m21 * y + m22 * z + m23
+                    xc = m00 * x + m01 * y + m02 * z + m03
+                    yc = m10 * x + m11 * y + m12 * z + m13
+                    uf = fx * xc / zc + cx + half
+                    vf = fy * yc / zc + cy + half
+                    bd[k] = zc
+                    # Bounds in float before the int cast (large values would overflow); & not
+                    # `and`: no branch in the loop.
+                    ok = (zc > near) & (uf >= zero) & (uf < Wf) & (vf >= zero) & (vf < Hf)
+                    bp[k] = np.int64(vf) * W + np.int64(uf) if ok else np.int64(-1)
+                for k in range(m):
+                    p = bp[k]
                     if p < 0:
                         continue
                     if use_tiles and tile_of_px[p] == 0:
                         continue
-                    zc = zs[i]
+                    zc = bd[k]
                     cur = zf[p]
                     if cur == 0.0 or zc < cur:
+                        i = bi[k]
                         zf[p] = zc
                         cf[p, 0] = rgb[i, 0]
                         cf[p, 1] = rgb[i, 1]
@@ -703,9 +727,6 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     if out is None or out.depth_m.shape != (L, K.height, K.width):
         out = LayeredImage(np.empty((L, K.height, K.width), np.float32),
                            np.empty((L, K.height, K.width, 3), np.uint8))
-    n = view.xyz_world.shape[0]
-    if out.pix is None or out.pix.shape[0] < n:  # per-point scratch, reused with the buffers
-        out = LayeredImage(out.depth_m, out.color, np.empty(n, np.int64), np.empty(n, np.float32))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     use = tiles is not None
     tile_of_px = _NO_TILES.reshape(-1)
@@ -719,7 +740,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     else:
         vis = np.ones(view.chunk_lo.shape[1], np.uint8)
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
-                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m), out.pix, out.z,
-                        tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, out.depth_m,
-                        out.color)
+                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m),
+                        tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, WARP_BLOCK_PTS,
+                        out.depth_m, out.color)
     return out
