@@ -1061,7 +1061,7 @@ def _tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout): 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
     # Per tile: its rectangle grown by ``grow`` (clipped), scanned pixel by pixel up to the first
-    # nonzero one (widths that are not a multiple of 8, or a big-endian machine).
+    # nonzero one (on a big-endian machine, where the words' byte order differs; tested on all).
     H, W = mask.shape
     th = (H + tile_h - 1) // tile_h
     tw = (W + tile_w - 1) // tile_w

@@ -137,5 +137,6 @@ class TwinKernel:
 def parallel_kernel(serial_below: int = 0, size_arg: int = 0, **options: Any) -> Callable[[Callable], TwinKernel]:
     """Decorator: ``@parallel_kernel(cache=True, fastmath=...)`` instead of
     ``@numba.njit(parallel=True, ...)`` makes a :class:`TwinKernel` (``serial_below`` / ``size_arg``:
-    see there)."""
+    see there). The synthesis kernels also pass ``error_model="numpy"`` (no ZeroDivisionError
+    branch, which keeps loops with a division from vectorizing; tested for every kernel)."""
     return lambda fn: TwinKernel(fn, serial_below, size_arg, **options)
