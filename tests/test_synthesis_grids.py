@@ -7,7 +7,7 @@ import pytest
 
 from presim.geometry import Intrinsics, invert, look_at
 from presim.synthesis.core import grid_pixels
-from presim.synthesis.grids import FrameGrids, project_grid, project_grid_ref
+from presim.synthesis.grids import FrameGrids, per_coordinate, project_grid, project_grid_ref
 from presim.synthesis.lod import footprint_ratio
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.select import view_overlap
@@ -37,6 +37,20 @@ def test_project_grid_matches_reference():
     np.testing.assert_array_equal(a_z, b_z)
     assert (a_pix == b_pix).mean() > 0.9995  # float64 summation order may move a boundary point
     assert (a_pix >= 0).sum() > 1000 and (a_pix == -1).sum() > 1000  # both branches exercised
+
+
+def test_renderer_grids_are_stored_per_coordinate():
+    """The kernels read the Renderer's grids per coordinate without a copy; other layouts are copied."""
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(3, span_m=1.2), K)
+    grid = Renderer(scene, RenderConfig(overlap_stride_px=4)).grid_points(1)
+    P = per_coordinate(grid)
+    assert P.shape == (3, len(grid)) and P.flags.c_contiguous and P.dtype == np.float32
+    assert np.shares_memory(P, grid)
+    np.testing.assert_array_equal(P.T, grid)
+    C = np.ascontiguousarray(grid)
+    assert not np.shares_memory(per_coordinate(C), C)
+    np.testing.assert_array_equal(per_coordinate(C), P)
 
 
 def test_frame_grids_answers_equal_the_reference_functions():

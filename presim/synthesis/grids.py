@@ -11,7 +11,11 @@ points (``RenderConfig.overlap_stride_px``, prepared once per view by the Render
 The reference functions each transform and project the grid again (numpy, float64 temporaries).
 :class:`FrameGrids` projects every asked view's grid once per target camera, all views in one call
 of a small single-threaded numba kernel (:func:`project_grid`; a parallel region's start costs more
-than the ~50 k points of ten grids), and answers the three questions from that one projection.
+than the ~50 k points of ten grids), and answers the three questions from that one projection. The
+kernel reads the points per coordinate (the Renderer stores its grids that way, :func:`per_coordinate`)
+and computes every point's pixel without a branch, so its loop vectorizes: 3.6x faster than reading
+(n, 3) rows with an early exit behind the camera (the apc capture's six grids of a frame, ~26 k points:
+250 → 69 µs), with the same arithmetic and the same results.
 :func:`project_grid_ref` is the numpy reference (geometry.py's ``transform_points`` / ``project``
 and the pixel-centre rule of ``nearest_pixel``), tested equal.
 """
@@ -26,7 +30,7 @@ import numpy as np
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 
-__all__ = ["project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
+__all__ = ["per_coordinate", "project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
 
 
 def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics
@@ -39,56 +43,67 @@ def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
     return pix, np.asarray(z, np.float32)
 
 
+def per_coordinate(xyz_world: np.ndarray) -> np.ndarray:
+    """World points (n, 3) as a C-contiguous float32 (3, n) array, one row per coordinate (what the
+    projection kernels read). No copy when ``xyz_world`` is already stored that way: a float32
+    F-ordered (n, 3) array, as the Renderer keeps its grids (``Renderer.grid_points``)."""
+    return np.ascontiguousarray(np.asarray(xyz_world, np.float32).T)
+
+
 @nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H):  # pragma: no cover
-    # Point i's float32 z in the target camera (as transform_points returns for float32 points) and
-    # its flat pixel by the pixel-centre rule, -1 behind the camera or outside the image.
-    x = np.float64(xyz[i, 0])
-    y = np.float64(xyz[i, 1])
-    z = np.float64(xyz[i, 2])
+def _grid_pixel(P, i, M, fx, fy, cx, cy, W, H):  # pragma: no cover
+    # Point i's (P: (3, n), a row per coordinate) float32 z in the target camera (as transform_points
+    # returns for float32 points) and its flat pixel by the pixel-centre rule, -1 behind the camera
+    # or outside the image. Branch-free (every point computes its pixel, invalid ones are then
+    # replaced by -1), so that the loop over points vectorizes; the arithmetic is that of the
+    # reference, operation by operation.
+    x = np.float64(P[0, i])
+    y = np.float64(P[1, i])
+    z = np.float64(P[2, i])
     zc = np.float32(x * M[2, 0] + y * M[2, 1] + z * M[2, 2] + M[2, 3])
-    if not (zc > 0.0):
-        return np.int64(-1), zc
     xc = np.float32(x * M[0, 0] + y * M[0, 1] + z * M[0, 2] + M[0, 3])
     yc = np.float32(x * M[1, 0] + y * M[1, 1] + z * M[1, 2] + M[1, 3])
     uf = np.floor(fx * np.float64(xc) / np.float64(zc) + cx + 0.5)
     vf = np.floor(fy * np.float64(yc) / np.float64(zc) + cy + 0.5)
-    if uf >= 0 and uf < W and vf >= 0 and vf < H:
-        return np.int64(vf) * W + np.int64(uf), zc
-    return np.int64(-1), zc
+    ok = (zc > 0.0) & (uf >= 0) & (uf < W) & (vf >= 0) & (vf < H)
+    uf = uf if ok else 0.0  # no float -> int conversion of a value out of range
+    vf = vf if ok else 0.0
+    p = np.int64(vf) * W + np.int64(uf)
+    return (p if ok else np.int64(-1)), zc
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: also run by the view cache's background thread
-def _project_grid_kernel(xyz, M, fx, fy, cx, cy, W, H, pix, z_out):  # pragma: no cover
-    for i in range(xyz.shape[0]):
-        pix[i], z_out[i] = _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H)
+def _project_grid_kernel(P, M, fx, fy, cx, cy, W, H, pix, z_out):  # pragma: no cover
+    for i in range(P.shape[1]):
+        pix[i], z_out[i] = _grid_pixel(P, i, M, fx, fy, cx, cy, W, H)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _any_front_kernel(xyz, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
+def _any_front_kernel(P, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
     # = _count_front_kernel(*project_grid(...), near) > 0, stopping at the first point that counts.
-    for i in range(xyz.shape[0]):
-        p, zc = _grid_pixel(xyz, i, M, fx, fy, cx, cy, W, H)
+    for i in range(P.shape[1]):
+        p, zc = _grid_pixel(P, i, M, fx, fy, cx, cy, W, H)
         if p >= 0 and zc > near:
             return True
     return False
 
 
 def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points (n, 3) into a target camera (numba, one thread).
+    """Project world points (n, 3) into a target camera (numba, one thread; the points are read per
+    coordinate, :func:`per_coordinate`, which copies them unless they are stored that way).
 
     Returns:
         ``(pix, z)``: int64 (n,) flat target pixel ``v * W + u`` by the pixel-centre rule
         (``floor(u + 0.5)``), -1 when the point is behind the camera or outside the image; float32
         (n,) z-depth in the target camera (any sign).
     """
-    xyz = np.ascontiguousarray(xyz_world, np.float32)
-    n = xyz.shape[0]
+    P = per_coordinate(np.asarray(xyz_world).reshape(-1, 3))
+    n = P.shape[1]
     pix = np.empty(n, np.int64)
     z = np.empty(n, np.float32)
     if n:
         M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4])
-        _project_grid_kernel(xyz, M, float(K.fx), float(K.fy), float(K.cx), float(K.cy), int(K.width),
+        _project_grid_kernel(P, M, float(K.fx), float(K.fy), float(K.cx), float(K.cy), int(K.width),
                              int(K.height), pix, z)
     return pix, z
 
@@ -269,8 +284,8 @@ class FrameGrids:
         missing = [int(v) for v in ids if int(v) not in self._proj]
         if not missing:
             return
-        grids = [np.ascontiguousarray(self._grid_points(v), np.float32) for v in missing]
-        n = sum(len(g) for g in grids)
+        grids = [per_coordinate(self._grid_points(v)) for v in missing]
+        n = sum(g.shape[1] for g in grids)
         pix = np.empty(n, np.int64)
         z = np.empty(n, np.float32)
         args = self._kernel_args()
@@ -278,12 +293,13 @@ class FrameGrids:
         b = len(self._bufs)
         self._bufs.append((pix, z, missing))
         for v, g in zip(missing, grids):  # each grid straight into its slice of one output (no copy of the inputs)
-            p, zz = pix[o:o + len(g)], z[o:o + len(g)]
-            if len(g):
+            m = g.shape[1]
+            p, zz = pix[o:o + m], z[o:o + m]
+            if m:
                 _project_grid_kernel(g, *args, p, zz)
             self._proj[v] = (p, zz)
-            self._where[v] = (b, o, o + len(g))
-            o += len(g)
+            self._where[v] = (b, o, o + m)
+            o += m
 
     def _kernel_args(self) -> tuple:
         """The projection kernels' camera arguments (``M`` = the 3x4 of ``T_cam_world``, float64)."""
@@ -304,8 +320,8 @@ class FrameGrids:
             if got is not None:
                 out[i] = _count_front_kernel(got[0], got[1], near) > 0
                 continue
-            g = np.ascontiguousarray(self._grid_points(int(v)), np.float32)
-            out[i] = len(g) > 0 and _any_front_kernel(g, *self._kernel_args(), near)
+            g = per_coordinate(self._grid_points(int(v)))
+            out[i] = g.shape[1] > 0 and _any_front_kernel(g, *self._kernel_args(), near)
         return out
 
     def projection(self, v: int) -> tuple[np.ndarray, np.ndarray]:

@@ -451,10 +451,13 @@ class Renderer:
     def _grid_from_depth(self, idx: int, depth: np.ndarray) -> np.ndarray:
         pts, _ = unproject_depth(self.scene.intrinsics[idx], depth, self.scene.T_world_cam[idx],
                                  stride=self.config.overlap_stride_px)
-        return pts
+        # Stored per coordinate (an F-ordered (m, 3) array): the projection kernels read the rows of
+        # its (3, m) transpose without a copy, and vectorize (presim/synthesis/grids.py).
+        return np.asfortranarray(pts, np.float32)
 
     def grid_points(self, idx: int) -> np.ndarray:
-        """(m, 3) float32 world points of view ``idx``'s sub-sampled valid depth (overlap test)."""
+        """(m, 3) float32 world points of view ``idx``'s sub-sampled valid depth (overlap test), stored
+        per coordinate (F-ordered)."""
         g = self._grids.get(idx)
         if g is None:
             color, depth = self._load_frame(idx, with_color=False)
