@@ -185,6 +185,80 @@ def test_median_ratio_kernel_equals_numpy_median():
         assert np.float32(got) == ref and float(np.float32(got) * np.sqrt(2.0)) == float(ref * np.sqrt(2.0))
 
 
+def test_level_thresholds_decide_choose_level_exactly():
+    """A positive float32 median's level = the number of thresholds it does not exceed, exactly as
+    choose_level decides it from the float64 ratio (both sides of every threshold, odd focal pairs)."""
+    from presim.synthesis.lod import LodConfig, choose_level, level_thresholds
+
+    rng = np.random.default_rng(3)
+    for cfg in (LodConfig(), LodConfig(levels=5, max_footprint=1.3), LodConfig(levels=1, max_footprint=0.7)):
+        for _ in range(30):
+            f_t, f_s = float(rng.uniform(40, 900)), float(rng.uniform(200, 900))
+            taus = level_thresholds(f_t, f_s, cfg)
+            assert taus.dtype == np.float32 and taus.shape == (cfg.levels,) and np.all(np.diff(taus) < 0)
+            near = [np.nextafter(t, np.float32(np.inf)) for t in taus] + [np.nextafter(t, np.float32(0)) for t in taus]
+            for m in list(taus) + near + list(rng.uniform(0.01, 4, 20).astype(np.float32)):
+                m = np.float32(m)
+                want = choose_level(float(m * np.float64(f_t) / f_s), cfg)
+                assert int(np.count_nonzero(m <= taus)) == want, (m, taus)
+    with pytest.raises(ValueError, match="focal"):
+        level_thresholds(0.0, 500.0, LodConfig())
+
+
+def test_level_by_counts_kernel_equals_choose_level_of_the_median():
+    """The LOD level from counts = choose_level(median) (odd / even counts, ties on a threshold,
+    the two middle values of an even count around one: -2, the caller's cue for the exact median;
+    no point: -1; a zero median: level 0)."""
+    from presim.synthesis.grids import _level_by_counts_kernel, _median_ratio_kernel
+    from presim.synthesis.lod import LodConfig, choose_level, level_thresholds
+
+    cfg = LodConfig()
+    f_t, f_s = 150.0, 525.0
+    taus = level_thresholds(f_t, f_s, cfg)
+    near = np.float32(0.1)
+    rng = np.random.default_rng(4)
+    seen = set()
+    for t in range(600):
+        n = int(rng.integers(0, 12 if t % 2 else 300))
+        zt = rng.uniform(0.2, 3, n).astype(np.float32)
+        r = rng.choice(np.concatenate([taus, rng.uniform(0.2, 3, 8).astype(np.float32)]), n)
+        zs = (r * zt).astype(np.float32)  # ratios at (or next to) the thresholds
+        zs[rng.random(n) < 0.1] = 0.05  # not counted (<= near)
+        pix = np.where(rng.random(n) < 0.1, -1, 7).astype(np.int64)
+        lv = _level_by_counts_kernel(zs, zt, pix, near, taus)
+        med = _median_ratio_kernel(zs, zt, pix, near)
+        seen.add(lv if lv < 0 else "level")
+        if lv == -1:
+            assert np.isnan(med)
+        elif lv != -2:
+            assert lv == choose_level(float(np.float32(med) * np.float64(f_t) / f_s), cfg)
+        else:  # a threshold between the two middle ratios of an even count
+            ok = (zs > near) & (zt > near) & (pix >= 0)
+            q = np.sort(zs[ok] / zt[ok])
+            k = len(q) // 2
+            assert len(q) % 2 == 0 and any(q[k - 1] <= x < q[k] for x in np.concatenate([[0], taus]))
+    assert seen == {-1, -2, "level"}
+    assert _level_by_counts_kernel(np.float32([0.0, 0.0, 0.0]), np.float32([1, 1, 1]), np.zeros(3, np.int64),
+                                   np.float32(-1.0), taus) == 0  # median 0: level 0, as choose_level
+
+    # FrameGrids.lod_level: counts, or the exact median when they cannot tell (identity target camera:
+    # the grid's points on the optical axis at z_t, their source depths z_src = ratio x z_t)
+    from presim.geometry import Intrinsics
+    from presim.synthesis.grids import FrameGrids
+
+    K = Intrinsics(f_t, f_t, 31.5, 23.5, 64, 48)
+    for ratios in ([taus[1], np.float32(0.9 * taus[1])],  # even count, tau_2 between: exact median
+                   [taus[1], taus[1] * np.float32(1.2)], [taus[0], taus[2], np.float32(3.0)], [np.float32(5.0)]):
+        ratios = np.float32(ratios)
+        z_t = np.linspace(1.0, 2.0, len(ratios)).astype(np.float32)
+        pts = np.stack([np.zeros_like(z_t), np.zeros_like(z_t), z_t], 1)
+        g = FrameGrids(np.eye(4), K, lambda v: pts)
+        z_src = (ratios * z_t).astype(np.float32)
+        want = choose_level(g.footprint_ratio(0, z_src, f_s, 0.01), cfg)
+        assert g.lod_level(0, z_src, f_s, 0.01, cfg) == want
+        assert g.lod_level(0, z_src, f_s, 0.01, LodConfig(levels=0)) == 0
+
+
 def test_grid_count_kernels_equal_numpy():
     from presim.synthesis.grids import _count_front_kernel, _front_pixels_kernel, count_in_mask
 

@@ -22,6 +22,7 @@ and the pixel-centre rule of ``nearest_pixel``), tested equal.
 
 from __future__ import annotations
 
+import functools
 from typing import Callable, Sequence
 
 import numba as nb
@@ -29,6 +30,7 @@ import numpy as np
 
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
+from presim.synthesis.lod import LodConfig, choose_level, level_thresholds
 
 __all__ = ["per_coordinate", "project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
 
@@ -176,6 +178,42 @@ def _select_kth(a, m, k):  # pragma: no cover
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
+def _level_by_counts_kernel(z_src, z_t, pix, near, taus):  # pragma: no cover
+    # The LOD level of the median of r = z_src / z_t over the points _median_ratio_kernel takes,
+    # decided from counts: -1 when no point counts (nan median), -2 when a threshold lies between
+    # the two middle values of an even count (then only the exact median can tell), else the level
+    # = how many thresholds (taus, decreasing) the median does not exceed; a median <= 0 is
+    # level 0 (choose_level). With c = #(r <= t) and m points, half = m // 2: median <= t when
+    # c >= half + 1 (both middle values <= t, and their float32 mean too), median > t when
+    # c <= half - 1 or (m odd and c == half). Each counting pass has no branch: it vectorizes.
+    n = z_src.shape[0]
+    m = 0
+    for i in range(n):
+        m += (z_src[i] > near) & (z_t[i] > near) & (pix[i] >= 0)
+    if m == 0:
+        return -1
+    half = m // 2
+    level = 0
+    for k in range(-1, taus.shape[0]):
+        t = np.float32(0.0) if k < 0 else taus[k]
+        c = 0
+        for i in range(n):
+            a = z_src[i]
+            b = z_t[i]
+            c += (a > near) & (b > near) & (pix[i] >= 0) & (a / b <= t)
+        if c >= half + 1:
+            if k < 0:
+                return 0
+            level = k + 1
+        elif c <= half - 1 or m % 2 == 1:
+            if k >= 0:
+                return level
+        else:
+            return -2
+    return level
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _count_front_kernel(pix, z, near):  # pragma: no cover
     # np.count_nonzero((pix >= 0) & (z > near)) (near float32, as numpy compares it with float32 z).
     n = 0
@@ -244,6 +282,15 @@ def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, 
                     s += r * r
         counts[k] = n
         sums[k] = s
+
+
+@functools.lru_cache(maxsize=256)
+def _thresholds(f_target_px: float, f_source_px: float, config: LodConfig) -> np.ndarray:
+    """:func:`~presim.synthesis.lod.level_thresholds`, cached (a bisection costs ~0.1 ms; a
+    trajectory asks the same few focal pairs every frame); read-only."""
+    t = level_thresholds(f_target_px, f_source_px, config)
+    t.setflags(write=False)
+    return t
 
 
 def _flat_f32(parts: list[np.ndarray], n: int) -> np.ndarray:
@@ -361,6 +408,23 @@ class FrameGrids:
         if med != med:  # no grid point in front of both cameras and inside the target image
             return float("nan")
         return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)
+
+    def lod_level(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float, config: LodConfig) -> int:
+        """= ``choose_level(self.footprint_ratio(v, z_src, f_src_px, near_m), config)``, decided in most
+        frames by counting the grid's ratios against :func:`~presim.synthesis.lod.level_thresholds`
+        (cached per focal pair) instead of selecting the median (tested equal): 4.2 µs against
+        15-18 µs for a 4 400-point grid of the apc capture. The exact median runs only when a
+        threshold lies between the two middle ratios of an even count."""
+        if config.levels == 0:
+            return 0
+        pix, z_t = self.projection(v)
+        if len(z_t) == 0:
+            return 0
+        taus = _thresholds(float(np.sqrt(self.K.fx * self.K.fy)), float(f_src_px), config)
+        lv = _level_by_counts_kernel(np.ascontiguousarray(z_src, np.float32), z_t, pix, np.float32(near_m), taus)
+        if lv == -2:
+            return choose_level(self.footprint_ratio(v, z_src, f_src_px, near_m), config)
+        return max(int(lv), 0)
 
     def hole_scores(self, ids: Sequence[int], mask_flat: np.ndarray, z_src: Callable[[int], np.ndarray],
                     f_src_px: Callable[[int], float], near_m: float, stride_px: float

@@ -542,11 +542,12 @@ class Renderer:
         return z
 
     def _lod_level_fast(self, idx: int, grids: FrameGrids) -> int:
-        """:meth:`lod_level` from the frame's one projection of the grids (same result)."""
+        """:meth:`lod_level` from the frame's one projection of the grids (same result; mostly decided
+        by counts, :meth:`FrameGrids.lod_level`)."""
         if self._lod.levels == 0:
             return 0
-        r0 = grids.footprint_ratio(idx, self._grid_zsrc_of(idx), float(self._src_focal[idx]), self.config.near_m)
-        return choose_level(r0, self._lod)
+        return grids.lod_level(idx, self._grid_zsrc_of(idx), float(self._src_focal[idx]), self.config.near_m,
+                               self._lod)
 
     def _grid_fill(self, idx: int, grids: FrameGrids, mask_flat: np.ndarray) -> float:
         """Target pixels that view ``idx``'s grid points landing on ``mask_flat`` stand for (one view at a
