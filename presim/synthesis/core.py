@@ -116,6 +116,10 @@ class Workspace:
 
     layers: LayeredImage | None = None
     """numba: the (L, H, W) warp buffers."""
+    ahead: Callable[[Any], LayeredImage | None] | None = None
+    """numba: when set, ``ahead(view)`` -> the view's layers fully warped for this target camera by
+    a helper thread (:class:`presim.synthesis.warp_ahead.WarpAhead`), or None: then the view is
+    warped here. Used only where the view would be warped fully (no tiles)."""
     front: tuple[np.ndarray, np.ndarray] | None = None
     """numba: when set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with
     the front-most surface of its warped layers (smallest depth, no crack filter; multi-view
@@ -146,8 +150,10 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
         tiles = warp_tiles(replace)
         if tiles.mean() > TILED_MAX_FRAC:  # holes everywhere: the full warp is cheaper
             tiles = None
-    lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers, tiles=tiles,
-                                         tile_px=WARP_TILE_PX)
+    lay = workspace.ahead(view) if tiles is None and workspace.ahead is not None else None
+    if lay is None:
+        lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers, tiles=tiles,
+                                             tile_px=WARP_TILE_PX)
     t1 = time.perf_counter()
     if packed:
         # Filter + composite + seam pass in one call; later views only on their replaceable pixels.

@@ -26,10 +26,12 @@ from __future__ import annotations
 
 import dataclasses
 import mmap
+import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Callable
 
 import cv2
 import numba
@@ -40,6 +42,7 @@ from presim.geometry import Intrinsics, check_rigid, invert, transform_points, u
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
+from presim.synthesis.composite import TILED_MIN_PIXELS
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS
 from presim.synthesis.grids import FrameGrids
@@ -47,10 +50,11 @@ from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
-from presim.synthesis.threads import frame_threads, numba_threads, serial_kernels
+from presim.synthesis.threads import frame_threads, numba_threads, serial_kernels, serial_now
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
+from presim.synthesis.warp_ahead import WARP_AHEAD_AFTER, WarpAhead
 
 __all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
 
@@ -193,6 +197,12 @@ class RenderConfig:
     ``threads.SERIAL_MAX_PIXELS`` = 40 000 pixels, where waking a second thread for each parallel
     kernel costs more than it gives, else numba's current count); > 0 = that many. The images do not
     depend on it (docs/synthesis.md, "Threads per frame")."""
+    warp_ahead: bool = True
+    """numba backend, frames on one thread (``threads`` = 0 and at most ``threads.SERIAL_MAX_PIXELS``
+    pixels), blending off, not inside :meth:`Renderer.render_batch`'s threads: a helper thread warps
+    the selected candidates 2..``max_views`` (those already prepared) while the adaptive loop works
+    on the first, so that the loop mostly finds its next view warped (:mod:`presim.synthesis.
+    warp_ahead`). The images do not depend on it; it uses the core such a frame leaves idle."""
     batch_views: int = 3
     """``backend="torch_batch"``: :meth:`Renderer.render_batch` renders every frame from this many
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
@@ -371,6 +381,14 @@ class _Scratch:
         self.workspace = Workspace()
         self.blend_stacks: dict = {}
         self.warp_capture = _WarpCapture(self.blend_stacks, feather_px)
+        self._ahead: WarpAhead | None = None
+
+    @property
+    def ahead(self) -> WarpAhead:
+        """The helper thread that warps later candidates ahead (started on first use)."""
+        if self._ahead is None:
+            self._ahead = WarpAhead()
+        return self._ahead
 
 
 @dataclass
@@ -379,6 +397,8 @@ class _Stream:
     view selection (temporal reuse, ``RenderConfig.reuse_move_m``)."""
 
     prev: tuple[np.ndarray, Intrinsics, Selection] | None = None
+    views_drawn: int = 0
+    """How many views the previous frame's adaptive loop warped (how many to warp ahead)."""
 
 
 class Renderer:
@@ -427,6 +447,9 @@ class Renderer:
         self._blend_config = BlendConfig(config.blend_views, config.blend_depth_tol,
                                          penalty_eps=config.blend_penalty_eps,
                                          feather_px=config.blend_feather_px) if config.blend else None
+        # warp ahead (RenderConfig.warp_ahead): the numba backend's warps, no blending (it keeps the
+        # loop's warps), and a second core to run on
+        self._use_warp_ahead = config.backend == "numba" and not config.blend and (os.cpu_count() or 1) >= 2
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
@@ -594,8 +617,13 @@ class Renderer:
         scale = min(1.0, self.config.max_zoom * self._focal_px / np.sqrt(K.fx * K.fy))
         # Beyond max_zoom the frame is rendered at the capture's sampling and upsampled.
         K_in = K if scale >= 1.0 else K.scaled(max(1, round(K.width * scale)), max(1, round(K.height * scale)))
-        with numba_threads(frame_threads(K_in.width, K_in.height, self.config.threads)):
-            out, stats = self._render(T_world_cam, K_in, stream, scratch)
+        n_threads = frame_threads(K_in.width, K_in.height, self.config.threads)
+        # A frame on one thread leaves a core idle: later candidates are warped ahead there, unless
+        # this thread is one of several rendering at once (render_batch: serial kernels already).
+        ahead = (n_threads == 1 and self.config.threads == 0 and self.config.warp_ahead and not serial_now()
+                 and self._use_warp_ahead and K_in.width * K_in.height < TILED_MIN_PIXELS)
+        with numba_threads(n_threads):
+            out, stats = self._render(T_world_cam, K_in, stream, scratch, ahead)
         if K_in is K:
             return out, stats
         t = time.perf_counter()
@@ -630,8 +658,8 @@ class Renderer:
             return None
         return sel
 
-    def _render(self, T_world_cam: np.ndarray, K: Intrinsics, stream: _Stream, scratch: _Scratch
-                ) -> tuple[RGBD, RenderStats]:
+    def _render(self, T_world_cam: np.ndarray, K: Intrinsics, stream: _Stream, scratch: _Scratch,
+                ahead: bool = False) -> tuple[RGBD, RenderStats]:
         t0 = time.perf_counter()
         T_cam_world = invert(T_world_cam)
         grids = FrameGrids(T_cam_world, K, self.grid_points)  # each grid projected once this frame
@@ -645,31 +673,65 @@ class Renderer:
                                           angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
             stream.prev = (T_world_cam.copy(), K, sel)
         select_ms = (time.perf_counter() - t0) * 1e3
-        get_view = self._view
-        levels: dict[int, int] = {}
-        if self._lod.levels > 0:
-            def get_view(idx: int):
-                levels[idx] = self._lod_level_fast(idx, grids)
-                return self._view(idx, levels[idx])
+        levels: dict[int, int] = {}  # this frame's level of detail per view (asked once)
+
+        def level_of(idx: int) -> int:
+            lv = levels.get(idx)
+            if lv is None:
+                lv = levels[idx] = self._lod_level_fast(idx, grids) if self._lod.levels > 0 else 0
+            return lv
+
+        def get_view(idx: int):
+            return self._view(idx, level_of(idx))
         near = self.config.near_m
         view_image = self._backend.view_image
         if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
             get_view, view_image = scratch.warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
         if self._cache.background:  # later candidates prepared while this frame runs
             self._prefetch(sel.view_idx, T_cam_world, K)
-        res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
-                               view_image, get_view, self.grid_points, scratch.workspace,
-                               color_transform=self._color_transform,
-                               blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
-                               hole_scores=lambda ids, big: grids.hole_scores(
-                                   ids, big, self._grid_zsrc_of, lambda v: float(self._src_focal[v]),
-                                   near, float(self.config.overlap_stride_px)))
+        # Warp ahead as many later candidates as the previous frame drew views (one more than it
+        # needed beyond its first, for a skipped candidate), after frames of WARP_AHEAD_AFTER views
+        # or more: a thread warping views the loop never draws slows the main thread's kernels.
+        jobs = (self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn)
+                if ahead and stream.views_drawn >= WARP_AHEAD_AFTER else [])
+        if jobs:
+            scratch.ahead.start(jobs, T_cam_world, K, near)
+            scratch.workspace.ahead = scratch.ahead.take
+        try:
+            res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
+                                   view_image, get_view, self.grid_points, scratch.workspace,
+                                   color_transform=self._color_transform,
+                                   blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
+                                   hole_scores=lambda ids, big: grids.hole_scores(
+                                       ids, big, self._grid_zsrc_of, lambda v: float(self._src_focal[v]),
+                                       near, float(self.config.overlap_stride_px)))
+        finally:
+            if jobs:
+                scratch.ahead.stop()
+                scratch.workspace.ahead = None
         res.ms["select"] += select_ms
+        stream.views_drawn = len(res.views)
         stats = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                             ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
                             reused_selection=reused)
         color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
         return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac), stats
+
+    def _warp_ahead_jobs(self, candidates: np.ndarray, level_of: Callable[[int], int], count: int) -> list:
+        """The prepared views (at this frame's levels) of candidates 2..n + 1 (n = ``count``, at most
+        the ``max_views`` - 1 (or ``fixed_views`` - 1) later views the adaptive loop may draw), in
+        order; candidates not prepared yet are left to the loop (and the view cache's background
+        thread)."""
+        cfg = self.config
+        n = min(count + 1, cfg.fixed_views if cfg.fixed_views > 0 else cfg.max_views)
+        jobs = []
+        for c in candidates[1:n]:
+            c = int(c)
+            level = level_of(c)
+            view = self._cache.peek(c if level == 0 else (c, level))
+            if view is not None:
+                jobs.append(view)
+        return jobs
 
     def _blend_hook(self, T_world_cam: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, candidates,
                     scratch: _Scratch):

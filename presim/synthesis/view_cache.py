@@ -88,6 +88,11 @@ class ViewCache:
                 self._ahead.discard(gone_key)
             return value
 
+    def peek(self, key: Hashable) -> Any | None:
+        """The view cached under ``key``, or None (nothing is built, waited for or reordered)."""
+        with self._lock:
+            return self._items.get(key)
+
     def get(self, key: Hashable, build: Callable[[], Any]) -> Any:
         """The view under ``key``: cached, built ahead, or ``build()`` now (then cached). A view that
         another thread (the background thread, or another thread rendering frames) is building is

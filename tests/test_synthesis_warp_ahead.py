@@ -1,0 +1,150 @@
+"""Later candidates warped ahead on a helper thread (presim/synthesis/warp_ahead.py)."""
+
+from __future__ import annotations
+
+import gc
+import threading
+
+import numpy as np
+import pytest
+
+from presim.geometry import Intrinsics, invert
+from presim.synthesis import warp_ahead as WA
+from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.warp import warp_layers
+from presim.synthesis.warp_ahead import WarpAhead
+from presim.testing import rect_scene as S
+
+
+def _scene(n: int = 6):
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    return S.make_scene(S.room_rects(), S.orbit_poses(n, span_m=1.2), K)
+
+
+def _target(scene, i: int = 2) -> np.ndarray:
+    T = scene.T_world_cam[i].copy()
+    T[:3, 3] += [0.05, 0.0, 0.1]
+    return T
+
+
+def test_warp_ahead_gives_warp_layers_arrays_and_claims_jobs_it_has_not_begun():
+    scene = _scene()
+    r = Renderer(scene, RenderConfig())
+    views = [r.view_points(i) for i in range(4)]
+    T_cw = invert(_target(scene))
+    K = Intrinsics.from_fov(40, 30, 60.0)
+    wa = WarpAhead()
+    with wa._sh.cv:  # the thread cannot begin the frame while this is held
+        wa.start(views, T_cw, K, 0.01)
+        assert wa.take(views[0]) is None  # queued: claimed, the loop warps it itself
+    wa.wait()
+    assert wa.take(r.view_points(5)) is None  # not handed over
+    for v in views[1:]:
+        got = wa.take(v)
+        want = warp_layers(v, T_cw, K, 0.01)
+        np.testing.assert_array_equal(got.depth_m, want.depth_m)
+        np.testing.assert_array_equal(got.color, want.color)
+        assert (got.depth_m > 0).sum() > 50
+        assert wa.take(v) is None  # taken once
+    assert wa.taken == 3
+    # the next frame reuses the buffers; a frame the thread has not begun is replaced, not run
+    T2 = invert(_target(scene, 3))
+    with wa._sh.cv:
+        wa.start(views[:2], T_cw, K, 0.01)
+        wa.start(views[2:], T2, K, 0.01)
+    wa.wait()
+    assert wa.take(views[0]) is None
+    np.testing.assert_array_equal(wa.take(views[3]).depth_m, warp_layers(views[3], T2, K, 0.01).depth_m)
+    wa.stop()
+    assert wa.take(views[2]) is not None  # done before the stop: still there
+    wa.start([], T_cw, K, 0.01)  # nothing to do: no frame
+    wa.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        wa.start(views, T_cw, K, 0.01)
+
+
+def test_warp_ahead_thread_ends_with_its_owner():
+    scene = _scene(3)
+    r = Renderer(scene, RenderConfig())
+    wa = WarpAhead()
+    wa.start([r.view_points(1)], invert(_target(scene, 1)), Intrinsics.from_fov(40, 30, 60.0), 0.01)
+    wa.wait()
+    th = wa._thread
+    assert th.is_alive()
+    del wa
+    gc.collect()
+    th.join(timeout=10)
+    assert not th.is_alive()
+
+
+def _frames(r: Renderer, scene, K, n: int = 6):
+    out = []
+    for i in range(n):
+        rgbd = r.render(_target(scene, i % len(scene)), K)
+        out.append((rgbd.color, rgbd.depth_m, rgbd.source_view, list(r.last.views)))
+    return out
+
+
+@pytest.mark.parametrize("cfg", [{"fixed_views": 4}, {}])
+def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
+    """Same images with the thread, without it, and with every view warped ahead before the loop
+    asks (the loop then takes them all: fixed views are drawn in candidate order)."""
+    scene = _scene()
+    K = Intrinsics.from_fov(48, 36, 60.0)  # one thread per frame (threads.SERIAL_MAX_PIXELS)
+    base = _frames(Renderer(scene, RenderConfig(warp_ahead=False, **cfg)), scene, K)
+    r = Renderer(scene, RenderConfig(**cfg))
+    for a, b in zip(base, _frames(r, scene, K)):  # the thread as it runs
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    start = WarpAhead.start
+
+    def start_and_wait(self, *args):
+        start(self, *args)
+        self.wait()
+
+    monkeypatch.setattr(WarpAhead, "start", start_and_wait)
+    r = Renderer(scene, RenderConfig(**cfg))
+    for a, b in zip(base, _frames(r, scene, K)):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    if cfg:
+        assert r._scratch.ahead.taken >= 5 * 3  # frames 2..6: views 2..4 from the thread
+    assert sum(len(f[3]) for f in base) >= 6
+
+
+def test_warp_ahead_is_off_where_it_cannot_help():
+    """Not for frames on two threads, an explicit thread count, render_batch's threads, blending,
+    or after a frame that drew fewer than WARP_AHEAD_AFTER views."""
+    scene = _scene()
+    calls = []
+
+    class Spy(WarpAhead):
+        def start(self, views, *args):
+            calls.append(len(views))
+            super().start(views, *args)
+
+    small = Intrinsics.from_fov(48, 36, 60.0)
+    orig = WA.WarpAhead
+    import presim.synthesis.renderer as R
+    from presim.synthesis import threads as TH
+
+    try:
+        R.WarpAhead = Spy
+        for cfg, serial_max in (({"fixed_views": 4, "threads": 1}, None), ({"fixed_views": 4}, 0),
+                                ({"fixed_views": 4, "blend": True}, None), ({"fixed_views": 2}, None)):
+            calls.clear()
+            prev = TH.SERIAL_MAX_PIXELS
+            TH.SERIAL_MAX_PIXELS = prev if serial_max is None else serial_max  # 0: two threads per frame
+            try:
+                _frames(Renderer(scene, RenderConfig(**cfg)), scene, small, 3)
+            finally:
+                TH.SERIAL_MAX_PIXELS = prev
+            assert calls == [], cfg
+        r = Renderer(scene, RenderConfig(fixed_views=4))
+        r.render_batch(np.stack([_target(scene, i) for i in range(4)] * 2), small)
+        assert calls == []
+        _frames(r, scene, small, 3)
+        assert calls == [3, 3]  # from the second frame of a stream on: candidates 2..4
+    finally:
+        R.WarpAhead = orig
+    assert threading.active_count() < 50
