@@ -89,6 +89,9 @@ def _frames(r: Renderer, scene, K, n: int = 6):
 def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
     """Same images with the thread, without it, and with every view warped ahead before the loop
     asks (the loop then takes them all: fixed views are drawn in candidate order)."""
+    import presim.synthesis.renderer as R
+
+    monkeypatch.setattr(R, "WARP_AHEAD_MIN_POINTS", 0)  # the test views are small
     scene = _scene()
     K = Intrinsics.from_fov(48, 36, 60.0)  # one thread per frame (threads.SERIAL_MAX_PIXELS)
     base = _frames(Renderer(scene, RenderConfig(warp_ahead=False, **cfg)), scene, K)
@@ -107,14 +110,20 @@ def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
     for a, b in zip(base, _frames(r, scene, K)):
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
+    # frames 2..6 take from the thread the later views they share with the frame before
+    want = sum(len(set(b[3][1:]) & set(a[3][1:])) for a, b in zip(base, base[1:]))
+    assert r._scratch.ahead.taken == want
     if cfg:
-        assert r._scratch.ahead.taken >= 5 * 3  # frames 2..6: views 2..4 from the thread
+        assert want >= 5
     assert sum(len(f[3]) for f in base) >= 6
 
 
-def test_warp_ahead_is_off_where_it_cannot_help():
+def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
     """Not for frames on two threads, an explicit thread count, render_batch's threads, blending,
-    or after a frame that drew fewer than WARP_AHEAD_AFTER views."""
+    small views, or after a frame that drew one view; otherwise the later views the previous
+    frame drew."""
+    import presim.synthesis.renderer as R
+
     scene = _scene()
     calls = []
 
@@ -125,13 +134,18 @@ def test_warp_ahead_is_off_where_it_cannot_help():
 
     small = Intrinsics.from_fov(48, 36, 60.0)
     orig = WA.WarpAhead
-    import presim.synthesis.renderer as R
     from presim.synthesis import threads as TH
+
+    calls.clear()
+    R.WarpAhead = Spy
+    _frames(Renderer(scene, RenderConfig(fixed_views=4)), scene, small, 3)
+    assert calls == []  # views of fewer than WARP_AHEAD_MIN_POINTS points
+    monkeypatch.setattr(R, "WARP_AHEAD_MIN_POINTS", 0)
 
     try:
         R.WarpAhead = Spy
         for cfg, serial_max in (({"fixed_views": 4, "threads": 1}, None), ({"fixed_views": 4}, 0),
-                                ({"fixed_views": 4, "blend": True}, None), ({"fixed_views": 2}, None)):
+                                ({"fixed_views": 4, "blend": True}, None), ({"fixed_views": 4, "warp_ahead": False}, None)):
             calls.clear()
             prev = TH.SERIAL_MAX_PIXELS
             TH.SERIAL_MAX_PIXELS = prev if serial_max is None else serial_max  # 0: two threads per frame
@@ -143,8 +157,11 @@ def test_warp_ahead_is_off_where_it_cannot_help():
         r = Renderer(scene, RenderConfig(fixed_views=4))
         r.render_batch(np.stack([_target(scene, i) for i in range(4)] * 2), small)
         assert calls == []
-        _frames(r, scene, small, 3)
-        assert calls == [3, 3]  # from the second frame of a stream on: candidates 2..4
+        got = _frames(r, scene, small, 3)
+        assert calls == [len(set(b[3][1:]) & set(a[3][1:])) for a, b in zip(got, got[1:])] and min(calls) >= 1
+        calls.clear()
+        _frames(Renderer(scene, RenderConfig(fixed_views=1)), scene, small, 3)
+        assert calls == []  # one view per frame: nothing to warp ahead
     finally:
         R.WarpAhead = orig
     assert threading.active_count() < 50

@@ -54,7 +54,7 @@ from presim.synthesis.threads import frame_threads, numba_threads, serial_kernel
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
-from presim.synthesis.warp_ahead import WARP_AHEAD_AFTER, WarpAhead
+from presim.synthesis.warp_ahead import WARP_AHEAD_MIN_POINTS, WarpAhead
 
 __all__ = ["BACKENDS", "STAGES", "RenderConfig", "RenderStats", "Renderer"]
 
@@ -200,9 +200,10 @@ class RenderConfig:
     warp_ahead: bool = True
     """numba backend, frames on one thread (``threads`` = 0 and at most ``threads.SERIAL_MAX_PIXELS``
     pixels), blending off, not inside :meth:`Renderer.render_batch`'s threads: a helper thread warps
-    the selected candidates 2..``max_views`` (those already prepared) while the adaptive loop works
-    on the first, so that the loop mostly finds its next view warped (:mod:`presim.synthesis.
-    warp_ahead`). The images do not depend on it; it uses the core such a frame leaves idle."""
+    the later candidates that the stream's previous frame drew too (prepared, at least
+    ``warp_ahead.WARP_AHEAD_MIN_POINTS`` points) while the adaptive loop works on the first view,
+    so that the loop mostly finds them warped (:mod:`presim.synthesis.warp_ahead`). The images do
+    not depend on it; it uses the core such a frame leaves idle."""
     batch_views: int = 3
     """``backend="torch_batch"``: :meth:`Renderer.render_batch` renders every frame from this many
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
@@ -397,8 +398,8 @@ class _Stream:
     view selection (temporal reuse, ``RenderConfig.reuse_move_m``)."""
 
     prev: tuple[np.ndarray, Intrinsics, Selection] | None = None
-    views_drawn: int = 0
-    """How many views the previous frame's adaptive loop warped (how many to warp ahead)."""
+    views_drawn: tuple[int, ...] = ()
+    """The views the previous frame's adaptive loop warped, in order (warped ahead this frame)."""
 
 
 class Renderer:
@@ -689,11 +690,9 @@ class Renderer:
             get_view, view_image = scratch.warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
         if self._cache.background:  # later candidates prepared while this frame runs
             self._prefetch(sel.view_idx, T_cam_world, K)
-        # Warp ahead as many later candidates as the previous frame drew views (one more than it
-        # needed beyond its first, for a skipped candidate), after frames of WARP_AHEAD_AFTER views
-        # or more: a thread warping views the loop never draws slows the main thread's kernels.
-        jobs = (self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn)
-                if ahead and stream.views_drawn >= WARP_AHEAD_AFTER else [])
+        # Warp ahead the later candidates that the previous frame drew (a thread warping views the
+        # loop never draws slows the main thread's kernels: hand over only likely ones).
+        jobs = self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn) if ahead else []
         if jobs:
             scratch.ahead.start(jobs, T_cam_world, K, near)
             scratch.workspace.ahead = scratch.ahead.take
@@ -710,26 +709,34 @@ class Renderer:
                 scratch.ahead.stop()
                 scratch.workspace.ahead = None
         res.ms["select"] += select_ms
-        stream.views_drawn = len(res.views)
+        stream.views_drawn = tuple(res.views)
         stats = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                             ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
                             reused_selection=reused)
         color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
         return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac), stats
 
-    def _warp_ahead_jobs(self, candidates: np.ndarray, level_of: Callable[[int], int], count: int) -> list:
-        """The prepared views (at this frame's levels) of candidates 2..n + 1 (n = ``count``, at most
-        the ``max_views`` - 1 (or ``fixed_views`` - 1) later views the adaptive loop may draw), in
-        order; candidates not prepared yet are left to the loop (and the view cache's background
-        thread)."""
+    def _warp_ahead_jobs(self, candidates: np.ndarray, level_of: Callable[[int], int],
+                         drawn_before: tuple[int, ...]) -> list:
+        """The views to warp ahead: those of candidates 2..``max_views`` (or ``fixed_views``; the
+        later views the adaptive loop may draw) that the previous frame of the stream drew (it
+        draws most of them again: :data:`~presim.synthesis.warp_ahead.WARP_AHEAD_MIN_POINTS`), in
+        candidate order, prepared at this frame's level of detail. Left out: candidates not
+        prepared yet (left to the loop and the view cache's background thread) and views of fewer
+        than ``WARP_AHEAD_MIN_POINTS`` points."""
+        if len(drawn_before) < 2:
+            return []
         cfg = self.config
-        n = min(count + 1, cfg.fixed_views if cfg.fixed_views > 0 else cfg.max_views)
+        n = cfg.fixed_views if cfg.fixed_views > 0 else cfg.max_views
+        before = set(drawn_before[1:])
         jobs = []
         for c in candidates[1:n]:
             c = int(c)
+            if c not in before:
+                continue
             level = level_of(c)
             view = self._cache.peek(c if level == 0 else (c, level))
-            if view is not None:
+            if view is not None and len(view.xyz_world) >= WARP_AHEAD_MIN_POINTS:
                 jobs.append(view)
         return jobs
 

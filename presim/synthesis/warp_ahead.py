@@ -3,18 +3,22 @@
 A frame of at most :data:`presim.synthesis.threads.SERIAL_MAX_PIXELS` pixels renders on one numba
 thread (parallel regions cost more than they give there), so on a 2-core machine one core idles.
 The adaptive loop (:func:`presim.synthesis.core.synthesize_frame`) warps its views one after the
-other: which view comes next depends on the holes the previous ones left, but the loop draws them
-from the first ``max_views`` selected candidates in order (the first candidate whose grid reaches
-the big holes), so the next view is usually the next candidate.
+other, and which view comes next depends on the holes the previous ones left. It cannot be known
+before the frame, but it can be guessed: a camera that moves a little draws mostly the views its
+previous frame drew.
 
-:class:`WarpAhead` owns one helper thread. When a frame starts, the Renderer hands it candidates
-2..``max_views`` whose prepared views are cached (at the level of detail this frame picks for
-them); the thread warps them in that order, each into buffers of its own, **in one call of a numba
-kernel that holds no GIL** (:func:`_warp_jobs_kernel`: per view the chunk culling and the serial
-warp kernel of :func:`presim.synthesis.warp.warp_layers`). A first version called ``warp_layers``
-once per view from Python: each call took the GIL back for ~20 µs, and the main thread, which
-needs the GIL between its own kernels, lost about half of what the thread saved (apc capture,
-128x128: warp 1.0 → 0.35 ms per frame, the other stages +0.25 ms).
+:class:`WarpAhead` owns one helper thread. When a frame starts, the Renderer hands it the later
+candidates (2..``max_views``) that the camera stream's previous frame drew too (a camera that moves
+a little draws mostly the same views again; handing over the next candidates in order instead
+found more of the views the loop then drew but warped twice as many it did not, and a thread
+warping views nobody needs slows the main thread's kernels on a shared 2-core machine), provided
+their prepared views are cached (at the level of detail this frame picks) and hold at least
+:data:`WARP_AHEAD_MIN_POINTS` points. The thread warps them in candidate order, each into buffers
+of its own, **in one call of a numba kernel that holds no GIL** (:func:`_warp_jobs_kernel`: per
+view the chunk culling and the serial warp kernel of :func:`presim.synthesis.warp.warp_layers`).
+A first version called ``warp_layers`` once per view from Python: each call took the GIL back for
+~20 µs, and the main thread, which needs the GIL between its own kernels, lost about half of what
+the thread saved (apc capture, 128x128: warp 1.0 → 0.35 ms per frame, the other stages +0.25 ms).
 
 Each job has a state in a small int32 array shared by the two threads: queued, running, done,
 claimed. When the loop wants a view (:meth:`WarpAhead.take`) and its job is done, it gets the
@@ -49,17 +53,17 @@ from presim.geometry import Intrinsics
 from presim.synthesis.warp import (_CULL_MARGIN, _NO_SAT, _NO_TILES, CHUNK_PTS, WARP_BLOCK_PTS, LayeredImage,
                                    _chunk_keep_kernel, _warp_layers_kernel)
 
-__all__ = ["WarpAhead", "MAX_JOBS", "WARP_AHEAD_AFTER"]
+__all__ = ["WarpAhead", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
 
 MAX_JOBS = 8
 """At most this many views are handed to the thread per frame (the kernel takes fixed-size tuples:
 one compilation)."""
 
-WARP_AHEAD_AFTER = 3
-"""The Renderer hands views to the thread only when the camera stream's previous frame drew at
-least this many views (then as many as it drew): a thread warping views the loop never draws
-slows the main thread's kernels on the shared 2-core machine (the sample scene at 128x96 draws
-one view per frame, now and then two: handing over after two-view frames made it 1.1-1.25x slower)."""
+WARP_AHEAD_MIN_POINTS = 10_000
+"""Views of fewer points are not handed to the thread: their warp (~5-9 ns per point) takes about
+what the handover and the two threads' contention cost the main thread (the sample scene at
+128x128 warps 4 800-point views: 1.67 against 1.75 ms per frame with them handed over; the apc
+capture's 19 200-point views: 3.0 against 2.7 ms)."""
 
 QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3
 """Job states (int32)."""
