@@ -42,9 +42,10 @@ def test_warp_ahead_gives_warp_layers_arrays_and_claims_jobs_it_has_not_begun():
     for v in views[1:]:
         got = wa.take(v)
         want = warp_layers(v, T_cw, K, 0.01)
-        np.testing.assert_array_equal(got.depth_m, want.depth_m)
-        np.testing.assert_array_equal(got.color, want.color)
-        assert (got.depth_m > 0).sum() > 50
+        np.testing.assert_array_equal(got.layers.depth_m, want.depth_m)
+        np.testing.assert_array_equal(got.layers.color, want.color)
+        assert got.depth_m is None
+        assert (got.layers.depth_m > 0).sum() > 50
         assert wa.take(v) is None  # taken once
     assert wa.taken == 3
     # the next frame reuses the buffers; a frame the thread has not begun is replaced, not run
@@ -54,7 +55,7 @@ def test_warp_ahead_gives_warp_layers_arrays_and_claims_jobs_it_has_not_begun():
         wa.start(views[2:], T2, K, 0.01)
     wa.wait()
     assert wa.take(views[0]) is None
-    np.testing.assert_array_equal(wa.take(views[3]).depth_m, warp_layers(views[3], T2, K, 0.01).depth_m)
+    np.testing.assert_array_equal(wa.take(views[3]).layers.depth_m, warp_layers(views[3], T2, K, 0.01).depth_m)
     wa.stop()
     assert wa.take(views[2]) is not None  # done before the stop: still there
     wa.start([], T_cw, K, 0.01)  # nothing to do: no frame
@@ -101,8 +102,8 @@ def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
             np.testing.assert_array_equal(x, y)
     start = WarpAhead.start
 
-    def start_and_wait(self, *args):
-        start(self, *args)
+    def start_and_wait(self, *args, **kw):
+        start(self, *args, **kw)
         self.wait()
 
     monkeypatch.setattr(WarpAhead, "start", start_and_wait)
@@ -110,8 +111,8 @@ def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
     for a, b in zip(base, _frames(r, scene, K)):
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
-    # frames 2..6 take from the thread the later views they share with the frame before
-    want = sum(len(set(b[3][1:]) & set(a[3][1:])) for a, b in zip(base, base[1:]))
+    # frames 2..6 take from the thread the later views they share with (any view of) the frame before
+    want = sum(len(set(b[3][1:]) & set(a[3])) for a, b in zip(base, base[1:]))
     assert r._scratch.ahead.taken == want
     if cfg:
         assert want >= 5
@@ -120,17 +121,17 @@ def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
 
 def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
     """Not for frames on two threads, an explicit thread count, render_batch's threads, blending,
-    small views, or after a frame that drew one view; otherwise the later views the previous
-    frame drew."""
+    small views, or frames that draw one view; otherwise this frame's later candidates that the
+    previous frame drew."""
     import presim.synthesis.renderer as R
 
     scene = _scene()
     calls = []
 
     class Spy(WarpAhead):
-        def start(self, views, *args):
+        def start(self, views, *args, **kw):
             calls.append(len(views))
-            super().start(views, *args)
+            super().start(views, *args, **kw)
 
     small = Intrinsics.from_fov(48, 36, 60.0)
     orig = WA.WarpAhead
@@ -158,7 +159,7 @@ def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
         r.render_batch(np.stack([_target(scene, i) for i in range(4)] * 2), small)
         assert calls == []
         got = _frames(r, scene, small, 3)
-        assert calls == [len(set(b[3][1:]) & set(a[3][1:])) for a, b in zip(got, got[1:])] and min(calls) >= 1
+        assert calls == [len(set(b[3][1:]) & set(a[3])) for a, b in zip(got, got[1:])] and min(calls) >= 1
         calls.clear()
         _frames(Renderer(scene, RenderConfig(fixed_views=1)), scene, small, 3)
         assert calls == []  # one view per frame: nothing to warp ahead

@@ -116,10 +116,11 @@ class Workspace:
 
     layers: LayeredImage | None = None
     """numba: the (L, H, W) warp buffers."""
-    ahead: Callable[[Any], LayeredImage | None] | None = None
-    """numba: when set, ``ahead(view)`` -> the view's layers fully warped for this target camera by
-    a helper thread (:class:`presim.synthesis.warp_ahead.WarpAhead`), or None: then the view is
-    warped here. Used only where the view would be warped fully (no tiles)."""
+    ahead: Callable[[Any], Any] | None = None
+    """numba: when set, ``ahead(view)`` -> the view warped fully for this target camera by a helper
+    thread (:class:`presim.synthesis.warp_ahead.AheadImage`: its layers, and when the thread ran
+    the banded crack pass too, the view's image), or None: then the view is warped here. Used only
+    where the view would be warped fully (no tiles)."""
     front: tuple[np.ndarray, np.ndarray] | None = None
     """numba: when set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with
     the front-most surface of its warped layers (smallest depth, no crack filter; multi-view
@@ -150,8 +151,15 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
         tiles = warp_tiles(replace)
         if tiles.mean() > TILED_MAX_FRAC:  # holes everywhere: the full warp is cheaper
             tiles = None
-    lay = workspace.ahead(view) if tiles is None and workspace.ahead is not None else None
-    if lay is None:
+    got = workspace.ahead(view) if tiles is None and workspace.ahead is not None else None
+    if got is not None and got.depth_m is not None and banded:  # warped and crack-filtered ahead
+        d, c = got.depth_m, got.color
+        if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
+            d, c = d.copy(), c.copy()
+        return ViewImage(d, c, (time.perf_counter() - t0) * 1e3, 0.0, 0.0)
+    if got is not None:
+        lay = got.layers
+    else:
         lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers, tiles=tiles,
                                              tile_px=WARP_TILE_PX)
     t1 = time.perf_counter()

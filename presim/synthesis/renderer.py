@@ -42,7 +42,7 @@ from presim.geometry import Intrinsics, check_rigid, invert, transform_points, u
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
 from presim.synthesis.core import (BACKENDS, STAGES, FrameConfig, ViewImageConfig, Workspace, get_backend,
                                    synthesize_frame)
-from presim.synthesis.composite import TILED_MIN_PIXELS
+from presim.synthesis.composite import PACKED_MAX_LAYERS, TILED_MIN_PIXELS
 from presim.synthesis.crack_filter import CRACK_FILTERS
 from presim.synthesis.fill import FILL_KERNELS, FILL_METHODS
 from presim.synthesis.grids import FrameGrids
@@ -451,6 +451,9 @@ class Renderer:
         # warp ahead (RenderConfig.warp_ahead): the numba backend's warps, no blending (it keeps the
         # loop's warps), and a second core to run on
         self._use_warp_ahead = config.backend == "numba" and not config.blend and (os.cpu_count() or 1) >= 2
+        # ... and the crack pass too where the frame would run the banded one (view_image_numba)
+        self._ahead_crack = (config.crack_filter == "switching_median" and config.crack_kernel_px == 3
+                             and config.packed_cracks and config.num_layers <= PACKED_MAX_LAYERS)
         self._sharpness = None  # sharpness-aware views (presim/synthesis/sharpness.py)
         if config.sharpness:
             self._sharpness = ViewSharpness(lambda v: self.scene.frames.load(v)[0], config.sharpness_gamma,
@@ -664,16 +667,6 @@ class Renderer:
         t0 = time.perf_counter()
         T_cam_world = invert(T_world_cam)
         grids = FrameGrids(T_cam_world, K, self.grid_points)  # each grid projected once this frame
-        sel = self._reusable(T_world_cam, K, stream)
-        reused = sel is not None
-        if sel is None:
-            sel = self.select(T_world_cam, K, grids)
-            if self._sharpness is not None:  # sharp views first (presim/synthesis/sharpness.py)
-                p = self._sharpness.order(sel.view_idx)
-                sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
-                                          angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
-            stream.prev = (T_world_cam.copy(), K, sel)
-        select_ms = (time.perf_counter() - t0) * 1e3
         levels: dict[int, int] = {}  # this frame's level of detail per view (asked once)
 
         def level_of(idx: int) -> int:
@@ -682,21 +675,35 @@ class Renderer:
                 lv = levels[idx] = self._lod_level_fast(idx, grids) if self._lod.levels > 0 else 0
             return lv
 
-        def get_view(idx: int):
-            return self._view(idx, level_of(idx))
         near = self.config.near_m
-        view_image = self._backend.view_image
-        if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
-            get_view, view_image = scratch.warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
-        if self._cache.background:  # later candidates prepared while this frame runs
-            self._prefetch(sel.view_idx, T_cam_world, K)
-        # Warp ahead the later candidates that the previous frame drew (a thread warping views the
-        # loop never draws slows the main thread's kernels: hand over only likely ones).
-        jobs = self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn) if ahead else []
-        if jobs:
-            scratch.ahead.start(jobs, T_cam_world, K, near)
-            scratch.workspace.ahead = scratch.ahead.take
+        jobs: list = []
         try:
+            sel = self._reusable(T_world_cam, K, stream)
+            reused = sel is not None
+            if sel is None:
+                sel = self.select(T_world_cam, K, grids)
+                if self._sharpness is not None:  # sharp views first (presim/synthesis/sharpness.py)
+                    p = self._sharpness.order(sel.view_idx)
+                    sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
+                                              angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
+                stream.prev = (T_world_cam.copy(), K, sel)
+            select_ms = (time.perf_counter() - t0) * 1e3
+
+            def get_view(idx: int):
+                return self._view(idx, level_of(idx))
+
+            view_image = self._backend.view_image
+            if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
+                get_view, view_image = scratch.warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
+            if self._cache.background:  # later candidates prepared while this frame runs
+                self._prefetch(sel.view_idx, T_cam_world, K)
+            # Warp ahead this frame's later candidates that the previous frame drew (a camera that
+            # moves a little draws mostly the same views again; presim/synthesis/warp_ahead.py).
+            # Handed over now, the helper thread wakes while the first view is warped (no GIL).
+            jobs = self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn) if ahead else []
+            if jobs:
+                scratch.ahead.start(jobs, T_cam_world, K, near, crack=self._ahead_crack)
+                scratch.workspace.ahead = scratch.ahead.take
             res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
                                    view_image, get_view, self.grid_points, scratch.workspace,
                                    color_transform=self._color_transform,
@@ -719,16 +726,15 @@ class Renderer:
     def _warp_ahead_jobs(self, candidates: np.ndarray, level_of: Callable[[int], int],
                          drawn_before: tuple[int, ...]) -> list:
         """The views to warp ahead: those of candidates 2..``max_views`` (or ``fixed_views``; the
-        later views the adaptive loop may draw) that the previous frame of the stream drew (it
-        draws most of them again: :data:`~presim.synthesis.warp_ahead.WARP_AHEAD_MIN_POINTS`), in
-        candidate order, prepared at this frame's level of detail. Left out: candidates not
-        prepared yet (left to the loop and the view cache's background thread) and views of fewer
-        than ``WARP_AHEAD_MIN_POINTS`` points."""
-        if len(drawn_before) < 2:
+        later views the adaptive loop may draw) that the stream's previous frame drew, first or
+        later, in candidate order, at this frame's level of detail (:mod:`~presim.synthesis.
+        warp_ahead`). Left out: views not prepared at that level yet (left to the loop and the view
+        cache's background thread) and views of fewer than ``WARP_AHEAD_MIN_POINTS`` points."""
+        if not drawn_before:
             return []
         cfg = self.config
         n = cfg.fixed_views if cfg.fixed_views > 0 else cfg.max_views
-        before = set(drawn_before[1:])
+        before = set(drawn_before)
         jobs = []
         for c in candidates[1:n]:
             c = int(c)

@@ -42,18 +42,22 @@ from __future__ import annotations
 
 import threading
 import weakref
+from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Any
 
 import numba as nb
 import numpy as np
 from numba import types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 from presim.geometry import Intrinsics
+from presim.synthesis.composite import _LOWEST, _band_rows, _banded_crack_kernel
 from presim.synthesis.warp import (_CULL_MARGIN, _NO_SAT, _NO_TILES, CHUNK_PTS, WARP_BLOCK_PTS, LayeredImage,
                                    _chunk_keep_kernel, _warp_layers_kernel)
 
-__all__ = ["WarpAhead", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
+__all__ = ["WarpAhead", "AheadImage", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
 
 MAX_JOBS = 8
 """At most this many views are handed to the thread per frame (the kernel takes fixed-size tuples:
@@ -69,32 +73,62 @@ QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3
 """Job states (int32)."""
 
 _warp_serial = _warp_layers_kernel.serial
+_crack_serial = _banded_crack_kernel.serial
+_NO_MASK = np.zeros((1, 1), np.bool_)
+_FIELDS_KEPT = 2 * MAX_JOBS  # views whose kernel arguments are kept (the view object too: ids stay unique)
 
 
 @intrinsic
-def _fence(typingctx):  # pragma: no cover - compiled into the kernel
-    """A full memory fence (stores before it are visible to other threads before stores after it)."""
+def _store_release(typingctx, arr, idx, val):  # pragma: no cover - compiled into the kernel
+    """``arr[idx] = val`` (int32 array) as an atomic store with release order: the writes before it
+    are visible to a thread that sees the value."""
+    if not isinstance(arr, types.Array) or arr.dtype != types.int32:
+        return None
+
     def codegen(context, builder, signature, args):
-        builder.fence("seq_cst")
+        aryty, idxty, valty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [context.cast(builder, args[1], idxty, types.intp)])
+        builder.store_atomic(context.cast(builder, args[2], valty, aryty.dtype), ptr, ordering="release", align=4)
         return context.get_dummy_value()
 
-    return types.void(), codegen
+    return types.void(arr, idx, val), codegen
+
+
+@intrinsic
+def _load_acquire(typingctx, arr, idx):  # pragma: no cover - compiled into the kernel
+    """``arr[idx]`` (int32 array) as an atomic load with acquire order (read anew each time: the
+    other thread may have changed it)."""
+    if not isinstance(arr, types.Array) or arr.dtype != types.int32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        aryty, idxty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [context.cast(builder, args[1], idxty, types.intp)])
+        return builder.load_atomic(ptr, ordering="acquire", align=4)
+
+    return types.int32(arr, idx), codegen
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _warp_jobs_kernel(state, n, xyz, rgb, layer_start, lo, hi, projective, S, A, M, fx, fy, cx, cy, near, W, H,
-                      zb, cb):  # pragma: no cover
+def _warp_jobs_kernel(state, cancel, n, xyz, rgb, layer_start, lo, hi, projective, S, A, M, fx, fy, cx, cy, near,
+                      W, H, zb, cb, crack, band, dout, cout):  # pragma: no cover
     # Jobs k < n in order: what warp_layers(view k, ...) computes without tiles, on one thread, into
-    # zb[k] / cb[k]; a job not queued any more (claimed by the loop) is skipped.
+    # zb[k] / cb[k], and with ``crack`` then the crack pass of filtered_composite_banded over the
+    # whole image (no replace mask) into dout[k] / cout[k]. A job not queued any more (claimed by
+    # the loop) is skipped; once cancel[0] is set (the frame's loop has ended) nothing more is done.
     fx32 = np.float32(fx)
     fy32 = np.float32(fy)
     cx32 = np.float32(cx)
     cy32 = np.float32(cy)
     near32 = np.float32(near)
     for k in range(n):
-        if state[k] != QUEUED:
+        if _load_acquire(cancel, 0) != 0:
+            return
+        if _load_acquire(state, k) != QUEUED:
             continue
-        state[k] = RUNNING
+        _store_release(state, k, RUNNING)
         vis = np.ones(lo[k].shape[1], np.uint8)
         if near > 0 and A[k] < np.inf:
             _chunk_keep_kernel(lo[k], hi[k], projective[k], M, S[k], A[k], np.float64(fx32), np.float64(fy32),
@@ -102,15 +136,67 @@ def _warp_jobs_kernel(state, n, xyz, rgb, layer_start, lo, hi, projective, S, A,
                                16, False, vis)
         _warp_serial(xyz[k], rgb[k], layer_start[k], 1, M, fx32, fy32, cx32, cy32, near32, _NO_TILES, False, 16,
                      _NO_TILES.reshape(-1), vis, CHUNK_PTS, WARP_BLOCK_PTS, zb[k], cb[k])
-        _fence()  # the layers are written before the state says so
-        state[k] = DONE
-        _fence()
+        if crack:
+            if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
+                _store_release(state, k, CLAIMED)
+                return
+            _crack_serial(zb[k], cb[k], _LOWEST, _NO_MASK, False, _NO_MASK, band, dout[k], cout[k])
+        _store_release(state, k, DONE)  # after the images: the loop reads them once it sees DONE
+
+
+@dataclass(frozen=True)
+class AheadImage:
+    """A view warped by the thread: its layers, and with ``crack`` its crack-filtered composite
+    over the whole image (what :func:`presim.synthesis.composite.filtered_composite_banded` gives
+    without a replace mask; None otherwise). The arrays are the thread's buffers: valid until the
+    next frame starts."""
+
+    layers: LayeredImage
+    depth_m: np.ndarray | None
+    color: np.ndarray | None
+
+
+class _Buffers:
+    """One set of per-job output buffers (layers and images), reused by every other frame."""
+
+    def __init__(self) -> None:
+        self.zb: list[np.ndarray] = []
+        self.cb: list[np.ndarray] = []
+        self.d: list[np.ndarray] = []
+        self.c: list[np.ndarray] = []
+        self.user: _Frame | None = None
+        """The last frame that used the set."""
+
+    def fit(self, views: list[Any], H: int, W: int) -> None:
+        """Buffers for ``views`` at H x W (kept when they fit)."""
+        for k, v in enumerate(views):
+            shape = (v.num_layers, H, W)
+            if k == len(self.zb):
+                self.zb.append(np.empty(shape, np.float32))
+                self.cb.append(np.empty(shape + (3,), np.uint8))
+                self.d.append(np.empty((H, W), np.float32))
+                self.c.append(np.empty((H, W, 3), np.uint8))
+            if self.zb[k].shape != shape:
+                self.zb[k] = np.empty(shape, np.float32)
+                self.cb[k] = np.empty(shape + (3,), np.uint8)
+            if self.d[k].shape != (H, W):
+                self.d[k] = np.empty((H, W), np.float32)
+                self.c[k] = np.empty((H, W, 3), np.uint8)
+
+    def padded(self, name: str, n: int) -> tuple:
+        """The first n buffers of ``name``, padded to :data:`MAX_JOBS` with the first (never written)."""
+        got = getattr(self, name)
+        return tuple(got[:n]) + (got[0],) * (MAX_JOBS - n)
 
 
 class _Frame:
-    def __init__(self, views: list[Any], state: np.ndarray, args: tuple):
+    def __init__(self, views: list[Any], state: np.ndarray, cancel: np.ndarray, bufs: _Buffers, crack: bool,
+                 args: tuple):
         self.views = views
         self.state = state
+        self.cancel = cancel
+        self.bufs = bufs
+        self.crack = crack
         self.args = args
         self.begun = False
         """The thread has taken the frame (its kernel call runs or has run)."""
@@ -161,8 +247,11 @@ class WarpAhead:
     def __init__(self) -> None:
         self._sh = _Shared()
         self._thread: threading.Thread | None = None
-        self._zb: list[np.ndarray] = []
-        self._cb: list[np.ndarray] = []
+        # Two buffer sets, one per frame in turn: a new frame does not wait for the thread to end
+        # the previous one's last warp (cancelled, it still finishes it).
+        self._sets = (_Buffers(), _Buffers())
+        self._turn = 0
+        self._views: OrderedDict[int, tuple[Any, tuple]] = OrderedDict()  # id -> (view, kernel fields)
         self.taken = 0
         """Views the loop took from the thread."""
         self._finalizer = weakref.finalize(self, _close, self._sh)
@@ -171,56 +260,68 @@ class WarpAhead:
         """End the thread (after a running kernel call)."""
         self._finalizer()
 
-    def start(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> None:
+    def start(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
+              crack: bool = False) -> None:
         """Warp ``views`` (prepared :class:`~presim.synthesis.warp.ViewPoints`, in the order the loop
-        will likely want them; at most :data:`MAX_JOBS` are taken) for this target camera. Waits for
-        the previous frame's kernel when it still runs (its buffers are reused)."""
+        will likely want them; at most :data:`MAX_JOBS` are taken) for this target camera, and with
+        ``crack`` run the banded crack pass on each (:class:`AheadImage`). The thread begins once
+        it has finished the previous frame's running warp (the previous frame's jobs not begun are
+        dropped)."""
         views = list(views)[:MAX_JOBS]
         if not views:
             return
         sh = self._sh
+        bufs = self._sets[self._turn]
+        self._turn ^= 1
         with sh.cv:
             if sh.closed:
                 raise RuntimeError("WarpAhead: closed")
-            while sh.frame is not None and sh.frame.begun and not sh.frame.finished:
-                sh.cv.wait()
-            sh.frame = None  # a frame the thread has not begun is dropped
+            old = sh.frame
+            if old is not None and not old.begun:
+                sh.frame = None  # never begun: dropped
+            while bufs.user is not None and bufs.user.begun and not bufs.user.finished:
+                sh.cv.wait()  # the frame before the previous one still runs (its buffers are these)
         H, W = K.height, K.width
-        for k, v in enumerate(views):
-            shape = (v.num_layers, H, W)
-            if k == len(self._zb):
-                self._zb.append(np.empty(shape, np.float32))
-                self._cb.append(np.empty(shape + (3,), np.uint8))
-            elif self._zb[k].shape != shape:
-                self._zb[k] = np.empty(shape, np.float32)
-                self._cb[k] = np.empty(shape + (3,), np.uint8)
+        bufs.fit(views, H, W)
         n = len(views)
-        pad = views + [views[0]] * (MAX_JOBS - n)  # fixed-size tuples; jobs >= n are never run
-
-        def tup(get):
-            return tuple(np.ascontiguousarray(get(v)) for v in pad)
-
+        fields = [self._fields(v) for v in views]
+        fields += [fields[0]] * (MAX_JOBS - n)  # fixed-size tuples; jobs >= n are never run
         M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-        zb = tuple(self._zb[k] for k in range(n)) + (self._zb[0],) * (MAX_JOBS - n)
-        cb = tuple(self._cb[k] for k in range(n)) + (self._cb[0],) * (MAX_JOBS - n)
         state = np.full(MAX_JOBS, CLAIMED, np.int32)
         state[:n] = QUEUED
-        args = (state, n, tup(lambda v: v.xyz_world), tup(lambda v: v.rgb), tup(lambda v: v.layer_start),
-                tup(lambda v: v.chunk_lo), tup(lambda v: v.chunk_hi),
-                tuple(bool(v.chunk_projective) for v in pad), tup(lambda v: v.chunk_to_world),
-                tuple(float(v.chunk_abs_max) for v in pad), M, float(K.fx), float(K.fy), float(K.cx),
-                float(K.cy), float(near_m), int(W), int(H), zb, cb)
+        cancel = np.zeros(1, np.int32)
+        args = (state, cancel, n, *zip(*fields), M, float(K.fx), float(K.fy), float(K.cx), float(K.cy),
+                float(near_m), int(W), int(H), bufs.padded("zb", n), bufs.padded("cb", n), bool(crack),
+                int(_band_rows(H)), bufs.padded("d", n), bufs.padded("c", n))
+        frame = _Frame(views, state, cancel, bufs, bool(crack), args)
         with sh.cv:
-            sh.frame = _Frame(views, state, args)
+            bufs.user = frame
+            sh.frame = frame
             if self._thread is None:
                 self._thread = threading.Thread(target=_serve, args=(sh,), name="presim-warp-ahead", daemon=True)
                 self._thread.start()
             sh.cv.notify_all()
 
-    def take(self, view: Any) -> LayeredImage | None:
-        """The layers of ``view`` warped by the thread (waited for while it warps them), or None
-        when the loop must warp it itself (not handed over, not reached yet, or the kernel failed:
-        the loop's own warp then raises the error)."""
+    def _fields(self, view: Any) -> tuple:
+        """The kernel's per-view arguments (xyz, rgb, layer_start, chunk bounds, projective, frame,
+        abs max), kept per view object (a view's arrays never change)."""
+        got = self._views.get(id(view))
+        if got is not None and got[0] is view:
+            self._views.move_to_end(id(view))
+            return got[1]
+        f = (np.ascontiguousarray(view.xyz_world), np.ascontiguousarray(view.rgb),
+             np.ascontiguousarray(view.layer_start), np.ascontiguousarray(view.chunk_lo),
+             np.ascontiguousarray(view.chunk_hi), bool(view.chunk_projective),
+             np.ascontiguousarray(view.chunk_to_world), float(view.chunk_abs_max))
+        self._views[id(view)] = (view, f)
+        while len(self._views) > _FIELDS_KEPT:
+            self._views.popitem(last=False)
+        return f
+
+    def take(self, view: Any) -> AheadImage | None:
+        """``view`` warped by the thread (waited for while it works on it), or None when the loop
+        must warp it itself (not handed over, not reached yet, or the kernel failed: the loop's own
+        warp then raises the error)."""
         frame = self._sh.frame
         if frame is None:
             return None
@@ -237,7 +338,9 @@ class WarpAhead:
             return None
         st[k] = CLAIMED
         self.taken += 1
-        return LayeredImage(self._zb[k], self._cb[k])
+        b = frame.bufs
+        lay = LayeredImage(b.zb[k], b.cb[k])
+        return AheadImage(lay, b.d[k], b.c[k]) if frame.crack else AheadImage(lay, None, None)
 
     def wait(self) -> None:
         """Block until the thread is done with the current frame's views (tests, benchmarks)."""
@@ -247,8 +350,10 @@ class WarpAhead:
                 sh.cv.wait()
 
     def stop(self) -> None:
-        """Claim the jobs not started (the frame's loop has ended); a running warp finishes."""
+        """The frame's loop has ended: claim the jobs not begun and tell the kernel to stop (a
+        running warp finishes; its crack pass is skipped)."""
         frame = self._sh.frame
         if frame is not None:
+            frame.cancel[0] = 1
             st = frame.state
             st[st == QUEUED] = CLAIMED
