@@ -120,9 +120,9 @@ def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
 
 
 def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
-    """Not for frames on two threads, an explicit thread count, render_batch's threads, blending,
-    small views, or frames that draw one view; otherwise this frame's later candidates that the
-    previous frame drew."""
+    """Not with an explicit thread count, in render_batch's threads, with blending, for small views,
+    or for frames that draw one view; otherwise this frame's later candidates that the previous
+    frame drew."""
     import presim.synthesis.renderer as R
 
     scene = _scene()
@@ -145,11 +145,11 @@ def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
 
     try:
         R.WarpAhead = Spy
-        for cfg, serial_max in (({"fixed_views": 4, "threads": 1}, None), ({"fixed_views": 4}, 0),
+        for cfg, serial_max in (({"fixed_views": 4, "threads": 1}, None), ({"fixed_views": 4, "threads": 2}, 0),
                                 ({"fixed_views": 4, "blend": True}, None), ({"fixed_views": 4, "warp_ahead": False}, None)):
             calls.clear()
             prev = TH.SERIAL_MAX_PIXELS
-            TH.SERIAL_MAX_PIXELS = prev if serial_max is None else serial_max  # 0: two threads per frame
+            TH.SERIAL_MAX_PIXELS = prev if serial_max is None else serial_max  # 0: above SERIAL_MAX_PIXELS
             try:
                 _frames(Renderer(scene, RenderConfig(**cfg)), scene, small, 3)
             finally:
@@ -166,3 +166,45 @@ def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
     finally:
         R.WarpAhead = orig
     assert threading.active_count() < 50
+
+
+def test_frame_mode_chooser_measures_and_keeps_the_faster_way():
+    from presim.synthesis.threads import FrameModeChooser
+
+    c = FrameModeChooser(("threads", "ahead"), warmup=2, window=5, explore_every=10)
+    cost = {"threads": 5.0, "ahead": 3.0}
+    picks = []
+    for _ in range(60):
+        m = c.pick()
+        picks.append(m)
+        c.record(m, cost[m])
+    assert picks[:4].count("threads") == 2 and picks[:4].count("ahead") == 2  # both tried first
+    later = picks[4:]
+    assert later.count("threads") == len([i for i in range(5, 61) if i % 10 == 0])  # only exploring
+    assert c.best() == "ahead"
+    cost["ahead"] = 9.0  # the machine or the scene changed: the choice follows
+    for _ in range(60):
+        m = c.pick()
+        c.record(m, cost[m])
+    assert c.best() == "threads"
+    with pytest.raises(ValueError):
+        FrameModeChooser(("a",), warmup=3, window=2)
+
+
+def test_mid_size_frames_choose_between_threads_and_warp_ahead(monkeypatch):
+    """Frames above SERIAL_MAX_PIXELS (here: all) try both ways and keep the faster; same images."""
+    import presim.synthesis.renderer as R
+    from presim.synthesis import threads as TH
+
+    monkeypatch.setattr(R, "WARP_AHEAD_MIN_POINTS", 0)
+    monkeypatch.setattr(TH, "SERIAL_MAX_PIXELS", 0)
+    scene = _scene()
+    K = Intrinsics.from_fov(48, 36, 60.0)
+    base = _frames(Renderer(scene, RenderConfig(warp_ahead=False, fixed_views=3)), scene, K, 10)
+    r = Renderer(scene, RenderConfig(fixed_views=3))
+    for a, b in zip(base, _frames(r, scene, K, 10)):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    chooser = r._stream.modes[(48, 36)]
+    assert all(len(t) >= chooser.warmup for t in chooser._times.values())
+    assert r._scratch.ahead.taken > 0

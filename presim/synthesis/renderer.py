@@ -50,7 +50,7 @@ from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.sharpness import ViewSharpness
-from presim.synthesis.threads import frame_threads, numba_threads, serial_kernels, serial_now
+from presim.synthesis.threads import FrameModeChooser, frame_threads, numba_threads, serial_kernels, serial_now
 from presim.synthesis.select import SELECTION_MODES, VIEW_ORDERS, Selection, select_views
 from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp import LayeredImage, ViewPoints, prepare_view
@@ -400,6 +400,9 @@ class _Stream:
     prev: tuple[np.ndarray, Intrinsics, Selection] | None = None
     views_drawn: tuple[int, ...] = ()
     """The views the previous frame's adaptive loop warped, in order (warped ahead this frame)."""
+    modes: dict = field(default_factory=dict)
+    """(width, height) -> :class:`~presim.synthesis.threads.FrameModeChooser`: how frames of that size
+    render fastest (all numba threads, or one thread with views warped ahead)."""
 
 
 class Renderer:
@@ -624,10 +627,25 @@ class Renderer:
         n_threads = frame_threads(K_in.width, K_in.height, self.config.threads)
         # A frame on one thread leaves a core idle: later candidates are warped ahead there, unless
         # this thread is one of several rendering at once (render_batch: serial kernels already).
-        ahead = (n_threads == 1 and self.config.threads == 0 and self.config.warp_ahead and not serial_now()
-                 and self._use_warp_ahead and K_in.width * K_in.height < TILED_MIN_PIXELS)
+        ahead = (self.config.threads == 0 and self.config.warp_ahead and not serial_now() and self._use_warp_ahead
+                 and K_in.width * K_in.height < TILED_MIN_PIXELS)
+        chooser = None
+        if ahead and n_threads > 1:
+            # Either way works here (all numba threads, or one thread + the helper): measured per
+            # stream and size (threads.FrameModeChooser; the images are the same).
+            chooser = stream.modes.get((K_in.width, K_in.height))
+            if chooser is None:
+                chooser = stream.modes[(K_in.width, K_in.height)] = FrameModeChooser(("threads", "ahead"))
+            mode = chooser.pick()
+            if mode == "ahead":
+                n_threads = 1
+            else:
+                ahead = False
+        t0 = time.perf_counter()
         with numba_threads(n_threads):
             out, stats = self._render(T_world_cam, K_in, stream, scratch, ahead)
+        if chooser is not None:
+            chooser.record(mode, (time.perf_counter() - t0) * 1e3)
         if K_in is K:
             return out, stats
         t = time.perf_counter()

@@ -30,9 +30,10 @@ from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
 import numba
+import numpy as np
 
 __all__ = ["SERIAL_MAX_PIXELS", "LIGHT_SERIAL_BELOW", "frame_threads", "numba_threads", "serial_kernels", "serial_now",
-           "parallel_kernel", "TwinKernel"]
+           "parallel_kernel", "TwinKernel", "FrameModeChooser"]
 
 SERIAL_MAX_PIXELS = 40_000
 """Frames of at most this many pixels render on one numba thread when ``RenderConfig.threads`` is
@@ -140,3 +141,51 @@ def parallel_kernel(serial_below: int = 0, size_arg: int = 0, **options: Any) ->
     see there). The synthesis kernels also pass ``error_model="numpy"`` (no ZeroDivisionError
     branch, which keeps loops with a division from vectorizing; tested for every kernel)."""
     return lambda fn: TwinKernel(fn, serial_below, size_arg, **options)
+
+
+class FrameModeChooser:
+    """Picks the faster of several ways to render the frames of one camera stream at one size, by
+    measuring them (the images are the same whichever way is used).
+
+    Which way wins depends on the machine and on the scene, not only on the frame size: on the
+    2-core development machine, one thread with the later views warped ahead on a helper thread
+    (:mod:`presim.synthesis.warp_ahead`) rendered 256x256 frames 1.27x (apc capture) and 1.32x
+    (sample scene) faster than two numba threads, but 320x240 frames 0.91x and 0.69x (their frames
+    draw fewer views, so the helper has less to do). So each way is first tried ``warmup`` times in
+    turn; then the way with the smaller median wall time over its last ``window`` frames is used,
+    and every ``explore_every``-th frame tries another way again, so that the choice follows a
+    change of scene or of machine load.
+    """
+
+    def __init__(self, modes: tuple[str, ...], warmup: int = 3, window: int = 9, explore_every: int = 25):
+        if len(modes) < 1 or warmup < 1 or window < warmup or explore_every < 2:
+            raise ValueError("FrameModeChooser: needs modes, warmup >= 1, window >= warmup, explore_every >= 2")
+        self.modes = tuple(modes)
+        self.warmup, self.window, self.explore_every = int(warmup), int(window), int(explore_every)
+        self._times: dict[str, list[float]] = {m: [] for m in self.modes}
+        self._n = 0
+
+    def pick(self) -> str:
+        """The way to render the next frame."""
+        self._n += 1
+        short = [m for m in self.modes if len(self._times[m]) < self.warmup]
+        if short:
+            return short[self._n % len(short)]
+        best = self.best()
+        if self._n % self.explore_every == 0:
+            others = [m for m in self.modes if m != best]
+            if others:
+                return others[(self._n // self.explore_every) % len(others)]
+        return best
+
+    def best(self) -> str:
+        """The way with the smallest median of its recent wall times (the first way before any)."""
+        timed = [(float(np.median(t)), i, m) for i, (m, t) in enumerate(self._times.items()) if t]
+        return min(timed)[2] if timed else self.modes[0]
+
+    def record(self, mode: str, wall_ms: float) -> None:
+        """One frame rendered ``mode`` took ``wall_ms``."""
+        t = self._times[mode]
+        t.append(float(wall_ms))
+        if len(t) > self.window:
+            del t[0]
