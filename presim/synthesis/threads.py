@@ -170,7 +170,7 @@ class FrameModeChooser:
         self._n += 1
         short = [m for m in self.modes if len(self._times[m]) < self.warmup]
         if short:
-            return short[self._n % len(short)]
+            return short[(self._n - 1) % len(short)]  # in turn, the first way first
         best = self.best()
         if self._n % self.explore_every == 0:
             others = [m for m in self.modes if m != best]
