@@ -171,7 +171,7 @@ def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
 def test_frame_mode_chooser_measures_and_keeps_the_faster_way():
     from presim.synthesis.threads import FrameModeChooser
 
-    c = FrameModeChooser(("threads", "ahead"), warmup=2, window=5, explore_every=10)
+    c = FrameModeChooser(("threads", "ahead"), settle=0, warmup=2, window=5, explore_every=10)
     cost = {"threads": 5.0, "ahead": 3.0}
     picks = []
     for _ in range(60):
@@ -189,6 +189,11 @@ def test_frame_mode_chooser_measures_and_keeps_the_faster_way():
     assert c.best() == "threads"
     with pytest.raises(ValueError):
         FrameModeChooser(("a",), warmup=3, window=2)
+    c = FrameModeChooser(("threads", "ahead"), settle=4)
+    for _ in range(4):  # settling: the first way, untimed
+        assert c.pick() == "threads"
+        c.record("threads", 1e6)
+    assert not c._times["threads"] and c.pick() == "threads" and c.pick() == "ahead"
 
 
 def test_mid_size_frames_choose_between_threads_and_warp_ahead(monkeypatch):
@@ -200,9 +205,9 @@ def test_mid_size_frames_choose_between_threads_and_warp_ahead(monkeypatch):
     monkeypatch.setattr(TH, "SERIAL_MAX_PIXELS", 0)
     scene = _scene()
     K = Intrinsics.from_fov(48, 36, 60.0)
-    base = _frames(Renderer(scene, RenderConfig(warp_ahead=False, fixed_views=3)), scene, K, 10)
+    base = _frames(Renderer(scene, RenderConfig(warp_ahead=False, fixed_views=3)), scene, K, 20)
     r = Renderer(scene, RenderConfig(fixed_views=3))
-    for a, b in zip(base, _frames(r, scene, K, 10)):
+    for a, b in zip(base, _frames(r, scene, K, 20)):
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
     chooser = r._stream.modes[(48, 36)]

@@ -151,23 +151,30 @@ class FrameModeChooser:
     2-core development machine, one thread with the later views warped ahead on a helper thread
     (:mod:`presim.synthesis.warp_ahead`) rendered 256x256 frames 1.27x (apc capture) and 1.32x
     (sample scene) faster than two numba threads, but 320x240 frames 0.91x and 0.69x (their frames
-    draw fewer views, so the helper has less to do). So each way is first tried ``warmup`` times in
-    turn; then the way with the smaller median wall time over its last ``window`` frames is used,
-    and every ``explore_every``-th frame tries another way again, so that the choice follows a
-    change of scene or of machine load.
+    draw fewer views, so the helper has less to do). So the first ``settle`` frames use the first
+    way and are not timed (views are still being prepared, also by the background thread, and the
+    helper has nothing to warp before a frame has drawn views); then each way is tried ``warmup``
+    times in turn; then the way with the smaller median wall time over its last ``window`` frames
+    is used, and every ``explore_every``-th frame tries another way again, so that the choice
+    follows a change of scene or of machine load (a short window: old times leave it soon). The
+    Renderer records each frame's wall time without the time it spent preparing views.
     """
 
-    def __init__(self, modes: tuple[str, ...], warmup: int = 3, window: int = 9, explore_every: int = 25):
-        if len(modes) < 1 or warmup < 1 or window < warmup or explore_every < 2:
-            raise ValueError("FrameModeChooser: needs modes, warmup >= 1, window >= warmup, explore_every >= 2")
+    def __init__(self, modes: tuple[str, ...], settle: int = 10, warmup: int = 3, window: int = 5,
+                 explore_every: int = 20):
+        if len(modes) < 1 or settle < 0 or warmup < 1 or window < warmup or explore_every < 2:
+            raise ValueError("FrameModeChooser: needs modes, settle >= 0, warmup >= 1, window >= warmup, "
+                             "explore_every >= 2")
         self.modes = tuple(modes)
-        self.warmup, self.window, self.explore_every = int(warmup), int(window), int(explore_every)
+        self.settle, self.warmup, self.window, self.explore_every = int(settle), int(warmup), int(window), int(explore_every)
         self._times: dict[str, list[float]] = {m: [] for m in self.modes}
         self._n = 0
 
     def pick(self) -> str:
         """The way to render the next frame."""
         self._n += 1
+        if self._n <= self.settle:
+            return self.modes[0]
         short = [m for m in self.modes if len(self._times[m]) < self.warmup]
         if short:
             return short[(self._n - 1) % len(short)]  # in turn, the first way first
@@ -184,7 +191,9 @@ class FrameModeChooser:
         return min(timed)[2] if timed else self.modes[0]
 
     def record(self, mode: str, wall_ms: float) -> None:
-        """One frame rendered ``mode`` took ``wall_ms``."""
+        """One frame rendered ``mode`` took ``wall_ms`` (ignored while settling)."""
+        if self._n <= self.settle:
+            return
         t = self._times[mode]
         t.append(float(wall_ms))
         if len(t) > self.window:
