@@ -189,19 +189,21 @@ class _Buffers:
         return tuple(got[:n]) + (got[0],) * (MAX_JOBS - n)
 
 
+@dataclass(eq=False)
 class _Frame:
-    def __init__(self, views: list[Any], state: np.ndarray, cancel: np.ndarray, bufs: _Buffers, crack: bool,
-                 args: tuple):
-        self.views = views
-        self.state = state
-        self.cancel = cancel
-        self.bufs = bufs
-        self.crack = crack
-        self.args = args
-        self.begun = False
-        """The thread has taken the frame (its kernel call runs or has run)."""
-        self.finished = False
-        """The kernel call has returned (or failed)."""
+    """One frame's jobs: the views, their states, the stop flag, the buffer set and the kernel's
+    arguments."""
+
+    views: list[Any]
+    state: np.ndarray
+    cancel: np.ndarray
+    bufs: _Buffers
+    crack: bool
+    args: tuple
+    begun: bool = False
+    """The thread has taken the frame (its kernel call runs or has run)."""
+    finished: bool = False
+    """The kernel call has returned (or failed)."""
 
 
 class _Shared:
