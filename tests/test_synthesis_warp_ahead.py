@@ -213,3 +213,25 @@ def test_mid_size_frames_choose_between_threads_and_warp_ahead(monkeypatch):
     chooser = r._stream.modes[(48, 36)]
     assert all(len(t) >= chooser.warmup for t in chooser._times.values())
     assert r._scratch.ahead.taken > 0
+
+
+def test_a_first_view_taken_from_the_thread_is_copied():
+    """The first view's image becomes the frame's accumulator: never the thread's buffers (the
+    next frames reuse them)."""
+    from presim.synthesis.core import ViewImageConfig, Workspace, view_image_numba
+
+    scene = _scene(3)
+    r = Renderer(scene, RenderConfig())
+    view = r.view_points(1)
+    T_cw = invert(_target(scene, 1))
+    K = Intrinsics.from_fov(40, 30, 60.0)
+    want = view_image_numba(view, T_cw, K, ViewImageConfig(), None, Workspace())
+    wa = WarpAhead()
+    wa.start([view], T_cw, K, 0.01, crack=True)
+    wa.wait()
+    got = view_image_numba(view, T_cw, K, ViewImageConfig(), None, Workspace(ahead=wa.take))
+    assert wa.taken == 1
+    np.testing.assert_array_equal(got.depth_m, want.depth_m)
+    np.testing.assert_array_equal(got.color, want.color)
+    for buf in wa._sets[0].d + wa._sets[0].c:
+        assert not np.shares_memory(got.depth_m, buf) and not np.shares_memory(got.color, buf)

@@ -30,7 +30,6 @@ from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
 import numba
-import numpy as np
 
 __all__ = ["SERIAL_MAX_PIXELS", "LIGHT_SERIAL_BELOW", "frame_threads", "numba_threads", "serial_kernels", "serial_now",
            "parallel_kernel", "TwinKernel", "FrameModeChooser"]
@@ -186,8 +185,9 @@ class FrameModeChooser:
         return best
 
     def best(self) -> str:
-        """The way with the smallest median of its recent wall times (the first way before any)."""
-        timed = [(float(np.median(t)), i, m) for i, (m, t) in enumerate(self._times.items()) if t]
+        """The way with the smallest median of its recent wall times (the upper middle value of an
+        even count; the first way before any time)."""
+        timed = [(sorted(t)[len(t) // 2], i, m) for i, (m, t) in enumerate(self._times.items()) if t]
         return min(timed)[2] if timed else self.modes[0]
 
     def record(self, mode: str, wall_ms: float) -> None:
