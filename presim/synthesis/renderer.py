@@ -198,12 +198,14 @@ class RenderConfig:
     kernel costs more than it gives, else numba's current count); > 0 = that many. The images do not
     depend on it (docs/synthesis.md, "Threads per frame")."""
     warp_ahead: bool = True
-    """numba backend, frames on one thread (``threads`` = 0 and at most ``threads.SERIAL_MAX_PIXELS``
-    pixels), blending off, not inside :meth:`Renderer.render_batch`'s threads: a helper thread warps
-    the later candidates that the stream's previous frame drew too (prepared, at least
-    ``warp_ahead.WARP_AHEAD_MIN_POINTS`` points) while the adaptive loop works on the first view,
-    so that the loop mostly finds them warped (:mod:`presim.synthesis.warp_ahead`). The images do
-    not depend on it; it uses the core such a frame leaves idle."""
+    """numba backend, ``threads`` = 0, blending off, not inside :meth:`Renderer.render_batch`'s
+    threads: frames of at most ``threads.SERIAL_MAX_PIXELS`` pixels (on one thread) hand a helper
+    thread the later candidates that the stream's previous frame drew too (prepared, at least
+    ``warp_ahead.WARP_AHEAD_MIN_POINTS`` points), which it warps and crack-filters while the
+    adaptive loop works on the first view, so that the loop mostly finds them done
+    (:mod:`presim.synthesis.warp_ahead`); frames below ``composite.TILED_MIN_PIXELS`` do so when it
+    measures faster than all numba threads (``threads.FrameModeChooser``, per camera stream and
+    size). The images do not depend on it; it uses the core such a frame leaves idle."""
     batch_views: int = 3
     """``backend="torch_batch"``: :meth:`Renderer.render_batch` renders every frame from this many
     of its selected views, all frames in one batch (no adaptive loop; later views fill holes only)."""
@@ -694,34 +696,33 @@ class Renderer:
             return lv
 
         near = self.config.near_m
-        jobs: list = []
+        sel = self._reusable(T_world_cam, K, stream)
+        reused = sel is not None
+        if sel is None:
+            sel = self.select(T_world_cam, K, grids)
+            if self._sharpness is not None:  # sharp views first (presim/synthesis/sharpness.py)
+                p = self._sharpness.order(sel.view_idx)
+                sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
+                                          angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
+            stream.prev = (T_world_cam.copy(), K, sel)
+        select_ms = (time.perf_counter() - t0) * 1e3
+
+        def get_view(idx: int):
+            return self._view(idx, level_of(idx))
+
+        view_image = self._backend.view_image
+        if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
+            get_view, view_image = scratch.warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
+        if self._cache.background:  # later candidates prepared while this frame runs
+            self._prefetch(sel.view_idx, T_cam_world, K)
+        # Warp ahead this frame's later candidates that the previous frame drew (a camera that moves
+        # a little draws mostly the same views again; presim/synthesis/warp_ahead.py). Handed over
+        # now, the helper thread wakes while the first view is warped (without the GIL).
+        jobs = self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn) if ahead else []
+        if jobs:
+            scratch.ahead.start(jobs, T_cam_world, K, near, crack=self._ahead_crack)
+            scratch.workspace.ahead = scratch.ahead.take
         try:
-            sel = self._reusable(T_world_cam, K, stream)
-            reused = sel is not None
-            if sel is None:
-                sel = self.select(T_world_cam, K, grids)
-                if self._sharpness is not None:  # sharp views first (presim/synthesis/sharpness.py)
-                    p = self._sharpness.order(sel.view_idx)
-                    sel = dataclasses.replace(sel, view_idx=sel.view_idx[p], distance_m=sel.distance_m[p],
-                                              angle_deg=sel.angle_deg[p], overlap_frac=sel.overlap_frac[p])
-                stream.prev = (T_world_cam.copy(), K, sel)
-            select_ms = (time.perf_counter() - t0) * 1e3
-
-            def get_view(idx: int):
-                return self._view(idx, level_of(idx))
-
-            view_image = self._backend.view_image
-            if self._blend_config is not None:  # keep the loop's warps for blending (no re-warp)
-                get_view, view_image = scratch.warp_capture.wrap(get_view, view_image, self._blend_config.max_views)
-            if self._cache.background:  # later candidates prepared while this frame runs
-                self._prefetch(sel.view_idx, T_cam_world, K)
-            # Warp ahead this frame's later candidates that the previous frame drew (a camera that
-            # moves a little draws mostly the same views again; presim/synthesis/warp_ahead.py).
-            # Handed over now, the helper thread wakes while the first view is warped (no GIL).
-            jobs = self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn) if ahead else []
-            if jobs:
-                scratch.ahead.start(jobs, T_cam_world, K, near, crack=self._ahead_crack)
-                scratch.workspace.ahead = scratch.ahead.take
             res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
                                    view_image, get_view, self.grid_points, scratch.workspace,
                                    color_transform=self._color_transform,
