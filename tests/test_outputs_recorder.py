@@ -209,6 +209,18 @@ def test_build_sinks_refuses_to_overwrite(tmp_path):
         ["McapRecorder", "FolderRecorder", "RerunViewer"]
 
 
+def test_an_rrd_file_viewer_queues_like_a_recorder(tmp_path):
+    """A file-only rerun viewer is a recording: it gets the recorders' queue (a slow writer under
+    load loses no step of a short drive), a live viewer the short one (it wants the newest)."""
+    from presim.outputs.sinks import RECORDER_QUEUE, VIEWER_QUEUE
+
+    sinks = build_sinks(tmp_path / "a", "rrd", None)
+    assert [s.maxlen for s in sinks] == [RECORDER_QUEUE] * 3
+    assert build_sinks(None, None, tmp_path / "b.rrd")[0].maxlen == RECORDER_QUEUE
+    live = build_sinks(None, "web", None)
+    assert live[0].maxlen == VIEWER_QUEUE < RECORDER_QUEUE
+
+
 class _SlowSink:
     def __init__(self, delay_s):
         self.delay_s, self.seen = delay_s, []

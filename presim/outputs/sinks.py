@@ -21,6 +21,7 @@ CAPTURE_DIR = "capture"
 VIEWER_MODES = ("native", "web", "rrd")
 
 # Queue lengths: recorders keep more (every frame matters in a file); a live viewer wants the newest.
+# An ``rrd``-only viewer writes a file and nothing else: it is a recorder.
 RECORDER_QUEUE = 64
 VIEWER_QUEUE = 16
 
@@ -62,5 +63,6 @@ def build_sinks(record_dir: Path | None, viewer: str | None, rrd_path: Path | No
     if viewer is None and rrd_path is not None:
         viewer = "rrd"
     if viewer is not None:
-        sinks.append(QueuedSink(RerunViewer(viewer, rrd_path, viewer_config), f"viewer-{viewer}", VIEWER_QUEUE))
+        queue = RECORDER_QUEUE if viewer == "rrd" else VIEWER_QUEUE
+        sinks.append(QueuedSink(RerunViewer(viewer, rrd_path, viewer_config), f"viewer-{viewer}", queue))
     return sinks
