@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -474,6 +475,10 @@ def test_analyse_holes_matches_scipy_labelling(seed, hole_frac, shape):
     np.testing.assert_array_equal(hs.replace, holes | ndimage.binary_dilation(big, disk))
     last = analyse_holes(valid, want_replace=False, want_largest=False)
     assert last.hole_frac == hs.hole_frac and last.replace is None
+    for r in (0, 1, 3, 5):  # other radii: the kernel's dilation = OpenCV's ellipse (as before it)
+        se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        want = holes | ndimage.binary_dilation(big, se.astype(bool)) if r else holes
+        np.testing.assert_array_equal(analyse_holes(valid, 16, r).replace, want)
 
 
 @pytest.mark.parametrize("C", [1, 4])

@@ -4,6 +4,7 @@ replaces."""
 
 from __future__ import annotations
 
+import cv2
 import numba
 import numpy as np
 import pytest
@@ -107,7 +108,7 @@ def test_hole_runs_components_equal_scipy_labelling():
     any big, and the big-hole mask; an n_hole below the mask's count is refused."""
     from scipy import ndimage
 
-    from presim.synthesis.composite import _hole_runs_kernel, _row_words
+    from presim.synthesis.composite import _NO_HALF, _NO_U8, _ellipse, _ellipse_rows, _hole_runs_kernel, _row_words
 
     rng = np.random.default_rng(21)
     masks = []
@@ -128,14 +129,19 @@ def test_hole_runs_components_equal_scipy_labelling():
         for words in (_row_words(holes), np.zeros((holes.shape[0], 0), np.uint64)):
             for big_px in (1, 16):
                 big = np.empty(holes.shape, np.uint8)
-                largest, any_big = _hole_runs_kernel(holes, words, int(holes.sum()), big_px, big)
+                replace = np.empty(holes.shape, np.uint8)
+                k = 2 * (big_px % 4) + 3  # 5 and 3: the replace mask's dilation, against OpenCV's
+                largest, any_big = _hole_runs_kernel(holes, words, int(holes.sum()), big_px, big,
+                                                     _ellipse_rows(k), replace)
                 assert largest == (areas.max() if n else 0)
                 ref = np.isin(lab, 1 + np.flatnonzero(areas >= big_px))
                 np.testing.assert_array_equal(big.view(bool), ref)
                 assert any_big == bool(ref.any())
+                want = holes | cv2.dilate(ref.astype(np.uint8), _ellipse(k))
+                np.testing.assert_array_equal(replace, want)
     holes = np.ones((4, 8), np.uint8)
     with pytest.raises(ValueError, match="n_hole"):
-        _hole_runs_kernel(holes, _row_words(holes), 3, 16, np.empty((0, 0), np.uint8))
+        _hole_runs_kernel(holes, _row_words(holes), 3, 16, np.empty((0, 0), np.uint8), _NO_HALF, _NO_U8)
 
 
 def test_row_words_are_the_rows_zero_padded_to_8_pixels():
