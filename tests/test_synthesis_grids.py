@@ -144,7 +144,8 @@ def test_fill_area_known_answers_and_reference():
 def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
     """FrameGrids.hole_scores (all pending candidates in one kernel call) = count_in_mask of each
     view's front pixels and its fill_area, exactly (same points, same order); views projected in
-    separate calls or all in one, views with no point in the image and bool / uint8 masks included."""
+    separate calls or all in one, views with no point in the image and bool / uint8 masks included.
+    FrameGrids.next_view = the adaptive loop's choice from those scores (core.synthesize_frame)."""
     from presim.synthesis.grids import count_in_mask
 
     K = Intrinsics.from_fov(64, 48, 60.0)
@@ -155,7 +156,7 @@ def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
     T = look_at(np.array([0.3, -0.2, 0.1]), np.array([0.0, 0.0, 2.0]))
     Kt = Intrinsics.from_fov(40, 30, 70.0)
     rng = np.random.default_rng(5)
-    checked = 0
+    checked = nexts = 0
     cams = (invert(T), invert(scene.T_world_cam[3]), invert(T @ look_at(np.zeros(3), np.array([0.0, 0.0, -1.0]))))
     for T_cam_world, earlier in zip(cams * 2, [[0, 1]] * 3 + [[]] * 3):
         grids = FrameGrids(T_cam_world, Kt, r.grid_points)
@@ -172,7 +173,17 @@ def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
                         assert f == grids.fill_area(v, mask, r._grid_zsrc_of(v), float(r._src_focal[v]), near_m,
                                                     stride)
                         checked += n
-    assert checked > 100
+                    # next_view (the choice in the kernel) = the adaptive loop's rules on these scores
+                    for need in (None, 0.0, float(np.median(fills)), max(fills) + 1.0):
+                        for pick in (0.0, 0.5, 1.0):
+                            gated = [n if n > 0 and (need is None or f >= need) else 0 for n, f in zip(counts, fills)]
+                            want = -1 if max(gated) == 0 else next(
+                                i for i, n in enumerate(gated) if n > 0 and n >= pick * max(gated))
+                            got = grids.next_view(ids, mask, r._grid_zsrc_of, lambda v: float(r._src_focal[v]),
+                                                  near_m, stride, need, pick)
+                            assert got == want
+                            nexts += want >= 0
+    assert checked > 100 and nexts > 50
     empty = FrameGrids(invert(T), Kt, r.grid_points)
     assert empty.hole_scores([], np.ones(Kt.width * Kt.height, np.uint8), r._grid_zsrc_of,
                              lambda v: 1.0, near, stride) == ([], [])

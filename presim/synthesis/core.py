@@ -365,7 +365,8 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
                                      tuple[np.ndarray, float]] | None = None,
                      grid_px: Callable[[int], np.ndarray] | None = None,
                      grid_fill: Callable[[int, np.ndarray], float] | None = None,
-                     hole_scores: Callable[[list[int], np.ndarray], tuple[list[int], list[float]]] | None = None
+                     hole_scores: Callable[[list[int], np.ndarray], tuple[list[int], list[float]]] | None = None,
+                     next_view: Callable[[list[int], np.ndarray, float | None, float], int] | None = None
                      ) -> FrameResult:
     """The adaptive loop (thesis §3.4.2-3.4.4) and the final fill for one target camera.
 
@@ -395,6 +396,11 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
             ``hole_scores(ids, big_flat)`` -> ``(counts, fills)`` with ``counts[k]`` = the number of
             ``grid_px(ids[k])`` on ``big_flat`` and ``fills[k]`` = ``grid_fill(ids[k], big_flat)``
             (the Renderer: :meth:`presim.synthesis.grids.FrameGrids.hole_scores`, one kernel call).
+        next_view: optional fast path of the whole choice: ``next_view(ids, big_flat, need, frac)`` ->
+            the index in ``ids`` of the next view by the rules below from ``hole_scores``' counts and
+            fills (``need``: the fill a view must reach, None when ``min_view_gain`` is 0; ``frac``:
+            ``next_view_fill_frac``), or -1 when none can fill a big hole (the Renderer:
+            :meth:`presim.synthesis.grids.FrameGrids.next_view`, one kernel call, no per-view lists).
     Returns:
         :class:`FrameResult`.
     """
@@ -431,7 +437,14 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
             big_flat = big.reshape(-1)
             gain = cfg.min_view_gain > 0 and (grid_fill is not None or hole_scores is not None)
             need = cfg.min_view_gain * H * W
-            if hole_scores is not None:
+            if next_view is not None:
+                best = next_view(pending, big_flat, need if cfg.min_view_gain > 0 else None, cfg.next_view_fill_frac)
+                ms["select"] += (time.perf_counter() - t) * 1e3
+                if best < 0:
+                    skipped.extend(pending)
+                    break
+                counts = None
+            elif hole_scores is not None:
                 counts, fills = hole_scores(pending, big_flat)
                 if gain:
                     counts = [n if n > 0 and f >= need else 0 for n, f in zip(counts, fills)]
@@ -443,12 +456,13 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
                 if gain:
                     # Diminishing returns: a candidate must be predicted to fill enough of the image.
                     counts = [n if n > 0 and grid_fill(v, big_flat) >= need else 0 for n, v in zip(counts, pending)]
-            ms["select"] += (time.perf_counter() - t) * 1e3
-            cmax = max(counts)
-            if cmax == 0:
-                skipped.extend(pending)
-                break
-            best = next(i for i, n in enumerate(counts) if n > 0 and n >= cfg.next_view_fill_frac * cmax)
+            if counts is not None:
+                ms["select"] += (time.perf_counter() - t) * 1e3
+                cmax = max(counts)
+                if cmax == 0:
+                    skipped.extend(pending)
+                    break
+                best = next(i for i, n in enumerate(counts) if n > 0 and n >= cfg.next_view_fill_frac * cmax)
             vi = pending.pop(best)
         else:
             vi = pending.pop(0)

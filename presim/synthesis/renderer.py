@@ -732,9 +732,9 @@ class Renderer:
                                    view_image, get_view, self.grid_points, scratch.workspace,
                                    color_transform=self._color_transform,
                                    blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
-                                   hole_scores=lambda ids, big: grids.hole_scores(
+                                   next_view=lambda ids, big, need, frac: grids.next_view(
                                        ids, big, self._grid_zsrc_of, lambda v: float(self._src_focal[v]),
-                                       near, float(self.config.overlap_stride_px)))
+                                       near, float(self.config.overlap_stride_px), need, frac))
         finally:
             if jobs:
                 scratch.ahead.stop()
