@@ -88,3 +88,40 @@ def test_frames_on_threads_equal_render_per_stream(size):
     assert sum(reused) >= 5  # the reuse was exercised on the streams
     with pytest.raises(ValueError, match="batch_threads"):
         RenderConfig(batch_threads=-1)
+
+
+def test_auto_batch_measures_threads_against_frames_one_after_another():
+    """batch_threads = 0 (auto) with frames that warp views ahead: the batches alternate between
+    the frame threads and one frame after another (with the helper thread) while the chooser
+    measures, then keep one way; every frame equals render() of its camera stream either way. A
+    frame size without the helper (>= TILED_MIN_PIXELS) always uses the threads."""
+    import numba
+
+    from presim.synthesis.composite import TILED_MIN_PIXELS
+
+    assert numba.get_num_threads() >= 2  # the test machine and CI have 2 cores
+    Kc = Intrinsics.from_fov(64, 48, 60.0)
+    scene = S.make_scene(S.room_rects(), S.orbit_poses(5), Kc)
+    K = Intrinsics.from_fov(64, 48, 60.0)
+    r = Renderer(scene, RenderConfig())
+    streams = [Renderer(scene, RenderConfig()) for _ in range(3)]
+    base = _poses()[:3]
+    modes = []
+    for step in range(18):
+        poses = base.copy()
+        poses[:, 0, 3] += 0.03 * step
+        outs = r.render_batch(poses, K)
+        modes.append(r.batch_mode)
+        for b, (T, o) in enumerate(zip(poses, outs)):
+            e = streams[b].render(T, K)
+            np.testing.assert_array_equal(o.color, e.color)
+            np.testing.assert_array_equal(o.depth_m, e.depth_m)
+    assert modes[:10] == ["threads"] * 10  # settling: the first way, untimed
+    assert set(modes[10:16]) == {"threads", "sequential"}  # then each way measured in turn
+    chooser = r._batch_modes[(3, 64, 48)]
+    assert all(len(chooser._times[m]) >= chooser.warmup for m in ("threads", "sequential"))
+    big = Intrinsics.from_fov(400, 400, 60.0)
+    assert big.width * big.height >= TILED_MIN_PIXELS
+    r2 = Renderer(scene, RenderConfig(max_zoom=16.0))  # rendered at 400x400 (not at the capture's sampling)
+    r2.render_batch(base[:2], big)
+    assert r2.batch_mode == "threads" and not r2._batch_modes

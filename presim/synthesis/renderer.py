@@ -213,7 +213,9 @@ class RenderConfig:
     batch_threads: int = 0
     """numba backend: :meth:`Renderer.render_batch` spreads its frames over this many threads, each
     rendering whole frames with the serial, GIL-free twins of the parallel kernels (same images as
-    :meth:`Renderer.render`); 0 = auto (numba's thread count), 1 = one frame after another."""
+    :meth:`Renderer.render`); 1 = one frame after another; 0 = auto: numba's thread count, or for
+    frames that warp views ahead (``warp_ahead``) one frame after another when that measures faster
+    (``Renderer.batch_mode`` says which ran)."""
     # ---- photometric correction (presim/synthesis/photometric.py, `presim photometric`) ----
     use_photometric: bool = True
     """Map every capture frame to one output exposure with ``scene.photometric`` when present
@@ -441,6 +443,10 @@ class Renderer:
         self._thread_scratch = threading.local()
         self._batch_pool: ThreadPoolExecutor | None = None
         self._batch_pool_threads = 0
+        self._batch_modes: dict[tuple[int, int, int], FrameModeChooser] = {}  # (B, W, H) -> chooser
+        self.batch_mode: str | None = None
+        """How the last numba :meth:`render_batch` rendered its frames: ``"threads"`` (on
+        ``batch_threads`` threads) or ``"sequential"`` (one after another in the calling thread)."""
         # Photometric correction hook (presim/synthesis/photometric.py); None = colors as captured.
         # Applied to each capture frame's pixels when its view is prepared (cached with the view: no
         # per-frame cost); the core's per-view color_transform hook is left free.
@@ -621,17 +627,20 @@ class Renderer:
                                           self._scratch)
         return out
 
+    def _internal_K(self, K: Intrinsics) -> Intrinsics:
+        """The intrinsics a target ``K`` is rendered at: ``K``, or beyond ``max_zoom`` a smaller image
+        at the capture's sampling (upsampled to ``K`` after)."""
+        scale = min(1.0, self.config.max_zoom * self._focal_px / np.sqrt(K.fx * K.fy))
+        return K if scale >= 1.0 else K.scaled(max(1, round(K.width * scale)), max(1, round(K.height * scale)))
+
     def _render_one(self, T_world_cam: np.ndarray, K: Intrinsics, stream: _Stream, scratch: _Scratch
                     ) -> tuple[RGBD, RenderStats]:
         """One frame (pose already checked) of camera stream ``stream`` with the buffers ``scratch``."""
-        scale = min(1.0, self.config.max_zoom * self._focal_px / np.sqrt(K.fx * K.fy))
-        # Beyond max_zoom the frame is rendered at the capture's sampling and upsampled.
-        K_in = K if scale >= 1.0 else K.scaled(max(1, round(K.width * scale)), max(1, round(K.height * scale)))
+        K_in = self._internal_K(K)  # beyond max_zoom: rendered at the capture's sampling, then upsampled
         n_threads = frame_threads(K_in.width, K_in.height, self.config.threads)
         # A frame on one thread leaves a core idle: later candidates are warped ahead there, unless
         # this thread is one of several rendering at once (render_batch: serial kernels already).
-        ahead = (self.config.threads == 0 and self.config.warp_ahead and not serial_now() and self._use_warp_ahead
-                 and K_in.width * K_in.height < TILED_MIN_PIXELS)
+        ahead = self._ahead_possible(K_in)
         chooser = None
         if ahead and n_threads > 1:
             # Either way works here (all numba threads, or one thread + the helper): measured per
@@ -659,6 +668,12 @@ class Renderer:
         src = cv2.resize(out.source_view, size, interpolation=cv2.INTER_NEAREST)
         stats.ms["upsample"] = (time.perf_counter() - t) * 1e3
         return RGBD(color, depth, valid, src, K, T_world_cam, float(1.0 - valid.mean())), stats
+
+    def _ahead_possible(self, K: Intrinsics) -> bool:
+        """Whether a frame of size ``K`` rendered in this thread may warp views ahead on a helper
+        thread (``RenderConfig.warp_ahead``; not inside :meth:`render_batch`'s frame threads)."""
+        return (self.config.threads == 0 and self.config.warp_ahead and not serial_now() and self._use_warp_ahead
+                and K.width * K.height < TILED_MIN_PIXELS)
 
     @property
     def _workspace(self) -> Workspace:
@@ -810,8 +825,9 @@ class Renderer:
         poses frame by frame, each exactly as :meth:`render` would: frame ``b`` of a batch continues
         camera stream ``b`` of the previous batch (the temporal reuse of the view selection,
         ``reuse_move_m``, applies per stream), and on the numba backend the frames are spread over
-        ``batch_threads`` threads (:meth:`_render_threaded`); ``last`` holds the last frame's stats
-        and every frame's views (``last.batch_views``)."""
+        ``batch_threads`` threads, or with ``batch_threads`` = 0 (auto) rendered one after another
+        in this thread when that measures faster (:meth:`_render_threaded`, :attr:`batch_mode`);
+        ``last`` holds the last frame's stats and every frame's views (``last.batch_views``)."""
         T = np.asarray(T_world_cams, dtype=np.float64)
         if T.ndim != 3 or T.shape[1:] != (4, 4):
             raise ValueError(f"T_world_cams must be (B, 4, 4), got {T.shape}")
@@ -848,6 +864,15 @@ class Renderer:
         """Frames of checked poses ``T`` (B, 4, 4), frame ``b`` in camera stream ``b``; on the numba
         backend on up to ``batch_threads`` threads.
 
+        With ``RenderConfig.batch_threads`` = 0 (auto) and frames that may warp views ahead (below
+        ``composite.TILED_MIN_PIXELS``, ``warp_ahead`` on), the batch is either spread over numba's
+        thread count of threads, or rendered one frame after another in this thread, each frame
+        with its later views warped ahead on the helper thread that uses the other core
+        (:mod:`presim.synthesis.warp_ahead`): a :class:`~presim.synthesis.threads.FrameModeChooser`
+        per batch size and frame size measures both and keeps the faster (time per frame, without
+        view preparation). On the 2-core machine the second way won at 128x96 (PointNav), because
+        the frame threads serialise on the GIL for each frame's Python stretches.
+
         Each thread renders whole frames with its own buffers and the serial twins of the parallel
         kernels, which release the GIL (:mod:`presim.synthesis.threads`), so that the threads overlap
         in the compiled stages; the per-view cache is shared (a view another thread is building is
@@ -858,6 +883,21 @@ class Renderer:
             self._batch_streams.append(_Stream())
         streams = self._batch_streams
         n = self.batch_threads(B)
+        chooser = None
+        if n > 1 and self.config.batch_threads == 0 and self._ahead_possible(self._internal_K(K)):
+            # Auto: the frames on threads, or one after another here, each with its later views
+            # warped ahead on the helper thread: measured per batch size and frame size (the images
+            # are the same either way; threads.FrameModeChooser).
+            key = (B, K.width, K.height)
+            chooser = self._batch_modes.get(key)
+            if chooser is None:
+                chooser = self._batch_modes[key] = FrameModeChooser(("threads", "sequential"))
+            self.batch_mode = chooser.pick()
+            if self.batch_mode == "sequential":
+                n = 1
+        else:
+            self.batch_mode = "threads" if n > 1 else "sequential"
+        t0 = time.perf_counter()
         if n <= 1:
             outs = [self._render_one(T[b], K, streams[b], self._scratch) for b in range(B)]
         else:
@@ -875,14 +915,18 @@ class Renderer:
                     return self._render_one(T[b], K, streams[b], scratch)
 
             outs = list(self._batch_pool.map(frame, range(B)))
+        if chooser is not None:  # per frame, without the time spent preparing views
+            load_ms = sum(o[1].ms.get("load", 0.0) for o in outs)
+            chooser.record(self.batch_mode, ((time.perf_counter() - t0) * 1e3 - load_ms) / B)
         if outs:  # the last frame's stats, and every frame's views
             self.last = dataclasses.replace(outs[-1][1], batch_views=[list(o[1].views) for o in outs])
         return [o[0] for o in outs]
 
     def batch_threads(self, batch: int) -> int:
-        """Threads :meth:`render_batch` uses for ``batch`` frames rendered frame by frame: 1 unless
+        """Threads :meth:`render_batch` may use for ``batch`` frames rendered frame by frame: 1 unless
         the backend is numba; ``RenderConfig.batch_threads`` when > 0, else (auto) numba's thread
-        count; never more than ``batch``."""
+        count, never more than ``batch`` (auto may still render them one after another:
+        :meth:`_render_threaded`, :attr:`batch_mode`)."""
         if self.config.backend != "numba" or batch <= 1:
             return 1
         n = self.config.batch_threads if self.config.batch_threads > 0 else numba.get_num_threads()
