@@ -171,3 +171,17 @@ def test_intrinsics_validation():
     with pytest.raises(ValueError, match="3x3"):
         Intrinsics.from_K(np.eye(4), 10, 10)
     assert Intrinsics.from_dict(K.to_dict()) == K
+
+
+def test_invert_of_one_pose_equals_the_batched_inverse_bit_for_bit():
+    """invert's one-pose path (Python floats) gives the same numbers as its batched einsum path."""
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(2000, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    T = make_pose(quat_xyzw_to_R(q), rng.normal(size=(2000, 3)) * 10.0 ** rng.uniform(-3, 2, (2000, 1)))
+    batched = invert(T)
+    for k in range(len(T)):
+        one = invert(T[k])
+        assert one.shape == (4, 4) and one.dtype == np.float64
+        np.testing.assert_array_equal(one, batched[k])
+    np.testing.assert_allclose(compose(T[0], invert(T[0])), np.eye(4), atol=1e-12)
