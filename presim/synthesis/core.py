@@ -395,7 +395,8 @@ def synthesize_frame(candidates: Sequence[int], T_cam_world: np.ndarray, K: Intr
         hole_scores: optional fast path of both tests for all pending candidates at once:
             ``hole_scores(ids, big_flat)`` -> ``(counts, fills)`` with ``counts[k]`` = the number of
             ``grid_px(ids[k])`` on ``big_flat`` and ``fills[k]`` = ``grid_fill(ids[k], big_flat)``
-            (the Renderer: :meth:`presim.synthesis.grids.FrameGrids.hole_scores`, one kernel call).
+            (:meth:`presim.synthesis.grids.FrameGrids.hole_scores`, one kernel call; the reference
+            of ``next_view``, which the Renderer passes).
         next_view: optional fast path of the whole choice: ``next_view(ids, big_flat, need, frac)`` ->
             the index in ``ids`` of the next view by the rules below from ``hole_scores``' counts and
             fills (``need``: the fill a view must reach, None when ``min_view_gain`` is 0; ``frac``:
