@@ -346,6 +346,33 @@ def test_masked_warp_renders_identical_frames(monkeypatch):
 
 
 @pytest.mark.parametrize("L", [1, 4])
+def test_banded_pass_ignores_the_colour_of_empty_layer_pixels(L):
+    """warp_layers(clear_color=False) leaves the colour planes as they were where a layer got no
+    point (here: filled with garbage first); the banded crack pass reads colour only where the
+    depth is > 0, so its output is the same as from cleared layers, with and without a replace
+    mask, in bands and in tiles."""
+    from presim.synthesis.composite import filtered_composite_banded
+
+    vp, T_cam_world = _room_view(L=L)
+    clean = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
+    rng = np.random.default_rng(L)
+    dirty = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
+    dirty.color[:] = rng.integers(1, 256, dirty.color.shape, dtype=np.uint8)
+    dirty = warp_layers(vp, T_cam_world, K_SMALL, 1e-3, out=dirty, clear_color=False)
+    empty = clean.depth_m == 0
+    np.testing.assert_array_equal(dirty.depth_m, clean.depth_m)
+    np.testing.assert_array_equal(dirty.color[~empty], clean.color[~empty])
+    assert empty.any() and (dirty.color[empty] != 0).any()  # garbage left where no point landed
+    mask = rng.random(empty.shape[1:]) < 0.3
+    for replace, tile_cols in ((None, None), (mask, None), (mask, 8)):
+        a = filtered_composite_banded(clean.depth_m, clean.color, replace, tile_cols=tile_cols)
+        b = filtered_composite_banded(dirty.depth_m, dirty.color, replace, tile_cols=tile_cols)
+        want = slice(None) if replace is None else replace
+        np.testing.assert_array_equal(b[0][want], a[0][want])
+        np.testing.assert_array_equal(b[1][want], a[1][want])
+
+
+@pytest.mark.parametrize("L", [1, 4])
 def test_banded_composite_matches_reference_on_warp(L):
     from presim.synthesis.composite import filtered_composite_banded
 

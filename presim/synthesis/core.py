@@ -152,16 +152,20 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
         if tiles.mean() > TILED_MAX_FRAC:  # holes everywhere: the full warp is cheaper
             tiles = None
     got = workspace.ahead(view) if tiles is None and workspace.ahead is not None else None
-    if got is not None and got.depth_m is not None and banded:  # warped and crack-filtered ahead
-        d, c = got.depth_m, got.color
-        if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
-            d, c = d.copy(), c.copy()
-        return ViewImage(d, c, (time.perf_counter() - t0) * 1e3, 0.0, 0.0)
+    if got is not None and got.depth_m is not None:  # warped and crack-filtered ahead
+        if banded:
+            d, c = got.depth_m, got.color
+            if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
+                d, c = d.copy(), c.copy()
+            return ViewImage(d, c, (time.perf_counter() - t0) * 1e3, 0.0, 0.0)
+        got = None  # its layers' colour planes were not cleared (only the banded pass reads them so)
     if got is not None:
         lay = got.layers
     else:
+        # the banded crack pass reads the layers' colour only where their depth is > 0: the colour
+        # planes need no clearing for it (3 of the 7 bytes per layer pixel)
         lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers, tiles=tiles,
-                                             tile_px=WARP_TILE_PX)
+                                             tile_px=WARP_TILE_PX, clear_color=not banded)
     t1 = time.perf_counter()
     if packed:
         # Filter + composite + seam pass in one call; later views only on their replaceable pixels.

@@ -608,8 +608,9 @@ assert WARP_BLOCK_PTS % CHUNK_PTS == 0 and WARP_BLOCK_PTS >= CHUNK_PTS  # a bloc
 
 @parallel_kernel(fastmath=_FASTMATH, cache=True, error_model="numpy")
 def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, tiles, use_tiles, tile_px,
-                        tile_of_px, vis, chunk, block, zbuf, cbuf):  # pragma: no cover
-    # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was),
+                        tile_of_px, vis, chunk, block, clear_c, zbuf, cbuf):  # pragma: no cover
+    # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was;
+    # the colour only with clear_c, else it is undefined where the depth stays 0),
     # then per block of up to ``block`` points of its kept chunks: copy their coordinates into
     # one array per coordinate, project them (a loop without branches or stores that depend on
     # other points: it vectorizes), then z-buffer them in their (source) order. The z-buffer sees
@@ -648,10 +649,12 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, nea
                             xa = tx * tile_px
                             xb = min(xa + tile_px, W)
                             zbuf[l, ya:ya + tile_px, xa:xb] = 0.0
-                            cbuf[l, ya:ya + tile_px, xa:xb] = 0
+                            if clear_c:
+                                cbuf[l, ya:ya + tile_px, xa:xb] = 0
             else:
                 zf[:] = 0.0
-                cf[:] = 0
+                if clear_c:
+                    cf[:] = 0
             i0 = layer_start[l]
             i1 = layer_start[l + 1]
             if i1 <= i0:
@@ -702,7 +705,7 @@ def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, nea
 
 def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
                 out: LayeredImage | None = None, tiles: np.ndarray | None = None,
-                tile_px: int = 16, cull: bool = True) -> LayeredImage:
+                tile_px: int = 16, cull: bool = True, clear_color: bool = True) -> LayeredImage:
     """Warp a prepared view into the target camera, one z-buffered image per layer (numba).
 
     Args:
@@ -720,8 +723,12 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         cull: skip the chunks of points that :func:`chunk_visibility` proves fall outside the
             target, or outside the marked ``tiles`` (same output; False projects every point, for
             tests and benchmarks).
+        clear_color: False leaves the colour UNDEFINED where a layer received no point (the
+            colour planes are not cleared: 3 of the 7 bytes per layer pixel not written). For a
+            reader that takes colour only where the depth is > 0: the banded crack pass
+            (:func:`presim.synthesis.composite.filtered_composite_banded`, tested).
     Returns:
-        LayeredImage with depth 0 / color 0 where a layer received no point.
+        LayeredImage with depth 0 / color 0 (with ``clear_color``) where a layer received no point.
     """
     L = view.num_layers
     if out is None or out.depth_m.shape != (L, K.height, K.width):
@@ -742,5 +749,5 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
                         np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m),
                         tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, WARP_BLOCK_PTS,
-                        out.depth_m, out.color)
+                        bool(clear_color), out.depth_m, out.color)
     return out

@@ -134,8 +134,10 @@ def _warp_jobs_kernel(state, cancel, n, xyz, rgb, layer_start, lo, hi, projectiv
             _chunk_keep_kernel(lo[k], hi[k], projective[k], M, S[k], A[k], np.float64(fx32), np.float64(fy32),
                                np.float64(cx32), np.float64(cy32), np.float64(near32), W, H, _CULL_MARGIN, _NO_SAT,
                                16, False, vis)
+        # (with the crack pass, which reads colour only where the depth is > 0, the colour planes
+        # are not cleared; without it, the loop composites the layers itself: cleared)
         _warp_serial(xyz[k], rgb[k], layer_start[k], 1, M, fx32, fy32, cx32, cy32, near32, _NO_TILES, False, 16,
-                     _NO_TILES.reshape(-1), vis, CHUNK_PTS, WARP_BLOCK_PTS, zb[k], cb[k])
+                     _NO_TILES.reshape(-1), vis, CHUNK_PTS, WARP_BLOCK_PTS, not crack, zb[k], cb[k])
         if crack:
             if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
                 _store_release(state, k, CLAIMED)
