@@ -323,29 +323,26 @@ def _ellipse(k: int) -> np.ndarray:
     return se
 
 
-_ELLIPSE_ROWS: dict[int, np.ndarray | None] = {}
+_ELLIPSE_ROWS: dict[int, np.ndarray] = {}
 _NO_HALF = np.zeros(0, np.int64)
 _NO_U8 = np.zeros((0, 0), np.uint8)
 
 
-def _ellipse_rows(k: int) -> np.ndarray | None:
+def _ellipse_rows(k: int) -> np.ndarray:
     """int64 (k,): the half width of each row of :func:`_ellipse` (k) about the centre column (-1
-    for an empty row), or None when a row is not one centred run (then the dilation is OpenCV's)."""
-    if k in _ELLIPSE_ROWS:
-        return _ELLIPSE_ROWS[k]
-    se = _ellipse(k).astype(bool)
-    r = k // 2
-    half = np.full(k, -1, np.int64)
-    for i, row in enumerate(se):
-        cols = np.flatnonzero(row)
-        if len(cols) == 0:
-            continue
-        h = r - cols[0]
-        if cols[-1] != r + h or len(cols) != 2 * h + 1:
-            half = None
-            break
-        half[i] = h
-    _ELLIPSE_ROWS[k] = half
+    for an empty row): each row of OpenCV's ellipse is one run centred on the centre column."""
+    half = _ELLIPSE_ROWS.get(k)
+    if half is None:
+        r = k // 2
+        half = np.full(k, -1, np.int64)
+        for i, row in enumerate(_ellipse(k).astype(bool)):
+            cols = np.flatnonzero(row)
+            if len(cols):
+                h = r - cols[0]
+                if cols[-1] != r + h or len(cols) != 2 * h + 1:
+                    raise AssertionError(f"OpenCV's {k}x{k} ellipse: row {i} is not one centred run")
+                half[i] = h
+        _ELLIPSE_ROWS[k] = half
     return half
 
 
@@ -386,23 +383,15 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
     holes = np.ascontiguousarray(holes)
     big = np.empty((H, W) if want_replace else (0, 0), np.uint8)
-    # The replace mask (holes, big ones dilated) is written by the same kernel call where the
-    # ellipse's rows are centred runs (always, for OpenCV's ellipses): a cv2.dilate and a
-    # cv2.bitwise_or less per view (their cold calls cost ~15-25 µs at 128x128 inside frames).
-    half = _ellipse_rows(2 * hole_dilation_px + 1) if want_replace and hole_dilation_px > 0 else _NO_HALF
-    fused = want_replace and half is not None
-    replace = np.empty((H, W), np.uint8) if fused else _NO_U8
-    largest, any_big = _hole_runs_kernel(holes, _row_words(holes), int(n_hole), int(big_hole_px), big,
-                                         half if fused else _NO_HALF, replace)
-    largest = int(largest)
+    # The replace mask (holes, big ones dilated by OpenCV's ellipse) is written by the same kernel
+    # call: a cv2.dilate and a cv2.bitwise_or less per view (their cold calls cost ~15-25 µs at
+    # 128x128 inside frames).
+    half = _ellipse_rows(2 * hole_dilation_px + 1) if hole_dilation_px > 0 else _NO_HALF
+    replace = np.empty((H, W), np.uint8) if want_replace else _NO_U8
+    largest, _ = _hole_runs_kernel(holes, _row_words(holes), int(n_hole), int(big_hole_px), big, half, replace)
     if not want_replace:
-        replace = big = None
-    else:
-        if not fused:
-            replace = cv2.bitwise_or(holes, cv2.dilate(big, _ellipse(2 * hole_dilation_px + 1)))
-        replace = replace.view(bool)
-        big = big.view(bool)
-    return HoleStats(n_hole / float(H * W), largest, replace, big)
+        return HoleStats(n_hole / float(H * W), int(largest), None, None)
+    return HoleStats(n_hole / float(H * W), int(largest), replace.view(bool), big.view(bool))
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
