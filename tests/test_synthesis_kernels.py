@@ -297,6 +297,42 @@ def test_tiled_crack_pass_and_masked_warp_match_reference(band, tile_cols):
         warp_layers(vp, T_cam_world, K_SMALL, 1e-3, tiles=np.ones((2, 2), np.uint8))
 
 
+def test_large_frames_run_a_later_views_crack_pass_on_small_tiles(monkeypatch):
+    """From TILED_MIN_PIXELS on, a replace mask of small scattered holes runs the crack pass on
+    runs of TILE_ROWS x TILE_COLS tiles (work items no taller than TILE_ROWS, covering only a part
+    of the image), with the same values on the replace pixels as the whole-band pass."""
+    from presim.synthesis import composite as CO
+
+    rng = np.random.default_rng(11)
+    L, H, W = 3, 400, 400
+    assert H * W >= CO.TILED_MIN_PIXELS
+    d = np.where(rng.random((L, H, W)) < 0.6, rng.choice([0.5, 0.8, 1.1], (L, H, W)), 0).astype(np.float32)
+    c = rng.integers(0, 256, (L, H, W, 3), dtype=np.uint8)  # colour where the depth is 0 too: never read
+    mask = np.zeros((H, W), bool)
+    mask[rng.integers(0, H, 300), rng.integers(0, W, 300)] = True
+    mask[100:106, 200:260] = True
+    bd, bc = CO.filtered_composite_banded(d, c)  # whole bands, every pixel
+    items = []
+    tiled = CO._tiled_crack_kernel
+
+    def record(*args):
+        items.append(args[6].copy())
+        return tiled(*args)
+
+    monkeypatch.setattr(CO, "_tiled_crack_kernel", record)
+    md, mc = CO.filtered_composite_banded(d, c, mask)
+    np.testing.assert_array_equal(md[mask], bd[mask])
+    np.testing.assert_array_equal(mc[mask], bc[mask])
+    assert len(items) == 1
+    it = items[0]
+    assert (it[:, 1] - it[:, 0]).max() <= CO.TILE_ROWS
+    assert ((it[:, 1] - it[:, 0]) * (it[:, 3] - it[:, 2])).sum() < 0.5 * H * W
+    covered = np.zeros((H, W), bool)
+    for a, e, x0, x1 in it:
+        covered[a:e, x0:x1] = True
+    assert covered[mask].all()
+
+
 def test_tile_any_matches_reference():
     """tile_any (ORs of 8-pixel words, rows zero-padded when the width is not a multiple of 8) and
     the pixel scan with early exit (big-endian machines) = the dilate-then-block-any reference, for

@@ -797,9 +797,16 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
 # touch them); the arithmetic per pixel is that of the three kernels above, so the output is the
 # same bit for bit.
 
-TILE_COLS = 32
+TILE_COLS = 8
 """Columns per tile of :func:`filtered_composite_banded` with ``replace`` (a run of tiles holding
-wanted pixels is one work item)."""
+wanted pixels is one work item). With :data:`TILE_ROWS`, 8 x 8 tiles: a later view's crack pass
+inside 640x480 frames took 0.78x (apc capture) and 0.86x (sample scene) the time of 32 x 32 tiles
+(docs/synthesis.md, "Smaller crack tiles")."""
+
+TILE_ROWS = 8
+"""Rows per band of :func:`filtered_composite_banded` on tiles (whole-width bands keep
+:func:`_band_rows`). Small tiles follow the holes of a later view (small, scattered) closely; each
+work item recomputes a 2-pixel halo, which costs more the smaller the tile."""
 
 WARP_TILE_PX = 16
 """Side of the tiles :func:`warp_tiles` marks for a masked warp."""
@@ -1226,7 +1233,8 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
         band_rows: rows per band (default :func:`_band_rows`; any value >= 1 gives the same output).
         tile_cols: columns per tile with ``replace`` (None: :data:`TILE_COLS` from
             :data:`TILED_MIN_PIXELS` pixels on while at most :data:`TILED_MAX_FRAC` of the tiles
-            hold a ``replace`` pixel, else whole rows; any value >= 1 gives the same output).
+            hold a ``replace`` pixel, else whole rows; any value >= 1 gives the same output). On
+            tiles, the bands are ``band_rows`` rows high (None: :data:`TILE_ROWS`).
     Returns:
         ``(depth_m (H, W), color (H, W, 3))``.
     """
@@ -1240,6 +1248,7 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
     if tile_cols is None:
         tile_cols = TILE_COLS if H * W >= TILED_MIN_PIXELS else W
     band = max(int(band_rows) if band_rows else _band_rows(H), 1)
+    tile_band = max(int(band_rows) if band_rows else TILE_ROWS, 1)
     if use:
         need = cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
         mask = replace
@@ -1248,9 +1257,9 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
     tw = max(int(tile_cols), 1)
     out_d = np.empty((H, W), np.float32)
     out_c = np.empty((H, W, 3), np.uint8)
-    active = tile_any(replace.view(np.uint8), band, tw, 0) if use and tw < W else None
+    active = tile_any(replace.view(np.uint8), tile_band, tw, 0) if use and tw < W else None
     if active is not None and (explicit_tiles or active.mean() <= TILED_MAX_FRAC):
-        items = _tile_items_kernel(active, band, tw, H, W)
+        items = _tile_items_kernel(active, tile_band, tw, H, W)
         if len(items):
             _tiled_crack_kernel(depth_m, color, _LOWEST, need, use, mask, items, out_d, out_c)
     else:
