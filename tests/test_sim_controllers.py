@@ -34,6 +34,25 @@ def test_acceleration_limits():
         limit_base_command(np.array([np.nan, 0, 0]), np.zeros(3), LIM, "diff", 0.1)
 
 
+def test_base_command_limits_equal_numpy_clip_bit_for_bit():
+    """limit_base_command (on Python floats) = the two np.clip calls it replaces, bit for bit,
+    signed zeros included, for both drives and commands inside, outside and at the limits."""
+    rng = np.random.default_rng(5)
+    cmds = np.concatenate([rng.uniform(-3, 3, (300, 3)), np.zeros((5, 3)), -np.zeros((5, 3)),
+                           np.array([[0.5, 0.3, 1.0], [-0.5, -0.3, -1.0], [0.0, -0.2, 0.0]])])
+    for drive in ("diff", "holonomic"):
+        for cmd in cmds:
+            prev = rng.uniform(-1, 1, 3) * rng.integers(0, 2, 3)
+            dt = float(rng.choice([0.1, 0.05, 1.0 / 30.0]))
+            vmax = np.array([LIM.max_vx_mps, LIM.max_vy_mps if drive == "holonomic" else 0.0, LIM.max_wz_radps])
+            amax = np.array([LIM.max_acc_mps2, LIM.max_acc_mps2, LIM.max_ang_acc_radps2]) * dt
+            want = np.clip(np.clip(cmd, -vmax, vmax), prev - amax, prev + amax)
+            got = limit_base_command(cmd, prev, LIM, drive, dt)
+            assert got.dtype == np.float64 and got.shape == (3,)
+            np.testing.assert_array_equal(got, want)
+            assert (np.signbit(got) == np.signbit(want)).all(), (cmd, prev, got, want)
+
+
 def test_integrate_planar_straight_and_arc():
     assert np.allclose(integrate_planar(0, 0, 0, 0.5, 0, 0, 2.0), (1.0, 0.0, 0.0))
     # Arc: v = 0.5 m/s, w = 0.5 rad/s for pi s: a quarter circle of radius r = v / w = 1,

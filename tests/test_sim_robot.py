@@ -64,6 +64,24 @@ def test_fk_matches_yourdfpy():
             assert np.allclose(poses[link], u.get_transform(link, "base_link"), atol=1e-9), link
 
 
+def test_fk_at_unchanged_joints_gives_fresh_equal_poses():
+    """A robot that keeps its joints still gets the last poses again (cached), as new arrays: what a
+    caller does to them does not reach the next call; other joint values are computed anew."""
+    robot = default_robot()
+    q = np.array([0.3, -0.2])
+    a = robot.fk(q)
+    b = robot.fk(q.copy())
+    assert a.keys() == b.keys()
+    for link in a:
+        np.testing.assert_array_equal(a[link], b[link])
+        assert not np.shares_memory(a[link], b[link])
+    b["camera_optical_frame"][:] = 0.0  # the caller's own copy
+    np.testing.assert_array_equal(robot.fk(q)["camera_optical_frame"], a["camera_optical_frame"])
+    c = robot.fk(np.array([0.0, 0.0]))
+    assert not np.allclose(c["camera_optical_frame"], a["camera_optical_frame"])
+    np.testing.assert_allclose(c["camera_optical_frame"], robot.T_base_camera(np.zeros(2)), atol=1e-12)
+
+
 def test_free_camera_rig():
     rig = free_camera_rig()
     assert rig.drive == "free" and rig.joint_names == ()

@@ -14,7 +14,7 @@ from presim.geometry import compose
 from presim.sensors.camera import CameraSpec
 from presim.sensors.noise import DepthNoiseConfig
 from presim.sensors.odometry import OdometryConfig
-from presim.sim.controllers import Action, BaseLimits, TrajectoryReplay
+from presim.sim.controllers import Action, BaseLimits, TrajectoryReplay, joint_position_step
 from presim.sim.robot import RobotConfig, default_robot, load_robot
 from presim.sim.simulator import SimConfig, Simulator
 from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
@@ -161,6 +161,17 @@ def test_joint_targets_move_at_velocity_limit(toy):
     for _ in range(10):
         r = sim.step(np.zeros(3))  # targets persist
     assert np.allclose(r.joint_states.position, [1.0, 0.5])
+    # at the targets the joints stand still: the same positions as the joint controller's step of
+    # 0 gives, velocities 0 (the step skips the controller there)
+    q = r.joint_states.position.copy()
+    want_q, want_qd = joint_position_step(q, sim.q_target, sim.robot.lower, sim.robot.upper,
+                                          sim.robot.velocity_limits, 0.1)
+    r = sim.step(np.zeros(3))
+    np.testing.assert_array_equal(r.joint_states.position, want_q)
+    np.testing.assert_array_equal(r.joint_states.velocity, want_qd)
+    assert not want_qd.any()
+    r = sim.step(Action(twist=np.zeros(3), joint_targets={"head_pan_joint": 0.9}))  # moves again
+    assert r.joint_states.velocity[0] == pytest.approx(-1.0) and r.joint_states.position[0] == pytest.approx(0.9)
     with pytest.raises(ValueError, match="unknown or fixed joint 'elbow'"):
         sim.step(Action(joint_targets={"elbow": 0.1}))
 

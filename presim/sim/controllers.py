@@ -82,10 +82,19 @@ def limit_base_command(cmd: np.ndarray, prev: np.ndarray, limits: BaseLimits, dr
     cmd = np.asarray(cmd, dtype=np.float64)
     if cmd.shape != (3,) or not np.all(np.isfinite(cmd)):
         raise ValueError(f"base command must be 3 finite numbers [vx, vy, wz], got {cmd!r}")
-    vmax = np.array([limits.max_vx_mps, limits.max_vy_mps if drive == "holonomic" else 0.0, limits.max_wz_radps])
-    amax = np.array([limits.max_acc_mps2, limits.max_acc_mps2, limits.max_ang_acc_radps2]) * dt
-    target = np.clip(cmd, -vmax, vmax)
-    return np.clip(target, prev - amax, prev + amax)
+    # On Python floats (called every step; numpy's small-array calls cost more than the arithmetic),
+    # with np.clip's exact comparisons (_clip).
+    vmax = (float(limits.max_vx_mps), float(limits.max_vy_mps) if drive == "holonomic" else 0.0,
+            float(limits.max_wz_radps))
+    amax = (float(limits.max_acc_mps2) * dt, float(limits.max_acc_mps2) * dt, float(limits.max_ang_acc_radps2) * dt)
+    p = np.asarray(prev, dtype=np.float64).tolist()
+    return np.array([_clip(_clip(c, -v, v), q - a, q + a) for c, v, a, q in zip(cmd.tolist(), vmax, amax, p)])
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one float: ``max`` then ``min`` by the same comparisons (also for signed zeros)."""
+    y = x if x > lo else lo
+    return y if y < hi else hi
 
 
 def limit_free_twist(cmd: np.ndarray, prev: np.ndarray, limits: BaseLimits, dt: float) -> np.ndarray:

@@ -126,6 +126,7 @@ class Robot:
         self.movable_joints = [j for j in joints if j.movable]
         self.joint_names = tuple(j.name for j in self.movable_joints)
         self._joint_idx = {n: i for i, n in enumerate(self.joint_names)}
+        self._fk_last: tuple[bytes, dict[str, np.ndarray]] | None = None  # fk's last (q, poses)
         self.lower = np.array([j.lower for j in self.movable_joints], dtype=np.float64)
         self.upper = np.array([j.upper for j in self.movable_joints], dtype=np.float64)
         self.velocity_limits = np.array([j.velocity_limit for j in self.movable_joints], dtype=np.float64)
@@ -189,6 +190,12 @@ class Robot:
         q = np.asarray(q, dtype=np.float64)
         if q.shape != (len(self.joint_names),):
             raise ValueError(f"expected {len(self.joint_names)} joint positions {self.joint_names}, got {q.shape}")
+        # A robot that does not move its joints asks for the same q every step: the last result,
+        # as fresh copies (the caller owns what it gets).
+        key = q.tobytes()
+        last = self._fk_last
+        if last is not None and last[0] == key:
+            return {name: T.copy() for name, T in last[1].items()}
         out = {self.root: np.eye(4)}
         for j in self._fk_order:
             T = out[j.parent] @ j.T_parent_joint
@@ -201,6 +208,7 @@ class Robot:
                     motion[:3, :3] = _axis_angle(j.axis, qi)
                 T = T @ motion
             out[j.child] = T
+        self._fk_last = (key, {name: T.copy() for name, T in out.items()})
         return out
 
     def T_base_camera(self, q: np.ndarray | None = None, link_poses: dict[str, np.ndarray] | None = None) -> np.ndarray:

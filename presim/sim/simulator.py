@@ -84,6 +84,7 @@ class Simulator:
             robot = default_robot() if scene.floor is not None else free_camera_rig()
         self.scene, self.robot, self.config = scene, robot, config
         self.is_free = robot.drive == "free"
+        self._q_limits = (robot.lower.tolist(), robot.upper.tolist())
         name = scene.path.name if scene.path is not None else scene.meta.source
         self.scene_name = str(name)
         if not self.is_free and scene.floor is None:
@@ -222,8 +223,12 @@ class Simulator:
             for name, value in action.joint_targets.items():
                 self.q_target[self.robot.joint_index(name)] = float(value)
         if len(self.q):
-            self.q, self.qd = joint_position_step(self.q, self.q_target, self.robot.lower, self.robot.upper,
-                                                  self.robot.velocity_limits, dt)
+            q = self.q.tolist()
+            if q != self.q_target.tolist() or not all(lo <= x <= hi for x, lo, hi in zip(q, *self._q_limits)):
+                self.q, self.qd = joint_position_step(self.q, self.q_target, self.robot.lower, self.robot.upper,
+                                                      self.robot.velocity_limits, dt)
+            elif self.qd.any():  # at a target within the limits: the joints stand still (the same as a step of 0)
+                self.qd = np.zeros_like(self.q)
         self.step_idx += 1
         t1 = time.perf_counter()
         if self.is_free:

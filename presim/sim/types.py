@@ -118,6 +118,9 @@ def deliver(sinks: Iterable[Sink], result: StepResult) -> None:
     a Ctrl-C stops (MCAP, capture folder, rerun file) hold the same steps. Only signals with a
     Python handler are held back, and only in the main thread (elsewhere the sinks are just called
     in order)."""
+    sinks = list(sinks)
+    if not sinks:  # nothing to hand over (an environment without recorders)
+        return
     held = []
     if threading.current_thread() is threading.main_thread():
         held = [(sig, h) for sig in (signal.SIGINT, signal.SIGTERM)
