@@ -800,8 +800,8 @@ def filtered_composite_packed(depth_m: np.ndarray, color: np.ndarray, replace: n
 TILE_COLS = 8
 """Columns per tile of :func:`filtered_composite_banded` with ``replace`` (a run of tiles holding
 wanted pixels is one work item). With :data:`TILE_ROWS`, 8 x 8 tiles: a later view's crack pass
-inside 640x480 frames took 0.78x (apc capture) and 0.86x (sample scene) the time of 32 x 32 tiles
-(docs/synthesis.md, "Smaller crack tiles")."""
+inside 640x480 frames took 0.74x (apc capture) and 0.94x (sample scene) the time of 32 x 32 tiles,
+median (docs/synthesis.md, "Smaller crack tiles for later views")."""
 
 TILE_ROWS = 8
 """Rows per band of :func:`filtered_composite_banded` on tiles (whole-width bands keep
