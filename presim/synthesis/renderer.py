@@ -24,6 +24,7 @@ Frames are read from the scene's FrameSource only when a view is first needed.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import mmap
@@ -326,6 +327,12 @@ class RenderStats:
     """The selection was the previous frame's (temporal coherence)."""
     batch_views: list[list[int]] = field(default_factory=list)
     """After :meth:`Renderer.render_batch`: the views of every frame of the batch."""
+    frame_mode: str | None = None
+    """Frames that may run either on all numba threads or on one with views warped ahead
+    (``threads.FrameModeChooser``): ``"threads"`` or ``"ahead"``; None for other frames."""
+    frame_mode_chosen: bool = False
+    """``frame_mode`` came from the stream's chooser (False: the frame had no view to warp ahead and
+    used all threads; such frames are not timed for the choice)."""
 
 
 class _WarpCapture:
@@ -644,20 +651,16 @@ class Renderer:
         chooser = None
         if ahead and n_threads > 1:
             # Either way works here (all numba threads, or one thread + the helper): measured per
-            # stream and size (threads.FrameModeChooser; the images are the same).
+            # stream and size (threads.FrameModeChooser; the images are the same). The frame picks
+            # once it knows whether it has views to warp ahead (Renderer._render).
             chooser = stream.modes.get((K_in.width, K_in.height))
             if chooser is None:
                 chooser = stream.modes[(K_in.width, K_in.height)] = FrameModeChooser(("threads", "ahead"))
-            mode = chooser.pick()
-            if mode == "ahead":
-                n_threads = 1
-            else:
-                ahead = False
         t0 = time.perf_counter()
         with numba_threads(n_threads):
-            out, stats = self._render(T_world_cam, K_in, stream, scratch, ahead)
-        if chooser is not None:  # time spent preparing views (a cold cache) is not the way's
-            chooser.record(mode, (time.perf_counter() - t0) * 1e3 - stats.ms.get("load", 0.0))
+            out, stats = self._render(T_world_cam, K_in, stream, scratch, ahead, chooser)
+        if stats.frame_mode_chosen:  # time spent preparing views (a cold cache) is not the way's
+            chooser.record(stats.frame_mode, (time.perf_counter() - t0) * 1e3 - stats.ms.get("load", 0.0))
         if K_in is K:
             return out, stats
         t = time.perf_counter()
@@ -703,7 +706,10 @@ class Renderer:
         return sel
 
     def _render(self, T_world_cam: np.ndarray, K: Intrinsics, stream: _Stream, scratch: _Scratch,
-                ahead: bool = False) -> tuple[RGBD, RenderStats]:
+                ahead: bool = False, chooser: FrameModeChooser | None = None) -> tuple[RGBD, RenderStats]:
+        """One frame in the numba thread count the caller set. ``ahead``: later views may be warped
+        ahead on the helper thread; with ``chooser`` (the caller runs all numba threads), the frame
+        asks it after the selection whether to do so on one thread, or to use all threads."""
         t0 = time.perf_counter()
         T_cam_world = invert(T_world_cam)
         grids = FrameGrids(T_cam_world, K, self.grid_points)  # each grid projected once this frame
@@ -739,17 +745,25 @@ class Renderer:
         # a little draws mostly the same views again; presim/synthesis/warp_ahead.py). Handed over
         # now, the helper thread wakes while the first view is warped (without the GIL).
         jobs = self._warp_ahead_jobs(sel.view_idx, level_of, stream.views_drawn) if ahead else []
+        mode, chosen = None, False
+        if chooser is not None:
+            # Nothing to warp ahead: all threads, untimed (one thread would leave a core idle, and
+            # the frame says nothing about which way is faster).
+            mode, chosen = (chooser.pick(), True) if jobs else ("threads", False)
+            if mode != "ahead":
+                jobs = []
         if jobs:
             scratch.ahead.start(jobs, T_cam_world, K, near, crack=self._ahead_crack)
             scratch.workspace.ahead = scratch.ahead.take
         try:
-            res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
-                                   view_image, get_view, self.grid_points, scratch.workspace,
-                                   color_transform=self._color_transform,
-                                   blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
-                                   next_view=lambda ids, big, need, frac: grids.next_view(
-                                       ids, big, self._grid_zsrc_of, lambda v: float(self._src_focal[v]),
-                                       near, float(self.config.overlap_stride_px), need, frac))
+            with numba_threads(1) if mode == "ahead" else contextlib.nullcontext():
+                res = synthesize_frame(sel.view_idx, T_cam_world, K, self._frame_config,
+                                       view_image, get_view, self.grid_points, scratch.workspace,
+                                       color_transform=self._color_transform,
+                                       blend=self._blend_hook(T_world_cam, T_cam_world, K, sel.view_idx, scratch),
+                                       next_view=lambda ids, big, need, frac: grids.next_view(
+                                           ids, big, self._grid_zsrc_of, lambda v: float(self._src_focal[v]),
+                                           near, float(self.config.overlap_stride_px), need, frac))
         finally:
             if jobs:
                 scratch.ahead.stop()
@@ -758,7 +772,7 @@ class Renderer:
         stream.views_drawn = tuple(res.views)
         stats = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view,
                             ms=res.ms, skipped=res.skipped, lod_levels=[levels.get(v, 0) for v in res.views],
-                            reused_selection=reused)
+                            reused_selection=reused, frame_mode=mode, frame_mode_chosen=chosen)
         color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
         return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac), stats
 
