@@ -77,6 +77,44 @@ def test_fill_switches_from_telea_to_pushpull_above_two_percent():
                           fill_holes(color, depth, valid, "telea")[0])
 
 
+def test_telea_fill_runs_the_depth_pullpush_on_a_second_thread_with_the_same_result(monkeypatch):
+    """With numba threads to spare, the depth's pull-push runs on the fill's side thread while this
+    thread inpaints the colour; a serial thread (one-thread frames, render_batch's threads) keeps
+    both here. Same arrays either way."""
+    import threading
+
+    import numba
+
+    from presim.synthesis import fill as F
+    from presim.synthesis.threads import numba_threads, serial_kernels
+
+    rng = np.random.default_rng(3)
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
+    valid = _hole(10, 14, 20, 29)  # 1.2 % of the image: Telea
+    ran_on = []
+    orig = F.pushpull_rgbd
+
+    def spy(c, d, v):
+        ran_on.append(threading.current_thread().name)
+        return orig(c, d, v)
+
+    monkeypatch.setattr(F, "pushpull_rgbd", spy)
+    want = fill_holes(color, depth, valid, "auto", side_thread=False)
+    assert ran_on == [threading.current_thread().name]
+    assert numba.get_num_threads() >= 2  # the test machine and CI have 2 cores
+    got = fill_holes(color, depth, valid, "auto")
+    assert ran_on[-1].startswith("presim-fill")
+    for x, y in zip(got, want):
+        np.testing.assert_array_equal(x, y)
+    for ctx in (serial_kernels(), numba_threads(1)):
+        with ctx:
+            got = fill_holes(color, depth, valid, "auto")
+        assert ran_on[-1] == threading.current_thread().name
+        for x, y in zip(got, want):
+            np.testing.assert_array_equal(x, y)
+
+
 @pytest.mark.parametrize("method", ["telea", "pushpull", "auto"])
 def test_fill_respects_the_valid_mask(method):
     rng = np.random.default_rng(1)

@@ -19,17 +19,22 @@ Methods:
   pushpull, so a pose far outside the capture never stalls the frame loop.
 
 Depth is always filled by pull-push (smooth, cheap); its filled values are a plausible surface for a
-simulated sensor, never ground truth, which is why those pixels stay invalid.
+simulated sensor, never ground truth, which is why those pixels stay invalid. With Telea, the
+depth's pull-push runs on a second thread while Telea fills the colour (``fill_holes(side_thread=)``:
+the frame's fill stage 1.2-1.3x faster on 640x480 frames of the sample scene and TUM, 2026-12-03).
 """
 
 from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numba as nb
 import numpy as np
 
 from presim.synthesis.telea import telea_inpaint
-from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
+from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel, serial_kernels, serial_now
 
 __all__ = ["FILL_METHODS", "FILL_KERNELS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
 
@@ -214,8 +219,26 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     return out_c, out_d
 
 
+_side_lock = threading.Lock()
+_side: list[ThreadPoolExecutor] = []
+
+
+def _side_thread() -> ThreadPoolExecutor:
+    """The one thread that fills a frame's depth while the calling thread inpaints its colour."""
+    with _side_lock:
+        if not _side:
+            _side.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="presim-fill"))
+        return _side[0]
+
+
+def _depth_pushpull_serial(depth_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    with serial_kernels():  # the calling thread's Telea runs on the other core
+        return pushpull_rgbd(None, depth_m, valid)[1]
+
+
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
-               telea_max_hole_frac: float = 0.02, kernel: str = "numba") -> tuple[np.ndarray, np.ndarray]:
+               telea_max_hole_frac: float = 0.02, kernel: str = "numba", side_thread: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Fill color and depth where ``valid`` is False.
 
     Args:
@@ -224,6 +247,10 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
         telea_max_hole_frac: hole fraction above which ``"auto"`` switches to pull-push.
         kernel: implementation, one of :data:`FILL_KERNELS`: ``"numba"`` (Telea and pull-push in
             numba) or ``"opencv"`` (``cv2.inpaint`` and :func:`pushpull_fill`); see the module doc.
+        side_thread: Telea with the numba kernel is sequential: meanwhile the depth's pull-push runs
+            on a second thread (serial kernels), unless this thread already runs serial kernels (a
+            frame on one thread, :meth:`~presim.synthesis.renderer.Renderer.render_batch`'s frame
+            threads) or numba has one thread. Same result either way (tested).
     Returns:
         New ``(color, depth_m)``; unchanged copies when nothing is missing or nothing is known.
     """
@@ -239,6 +266,15 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
         method = "telea" if n_hole / holes.size <= telea_max_hole_frac else "pushpull"
     if method == "telea":
         if kernel == "numba":
+            if side_thread and not serial_now() and nb.get_num_threads() > 1:
+                # Telea (sequential) here, the depth's pull-push on the other core meanwhile (the
+                # two read different arrays and write new ones)
+                depth = _side_thread().submit(_depth_pushpull_serial, depth_m, valid)
+                try:
+                    color_f = telea_inpaint(color, holes, 3)
+                finally:
+                    depth_f = depth.result()
+                return color_f, depth_f
             return telea_inpaint(color, holes, 3), pushpull_rgbd(None, depth_m, valid)[1]
         return cv2.inpaint(color, holes.view(np.uint8), 3, cv2.INPAINT_TELEA), pushpull_fill(depth_m, valid)
     if kernel == "numba":
