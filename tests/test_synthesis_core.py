@@ -4,6 +4,7 @@ adaptive loop with a scripted backend, the backend table, and the one z-buffer s
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import cv2
 import numpy as np
@@ -113,6 +114,38 @@ def test_telea_fill_runs_the_depth_pullpush_on_a_second_thread_with_the_same_res
         assert ran_on[-1] == threading.current_thread().name
         for x, y in zip(got, want):
             np.testing.assert_array_equal(x, y)
+
+
+def _fill_in_child(conn, color, depth, valid) -> None:  # pragma: no cover - runs in a forked child
+    got = fill_holes(color, depth, valid, "auto")
+    conn.send([np.asarray(a) for a in got])
+    conn.close()
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_telea_fill_side_thread_survives_a_fork():
+    """A process forked after the side thread started gets a thread of its own (the parent's is
+    not copied); its fill must not wait forever for the parent's."""
+    import multiprocessing as mp
+
+    rng = np.random.default_rng(4)
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
+    valid = _hole(10, 14, 20, 29)
+    want = fill_holes(color, depth, valid, "auto")  # starts the side thread here
+    ctx = mp.get_context("fork")
+    a, b = ctx.Pipe(duplex=False)
+    p = ctx.Process(target=_fill_in_child, args=(b, color, depth, valid))
+    p.start()
+    try:
+        assert a.poll(60), "the forked child's fill did not finish"
+        got = a.recv()
+    finally:
+        p.join(10)
+        if p.is_alive():
+            p.kill()
+    for x, y in zip(got, want):
+        np.testing.assert_array_equal(x, y)
 
 
 @pytest.mark.parametrize("method", ["telea", "pushpull", "auto"])

@@ -26,6 +26,7 @@ the frame's fill stage 1.2-1.3x faster on 640x480 frames of the sample scene and
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -229,6 +230,18 @@ def _side_thread() -> ThreadPoolExecutor:
         if not _side:
             _side.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="presim-fill"))
         return _side[0]
+
+
+def _after_fork_in_child() -> None:
+    # A forked child has no copy of the thread (and maybe a lock taken by another thread): its
+    # first Telea fill starts a thread of its own instead of queueing work for one that is gone.
+    global _side_lock
+    _side_lock = threading.Lock()
+    _side.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def _depth_pushpull_serial(depth_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
