@@ -220,6 +220,35 @@ def test_prepare_view_numba_matches_reference(L):
     assert len(empty.xyz_world) == 0 and empty.depth_range_m == (0.0, 0.0) and empty.num_layers == L
 
 
+def test_prepare_view_layers_at_the_layer_boundaries_match_the_reference():
+    """Depths on and one float32 step beside every layer boundary (the numba kernel keeps each pixel's
+    layer from its counting pass and takes the column / row divisions once): same layer split, same
+    colours in the same order as the reference, and points within float32 rounding."""
+    from presim.synthesis.warp import prepare_view_ref
+
+    K = Intrinsics(40.0, 40.0, 11.5, 7.5, 24, 16)
+    lo, hi, L = 1.0, 3.0, 4
+    edges = [lo + (hi - lo) * k / L for k in range(L + 1)]
+    vals = []
+    for e in edges:
+        e32 = np.float32(e)
+        vals += [e32, np.nextafter(e32, np.float32(0)), np.nextafter(e32, np.float32(np.inf))]
+    vals = np.clip(np.array(vals, np.float32), np.float32(lo), np.float32(hi))
+    rng = np.random.default_rng(5)
+    depth = rng.choice(vals, size=(16, 24)).astype(np.float32)
+    depth[0, 0], depth[-1, -1] = lo, hi  # the range is exactly [lo, hi]
+    depth[3, ::4] = 0.0
+    depth[5, 7] = np.inf
+    color = rng.integers(0, 256, (16, 24, 3), dtype=np.uint8)
+    T = look_at((0.2, -1.0, 1.1), (0.0, 0.5, 0.4))
+    a = prepare_view(color, depth, K, T, L)
+    b = prepare_view_ref(color, depth, K, T, L)
+    np.testing.assert_array_equal(a.layer_start, b.layer_start)
+    np.testing.assert_array_equal(a.rgb, b.rgb)
+    np.testing.assert_allclose(a.xyz_world, b.xyz_world, rtol=0, atol=1e-6)
+    assert (np.diff(a.layer_start) > 0).all()  # every layer met
+
+
 @pytest.mark.parametrize("L,density,band", [(1, 0.6, 16), (2, 0.55, 3), (4, 0.35, 32), (8, 0.6, 1), (4, 0.5, 7)])
 def test_banded_composite_matches_packed_and_reference(L, density, band):
     """The row-band fusion of the crack pass = the three-kernel packed chain = the numpy reference

@@ -90,51 +90,67 @@ def pool_depth_aware_ref(depth_m: np.ndarray, color: np.ndarray, depth_tol: floa
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _pool_row(d, c, tol, dout, cout, i):  # pragma: no cover
-    # Row i of the pooled level (see pool_depth_aware_ref).
+    # Row i of the pooled level (see pool_depth_aware_ref). The depth is summed in float64 in the
+    # reference's order; the colour in integers, rounded as the reference's floor(sum / n + 0.5):
+    # for n = 1, 2, 4 that is (2 sum + n) // (2 n) exactly, and for n = 3 too (sum / 3 + 0.5 lies
+    # at least 1/6 from an integer, far beyond float64 rounding).
     W2 = dout.shape[1]
+    da = d[2 * i]
+    db = d[2 * i + 1]
+    ca = c[2 * i]
+    cb = c[2 * i + 1]
+    one_tol = 1.0 + tol
     for j in range(W2):
+        z0 = da[2 * j]
+        z1 = da[2 * j + 1]
+        z2 = db[2 * j]
+        z3 = db[2 * j + 1]
         dmin = np.inf
-        for a in range(2):
-            for b in range(2):
-                z = d[2 * i + a, 2 * j + b]
-                if z > 0 and z < dmin:
-                    dmin = z
+        if z0 > 0 and z0 < dmin:
+            dmin = z0
+        if z1 > 0 and z1 < dmin:
+            dmin = z1
+        if z2 > 0 and z2 < dmin:
+            dmin = z2
+        if z3 > 0 and z3 < dmin:
+            dmin = z3
         if not (dmin < np.inf):
             dout[i, j] = 0.0
             cout[i, j, 0] = 0
             cout[i, j, 1] = 0
             cout[i, j, 2] = 0
             continue
-        lim = np.float64(dmin) * (1.0 + tol)
+        lim = np.float64(dmin) * one_tol
+        if z0 <= lim and z1 <= lim and z2 <= lim and z3 <= lim and z0 > 0 and z1 > 0 and z2 > 0 and z3 > 0:
+            # all four pixels (most blocks on a surface)
+            sd = ((np.float64(z0) + np.float64(z1)) + np.float64(z2)) + np.float64(z3)
+            dout[i, j] = np.float32(sd * 0.25)
+            for k in range(3):
+                s = (np.int64(ca[2 * j, k]) + np.int64(ca[2 * j + 1, k]) + np.int64(cb[2 * j, k])
+                     + np.int64(cb[2 * j + 1, k]))
+                cout[i, j, k] = np.uint8((s + 2) >> 2)
+            continue
         n = 0
         sd = 0.0
-        # colour sums in integers: exact, so the same float64 as summing the values as floats
-        i0 = 0
-        i1 = 0
-        i2 = 0
+        s0 = 0
+        s1 = 0
+        s2 = 0
         for a in range(2):
             for b in range(2):
                 z = d[2 * i + a, 2 * j + b]
                 if z > 0 and z <= lim:
                     n += 1
                     sd += np.float64(z)
-                    i0 += np.int64(c[2 * i + a, 2 * j + b, 0])
-                    i1 += np.int64(c[2 * i + a, 2 * j + b, 1])
-                    i2 += np.int64(c[2 * i + a, 2 * j + b, 2])
-        s0 = np.float64(i0)
-        s1 = np.float64(i1)
-        s2 = np.float64(i2)
+                    s0 += np.int64(c[2 * i + a, 2 * j + b, 0])
+                    s1 += np.int64(c[2 * i + a, 2 * j + b, 1])
+                    s2 += np.int64(c[2 * i + a, 2 * j + b, 2])
         if n == 3:
             dout[i, j] = np.float32(sd / 3.0)
-            cout[i, j, 0] = np.uint8(np.floor(s0 / 3.0 + 0.5))
-            cout[i, j, 1] = np.uint8(np.floor(s1 / 3.0 + 0.5))
-            cout[i, j, 2] = np.uint8(np.floor(s2 / 3.0 + 0.5))
-        else:  # n = 1, 2, 4: x * (1 / n) = x / n exactly (a power of two), without four divisions
-            inv = 1.0 if n == 1 else (0.5 if n == 2 else 0.25)
-            dout[i, j] = np.float32(sd * inv)
-            cout[i, j, 0] = np.uint8(np.floor(s0 * inv + 0.5))
-            cout[i, j, 1] = np.uint8(np.floor(s1 * inv + 0.5))
-            cout[i, j, 2] = np.uint8(np.floor(s2 * inv + 0.5))
+        else:  # n = 1, 2: x * (1 / n) = x / n exactly (a power of two)
+            dout[i, j] = np.float32(sd * (1.0 if n == 1 else 0.5))
+        cout[i, j, 0] = np.uint8((2 * s0 + n) // (2 * n))
+        cout[i, j, 1] = np.uint8((2 * s1 + n) // (2 * n))
+        cout[i, j, 2] = np.uint8((2 * s2 + n) // (2 * n))
 
 
 @parallel_kernel(cache=True, error_model="numpy")

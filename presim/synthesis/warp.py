@@ -273,6 +273,9 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: views are also prepared in a background thread
 def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no cover
+    # Three passes: the depth range; each pixel's layer (kept, num_layers = invalid) and the layer
+    # counts; the points, written at their layer's next slot. The divisions by fx / fy are taken
+    # once per column / row: (u - cx) / fx * z is the same float64 arithmetic as per pixel.
     H, W = depth.shape
     n = 0
     lo = np.inf
@@ -287,37 +290,46 @@ def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no 
                 hi = max(hi, dd)
     counts = np.zeros(num_layers, np.int64)
     span = hi - lo
-    if n:
-        for v in range(H):
-            for u in range(W):
-                d = depth[v, u]
-                if np.isfinite(d) and d > 0:
-                    layer = 0
-                    if span > 0:
-                        layer = min(np.int64((np.float64(d) - lo) / span * num_layers), num_layers - 1)
-                    counts[layer] += 1
+    lay = np.empty((H, W), np.int32)
+    for v in range(H):
+        for u in range(W):
+            d = depth[v, u]
+            layer = num_layers
+            if np.isfinite(d) and d > 0:
+                layer = 0
+                if span > 0:
+                    layer = min(np.int64((np.float64(d) - lo) / span * num_layers), num_layers - 1)
+                counts[layer] += 1
+            lay[v, u] = layer
     start = np.zeros(num_layers + 1, np.int64)
     for layer in range(num_layers):
         start[layer + 1] = start[layer] + counts[layer]
     pos = start[:num_layers].copy()
     xyz = np.empty((n, 3), np.float32)
     rgb = np.empty((n, 3), np.uint8)
+    x_of_u = np.empty(W, np.float64)
+    for u in range(W):
+        x_of_u[u] = (np.float64(u) - cx) / fx
+    t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]  # scalars: kept in registers
+    t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
     for v in range(H):
+        y_of_v = (np.float64(v) - cy) / fy
         for u in range(W):
-            d = depth[v, u]
-            if not (np.isfinite(d) and d > 0):
+            layer = lay[v, u]
+            if layer == num_layers:
                 continue
-            z = np.float64(d)
-            layer = 0
-            if span > 0:
-                layer = min(np.int64((z - lo) / span * num_layers), num_layers - 1)
-            x = (np.float64(u) - cx) / fx * z
-            y = (np.float64(v) - cy) / fy * z
+            z = np.float64(depth[v, u])
+            x = x_of_u[u] * z
+            y = y_of_v * z
             i = pos[layer]
             pos[layer] = i + 1
-            for k in range(3):
-                xyz[i, k] = np.float32(x * T[k, 0] + y * T[k, 1] + z * T[k, 2] + T[k, 3])
-                rgb[i, k] = color[v, u, k]
+            xyz[i, 0] = np.float32(x * t00 + y * t01 + z * t02 + t03)
+            xyz[i, 1] = np.float32(x * t10 + y * t11 + z * t12 + t13)
+            xyz[i, 2] = np.float32(x * t20 + y * t21 + z * t22 + t23)
+            rgb[i, 0] = color[v, u, 0]
+            rgb[i, 1] = color[v, u, 1]
+            rgb[i, 2] = color[v, u, 2]
     return xyz, rgb, start, lo, hi
 
 
