@@ -13,6 +13,8 @@ Cases (only APIs both trees have):
 - ``pointnav``: ``PointNavEnv(scene)`` (128x96 default), random seeded actions, after ``--warm``
   steps (new views are still prepared on the way: a robot keeps discovering views);
 - ``vector``: ``PointNavVectorEnv(scene, 8)`` with the numba backend, per env-step;
+- ``prepare:LEVEL``: one view prepared at pyramid level LEVEL, as on a view-cache miss
+  (``Renderer._build_view``: load, pool, back-project, chunk bounds), the scene's frames in turn;
 - ``drive``: the simulator with one 640x480 camera at 10 Hz and the default robot on the built-in
   seeded route (``presim demo``'s drive loop without sinks).
 
@@ -64,6 +66,16 @@ if case.startswith("render:"):
         r.render(p, K)
     for p in poses:
         timed(lambda: r.render(p, K))
+elif case.startswith("prepare:"):
+    # one view prepared at a level of detail (the work of a view-cache miss), every frame in turn
+    from presim.synthesis.renderer import RenderConfig, Renderer
+    level = int(case.split(":")[1])
+    r = Renderer(scene, RenderConfig())
+    for i in range(len(scene)):
+        r.grid_points(i)  # the grids are kept apart from the views: not part of a miss
+    r._build_view(0, level)
+    for k in range(n):
+        timed(lambda: r._build_view(k % len(scene), level))
 elif case == "pointnav":
     from presim.sim.envs import PointNavEnv
     env = PointNavEnv(scene); env.reset(seed=0)
