@@ -2,8 +2,8 @@
 
 Each measurement runs in a child process that imports ``presim`` from one tree (``--base``, e.g.
 an exported copy of the base commit: ``git archive COMMIT | tar -x -C out/base``, or this tree);
-children alternate base, new, base, new ... (``--repeats`` pairs), so load changes on a shared
-machine hit both. Reported per case: median CPU ms per frame / step (process time, all threads)
+children alternate in ABBA order (base, new, new, base, ...; ``--repeats`` pairs), so load
+changes and a drifting machine speed hit both. Reported per case: median CPU ms per frame / step (process time, all threads)
 and wall ms, the mean wall ms (total time / count: the throughput, which counts the steps that
 stall on a view the robot meets for the first time; a median hides them), and the ratio base / new.
 Cases (only APIs both trees have):
@@ -131,8 +131,12 @@ def main() -> int:
     res: dict[str, dict] = {}
     for case in args.cases.split(","):
         runs: dict[str, dict[str, list]] = {k: {"cpu_ms": [], "wall_ms": []} for k in trees}
-        for _ in range(args.repeats):
-            for name, tree in trees.items():
+        for rep in range(args.repeats):
+            # ABBA order (base, new, new, base, ...): a linear drift of the machine's speed hits both
+            # trees alike; with ABAB the new tree always ran one slot later (2026-12-03: two ABAB
+            # runs of the same two trees with their roles swapped measured 0.92x and 1.07x).
+            order = list(trees.items()) if rep % 2 == 0 else list(trees.items())[::-1]
+            for name, tree in order:
                 code = (CHILD.replace("TREE", repr(tree)).replace("SCENE", repr(args.scene))
                         .replace("CASE", repr(case)).replace("WARM", str(args.warm)).replace("NFRAMES", str(args.n)))
                 env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
