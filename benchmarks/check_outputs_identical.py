@@ -64,7 +64,7 @@ EXTRA: dict = {}
 
 
 def _render_scene(tag: str, scene, pairs, out: dict) -> None:
-    from presim.synthesis.renderer import RenderConfig, Renderer
+    from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
     K = scene.intrinsics[0]
     poses = _midpoints(scene.T_world_cam, pairs)
@@ -100,8 +100,8 @@ def _render_scene(tag: str, scene, pairs, out: dict) -> None:
     # torch (CPU) and reference backends on a small target (the reference loops in Python).
     for backend in ("torch", "reference"):
         try:
-            r = Renderer(scene, RenderConfig(backend=backend, torch_device="cpu" if backend == "torch" else None,
-                                             max_views=3, max_zoom=100.0, **EXTRA))
+            r = Renderer(scene, RenderConfig(max_views=3, max_zoom=100.0, **EXTRA),
+                         PerfConfig(backend=backend, torch_device="cpu" if backend == "torch" else None))
         except ImportError as e:  # torch not installed
             print(f"{tag}: {backend} skipped ({e})")
             continue

@@ -34,13 +34,11 @@ def register(sub) -> None:
     p.add_argument("--raw-depth", action="store_true", help="ignore the scene's refined depth")
     p.add_argument("--fused-depth", action="store_true",
                    help="use the scene's fused depth (presim fuse) instead of the refined depth")
-    p.add_argument("--backend", default="numba", choices=("numba", "torch", "torch_batch", "reference"),
-                   help="kernel backend (default numba); torch_batch renders --batch-size poses per call "
-                        "(CUDA when present, else CPU; each frame from its first 3 selected views, no "
-                        "adaptive loop)")
+    p.add_argument("--backend", default="numba", choices=("numba", "torch", "reference"),
+                   help="kernel backend (default numba; torch runs on CUDA when present, else CPU)")
     p.add_argument("--batch-size", type=int, default=16,
-                   help="poses per batch (default 16): one torch_batch call, or with numba the frames of a "
-                        "batch spread over numba's threads (each frame as if rendered alone)")
+                   help="poses per Renderer.render_batch call; pose i continues the camera stream of pose "
+                        "i - batch size (default 16)")
     p.add_argument("--min-view-gain", type=float, default=None, metavar="F",
                    help="adaptive loop: warp a further view only when it is predicted to fill at least this "
                         "fraction of the image (default 0.005; 0 = the thesis's loop, every view that can fill "
@@ -57,7 +55,7 @@ def _main(args: argparse.Namespace) -> int:
     from presim.geometry import pose_from_tum
     from presim.limits import check_intrinsics, check_positive_int
     from presim.synthesis.render_job import output_intrinsics, render_to_folder
-    from presim.synthesis.renderer import RenderConfig
+    from presim.synthesis.renderer import PerfConfig, RenderConfig
 
     check_intrinsics(args.width, args.height, args.fx, args.fy, args.cx, args.cy)
     check_positive_int(args.layers, "--layers", allow_none=False)
@@ -91,13 +89,13 @@ def _main(args: argparse.Namespace) -> int:
             raise ValueError(f"--min-view-gain must be in [0, 1), got {args.min_view_gain}")
         gain = {"min_view_gain": args.min_view_gain}
     config = RenderConfig(num_layers=args.layers, fill_holes=not args.no_fill,
-                          use_refined_depth=not args.raw_depth, backend=args.backend,
-                          use_fused_depth=args.fused_depth, **gain)
+                          use_refined_depth=not args.raw_depth, use_fused_depth=args.fused_depth, **gain)
     K = output_intrinsics(scene.intrinsics[0], args.width, args.height, args.fx, args.fy, args.cx, args.cy)
     from presim.limits import check_render_memory
 
     check_render_memory(K.width, K.height, args.layers, args.max_memory)
-    s = render_to_folder(scene, T, stamps, K, args.out, config, batch_size=args.batch_size)
+    s = render_to_folder(scene, T, stamps, K, args.out, config, batch_size=args.batch_size,
+                         perf=PerfConfig(backend=args.backend))
     print(f"wrote {s['num_frames']} frame(s) to {args.out} ({K.width}x{K.height}, "
           f"median {s['ms_per_frame_median']:.1f} ms/frame, mean hole fraction before fill "
           f"{np.mean(s['hole_frac_before_fill']):.4f})")

@@ -31,12 +31,12 @@ from presim.sim.controllers import Action, BaseLimits, joint_position_step, limi
 from presim.sim.occupancy import OccupancyConfig, OccupancyMap, build_occupancy_map, move_base
 from presim.sim.robot import Robot, default_robot, free_camera_rig
 from presim.sim.types import CameraObservation, JointStates, Odometry, SimInfo, Sink, StepResult, deliver
-from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
 __all__ = ["SIM_RENDER_CACHE_MB", "SimConfig", "Simulator", "Action"]
 
 SIM_RENDER_CACHE_MB = 160.0
-"""Default bound of the simulator renderer's per-view point cache (MiB; ``RenderConfig.cache_mb``,
+"""Default bound of the simulator renderer's per-view point cache (MiB; ``PerfConfig.cache_mb``,
 1024 elsewhere). A robot's camera needs a few nearby views per frame; an evicted view is prepared
 again in ~9 ms (640x480), so a small bound keeps a 100-frame VGA capture's simulator near 400 MB
 (benchmarks/bench_memory.py, docs/simulator.md "Memory") at little cost. The images do not depend
@@ -58,9 +58,10 @@ class SimConfig:
     """Occupancy map (collision) parameters."""
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     """Odometry drift model (off by default)."""
-    render: RenderConfig = field(default_factory=lambda: RenderConfig(cache_mb=SIM_RENDER_CACHE_MB))
-    """View synthesis engine settings (default: ``RenderConfig()`` with the per-view point cache
-    bounded at :data:`SIM_RENDER_CACHE_MB`)."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """View synthesis algorithm (what the images look like)."""
+    perf: PerfConfig = field(default_factory=lambda: PerfConfig(cache_mb=SIM_RENDER_CACHE_MB))
+    """How the renderer runs (default: the per-view point cache bounded at :data:`SIM_RENDER_CACHE_MB`)."""
     start_clearance_m: float = 0.10
     """Random start poses keep at least this much space around the footprint."""
     max_view_distance_m: float = 1.0
@@ -101,7 +102,7 @@ class Simulator:
             self.points = fuse_point_cloud(scene)
         else:
             self.points = scene.points
-        self.renderer = renderer if renderer is not None else Renderer(scene, config.render)
+        self.renderer = renderer if renderer is not None else Renderer(scene, config.render, config.perf)
         self.occupancy: OccupancyMap | None = None
         if not self.is_free:
             self.occupancy = build_occupancy_map(self.points.xyz, scene.floor, robot.height_m,

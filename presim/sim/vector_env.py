@@ -4,11 +4,7 @@
 loaded scene and ONE :class:`~presim.synthesis.renderer.Renderer` (per-view caches are shared, so
 memory does not grow with N beyond the robots' occupancy maps and observations). Each step moves
 all N robots (control, collision, odometry: per env, cheap), then renders the N head cameras with
-one :meth:`Renderer.render_batch` call: on ``backend="torch_batch"`` (the default when CUDA is
-present; pass ``render=RenderConfig(backend="torch_batch")`` to force it on CPU) that is one batch
-of tensor operations; with another backend (``"numba"``, the default without CUDA) the N frames are
-rendered by the per-frame core, spread over ``RenderConfig.batch_threads`` threads (auto: numba's
-thread count) that run the serial, GIL-free twins of the kernels. Each env is its own camera stream
+one :meth:`Renderer.render_batch` call, one frame after another. Each env is its own camera stream
 (the selection reuse of ``reuse_move_m`` applies per robot), so every env's images equal those of a
 single env stepped alone.
 
@@ -41,7 +37,6 @@ after an episode ended resets that env and returns its first observation with re
 
 from __future__ import annotations
 
-import dataclasses
 import multiprocessing
 import os
 import traceback
@@ -54,20 +49,9 @@ from gymnasium.vector.utils import batch_space
 from presim.capture.scene import Scene
 from presim.sim.envs import PointNavConfig, PointNavEnv, _load
 from presim.sim.simulator import SIM_RENDER_CACHE_MB
-from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
-__all__ = ["default_batch_backend", "PointNavVectorEnv", "WorkerError"]
-
-
-def default_batch_backend() -> str:
-    """``"torch_batch"`` when torch sees a CUDA device, else ``"numba"`` (the per-frame core, frames
-    on threads: on the 2-core test machine it was faster than torch's CPU batch, see
-    docs/synthesis.md)."""
-    try:
-        import torch
-    except ImportError:  # pragma: no cover - torch is part of the install
-        return "numba"
-    return "torch_batch" if torch.cuda.is_available() else "numba"
+__all__ = ["PointNavVectorEnv", "WorkerError"]
 
 
 class PointNavVectorEnv(VectorEnv):
@@ -77,9 +61,9 @@ class PointNavVectorEnv(VectorEnv):
 
     def __init__(self, scene: str | Path | Scene, num_envs: int = 8, discrete: bool = False, width: int = 128,
                  height: int = 96, config: PointNavConfig | None = None, render: RenderConfig | None = None,
-                 workers: int = 0):
-        """Args (besides the single env's): ``num_envs`` robots; ``render``: the shared renderer's
-        config (default: :func:`default_batch_backend`, cache bounded by ``SIM_RENDER_CACHE_MB``);
+                 workers: int = 0, perf: PerfConfig | None = None):
+        """Args (besides the single env's): ``num_envs`` robots; ``render`` / ``perf``: the shared
+        renderer's configs (default: ``RenderConfig()``, the cache bounded by ``SIM_RENDER_CACHE_MB``);
         ``workers``: 0 or 1 = all robots in this process, W >= 2 = split over W worker processes
         (at most ``num_envs``; see the module doc). ``renderer`` and ``envs`` are None then."""
         if num_envs < 1:
@@ -90,20 +74,19 @@ class PointNavVectorEnv(VectorEnv):
         if cfg.depth_noise:
             raise ValueError("PointNavVectorEnv: depth_noise is not supported (use PointNavEnv)")
         scene_obj = _load(scene)  # also in the workers' case: a bad scene fails here, in this process
-        rcfg = render or RenderConfig(backend=default_batch_backend(), cache_mb=SIM_RENDER_CACHE_MB)
+        rcfg = render or RenderConfig()
+        pcfg = perf or PerfConfig(cache_mb=SIM_RENDER_CACHE_MB)
         self.num_envs = num_envs
         self.workers = min(workers, num_envs) if workers > 1 else 0
         self._pool: _WorkerPool | None = None
         if self.workers:
-            # each worker renders its robots one after another on one thread (the cores are the workers')
-            wcfg = dataclasses.replace(rcfg, batch_threads=1) if rcfg.backend != "torch_batch" else rcfg
             self.renderer = None
             self.envs = None
             self._pool = _WorkerPool(scene if isinstance(scene, Scene) else str(Path(scene).resolve()), num_envs,
-                                     (discrete, width, height, cfg, wcfg), self.workers)
+                                     (discrete, width, height, cfg, rcfg, pcfg), self.workers)
             self.single_observation_space, self.single_action_space, self.K = self._pool.spaces
         else:
-            self.renderer = Renderer(scene_obj, rcfg)
+            self.renderer = Renderer(scene_obj, rcfg, pcfg)
             self.envs = [PointNavEnv(scene_obj, discrete, width, height, cfg, render_camera=False,
                                      renderer=self.renderer) for _ in range(num_envs)]
             self.K = self.envs[0].camera_K
@@ -184,7 +167,7 @@ def _worker_main(conn, scene, n: int, env_args: tuple, numba_threads: int) -> No
         import numba
 
         numba.set_num_threads(max(1, min(numba_threads, numba.config.NUMBA_NUM_THREADS)))
-        venv = PointNavVectorEnv(scene, n, *env_args, workers=0)
+        venv = PointNavVectorEnv(scene, n, *env_args[:5], workers=0, perf=env_args[5])
         conn.send(("ok", (venv.single_observation_space, venv.single_action_space, venv.K)))
     except BaseException:  # noqa: BLE001 - reported to the main process, which raises it
         conn.send(("error", traceback.format_exc()))

@@ -44,7 +44,7 @@ import numpy as np
 
 from presim.geometry import Intrinsics
 from presim.synthesis.threads import parallel_kernel
-from presim.synthesis.warp import _FASTMATH as _WARP_FASTMATH
+from presim.synthesis.warp import FASTMATH as WARP_FASTMATH
 
 __all__ = ["BlendConfig", "BlendInput", "feather_map", "feather_box", "coverage_counts",
            "front_image_points", "front_of_layers", "blend_reference",
@@ -151,9 +151,9 @@ def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: flo
                        np.float32(K.cy), np.float32(near_m), depth_out, color_out.transpose(2, 0, 1))
 
 
-@nb.njit(fastmath=_WARP_FASTMATH, cache=True, nogil=True, error_model="numpy")  # the warp kernel's flags: bit-equal projections
+@nb.njit(fastmath=WARP_FASTMATH, cache=True, nogil=True, error_model="numpy")  # the warp kernel's flags: bit-equal projections
 def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
-    # Same arithmetic as presim.synthesis.warp._warp_layers_kernel with one layer (tested equal);
+    # Same arithmetic as presim.synthesis.warp.warp_layers_kernel with one layer (tested equal);
     # colours into the planes cbuf (3, H, W).
     H, W = zbuf.shape
     zbuf[:] = 0.0

@@ -4,43 +4,33 @@ The filled pixels stay ``valid=False`` in the RGBD mask; the Renderer can skip t
 (``RenderConfig(fill_holes=False)``).
 
 Methods:
-- ``"telea"``: fast-marching inpainting (Telea 2004) of the color, radius 3 px. Best on small and
-  thin holes (sharp continuation of edges), but its cost grows with the hole area.
-  ``kernel="numba"`` (default) runs :func:`presim.synthesis.telea.telea_inpaint`, equal to
-  ``cv2.inpaint(..., INPAINT_TELEA)`` pixel for pixel and 1.5-3.5x faster on rendered frames;
-  ``kernel="opencv"`` runs ``cv2.inpaint`` itself.
+- ``"telea"``: fast-marching inpainting (Telea 2004) of the colour, radius 3 px
+  (:func:`presim.synthesis.telea.telea_inpaint`, equal to ``cv2.inpaint(..., INPAINT_TELEA)`` pixel
+  for pixel and 1.5-3.5x faster). Best on small and thin holes; its cost grows with the hole area.
 - ``"pushpull"``: pull-push pyramid interpolation (Gortler et al. 1996): average the known pixels
   down a 2x pyramid, then blend coarse estimates back up into the unknown pixels. A fixed cost per
-  pixel whatever the hole size, smooth (blurry) inside large holes. ``kernel="numba"`` (default,
-  :func:`pushpull_rgbd`) does the two full-size steps in numba, reading the uint8 colour and the
-  depth directly and writing only the unknown pixels; ``kernel="opencv"`` is :func:`pushpull_fill`
-  alone (float copies of the whole image first). Both give the same result up to float rounding.
+  pixel whatever the hole size, smooth inside large holes. :func:`pushpull_rgbd` runs the two
+  full-size steps in numba; :func:`pushpull_fill` is its reference (OpenCV resizes throughout,
+  equal up to float rounding).
 - ``"auto"`` (default): telea while holes are below ``telea_max_hole_frac`` of the image, else
   pushpull, so a pose far outside the capture never stalls the frame loop.
 
-Depth is always filled by pull-push (smooth, cheap); its filled values are a plausible surface for a
-simulated sensor, never ground truth, which is why those pixels stay invalid. With Telea, the
-depth's pull-push runs on a second thread while Telea fills the colour (``fill_holes(side_thread=)``:
-the frame's fill stage 1.2-1.3x faster on 640x480 frames of the sample scene and TUM, 2026-12-03).
+Depth is always filled by pull-push; its filled values are a plausible surface for a simulated
+sensor, never ground truth, which is why those pixels stay invalid.
 """
 
 from __future__ import annotations
-
-import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numba as nb
 import numpy as np
 
 from presim.synthesis.telea import telea_inpaint
-from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel, serial_kernels, serial_now
+from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
-__all__ = ["FILL_METHODS", "FILL_KERNELS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
+__all__ = ["FILL_METHODS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
 
 FILL_METHODS = ("auto", "telea", "pushpull")
-FILL_KERNELS = ("numba", "opencv")
 
 
 def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -220,57 +210,19 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     return out_c, out_d
 
 
-_side_lock = threading.Lock()
-_side: list[ThreadPoolExecutor] = []
-
-
-def _side_thread() -> ThreadPoolExecutor:
-    """The one thread that fills a frame's depth while the calling thread inpaints its colour."""
-    with _side_lock:
-        if not _side:
-            _side.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="presim-fill"))
-        return _side[0]
-
-
-def _after_fork_in_child() -> None:
-    # A forked child has no copy of the thread (and maybe a lock taken by another thread): its
-    # first Telea fill starts a thread of its own instead of queueing work for one that is gone.
-    global _side_lock
-    _side_lock = threading.Lock()
-    _side.clear()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_after_fork_in_child)
-
-
-def _depth_pushpull_serial(depth_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    with serial_kernels():  # the calling thread's Telea runs on the other core
-        return pushpull_rgbd(None, depth_m, valid)[1]
-
-
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
-               telea_max_hole_frac: float = 0.02, kernel: str = "numba", side_thread: bool = True
-               ) -> tuple[np.ndarray, np.ndarray]:
+               telea_max_hole_frac: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """Fill color and depth where ``valid`` is False.
 
     Args:
         color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W).
         method: one of :data:`FILL_METHODS`.
         telea_max_hole_frac: hole fraction above which ``"auto"`` switches to pull-push.
-        kernel: implementation, one of :data:`FILL_KERNELS`: ``"numba"`` (Telea and pull-push in
-            numba) or ``"opencv"`` (``cv2.inpaint`` and :func:`pushpull_fill`); see the module doc.
-        side_thread: Telea with the numba kernel is sequential: meanwhile the depth's pull-push runs
-            on a second thread (serial kernels), unless this thread already runs serial kernels (a
-            frame on one thread, :meth:`~presim.synthesis.renderer.Renderer.render_batch`'s frame
-            threads) or numba has one thread. Same result either way (tested).
     Returns:
         New ``(color, depth_m)``; unchanged copies when nothing is missing or nothing is known.
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")
-    if kernel not in FILL_KERNELS:
-        raise ValueError(f"fill kernel must be one of {FILL_KERNELS}, got {kernel!r}")
     holes = ~valid
     n_hole = holes.size - int(np.count_nonzero(valid))
     if n_hole == 0 or n_hole == holes.size:
@@ -278,21 +230,5 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
     if method == "auto":
         method = "telea" if n_hole / holes.size <= telea_max_hole_frac else "pushpull"
     if method == "telea":
-        if kernel == "numba":
-            if side_thread and not serial_now() and nb.get_num_threads() > 1:
-                # Telea (sequential) here, the depth's pull-push on the other core meanwhile (the
-                # two read different arrays and write new ones)
-                depth = _side_thread().submit(_depth_pushpull_serial, depth_m, valid)
-                try:
-                    color_f = telea_inpaint(color, holes, 3)
-                finally:
-                    depth_f = depth.result()
-                return color_f, depth_f
-            return telea_inpaint(color, holes, 3), pushpull_rgbd(None, depth_m, valid)[1]
-        return cv2.inpaint(color, holes.view(np.uint8), 3, cv2.INPAINT_TELEA), pushpull_fill(depth_m, valid)
-    if kernel == "numba":
-        return pushpull_rgbd(color, depth_m, valid)
-    # One pyramid for color and depth together.
-    both = pushpull_fill(np.concatenate([color.astype(np.float32), depth_m[..., None]], axis=-1), valid)
-    color_f = np.clip(both[..., :3] + 0.5, 0, 255).astype(np.uint8)
-    return color_f, np.ascontiguousarray(both[..., 3])
+        return telea_inpaint(color, holes, 3), pushpull_rgbd(None, depth_m, valid)[1]
+    return pushpull_rgbd(color, depth_m, valid)

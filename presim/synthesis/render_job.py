@@ -18,7 +18,7 @@ from presim.capture.scene import Scene
 from presim.formats.kinfu_folder import KinfuFolderWriter
 from presim.geometry import Intrinsics
 from presim.io_utils import atomic_write_json, progress
-from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
 __all__ = ["output_intrinsics", "render_to_folder"]
 
@@ -41,15 +41,13 @@ def output_intrinsics(K: Intrinsics, width: int | None = None, height: int | Non
 
 
 def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarray, K: Intrinsics, out: Path,
-                     config: RenderConfig, batch_size: int = 16) -> dict:
+                     config: RenderConfig, batch_size: int = 16, perf: PerfConfig = PerfConfig()) -> dict:
     """Render every pose ``T_world_cams`` (B, 4, 4) with intrinsics ``K`` into the folder ``out``
     (created), each file atomically; ``stamps_s`` (B,) go to the timestamps and TUM files.
 
-    The poses are rendered ``batch_size`` at a time through :meth:`Renderer.render_batch` when that
-    batches (``config.backend == "torch_batch"``) or spreads frames over threads (numba with
-    ``batch_threads`` resolving to > 1: each frame as :meth:`Renderer.render` renders it, 1.1-1.5x
-    the frames/s on 2 cores, docs/synthesis.md); ``ms_per_frame_median`` is then the median of
-    batch time / frames. Otherwise one pose at a time.
+    The poses are rendered ``batch_size`` at a time through :meth:`Renderer.render_batch` (pose ``i``
+    continues the camera stream of pose ``i - batch_size``); ``ms_per_frame_median`` is the median
+    of batch time / frames.
 
     Depth PNGs are uint16 millimetres (0 = unknown; filled pixels keep their filled depth, the valid
     mask tells them apart; depths that do not fit are written 0 and counted in ``depth_clipped_px``).
@@ -57,23 +55,18 @@ def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarra
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    r = Renderer(scene, config)
+    r = Renderer(scene, config, perf)
     writer = KinfuFolderWriter(out)
     if batch_size < 1:
         raise ValueError(f"batch size must be >= 1, got {batch_size}")
     holes, views, ms = [], [], []
-    batched = config.backend == "torch_batch" or r.batch_threads(batch_size) > 1
-    step = batch_size if batched else 1
+    step = batch_size
     bar = progress(total=len(T_world_cams), desc="render", unit="frame")
     for i0 in range(0, len(T_world_cams), step):
         T = np.asarray(T_world_cams[i0:i0 + step], np.float64)
         t0 = time.perf_counter()
-        if batched:
-            frames = r.render_batch(T, K)
-            used = r.last.batch_views or [r.last.views] * len(frames)
-        else:
-            frames = [r.render(T[0], K)]
-            used = [r.last.views]
+        frames = r.render_batch(T, K)
+        used = r.last.batch_views
         ms.extend([(time.perf_counter() - t0) * 1e3 / len(frames)] * len(frames))
         for j, rgbd in enumerate(frames):
             writer.write_frame(rgbd.color, rgbd.depth_m, T[j], K, float(stamps_s[i0 + j]),
@@ -85,7 +78,7 @@ def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarra
     writer.close()
     summary = {
         "scene": str(scene.path) if scene.path else None, "num_frames": len(T_world_cams),
-        "intrinsics": K.to_dict(), "config": dataclasses.asdict(config),
+        "intrinsics": K.to_dict(), "config": dataclasses.asdict(config), "perf": dataclasses.asdict(perf),
         "hole_frac_before_fill": holes, "views_used": views,
         "depth_clipped_px": writer.depth_clipped_px,
         "ms_per_frame_median": float(np.median(ms)),

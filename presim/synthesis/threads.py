@@ -24,18 +24,15 @@ parallel kernels launched from two threads at once).
 from __future__ import annotations
 
 import functools
-import math
-import random
 import threading
 import types
-from collections import deque
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
 import numba
 
 __all__ = ["SERIAL_MAX_PIXELS", "LIGHT_SERIAL_BELOW", "frame_threads", "numba_threads", "serial_kernels", "serial_now",
-           "parallel_kernel", "TwinKernel", "FrameModeChooser"]
+           "parallel_kernel", "TwinKernel"]
 
 SERIAL_MAX_PIXELS = 40_000
 """Frames of at most this many pixels render on one numba thread when ``RenderConfig.threads`` is
@@ -143,100 +140,3 @@ def parallel_kernel(serial_below: int = 0, size_arg: int = 0, **options: Any) ->
     see there). The synthesis kernels also pass ``error_model="numpy"`` (no ZeroDivisionError
     branch, which keeps loops with a division from vectorizing; tested for every kernel)."""
     return lambda fn: TwinKernel(fn, serial_below, size_arg, **options)
-
-
-class FrameModeChooser:
-    """Picks the faster of two ways to render the frames of one camera stream at one size, by
-    measuring them (the images are the same whichever way is used).
-
-    Which way wins depends on the machine and on the scene, not only on the frame size: on the
-    2-core development machine, one thread with the later views warped ahead on a helper thread
-    (:mod:`presim.synthesis.warp_ahead`) rendered 256x256 frames 1.27x (apc capture) and 1.32x
-    (sample scene) faster than two numba threads, but 320x240 frames 0.91x and 0.69x (their frames
-    draw fewer views, so the helper has less to do).
-
-    The two ways are compared on **neighbouring frames**: a frame rendered one way between two
-    frames rendered the other way gives one sample, the log of its wall time over the geometric
-    mean of its two neighbours' (a camera stream's consecutive frames look at nearly the same
-    views, so most of what makes one frame dearer than another cancels). The way favoured by the
-    mean of the last ``window`` samples without the ``trim`` largest and ``trim`` smallest (frames
-    slowed by something else) is used; a median was biased where the frame costs along a trajectory
-    are skewed. The first version compared the medians of each way's last 5 frames, i.e. frames of
-    different poses: where one size costs 3-8 ms per frame depending on how many views a frame
-    draws, it flipped between the ways. Replaying frame times measured both ways on the same
-    poses (32 bench poses, 6 passes, 2026-12-03), it rendered the sample scene's 320x240 frames
-    1.16x slower than always using the faster way; this chooser 1.02x (the exploration frames).
-
-    The first ``settle`` frames use the first way and are not timed (views are still being prepared,
-    also by the background thread, and the helper has nothing to warp before a frame has drawn
-    views); then ``warmup`` frames alternate between the ways; afterwards one frame in about
-    ``explore_every`` uses the way not chosen (gaps drawn from ``explore_every`` / 2 to 3 / 2 of
-    it, seeded: a fixed gap fell in step with a periodic trajectory), so that the choice follows a
-    change of scene or of machine load. The Renderer records each frame's wall time without the
-    time it spent preparing views (:meth:`~presim.synthesis.renderer.Renderer.render`: only frames
-    that have views to warp ahead; the others use all threads).
-    """
-
-    def __init__(self, modes: tuple[str, str], settle: int = 10, warmup: int = 8, window: int = 15,
-                 trim: int = 2, explore_every: int = 10):
-        if (len(modes) != 2 or modes[0] == modes[1] or settle < 0 or warmup < 3 or window < 1 or trim < 0
-                or explore_every < 3):
-            raise ValueError("FrameModeChooser: needs two different modes, settle >= 0, warmup >= 3, window >= 1, "
-                             "trim >= 0, explore_every >= 3")
-        self.modes = (str(modes[0]), str(modes[1]))
-        self.settle, self.warmup, self.window, self.explore_every = int(settle), int(warmup), int(window), int(explore_every)
-        self.trim = int(trim)
-        self._n = 0
-        self._last: list[tuple[int, float]] = []  # (mode index, wall ms) of the last <= 3 timed frames
-        self._samples: deque[float] = deque(maxlen=self.window)  # log(t second way / t first way)
-        self._best = 0
-        # Exploration gaps drawn from [explore_every / 2, 3 explore_every / 2] (seeded: runs repeat):
-        # a fixed gap can fall in step with a periodic trajectory and always sample the same phase.
-        self._rng = random.Random(0)
-        self._next_explore = self.warmup + self._gap()
-
-    def _gap(self) -> int:
-        e = self.explore_every
-        return self._rng.randint(max(e // 2, 2), e + e // 2)
-
-    def pick(self) -> str:
-        """The way to render the next frame."""
-        self._n += 1
-        k = self._n - self.settle
-        if k <= 0:
-            return self.modes[0]
-        if k <= self.warmup:
-            return self.modes[k % 2]  # in turn, the second way first
-        if k >= self._next_explore:
-            self._next_explore = k + self._gap()
-            return self.modes[1 - self._best]
-        return self.modes[self._best]
-
-    def best(self) -> str:
-        """The way in use: the first way while there is no sample, else the one the trimmed mean of
-        the recent samples favours (a tie keeps the first way)."""
-        return self.modes[self._best]
-
-    def samples(self) -> list[float]:
-        """The recent paired samples, ``log(t second way / t first way)`` (tests, benchmarks)."""
-        return list(self._samples)
-
-    def record(self, mode: str, wall_ms: float) -> None:
-        """One frame rendered ``mode`` took ``wall_ms`` (ignored while settling)."""
-        if self._n <= self.settle:
-            return
-        self._last.append((self.modes.index(mode), float(wall_ms)))
-        if len(self._last) > 3:
-            del self._last[0]
-        if len(self._last) < 3:
-            return
-        (a, ta), (b, tb), (c, tc) = self._last
-        if a != c or b == a or min(ta, tb, tc) <= 0.0:
-            return
-        # log(t way b / t way a) on neighbouring frames: b against the geometric mean of its two
-        # neighbours (unbiased over a stream's frames; the arithmetic mean made b look faster)
-        d = math.log(tb) - 0.5 * (math.log(ta) + math.log(tc))
-        self._samples.append(d if b == 1 else -d)
-        s = sorted(self._samples)
-        k = self.trim if len(s) > 2 * self.trim else 0
-        self._best = 1 if sum(s[k:len(s) - k]) < 0.0 else 0

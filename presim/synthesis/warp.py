@@ -357,7 +357,7 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
 
 
 # fastmath without "nnan"/"ninf": the kernel relies on comparisons that must stay IEEE-exact.
-_FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -437,7 +437,7 @@ def _corner_boxes(L0, L1, L2, H0, H1, H2, projective, f00, f01, f02, f03, f10, f
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division branch (the loops vectorize)
-def _chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H, margin_rel, sat, tile_px,
+def chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H, margin_rel, sat, tile_px,
                        use_tiles, vis):  # pragma: no cover
     # Per chunk, from its bounds (rows of lo / hi: one per coordinate; world boxes: corners
     # (x, y, z); source-frame bounds: corners (a z, b z, z) of a frustum piece that holds every
@@ -562,9 +562,9 @@ def _chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H
     return n_vis
 
 
-_NO_TILES = np.zeros((1, 1), np.uint8)
-_NO_SAT = np.zeros((2, 2), np.int32)
-_CULL_MARGIN = 1e-4  # relative: ~100x the float32 rounding of the kernel's projection
+NO_TILES = np.zeros((1, 1), np.uint8)
+NO_SAT = np.zeros((2, 2), np.int32)
+CULL_MARGIN = 1e-4  # relative: ~100x the float32 rounding of the kernel's projection
 
 
 def _tile_sat(tiles: np.ndarray) -> np.ndarray:
@@ -580,10 +580,10 @@ def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float,
     A = view.chunk_abs_max
     if near_m > 0 and A < np.inf:
         use = tiles is not None
-        _chunk_keep_kernel(view.chunk_lo, view.chunk_hi, view.chunk_projective, M32, view.chunk_to_world, A,
+        chunk_keep_kernel(view.chunk_lo, view.chunk_hi, view.chunk_projective, M32, view.chunk_to_world, A,
                            float(np.float32(K.fx)), float(np.float32(K.fy)), float(np.float32(K.cx)),
-                           float(np.float32(K.cy)), float(np.float32(near_m)), K.width, K.height, _CULL_MARGIN,
-                           _tile_sat(tiles) if use else _NO_SAT, int(tile_px), use, vis)
+                           float(np.float32(K.cy)), float(np.float32(near_m)), K.width, K.height, CULL_MARGIN,
+                           _tile_sat(tiles) if use else NO_SAT, int(tile_px), use, vis)
     return vis
 
 
@@ -618,8 +618,8 @@ one thread against ~2 (docs/synthesis.md, "Projection in blocks")."""
 assert WARP_BLOCK_PTS % CHUNK_PTS == 0 and WARP_BLOCK_PTS >= CHUNK_PTS  # a block holds whole chunks
 
 
-@parallel_kernel(fastmath=_FASTMATH, cache=True, error_model="numpy")
-def _warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, tiles, use_tiles, tile_px,
+@parallel_kernel(fastmath=FASTMATH, cache=True, error_model="numpy")
+def warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, tiles, use_tiles, tile_px,
                         tile_of_px, vis, chunk, block, clear_c, zbuf, cbuf):  # pragma: no cover
     # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was;
     # the colour only with clear_c, else it is undefined where the depth stays 0),
@@ -748,7 +748,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
                            np.empty((L, K.height, K.width, 3), np.uint8))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     use = tiles is not None
-    tile_of_px = _NO_TILES.reshape(-1)
+    tile_of_px = NO_TILES.reshape(-1)
     if use:
         _check_tiles(tiles, K, tile_px, "warp_layers")
         # per pixel: its tile's flag (a byte load per point instead of two integer divisions)
@@ -758,8 +758,8 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         vis = _visibility(view, M, K, near_m, tiles, tile_px)
     else:
         vis = np.ones(view.chunk_lo.shape[1], np.uint8)
-    _warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
+    warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
                         np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m),
-                        tiles if use else _NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, WARP_BLOCK_PTS,
+                        tiles if use else NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, WARP_BLOCK_PTS,
                         bool(clear_color), out.depth_m, out.color)
     return out

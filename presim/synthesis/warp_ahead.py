@@ -53,9 +53,9 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from presim.geometry import Intrinsics
-from presim.synthesis.composite import _LOWEST, _band_rows, _banded_crack_kernel
-from presim.synthesis.warp import (_CULL_MARGIN, _NO_SAT, _NO_TILES, CHUNK_PTS, WARP_BLOCK_PTS, LayeredImage,
-                                   _chunk_keep_kernel, _warp_layers_kernel)
+from presim.synthesis.cracks import LOWEST_SET_BIT, banded_crack_kernel, rows_per_band
+from presim.synthesis.warp import (CULL_MARGIN, NO_SAT, NO_TILES, CHUNK_PTS, WARP_BLOCK_PTS, LayeredImage,
+                                   chunk_keep_kernel, warp_layers_kernel)
 
 __all__ = ["WarpAhead", "AheadImage", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
 
@@ -72,8 +72,8 @@ captures here give 19 200-point views at 128x128 (level 2 of 640x480 frames)."""
 QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3
 """Job states (int32)."""
 
-_warp_serial = _warp_layers_kernel.serial
-_crack_serial = _banded_crack_kernel.serial
+_warp_serial = warp_layers_kernel.serial
+_crack_serial = banded_crack_kernel.serial
 _NO_MASK = np.zeros((1, 1), np.bool_)
 _FIELDS_KEPT = 2 * MAX_JOBS  # views whose kernel arguments are kept (the view object too: ids stay unique)
 
@@ -131,18 +131,18 @@ def _warp_jobs_kernel(state, cancel, n, xyz, rgb, layer_start, lo, hi, projectiv
         _store_release(state, k, RUNNING)
         vis = np.ones(lo[k].shape[1], np.uint8)
         if near > 0 and A[k] < np.inf:
-            _chunk_keep_kernel(lo[k], hi[k], projective[k], M, S[k], A[k], np.float64(fx32), np.float64(fy32),
-                               np.float64(cx32), np.float64(cy32), np.float64(near32), W, H, _CULL_MARGIN, _NO_SAT,
+            chunk_keep_kernel(lo[k], hi[k], projective[k], M, S[k], A[k], np.float64(fx32), np.float64(fy32),
+                               np.float64(cx32), np.float64(cy32), np.float64(near32), W, H, CULL_MARGIN, NO_SAT,
                                16, False, vis)
         # (with the crack pass, which reads colour only where the depth is > 0, the colour planes
         # are not cleared; without it, the loop composites the layers itself: cleared)
-        _warp_serial(xyz[k], rgb[k], layer_start[k], 1, M, fx32, fy32, cx32, cy32, near32, _NO_TILES, False, 16,
-                     _NO_TILES.reshape(-1), vis, CHUNK_PTS, WARP_BLOCK_PTS, not crack, zb[k], cb[k])
+        _warp_serial(xyz[k], rgb[k], layer_start[k], 1, M, fx32, fy32, cx32, cy32, near32, NO_TILES, False, 16,
+                     NO_TILES.reshape(-1), vis, CHUNK_PTS, WARP_BLOCK_PTS, not crack, zb[k], cb[k])
         if crack:
             if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
                 _store_release(state, k, CLAIMED)
                 return
-            _crack_serial(zb[k], cb[k], _LOWEST, _NO_MASK, False, _NO_MASK, band, dout[k], cout[k])
+            _crack_serial(zb[k], cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, dout[k], cout[k])
         _store_release(state, k, DONE)  # after the images: the loop reads them once it sees DONE
 
 
@@ -296,7 +296,7 @@ class WarpAhead:
         cancel = np.zeros(1, np.int32)
         args = (state, cancel, n, *zip(*fields), M, float(K.fx), float(K.fy), float(K.cx), float(K.cy),
                 float(near_m), int(W), int(H), bufs.padded("zb", n), bufs.padded("cb", n), bool(crack),
-                int(_band_rows(H)), bufs.padded("d", n), bufs.padded("c", n))
+                int(rows_per_band(H)), bufs.padded("d", n), bufs.padded("c", n))
         frame = _Frame(views, state, cancel, bufs, bool(crack), args)
         with sh.cv:
             bufs.user = frame

@@ -10,24 +10,19 @@ Same definitions as :mod:`presim.synthesis.kernels_reference` (tested against it
 - composite: first non-empty layer via ``argmax`` of the occupancy (first maximum is returned).
 
 Per-view tensors are built once (:func:`to_device`) and cached by the Renderer.
-:func:`view_image_torch` is this backend's entry of the per-frame core
-(:data:`presim.synthesis.core.BACKEND_TABLE`), with the signature every backend shares.
+:func:`view_image_torch` is this backend's view image (:func:`presim.synthesis.pipeline.view_image`).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from presim.geometry import Intrinsics
 from presim.synthesis.warp import ViewPoints
-
-if TYPE_CHECKING:
-    from presim.synthesis.core import ViewImage, ViewImageConfig, Workspace
 
 __all__ = ["default_device", "resolve_device", "TorchView", "to_device", "warp_layers_torch",
            "crack_filter_torch", "composite_layers_torch", "view_image_torch"]
@@ -161,24 +156,23 @@ def composite_layers_torch(depth_m: torch.Tensor, color: torch.Tensor) -> tuple[
     return torch.where(anyv, d, torch.zeros_like(d)), torch.where(anyv[..., None], c, torch.zeros_like(c))
 
 
-def view_image_torch(view: TorchView, T_cam_world: np.ndarray, K: Intrinsics, config: "ViewImageConfig",
-                     replace: np.ndarray | None, workspace: "Workspace") -> "ViewImage":
-    """Torch backend of the per-frame core: warp + per-layer crack filter + composite + seam pass.
+def view_image_torch(view: TorchView, T_cam_world: np.ndarray, K: Intrinsics, near_m: float, crack_filter: str,
+                     kernel_px: int) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """Warp + per-layer crack filter + composite + seam pass on every pixel.
 
-    Computes every pixel (``replace`` and ``workspace`` are not used); returns numpy arrays.
+    Returns:
+        ``(depth_m (H, W), color (H, W, 3), warp_ms, crack_ms, composite_ms)`` as numpy.
     """
-    from presim.synthesis.core import ViewImage
-
     t0 = time.perf_counter()
-    d, c = warp_layers_torch(view, T_cam_world, K, config.near_m)
+    d, c = warp_layers_torch(view, T_cam_world, K, near_m)
     if d.is_cuda:
         torch.cuda.synchronize()
     t1 = time.perf_counter()
-    d, c = crack_filter_torch(d, c, config.crack_filter, config.crack_kernel_px)
+    d, c = crack_filter_torch(d, c, crack_filter, kernel_px)
     if d.is_cuda:
         torch.cuda.synchronize()
     t2 = time.perf_counter()
     d, c = composite_layers_torch(d, c)
-    d, c = crack_filter_torch(d[None], c[None], config.crack_filter, config.crack_kernel_px)
+    d, c = crack_filter_torch(d[None], c[None], crack_filter, kernel_px)
     d, c = d[0].cpu().numpy(), c[0].cpu().numpy()
-    return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
+    return d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3

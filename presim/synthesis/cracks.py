@@ -1,0 +1,778 @@
+"""Crack filling and compositing of one view's warped layers (thesis eq. 3.9, §3.4.3-3.4.4).
+
+A forward splat of one pixel per point leaves cracks (empty pixels inside a surface) wherever the
+target samples the surface more densely than the source. The *switching* median fills only empty
+pixels whose N x N window is more than half non-empty, with the lower median of the non-empty
+neighbours' depth and of each colour channel; non-empty pixels are never touched, and an empty pixel
+along a straight edge (3 of 9 non-empty) stays empty, so edges and small textures survive. The
+*plain* median (``mode="median"``) filters every pixel over its whole window, zeros included (the
+traditional filter the thesis compares against). Every layer is filtered on its own, then the
+layers are composited front to back (a crack in a foreground layer is filled with foreground,
+never with background seen through it), then one more pass fills the cracks along layer seams.
+
+Two numba paths compute this, with the exact definitions in :mod:`kernels_reference`:
+- :func:`crack_filter` + :func:`composite_layers`: any mode and window (stacks (L, H, W));
+- :func:`filtered_composite_banded`: the default 3 x 3 switching median on up to 8 layers, all three
+  passes fused per band of rows in cache-sized buffers; a crack mask from packed per-layer
+  occupancy counts decides where a window is read at all. With ``replace`` (a later view) only runs
+  of tiles that hold a replaceable pixel are computed (bit-identical to the first path, tested).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import cv2
+import numba as nb
+import numpy as np
+
+from presim.synthesis.holes import row_words
+from presim.synthesis.threads import parallel_kernel
+
+__all__ = ["CRACK_FILTERS", "BANDED_MAX_LAYERS", "TILED_MIN_PIXELS", "TILED_MAX_FRAC", "WARP_TILE_PX",
+           "crack_filter", "composite_layers", "filtered_composite_banded", "tile_any", "warp_tiles"]
+
+CRACK_FILTERS = ("switching_median", "median", "none")
+
+BANDED_MAX_LAYERS = 8
+"""The banded pass packs a pixel's per-layer occupancy into one byte: at most 8 layers."""
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _insertion_sort(a, n):  # pragma: no cover
+    for i in range(1, n):
+        key = a[i]
+        j = i - 1
+        while j >= 0 and a[j] > key:
+            a[j + 1] = a[j]
+            j -= 1
+        a[j + 1] = key
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
+    """Copy the non-empty (depth > 0) pixels of layer ``l`` in rows [y0, y1) x cols [x0, x1) into
+    the buffers (depth, 3 color channels); returns their number."""
+    n = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            dd = d[l, y, x]
+            if dd > 0:
+                bd[n] = dd
+                b0[n] = c[l, y, x, 0]
+                b1[n] = c[l, y, x, 1]
+                b2[n] = c[l, y, x, 2]
+                n += 1
+    return n
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
+    """Sort the first n entries of depth and of each color channel on their own (per-channel
+    median, as eq. 3.9); returns the lower median's index."""
+    _insertion_sort(bd, n)
+    _insertion_sort(b0, n)
+    _insertion_sort(b1, n)
+    _insertion_sort(b2, n)
+    return (n - 1) // 2
+
+
+@parallel_kernel(cache=True, error_model="numpy")
+def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
+    # dout / cout arrive as copies of din / cin; only filled cracks are written.
+    # Occupancy counts per window come from column sums + a running sum along the row (O(1) per
+    # pixel), so the median gathering runs only for the (few) pixels that get filled.
+    L, H, W = din.shape
+    n_win = (2 * r + 1) * (2 * r + 1)
+    for row in nb.prange(L * H):
+        l = row // H
+        v = row - l * H
+        y0 = max(v - r, 0)
+        y1 = min(v + r + 1, H)
+        colcnt = np.zeros(W + 2 * r, np.int32)  # padded by r on both sides
+        for y in range(y0, y1):
+            for u in range(W):
+                colcnt[u + r] += np.int32(din[l, y, u] > 0)  # branchless: occupancy is random
+        bd = np.empty(n_win, np.float32)
+        b0 = np.empty(n_win, np.uint8)
+        b1 = np.empty(n_win, np.uint8)
+        b2 = np.empty(n_win, np.uint8)
+        cnt = 0
+        for k in range(2 * r + 1):
+            cnt += colcnt[k]
+        for u in range(W):
+            if u > 0:
+                cnt += colcnt[u + 2 * r] - colcnt[u - 1]
+            if 2 * cnt <= n_win or din[l, v, u] > 0:
+                continue
+            n = gather_window(din, cin, l, y0, y1, max(u - r, 0), min(u + r + 1, W), bd, b0, b1, b2)
+            k = sort_window(bd, b0, b1, b2, n)
+            dout[l, v, u] = bd[k]
+            cout[l, v, u, 0] = b0[k]
+            cout[l, v, u, 1] = b1[k]
+            cout[l, v, u, 2] = b2[k]
+
+
+@parallel_kernel(cache=True, error_model="numpy")
+def _plain_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
+    L, H, W = din.shape
+    n_win = (2 * r + 1) * (2 * r + 1)
+    mid = (n_win - 1) // 2
+    for row in nb.prange(L * H):
+        l = row // H
+        v = row - l * H
+        bd = np.empty(n_win, np.float32)
+        b0 = np.empty(n_win, np.uint8)
+        b1 = np.empty(n_win, np.uint8)
+        b2 = np.empty(n_win, np.uint8)
+        for u in range(W):
+            n = 0
+            for y in range(v - r, v + r + 1):
+                for x in range(u - r, u + r + 1):
+                    if 0 <= y < H and 0 <= x < W:
+                        bd[n] = din[l, y, x]
+                        b0[n] = cin[l, y, x, 0]
+                        b1[n] = cin[l, y, x, 1]
+                        b2[n] = cin[l, y, x, 2]
+                    else:  # zero padding
+                        bd[n] = 0.0
+                        b0[n] = 0
+                        b1[n] = 0
+                        b2[n] = 0
+                    n += 1
+            _insertion_sort(bd, n)
+            dout[l, v, u] = bd[mid]
+            if bd[mid] > 0:
+                _insertion_sort(b0, n)
+                _insertion_sort(b1, n)
+                _insertion_sort(b2, n)
+                cout[l, v, u, 0] = b0[mid]
+                cout[l, v, u, 1] = b1[mid]
+                cout[l, v, u, 2] = b2[mid]
+            else:
+                cout[l, v, u, 0] = 0
+                cout[l, v, u, 1] = 0
+                cout[l, v, u, 2] = 0
+
+
+def crack_filter(depth_m: np.ndarray, color: np.ndarray, mode: str = "switching_median",
+                 kernel_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Fill cracks of warped images (numba, parallel over rows of all layers).
+
+    Args:
+        depth_m: float32 (L, H, W) or (H, W), 0 = empty.
+        color: uint8 (L, H, W, 3) or (H, W, 3).
+        mode: ``"switching_median"`` (thesis), ``"median"`` (plain) or ``"none"``.
+        kernel_px: odd window size N.
+    Returns:
+        New ``(depth_m, color)`` of the input shapes (the inputs are returned as-is for ``"none"``).
+    """
+    if mode not in CRACK_FILTERS:
+        raise ValueError(f"crack filter must be one of {CRACK_FILTERS}, got {mode!r}")
+    if kernel_px < 1 or kernel_px % 2 == 0:
+        raise ValueError(f"kernel_px must be odd and >= 1, got {kernel_px}")
+    if mode == "none":
+        return depth_m, color
+    squeeze = depth_m.ndim == 2
+    d = depth_m[None] if squeeze else depth_m
+    c = color[None] if squeeze else color
+    if d.dtype != np.float32 or c.dtype != np.uint8 or c.shape != d.shape + (3,):
+        raise ValueError(f"need float32 depth (L,H,W) and uint8 color (L,H,W,3), got {d.dtype} {d.shape}, "
+                         f"{c.dtype} {c.shape}")
+    d = np.ascontiguousarray(d)
+    c = np.ascontiguousarray(c)
+    if mode == "switching_median":
+        dout, cout = d.copy(), c.copy()
+        _switching_median_kernel(d, c, dout, cout, kernel_px // 2)
+    else:
+        dout, cout = np.empty_like(d), np.empty_like(c)
+        _plain_median_kernel(d, c, dout, cout, kernel_px // 2)
+    return (dout[0], cout[0]) if squeeze else (dout, cout)
+
+
+@parallel_kernel(cache=True, error_model="numpy")
+def _composite_kernel(d, c, dout, cout):  # pragma: no cover
+    L, H, W = d.shape
+    for v in nb.prange(H):
+        for u in range(W):
+            dout[v, u] = 0.0
+            cout[v, u, 0] = 0
+            cout[v, u, 1] = 0
+            cout[v, u, 2] = 0
+            for l in range(L):
+                if d[l, v, u] > 0:
+                    dout[v, u] = d[l, v, u]
+                    cout[v, u, 0] = c[l, v, u, 0]
+                    cout[v, u, 1] = c[l, v, u, 1]
+                    cout[v, u, 2] = c[l, v, u, 2]
+                    break
+
+
+def composite_layers(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Front-to-back composite of layers (numba).
+
+    Args:
+        depth_m: float32 (L, H, W), 0 = empty; color: uint8 (L, H, W, 3).
+    Returns:
+        ``(depth_m (H, W) float32, color (H, W, 3) uint8)``.
+    """
+    L, H, W = depth_m.shape
+    if L == 1:
+        return depth_m[0].copy(), color[0].copy()
+    dout = np.empty((H, W), np.float32)
+    cout = np.empty((H, W, 3), np.uint8)
+    _composite_kernel(depth_m, color, dout, cout)
+    return dout, cout
+
+
+# ---- crack mask first: packed occupancy counts (3 x 3 switching median, up to 8 layers) -------
+#
+# A 3 x 3 switching median fills an empty pixel of layer l when at least 5 of its 9 window pixels are
+# non-empty in layer l. Per pixel, one byte holds which layers are non-empty; a lookup table spreads
+# the byte into one 4-bit counter per layer (a uint32 for 8 layers), so the 3 x 3 sums of all layers
+# are 9 integer additions (column sums reused along the row). ``(P + 3) & 8`` per nibble flags the
+# layers whose count is >= 5: only those pixels (the cracks) gather and sort a window; every other
+# pixel takes its nearest non-empty layer with no neighbourhood read at all.
+
+_GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's bit 3 (no carry: 9 + 3 < 16)
+_BIT3 = np.uint32(0x88888888)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _ce(a, i, j):  # pragma: no cover
+    x = a[i]
+    y = a[j]
+    a[i] = min(x, y)
+    a[j] = max(x, y)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _sort8(a):  # pragma: no cover
+    # Batcher's odd-even merge sort of 8 values (19 branch-free compare-exchanges).
+    _ce(a, 0, 1)
+    _ce(a, 2, 3)
+    _ce(a, 4, 5)
+    _ce(a, 6, 7)
+    _ce(a, 0, 2)
+    _ce(a, 1, 3)
+    _ce(a, 4, 6)
+    _ce(a, 5, 7)
+    _ce(a, 1, 2)
+    _ce(a, 5, 6)
+    _ce(a, 0, 4)
+    _ce(a, 1, 5)
+    _ce(a, 2, 6)
+    _ce(a, 3, 7)
+    _ce(a, 2, 4)
+    _ce(a, 3, 5)
+    _ce(a, 1, 2)
+    _ce(a, 3, 4)
+    _ce(a, 5, 6)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
+    """Lower median (depth, each colour channel) of the non-empty pixels of layer ``l`` in the
+    window, whose centre is empty (so at most 8 values): slots past the count are padded with the
+    largest value, which leaves ranks below the count unchanged. Returns the median's index."""
+    n = gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2)
+    for i in range(n, 8):
+        bd[i] = np.inf
+        b0[i] = 255
+        b1[i] = 255
+        b2[i] = 255
+    _sort8(bd)
+    _sort8(b0)
+    _sort8(b1)
+    _sort8(b2)
+    return (n - 1) // 2
+
+
+_ONES3 = np.ones((3, 3), np.uint8)
+
+# ---- the same three passes fused in row bands (one parallel region per view) ------------------
+#
+# filtered_composite_packed runs three image-wide passes (occupancy bits, filter + composite, seam
+# pass) with full-size intermediates and copies between them. Here every thread takes bands of
+# rows and does all three for its band in buffers that stay in cache: the occupancy bits of the
+# band grown by 2 rows, the composite of the band grown by 1 row (what the seam pass reads), then
+# the seam pass of the band itself. The rows of the halos are computed twice (by both bands that
+# touch them); the arithmetic per pixel is that of the three kernels above, so the output is the
+# same bit for bit.
+
+TILE_COLS = 8
+"""Columns per tile of :func:`filtered_composite_banded` with ``replace`` (a run of tiles holding
+wanted pixels is one work item). With :data:`TILE_ROWS`, 8 x 8 tiles: a later view's crack pass
+inside 640x480 frames took 0.74x (apc capture) and 0.94x (sample scene) the time of 32 x 32 tiles,
+median (docs/synthesis.md, "Smaller crack tiles for later views")."""
+
+TILE_ROWS = 8
+"""Rows per band of :func:`filtered_composite_banded` on tiles (whole-width bands keep
+:func:`band_rows`). Small tiles follow the holes of a later view (small, scattered) closely; each
+work item recomputes a 2-pixel halo, which costs more the smaller the tile."""
+
+WARP_TILE_PX = 16
+"""Side of the tiles :func:`warp_tiles` marks for a masked warp."""
+
+TILED_MIN_PIXELS = 150_000
+"""Images of at least this many pixels run a later view's crack pass on tiles (and its warp on
+:func:`warp_tiles`); smaller ones on whole bands. Measured (benchmarks/bench_ab.py, apc capture
+with refined depth, 2 threads): 1.25x less CPU per frame at 640x480, but 0.93x (CPU) and slower
+wall time at 128x128 and 256x256, where a few uneven work items leave a thread idle."""
+
+
+TILED_MAX_FRAC = 0.5
+"""A later view uses tiles (crack pass and warp) only while at most this fraction of the tiles is
+active: with speckled holes everywhere (raw depth with 34 % valid pixels: 81 % of the warp tiles
+active) the tiles' bookkeeping cost more than they saved (apc capture, raw depth, 640x480: 0.76x)."""
+
+
+def rows_per_band(H: int) -> int:
+    """Rows per band: 32 (6 % halo recomputation of the composite; 16-row bands made 128x128 frames
+    slower: twice the halo rows and the per-band buffers)."""
+    return 32
+
+
+LOWEST_SET_BIT = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.int64)
+"""Index of the lowest set bit of a byte (0 for 0)."""
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
+    # The compare-exchanges of _sort8 on scalars (kept in registers); returns sorted[2], sorted[3]
+    # (the compiler drops the exchanges that cannot reach those two outputs).
+    x0, x1 = min(x0, x1), max(x0, x1)
+    x2, x3 = min(x2, x3), max(x2, x3)
+    x4, x5 = min(x4, x5), max(x4, x5)
+    x6, x7 = min(x6, x7), max(x6, x7)
+    x0, x2 = min(x0, x2), max(x0, x2)
+    x1, x3 = min(x1, x3), max(x1, x3)
+    x4, x6 = min(x4, x6), max(x4, x6)
+    x5, x7 = min(x5, x7), max(x5, x7)
+    x1, x2 = min(x1, x2), max(x1, x2)
+    x5, x6 = min(x5, x6), max(x5, x6)
+    x0, x4 = min(x0, x4), max(x0, x4)
+    x1, x5 = min(x1, x5), max(x1, x5)
+    x2, x6 = min(x2, x6), max(x2, x6)
+    x3, x7 = min(x3, x7), max(x3, x7)
+    x2, x4 = min(x2, x4), max(x2, x4)
+    x3, x5 = min(x3, x5), max(x3, x5)
+    x1, x2 = min(x1, x2), max(x1, x2)
+    x3, x4 = min(x3, x4), max(x3, x4)
+    x5, x6 = min(x5, x6), max(x5, x6)
+    return x2, x3
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _nb_value(df, cf, q):  # pragma: no cover
+    # (depth, r, g, b, 1) of flat pixel q; an empty pixel reads as (+inf, 255, 255, 255, 0). All
+    # loads unconditional and selects after them: no branch on the speckled occupancy.
+    z = df[q]
+    q3 = np.uint64(3) * q
+    r = cf[q3]
+    g = cf[q3 + np.uint64(1)]
+    b = cf[q3 + np.uint64(2)]
+    ok = z > 0
+    e = np.uint8(255)
+    return (z if ok else np.float32(np.inf)), (r if ok else e), (g if ok else e), (b if ok else e), np.int64(ok)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
+    """:func:`_median8` of the 3x3 window at an interior pixel whose centre is empty, without
+    buffers: ``df`` / ``cf`` are one layer's (or image's) depth and colour, flat (colour 3 bytes
+    per pixel), ``p`` the centre's flat index and ``w`` the row length (both uint64: no wraparound
+    code). The 8 neighbours are read once into registers, empty ones as +inf / 255 (the padding
+    :func:`_median8` uses), and ranks 2 and 3 of a sorting network give the lower median of the
+    5..8 non-empty ones. Depth returned, colour into ``out_c``."""
+    one = np.uint64(1)
+    z0, r0, g0, b0, n0 = _nb_value(df, cf, p - w - one)
+    z1, r1, g1, b1, n1 = _nb_value(df, cf, p - w)
+    z2, r2, g2, b2, n2 = _nb_value(df, cf, p - w + one)
+    z3, r3, g3, b3, n3 = _nb_value(df, cf, p - one)
+    z4, r4, g4, b4, n4 = _nb_value(df, cf, p + one)
+    z5, r5, g5, b5, n5 = _nb_value(df, cf, p + w - one)
+    z6, r6, g6, b6, n6 = _nb_value(df, cf, p + w)
+    z7, r7, g7, b7, n7 = _nb_value(df, cf, p + w + one)
+    hi = n0 + n1 + n2 + n3 + n4 + n5 + n6 + n7 >= 7  # lower median of n values: rank 3 for n = 7, 8, else 2
+    s2, s3 = _rank23_of8(r0, r1, r2, r3, r4, r5, r6, r7)
+    out_r = s3 if hi else s2
+    s2, s3 = _rank23_of8(g0, g1, g2, g3, g4, g5, g6, g7)
+    out_g = s3 if hi else s2
+    s2, s3 = _rank23_of8(b0, b1, b2, b3, b4, b5, b6, b7)
+    out_b = s3 if hi else s2
+    t2, t3 = _rank23_of8(z0, z1, z2, z3, z4, z5, z6, z7)
+    out_c[0] = out_r
+    out_c[1] = out_g
+    out_c[2] = out_b
+    return t3 if hi else t2
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
+    # One work item = rows [a, e) x columns [x0, x1) of the output (a band of rows over the whole
+    # width, or a run of tiles that hold wanted pixels). Branch-free per pixel and layer (the
+    # occupancy of warped layers is speckled: a branch per pixel and layer mispredicts often)
+    # except one test "nothing here at all", which holds over whole regions; the pixels that need
+    # a median are first collected into a list. An item reads the layers on its rectangle grown by
+    # 2 pixels (clipped to the image). d and c must be C-contiguous.
+    #
+    # Inner loops index from 0 (k) into row slices taken at the item's offsets, and the gathers
+    # from the layer a pixel takes use unsigned flat offsets: numba then emits no negative-index
+    # wraparound code there (a third less time for the composite loop, docs/synthesis.md).
+    L, H, W = d.shape
+    r0 = max(a - 1, 0)  # composite rows [r0, r1) x cols [c0, c1): the item and the seam halo
+    r1 = min(e + 1, H)
+    c0 = max(x0 - 1, 0)
+    c1 = min(x1 + 1, W)
+    s0 = max(r0 - 1, 0)  # occupancy rows [s0, s1) x cols [o0, o1): what the composite's counts read
+    s1 = min(r1 + 1, H)
+    o0 = max(c0 - 1, 0)
+    o1 = min(c1 + 1, W)
+    nw = c1 - c0
+    no = o1 - o0
+    HW = H * W
+    dflat = d.reshape(L * HW)
+    cflat = c.reshape(L * HW * 3)
+    uW = np.uint64(W)
+    # Occupancy: bit l of bits = layer l non-empty; sp = the same bits spread to 4-bit counters
+    # (bit l -> nibble l, = _SPREAD[bits]), so that a 3x3 window's per-layer counts are sums of sp
+    # without carries (<= 9 per nibble). Both from comparisons alone (no table lookups: vectorized).
+    bits = np.empty((s1 - s0, no), np.uint8)
+    sp = np.empty((s1 - s0, no), np.uint32)
+    for y in range(s0, s1):
+        br = bits[y - s0]
+        spr = sp[y - s0]
+        d0 = d[0, y, o0:o1]
+        for k in range(no):
+            o = d0[k] > 0
+            br[k] = np.uint8(o)
+            spr[k] = np.uint32(o)
+        for l in range(1, L):
+            dl = d[l, y, o0:o1]
+            s8 = np.uint8(l)
+            s32 = np.uint32(4 * l)
+            for k in range(no):
+                o = dl[k] > 0
+                br[k] |= np.uint8(o) << s8
+                spr[k] |= np.uint32(o) << s32
+    nr = r1 - r0
+    comp_d = np.empty((nr, nw), np.float32)
+    comp_c = np.empty((nr, nw, 3), np.uint8)
+    col = np.zeros(nw + 2, np.uint32)  # col[u - c0 + 1]: packed counts of column u (0 outside the image)
+    off = o0 - c0 + 1  # col index of occupancy column o0 (0, or 1 at the image's left edge)
+    ni = x1 - x0
+    icol = np.zeros(ni + 2, np.int32)  # icol[u - x0 + 1]: non-empty composite pixels of column u
+    ioff = c0 - x0 + 1  # icol index of composite column c0
+    med_u = np.empty(nw, np.int64)
+    med_l = np.empty(nw, np.int64)
+    mrow = np.empty(nw, np.uint8)
+    bd = np.empty(8, np.float32)
+    b0 = np.empty(8, np.uint8)
+    b1 = np.empty(8, np.uint8)
+    b2 = np.empty(8, np.uint8)
+    px = np.empty(3, np.uint8)
+    for v in range(r0, r1):
+        y0 = max(v - 1, 0)
+        y1 = min(v + 2, H)
+        col[0] = 0
+        col[nw + 1] = 0
+        spy = sp[y0 - s0]
+        for k in range(no):
+            col[k + off] = spy[k]
+        for y in range(y0 + 1, y1):
+            spy = sp[y - s0]
+            for k in range(no):
+                col[k + off] += spy[k]
+        zr = comp_d[v - r0]
+        cr = comp_c[v - r0]
+        brk = bits[v - s0, c0 - o0:]
+        vb = v * W + c0
+        dk = dflat[vb:]  # dk[l * HW + k]: layer l at column c0 + k of row v
+        ck = cflat[3 * vb:]
+        needk = need[v, c0:c1] if use_need else need[0, 0:0]
+        # Per pixel: bit l of m = layer l has a value here or takes a median here (uint32
+        # arithmetic on whole rows: vectorized); the gathers follow in a second loop.
+        for k in range(nw):
+            f = (col[k] + col[k + 1] + col[k + 2] + _GE5) & _BIT3
+            x = (f >> np.uint32(3)) & np.uint32(0x11111111)  # bits 4l + 3 of f -> bit l of a byte
+            x = (x | (x >> np.uint32(3))) & np.uint32(0x03030303)
+            x = (x | (x >> np.uint32(6))) & np.uint32(0x000F000F)
+            x = (x | (x >> np.uint32(12))) & np.uint32(0xFF)
+            mrow[k] = np.uint8(x) | brk[k]
+        if use_need:
+            for k in range(nw):
+                mrow[k] = mrow[k] * np.uint8(needk[k])
+        nm = 0
+        for k in range(nw):
+            m = np.int64(mrow[k])
+            if m == 0:  # empty and no median due (most pixels outside the covered region):
+                zr[k] = 0.0  # one well-predicted branch beats the gathers below there
+                cr[k, 0] = 0
+                cr[k, 1] = 0
+                cr[k, 2] = 0
+                continue
+            b = np.int64(brk[k])
+            l = lowest[m]
+            hit = (m >> l) & (b >> l) & 1  # 0 / 1: arithmetic selects below, no branches
+            p = np.uint64(l * HW + k)
+            zr[k] = dk[p] * np.float32(hit)
+            hc = np.uint8(hit)
+            p3 = np.uint64(3) * p
+            cr[k, 0] = ck[p3] * hc
+            cr[k, 1] = ck[p3 + np.uint64(1)] * hc
+            cr[k, 2] = ck[p3 + np.uint64(2)] * hc
+            med_u[nm] = k + c0
+            med_l[nm] = l
+            nm += hit ^ 1
+        inner_v = 0 < v < H - 1
+        for i in range(nm):
+            u = med_u[i]
+            k = u - c0
+            if inner_v and 0 < u < W - 1:
+                zr[k] = _median8_interior(dflat, cflat, np.uint64(med_l[i] * HW + v * W + u), uW, px)
+                cr[k, 0] = px[0]
+                cr[k, 1] = px[1]
+                cr[k, 2] = px[2]
+                continue
+            j = _median8(d, c, med_l[i], y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+            zr[k] = bd[j]
+            cr[k, 0] = b0[j]
+            cr[k, 1] = b1[j]
+            cr[k, 2] = b2[j]
+    # Seam pass over the item: 3x3 switching median of the composite.
+    cd3 = comp_d.reshape((1, nr, nw))
+    cc3 = comp_c.reshape((1, nr, nw, 3))
+    cdf = comp_d.reshape(nr * nw)
+    ccf = comp_c.reshape(nr * nw * 3)
+    unw = np.uint64(nw)
+    coutf = cout.reshape(H * W * 3)
+    for v in range(a, e):
+        y0 = max(v - 1, 0)
+        y1 = min(v + 2, H)
+        for k in range(ni + 2):
+            icol[k] = 0
+        for y in range(y0, y1):
+            zy = comp_d[y - r0]
+            for k in range(nw):
+                icol[k + ioff] += np.int32(zy[k] > 0)
+        zs = comp_d[v - r0, x0 - c0:]  # zs[k]: composite depth at column x0 + k
+        do = dout[v, x0:x1]
+        for k in range(ni):
+            do[k] = zs[k]
+        cof = coutf[3 * (v * W + x0):3 * (v * W + x1)]  # the colour row as bytes: one flat copy
+        csf = ccf[3 * ((v - r0) * nw + x0 - c0):]
+        for t in range(3 * ni):
+            cof[t] = csf[t]
+        mk = mask[v, x0:x1] if use_need else mask[0, 0:0]
+        nm = 0
+        for k in range(ni):
+            want = (np.int64(zs[k] > 0) ^ 1) & np.int64(icol[k] + icol[k + 1] + icol[k + 2] >= 5)
+            if use_need:
+                want = want & np.int64(mk[k])
+            med_u[nm] = k + x0
+            nm += want
+        inner_v = 0 < v < H - 1
+        for i in range(nm):
+            u = med_u[i]
+            if inner_v and 0 < u < W - 1:
+                dout[v, u] = _median8_interior(cdf, ccf, np.uint64((v - r0) * nw + u - c0), unw, px)
+                cout[v, u, 0] = px[0]
+                cout[v, u, 1] = px[1]
+                cout[v, u, 2] = px[2]
+                continue
+            j = _median8(cd3, cc3, 0, y0 - r0, y1 - r0, max(u - 1, 0) - c0, min(u + 2, W) - c0, bd, b0, b1, b2)
+            dout[v, u] = bd[j]
+            cout[v, u, 0] = b0[j]
+            cout[v, u, 1] = b1[j]
+            cout[v, u, 2] = b2[j]
+
+
+@parallel_kernel(cache=True, error_model="numpy")
+def banded_crack_kernel(d, c, lowest, need, use_need, mask, band, dout, cout):  # pragma: no cover
+    # Bands of ``band`` rows over the whole width (constant columns: the compiler drops the offsets).
+    H, W = d.shape[1], d.shape[2]
+    for bi in nb.prange((H + band - 1) // band):
+        _crack_item(d, c, lowest, need, use_need, mask, bi * band, min(bi * band + band, H), 0, W, dout, cout)
+
+
+@parallel_kernel(cache=True, error_model="numpy")
+def tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout):  # pragma: no cover
+    # Work items = rows [a, e) x columns [x0, x1) (runs of tiles holding wanted pixels).
+    for it in nb.prange(items.shape[0]):
+        _crack_item(d, c, lowest, need, use_need, mask, items[it, 0], items[it, 1], items[it, 2],
+                    items[it, 3], dout, cout)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
+    # Per tile: its rectangle grown by ``grow`` (clipped), scanned pixel by pixel up to the first
+    # nonzero one (on a big-endian machine, where the words' byte order differs; tested on all).
+    H, W = mask.shape
+    th = (H + tile_h - 1) // tile_h
+    tw = (W + tile_w - 1) // tile_w
+    out = np.zeros((th, tw), np.uint8)
+    for ty in range(th):
+        ya = max(ty * tile_h - grow, 0)
+        yb = min((ty + 1) * tile_h + grow, H)
+        for tx in range(tw):
+            xa = max(tx * tile_w - grow, 0)
+            xb = min((tx + 1) * tile_w + grow, W)
+            found = False
+            for v in range(ya, yb):
+                row = mask[v]
+                for u in range(xa, xb):
+                    if row[u]:
+                        found = True
+                        break
+                if found:
+                    break
+            if found:
+                out[ty, tx] = 1
+    return out
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _tile_any_words_kernel(words, H, W, tile_h, tile_w, grow):  # pragma: no cover
+    # tile_any from the mask's rows as uint64 words (8 pixels each, little-endian: pixel 8k + j is
+    # byte j of word k): per row of tiles, the OR of the words of its grown rows; per tile, the OR
+    # of the words its grown columns touch, the bytes outside them masked off. A nonzero byte
+    # survives an OR, so the result is nonzero exactly when a pixel of the rectangle is.
+    th = (H + tile_h - 1) // tile_h
+    tw = (W + tile_w - 1) // tile_w
+    nw = words.shape[1]
+    out = np.zeros((th, tw), np.uint8)
+    band = np.empty(nw, np.uint64)
+    ones = np.uint64(0xFFFFFFFFFFFFFFFF)
+    one = np.uint64(1)
+    zero = np.uint64(0)
+    for ty in range(th):
+        ya = max(ty * tile_h - grow, 0)
+        yb = min((ty + 1) * tile_h + grow, H)
+        band[:] = zero
+        for v in range(ya, yb):
+            wrow = words[v]
+            for k in range(nw):
+                band[k] |= wrow[k]
+        for tx in range(tw):
+            xa = max(tx * tile_w - grow, 0)
+            xb = min((tx + 1) * tile_w + grow, W)
+            wa = xa // 8
+            wb = (xb + 7) // 8
+            acc = zero
+            for k in range(wa, wb):
+                w = band[k]
+                if k == wa:  # drop the pixels left of xa
+                    w &= ones << np.uint64(8 * (xa - 8 * wa))
+                if k == wb - 1 and xb < 8 * wb:  # and those from xb on
+                    w &= (one << np.uint64(8 * (xb - 8 * k))) - one
+                acc |= w
+            out[ty, tx] = acc != zero
+    return out
+
+
+_LITTLE = sys.byteorder == "little"
+
+
+def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
+    """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (uint8 or
+    bool, H x W) lies within ``grow`` pixels (Chebyshev distance) of the tile (numba; reference
+    :func:`presim.synthesis.kernels_reference.tile_any_ref`).
+
+    Each tile looks at its rectangle grown by ``grow``. On little-endian machines: the OR of the
+    rows of each row of tiles as 8-pixel words (:func:`row_words`: rows whose width is not a
+    multiple of 8 are copied with zero padding first), then per tile the OR of the words it covers
+    (one pass over the mask whatever its density: 13 against 102 us per 640x480 replace mask of
+    the apc capture for the per-tile scan below, median of 66). Otherwise each tile scans its
+    rectangle pixel by pixel up to the first nonzero one; marking tiles from every nonzero pixel
+    cost ~5 ns per nonzero pixel (1.4 ms for a 640x480 mask 30 % full).
+    """
+    m = np.ascontiguousarray(mask).view(np.uint8)
+    H, W = m.shape
+    if W and _LITTLE:
+        return _tile_any_words_kernel(row_words(m), H, W, int(tile_h), int(tile_w), int(grow))
+    return _tile_any_kernel(m, int(tile_h), int(tile_w), int(grow))
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _tile_items_kernel(active, tile_h, tile_w, H, W):  # pragma: no cover
+    # Runs of consecutive active tiles along each row of tiles -> (n, 4): rows [a, e), cols [x0, x1).
+    th, tw = active.shape
+    out = np.empty((th * tw, 4), np.int64)
+    n = 0
+    for ty in range(th):
+        tx = 0
+        while tx < tw:
+            if active[ty, tx] == 0:
+                tx += 1
+                continue
+            t0 = tx
+            while tx < tw and active[ty, tx] != 0:
+                tx += 1
+            out[n, 0] = ty * tile_h
+            out[n, 1] = min((ty + 1) * tile_h, H)
+            out[n, 2] = t0 * tile_w
+            out[n, 3] = min(tx * tile_w, W)
+            n += 1
+    return out[:n].copy()
+
+
+def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
+                              band_rows: int | None = None, tile_cols: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`filtered_composite_packed` (without ``front``) in one pass over bands of rows.
+
+    Same output bit for bit on every pixel the packed chain defines (all pixels without
+    ``replace``; the ``replace`` pixels with it — others are UNDEFINED here too), tested against
+    it and against the numpy reference chain. Occupancy, composite and seam pass of a band run in
+    buffers of the band (no full-size intermediates, no copies, one parallel region). With
+    ``replace``, a band is cut into tiles of ``tile_cols`` columns and only runs of tiles holding a
+    ``replace`` pixel are computed; the layers are then read only within 2 pixels of those tiles'
+    ``replace`` pixels' neighbourhoods (:func:`warp_tiles` marks a superset), so the layers may be
+    undefined elsewhere (:func:`presim.synthesis.warp.warp_layers` with ``tiles``).
+
+    Args:
+        depth_m: float32 (L, H, W) warped layers (L <= :data:`BANDED_MAX_LAYERS`); color: uint8 (L, H, W, 3).
+        replace: optional bool (H, W): the pixels whose values are wanted.
+        band_rows: rows per band (default :func:`band_rows`; any value >= 1 gives the same output).
+        tile_cols: columns per tile with ``replace`` (None: :data:`TILE_COLS` from
+            :data:`TILED_MIN_PIXELS` pixels on while at most :data:`TILED_MAX_FRAC` of the tiles
+            hold a ``replace`` pixel, else whole rows; any value >= 1 gives the same output). On
+            tiles, the bands are ``band_rows`` rows high (None: :data:`TILE_ROWS`).
+    Returns:
+        ``(depth_m (H, W), color (H, W, 3))``.
+    """
+    L, H, W = depth_m.shape
+    if L > BANDED_MAX_LAYERS:
+        raise ValueError(f"filtered_composite_banded: at most {BANDED_MAX_LAYERS} layers, got {L}")
+    depth_m = np.ascontiguousarray(depth_m)  # the kernel indexes the layers flat (no copy when they are)
+    color = np.ascontiguousarray(color)
+    use = replace is not None
+    explicit_tiles = tile_cols is not None
+    if tile_cols is None:
+        tile_cols = TILE_COLS if H * W >= TILED_MIN_PIXELS else W
+    band = max(int(band_rows) if band_rows else rows_per_band(H), 1)
+    tile_band = max(int(band_rows) if band_rows else TILE_ROWS, 1)
+    if use:
+        need = cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
+        mask = replace
+    else:
+        need = mask = np.zeros((1, 1), np.bool_)
+    tw = max(int(tile_cols), 1)
+    out_d = np.empty((H, W), np.float32)
+    out_c = np.empty((H, W, 3), np.uint8)
+    active = tile_any(replace.view(np.uint8), tile_band, tw, 0) if use and tw < W else None
+    if active is not None and (explicit_tiles or active.mean() <= TILED_MAX_FRAC):
+        items = _tile_items_kernel(active, tile_band, tw, H, W)
+        if len(items):
+            tiled_crack_kernel(depth_m, color, LOWEST_SET_BIT, need, use, mask, items, out_d, out_c)
+    else:
+        banded_crack_kernel(depth_m, color, LOWEST_SET_BIT, need, use, mask, band, out_d, out_c)
+    return out_d, out_c
+
+
+def warp_tiles(replace: np.ndarray, tile_px: int = WARP_TILE_PX) -> np.ndarray:
+    """uint8 (ceil(H / tile_px), ceil(W / tile_px)): the tiles of ``tile_px`` x ``tile_px`` pixels
+    within 2 pixels of a ``replace`` pixel — every layer pixel :func:`filtered_composite_banded`
+    reads for the ``replace`` pixels (the 3 x 3 windows of the composite pixels in the 3 x 3
+    windows of the seam pass). :func:`presim.synthesis.warp.warp_layers` warps and clears only
+    those (``tiles=``)."""
+    return tile_any(replace.view(np.uint8), tile_px, tile_px, 2)

@@ -1,0 +1,142 @@
+"""The executor: how a frame's work is scheduled. It never changes a pixel.
+
+The pipeline (:mod:`presim.synthesis.pipeline`) asks for view images; the Renderer asks for
+prepared views. Everything about *when* and *on which thread* that work runs lives here, behind
+:class:`Executor`:
+
+- **threads per frame** (:func:`presim.synthesis.threads.frame_threads`): frames of at most
+  ``threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (their parallel kernels run as
+  serial twins: waking a second thread costs more than it gives there); larger ones on all;
+- **views warped ahead** (:mod:`presim.synthesis.warp_ahead`): a frame on one thread leaves a core
+  idle, so a helper thread warps and crack-filters the later candidates that the stream's previous
+  frame drew, while the loop works on the first view; the loop then takes them finished;
+- **views prepared in the background** (:mod:`presim.synthesis.view_cache`): the per-view point
+  cache (LRU) builds the frame's later candidates that are not cached yet on a second thread.
+
+Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and each was kept
+because it measured >= 10 % faster on a case of ``benchmarks/bench_ab.py`` (docs/synthesis.md).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import replace as dc_replace
+from typing import Any, Callable, Hashable, Iterator
+
+import numpy as np
+
+from presim.geometry import Intrinsics
+from presim.synthesis.config import PerfConfig, RenderConfig
+from presim.synthesis.cracks import TILED_MIN_PIXELS
+from presim.synthesis.pipeline import ViewImage, Workspace, banded_applies, view_image
+from presim.synthesis.threads import frame_threads, numba_threads, serial_kernels
+from presim.synthesis.view_cache import ViewCache
+from presim.synthesis.warp_ahead import WARP_AHEAD_MIN_POINTS, WarpAhead
+
+__all__ = ["Executor"]
+
+
+class Executor:
+    """Schedules one Renderer's work (one rendering thread; see the module doc)."""
+
+    def __init__(self, perf: PerfConfig, config: RenderConfig):
+        self.perf = perf
+        self.backend = perf.backend
+        self.cache = ViewCache(perf.cache_mb * 2**20, background=perf.prefetch and perf.backend == "numba")
+        self.workspace = Workspace()
+        # Warping ahead needs the numba backend's banded crack pass, no blending (which keeps the
+        # loop's own warps) and a second core.
+        self._can_ahead = (perf.backend == "numba" and perf.warp_ahead and perf.threads == 0
+                           and not config.blend and banded_applies(config, config.num_layers)
+                           and (os.cpu_count() or 1) >= 2)
+        self._ahead: WarpAhead | None = None
+        self._ahead_on = False
+        self.max_later = config.fixed_views if config.fixed_views > 0 else config.max_views
+
+    # ---- views ---------------------------------------------------------------------------------
+    def view(self, key: Hashable, build: Callable[[], Any]) -> Any:
+        """The prepared view under ``key`` from the cache, built now when missing."""
+        return self.cache.get(key, build)
+
+    def prefetch(self, job: Callable[[Callable[[Hashable, Callable[[], Any]], None]], None]) -> None:
+        """Run ``job(build_ahead)`` on the background thread, with serial GIL-free kernels; it calls
+        ``build_ahead(key, build)`` for each view to prepare (skipped when cached meanwhile). No-op
+        without the background thread."""
+        if not self.cache.background:
+            return
+
+        def run(build_ahead: Callable[[Hashable, Callable[[], Any]], None]) -> None:
+            with serial_kernels():
+                job(build_ahead)
+
+        self.cache.ahead(run)
+
+    # ---- one frame -----------------------------------------------------------------------------
+    def frame_threads(self, K: Intrinsics) -> int:
+        return frame_threads(K.width, K.height, self.perf.threads)
+
+    @contextlib.contextmanager
+    def frame(self, K: Intrinsics) -> Iterator[None]:
+        """Run one frame of size ``K`` with its numba thread count; the views handed to
+        :meth:`warp_ahead` are dropped when it ends."""
+        try:
+            with numba_threads(self.frame_threads(K)):
+                yield
+        finally:
+            if self._ahead_on:
+                self._ahead.stop()
+                self._ahead_on = False
+
+    def ahead_possible(self, K: Intrinsics) -> bool:
+        """Whether a frame of size ``K`` warps later views ahead on the helper thread."""
+        return self._can_ahead and K.width * K.height < TILED_MIN_PIXELS and self.frame_threads(K) == 1
+
+    def warp_ahead(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> None:
+        """Hand ``views`` (prepared, in the order the loop will likely want them) to the helper thread
+        for this frame (inside :meth:`frame`). Views of fewer than ``WARP_AHEAD_MIN_POINTS`` points
+        are left to the loop (the handover costs about what warping them does)."""
+        views = [v for v in views if len(v.xyz_world) >= WARP_AHEAD_MIN_POINTS]
+        if not views or not self.ahead_possible(K):
+            return
+        if self._ahead is None:
+            self._ahead = WarpAhead()
+        self._ahead.start(views, T_cam_world, K, near_m, crack=True)
+        self._ahead_on = True
+
+    def view_image(self, view: Any, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
+                   replace: np.ndarray | None) -> ViewImage:
+        """The view's image: taken from the helper thread when it warped it, else computed here."""
+        if self._ahead_on:
+            got = self._ahead.take(view)
+            if got is not None and got.depth_m is not None:
+                d, c = got.depth_m, got.color
+                if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
+                    d, c = d.copy(), c.copy()
+                return ViewImage(d, c)
+        return view_image(self.backend, view, T_cam_world, K, config, replace, self.workspace)
+
+    def with_front(self, front: tuple[np.ndarray, np.ndarray] | None) -> contextlib.AbstractContextManager:
+        """Within the block, numba view images also write their front-most surface into ``front``."""
+        ws = self.workspace
+
+        @contextlib.contextmanager
+        def ctx() -> Iterator[None]:
+            ws.front = front
+            try:
+                yield
+            finally:
+                ws.front = None
+
+        return ctx()
+
+    def close(self) -> None:
+        """Stop the helper threads."""
+        self.cache.close()
+        if self._ahead is not None:
+            self._ahead.close()
+
+
+def timed(img: ViewImage, load_ms: float) -> ViewImage:
+    """``img`` with its view's preparation time."""
+    return dc_replace(img, load_ms=load_ms)

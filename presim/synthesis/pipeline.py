@@ -1,0 +1,260 @@
+"""The pure per-frame pipeline of view synthesis (thesis §3.4.2-3.4.4).
+
+    synthesize_frame(views, T_cam_world, K, config) -> FrameResult
+
+``views`` (:class:`FrameViews`) is the frame's ordered candidate list and what the loop asks of
+it: one view's image in the target camera, and the next view to warp. The Renderer builds it;
+how its work is scheduled (threads, views warped ahead, views prepared in the background) is the
+executor's business (:mod:`presim.synthesis.execution`) and invisible here.
+
+Stages, in order:
+1. **view image** (:func:`view_image`, per backend): warp the view's layers with a z-buffer per
+   layer (:mod:`warp`), fill cracks per layer with the switching median, composite the layers front
+   to back, one more crack pass over the layer seams (:mod:`cracks`);
+2. **merge + hole analysis** (:mod:`holes`): the view's image goes into the accumulated image on
+   the pixels still missing (big holes dilated against ghost contours); the largest hole decides
+   whether a further view is warped;
+3. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
+4. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from presim.geometry import Intrinsics
+from presim.synthesis import kernels_reference as ref
+from presim.synthesis.blend import front_of_layers
+from presim.synthesis.config import RenderConfig
+from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX,
+                                     composite_layers, crack_filter, filtered_composite_banded, warp_tiles)
+from presim.synthesis.fill import fill_holes
+from presim.synthesis.holes import analyse_hole_mask, merge_into_holes, merge_view_holes
+from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
+
+__all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
+           "synthesize_frame"]
+
+STAGES = ("select", "load", "warp", "crack", "composite", "holes", "fill", "blend")
+"""Keys of the per-stage milliseconds (``FrameResult.ms``, ``RenderStats.ms``)."""
+
+
+@dataclass(frozen=True)
+class ViewImage:
+    """One view warped, crack-filled and composited in the target camera."""
+
+    depth_m: np.ndarray
+    """float32 (H, W) z-depth, 0 = empty; exact at least on the ``replace`` pixels asked for."""
+    color: np.ndarray
+    """uint8 (H, W, 3)."""
+    warp_ms: float = 0.0
+    crack_ms: float = 0.0
+    composite_ms: float = 0.0
+    load_ms: float = 0.0
+
+
+@dataclass
+class Workspace:
+    """Buffers a backend reuses across views and frames (one per rendering thread)."""
+
+    layers: LayeredImage | None = None
+    """numba: the (L, H, W) warp buffers."""
+    front: tuple[np.ndarray, np.ndarray] | None = None
+    """When set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with the
+    front-most surface of its warped layers (no crack filter; blending keeps it)."""
+
+
+def banded_applies(config: RenderConfig, num_layers: int) -> bool:
+    """Whether the numba backend runs the banded crack pass (3 x 3 switching median, few layers)."""
+    return (config.crack_filter == "switching_median" and config.crack_kernel_px == 3
+            and num_layers <= BANDED_MAX_LAYERS)
+
+
+def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
+                     replace: np.ndarray | None, workspace: Workspace) -> ViewImage:
+    """numba backend. With ``replace`` (bool (H, W), a later view) only those pixels are exact."""
+    t0 = time.perf_counter()
+    banded = banded_applies(config, view.num_layers)
+    front = workspace.front
+    # A later view's banded crack pass reads its layers only near the replaceable pixels: warp (and
+    # clear) only the tiles there. The banded pass reads colour only where depth > 0, so the colour
+    # planes need no clearing (the front surface for blending reads them everywhere).
+    tiles = None
+    if banded and replace is not None and front is None and K.width * K.height >= TILED_MIN_PIXELS:
+        tiles = warp_tiles(replace)
+        if tiles.mean() > TILED_MAX_FRAC:  # holes everywhere: the full warp is cheaper
+            tiles = None
+    lay = workspace.layers = warp_layers(view, T_cam_world, K, config.near_m, workspace.layers, tiles=tiles,
+                                         tile_px=WARP_TILE_PX, clear_color=not banded or front is not None)
+    t1 = time.perf_counter()
+    if front is not None:
+        front_of_layers(lay.depth_m, lay.color, *front)
+    if banded:
+        d, c = filtered_composite_banded(lay.depth_m, lay.color, replace)
+        return ViewImage(d, c, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3)
+    mode, kpx = config.crack_filter, config.crack_kernel_px
+    d, c = crack_filter(lay.depth_m, lay.color, mode, kpx)
+    t2 = time.perf_counter()
+    d, c = composite_layers(d, c)
+    # Second pass on the composite: cracks along layer seams and at crossings of crack lines.
+    d, c = crack_filter(d, c, mode, kpx)
+    return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
+
+
+def view_image_reference(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
+                         replace: np.ndarray | None, workspace: Workspace) -> ViewImage:
+    """Reference backend (plain numpy, :mod:`kernels_reference`); computes every pixel."""
+    t0 = time.perf_counter()
+    lay_d, lay_c = ref.warp_layers_ref(view.xyz_world, view.rgb, view.layer, view.num_layers,
+                                       T_cam_world, K, config.near_m)
+    if workspace.front is not None:
+        front_of_layers(lay_d, lay_c, *workspace.front)
+    t1 = time.perf_counter()
+    kpx = config.crack_kernel_px
+    filt = {"switching_median": ref.switching_median_ref, "median": ref.plain_median_ref}.get(config.crack_filter)
+    if filt is not None:
+        pairs = [filt(lay_d[i], lay_c[i], kpx) for i in range(view.num_layers)]
+        lay_d = np.stack([p[0] for p in pairs])
+        lay_c = np.stack([p[1] for p in pairs])
+    t2 = time.perf_counter()
+    d, c = ref.composite_layers_ref(lay_d, lay_c)
+    if filt is not None:
+        d, c = filt(d, c, kpx)
+    return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
+
+
+def view_image(backend: str, view, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
+               replace: np.ndarray | None, workspace: Workspace) -> ViewImage:
+    """One view's image on ``backend`` (``"numba"``, ``"reference"`` or ``"torch"``; the view in the
+    backend's form: :class:`~presim.synthesis.warp.ViewPoints`, or a ``TorchView`` for torch)."""
+    if backend == "numba":
+        return view_image_numba(view, T_cam_world, K, config, replace, workspace)
+    if backend == "reference":
+        return view_image_reference(view, T_cam_world, K, config, replace, workspace)
+    from presim.synthesis import torch_kernels  # torch is imported only when asked for
+
+    return ViewImage(*torch_kernels.view_image_torch(view, T_cam_world, K, config.near_m, config.crack_filter,
+                                                     config.crack_kernel_px))
+
+
+class FrameViews(Protocol):
+    """The views of one target camera, as the adaptive loop sees them."""
+
+    candidates: list[int]
+    """Ordered candidate view ids (scene frame indices), best first."""
+
+    def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
+        """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
+
+    def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
+        """Index in ``pending`` of the first view whose sub-sampled grid puts >= 1 point and >= ``frac``
+        of the best count into the big holes ``big_flat`` (uint8 (H * W,)) and, with ``need_px``,
+        is predicted to fill at least that many pixels; -1 when none can."""
+
+    def blend(self, warped: list[int], color: np.ndarray, depth_m: np.ndarray, source: np.ndarray) -> np.ndarray:
+        """The merged colour blended over the views that agree with its front surface."""
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One synthesized frame, and what the loop did."""
+
+    color: np.ndarray
+    """uint8 (H, W, 3), filled where no view covered when ``fill_holes``."""
+    depth_m: np.ndarray
+    """float32 (H, W)."""
+    valid: np.ndarray
+    """bool (H, W): synthesized from a view (not filled)."""
+    source_view: np.ndarray
+    """int32 (H, W): scene frame index of each pixel's view, -1 = none."""
+    hole_frac: float
+    """Fraction of pixels no view covered, before filling."""
+    views: list[int]
+    """Views warped, in order."""
+    hole_frac_per_view: list[float]
+    """Hole fraction after each merged view."""
+    skipped: list[int]
+    """Candidates left when the loop stopped because none can fill a big hole."""
+    ms: dict[str, float]
+    """Milliseconds per stage (keys: :data:`STAGES`)."""
+
+
+def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig
+                     ) -> FrameResult:
+    """The adaptive loop, blending and the final fill for one target camera.
+
+    Args:
+        views: the frame's candidates and view images (:class:`FrameViews`).
+        T_cam_world: 4x4 world -> target camera; K: target intrinsics.
+        config: the algorithm (:class:`~presim.synthesis.config.RenderConfig`).
+    """
+    cfg = config
+    H, W = K.height, K.width
+    ms = {s: 0.0 for s in STAGES}
+    adaptive = cfg.fixed_views == 0
+    pending = [int(v) for v in list(views.candidates)[:cfg.max_views if adaptive else cfg.fixed_views]]
+    n_target = len(pending)
+    acc_d = acc_c = holes = replace = big = None
+    acc_src = np.empty((H, W), np.int32)
+    warped: list[int] = []
+    hole_fracs: list[float] = []
+    skipped: list[int] = []
+    stop_px = cfg.stop_hole_frac * H * W
+    need_px = cfg.min_view_gain * H * W if cfg.min_view_gain > 0 else None
+    n_hole = 0
+    t_start = time.perf_counter()
+    while pending and len(warped) < n_target:
+        if warped and adaptive and cfg.time_budget_ms > 0 and (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
+            break  # time budget spent: deliver what we have (the fill closes the rest)
+        best = 0
+        if warped and adaptive:
+            t = time.perf_counter()
+            best = views.next_view(pending, big.reshape(-1), need_px, cfg.next_view_fill_frac)
+            ms["select"] += (time.perf_counter() - t) * 1e3
+            if best < 0:  # no candidate can fill a big hole
+                skipped.extend(pending)
+                break
+        vi = pending.pop(best)
+        img = views.view_image(vi, replace)
+        ms["load"] += img.load_ms
+        ms["warp"] += img.warp_ms
+        ms["crack"] += img.crack_ms
+        ms["composite"] += img.composite_ms
+        t = time.perf_counter()
+        if replace is None:  # the first view's image is the accumulator
+            acc_d, acc_c = img.depth_m, img.color
+            holes = np.empty((H, W), np.uint8)
+            n_hole = merge_view_holes(acc_d, acc_c, acc_src, None, acc_d, acc_c, vi, holes)
+        else:  # merge on the replaceable pixels, the hole mask updated in place
+            n_hole -= merge_into_holes(acc_d, acc_c, acc_src, replace, img.depth_m, img.color, vi, holes)
+        warped.append(vi)
+        last = len(warped) == n_target or not pending
+        hs = analyse_hole_mask(holes, n_hole, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
+                               stop_px=stop_px if adaptive else 0.0, want_largest=not last)
+        hole_fracs.append(hs.hole_frac)
+        replace, big = hs.replace, hs.big
+        ms["holes"] += (time.perf_counter() - t) * 1e3
+        if last or (adaptive and hs.largest_hole_px <= stop_px):
+            break
+    if holes is None:  # no view warped
+        acc_d = np.zeros((H, W), np.float32)
+        acc_c = np.zeros((H, W, 3), np.uint8)
+        acc_src.fill(-1)
+        valid = acc_d > 0
+        hole_frac = float(1.0 - valid.mean())
+    else:  # the same float operations as 1 - valid.mean()
+        valid = holes == 0
+        hole_frac = float(1.0 - (H * W - n_hole) / float(H * W))
+    if cfg.blend and len(warped) > 1:
+        t = time.perf_counter()
+        acc_c = views.blend(warped, acc_c, acc_d, acc_src)
+        ms["blend"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
+    if cfg.fill_holes and hole_frac > 0:
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method)
+    ms["fill"] = (time.perf_counter() - t) * 1e3
+    return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, warped, hole_fracs, skipped, ms)
