@@ -32,7 +32,7 @@ from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis.lod import LodConfig, choose_level, level_thresholds
 
-__all__ = ["per_coordinate", "project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
+__all__ = ["grid_pixels", "per_coordinate", "project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
 
 
 def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics
@@ -43,6 +43,17 @@ def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
     u, v, inb = nearest_pixel(uv, K.width, K.height)
     pix = np.where(inb, v * K.width + u, -1).astype(np.int64)
     return pix, np.asarray(z, np.float32)
+
+
+def grid_pixels(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> np.ndarray:
+    """Flat pixel indices (v * W + u) where a view's grid (m, 3) lands in the target (reference of
+    :meth:`FrameGrids.pixels`)."""
+    if len(grid_xyz_world) == 0:
+        return np.zeros(0, np.int64)
+    uv, z = project(K, transform_points(T_cam_world, grid_xyz_world))
+    ok = z > near_m
+    u, v, inb = nearest_pixel(uv[ok], K.width, K.height)
+    return v[inb] * K.width + u[inb]
 
 
 def per_coordinate(xyz_world: np.ndarray) -> np.ndarray:
