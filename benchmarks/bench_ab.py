@@ -38,6 +38,11 @@ CHILD = r'''
 import json, os, sys, time
 sys.path.insert(0, TREE)
 os.environ["PRESIM_NO_PROGRESS"] = "1"
+try:  # what the CLI does first (in a tree whose import does not configure the process)
+    from presim.runtime import configure
+    configure()
+except ImportError:
+    pass
 import numpy as np
 from presim.capture.store import load_scene
 scene = load_scene(SCENE)
@@ -73,9 +78,10 @@ elif case.startswith("prepare:"):
     r = Renderer(scene, RenderConfig())
     for i in range(len(scene)):
         r.grid_points(i)  # the grids are kept apart from the views: not part of a miss
-    r._build_view(0, level)
+    build = getattr(r, "_build_view", None) or r._prepare  # (the base tree's name)
+    build(0, level)
     for k in range(n):
-        timed(lambda: r._build_view(k % len(scene), level))
+        timed(lambda: build(k % len(scene), level))
 elif case == "pointnav":
     from presim.sim.envs import PointNavEnv
     env = PointNavEnv(scene); env.reset(seed=0)
@@ -89,8 +95,7 @@ elif case == "pointnav":
         timed(step)
 elif case == "vector":
     from presim.sim.vector_env import PointNavVectorEnv
-    from presim.synthesis.renderer import RenderConfig
-    venv = PointNavVectorEnv(scene, num_envs=8, render=RenderConfig(backend="numba"))
+    venv = PointNavVectorEnv(scene, num_envs=8)
     venv.reset(seed=0)
     step = lambda: venv.step(rng.uniform(-1, 1, (8, 2)).astype(np.float32))
     for _ in range(max(1, warm // 8)):

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import NamedTuple, Any, Callable, Sequence
 
 import cv2
 import numba as nb
@@ -263,14 +263,45 @@ def blend_reference(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, con
     return out
 
 
+class _BlendArrays(NamedTuple):
+    color: np.ndarray
+    depth: np.ndarray
+    source: np.ndarray
+    ids: np.ndarray
+    vdepth: np.ndarray
+    vcp: np.ndarray
+    fcount: np.ndarray
+    centres: np.ndarray
+    quality: np.ndarray
+
+
+class _BlendCam(NamedTuple):
+    M: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+class _BlendParams(NamedTuple):
+    fscale: float
+    tol: float
+    res_w: float
+    eps: float
+    min_f: float
+
+
 @parallel_kernel(fastmath=True, error_model="numpy", cache=True)
-def _blend_kernel(color, depth, source, ids, vdepth, vcp, fcount, fscale, centres, quality, M, fx, fy, cx, cy,
-                  tol, res_w, eps, min_f, out):  # pragma: no cover
+def _blend_kernel(a, cam, p, out):  # pragma: no cover
     # Row by row; the inner loops over u are branch-free (selects, unconditional loads) in float32
     # over contiguous rows (view colours planar: vcp (n, 3, H, W)), so they vectorise; the numpy
     # error model drops the division-by-zero branches that kept the weight loop scalar. Same
     # formulas and order of operations as blend_reference (float32); the feathering factor is
     # computed from the box counts exactly as feather_map computes it.
+    color, depth, source, ids, vdepth, vcp, fcount = a.color, a.depth, a.source, a.ids, a.vdepth, a.vcp, a.fcount
+    centres, quality = a.centres, a.quality
+    M, fx, fy, cx, cy = cam.M, cam.fx, cam.fy, cam.cx, cam.cy
+    fscale, tol, res_w, eps, min_f = p.fscale, p.tol, p.res_w, p.eps, p.min_f
     H, W = depth.shape
     n = ids.shape[0]
     one = np.float32(1.0)
@@ -378,11 +409,13 @@ def blend_numba(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
         counts = np.stack([coverage_counts(d, config.feather_px) for d in inp.view_depth_m])
     k = feather_box(config.feather_px)
     fscale = 1.0 if config.feather_px <= 1 else 1.0 / (k * k)  # no feathering: any count >= 1 gives 1
-    _blend_kernel(inp.color, inp.depth_m, inp.source, inp.view_ids.astype(np.int32),
-                  inp.view_depth_m, vcp, counts, fscale, np.ascontiguousarray(inp.centres, np.float32),
-                  np.ascontiguousarray(inp.quality, np.float32), np.ascontiguousarray(T_world_cam, np.float32),
-                  f32(K.fx), f32(K.fy), f32(K.cx), f32(K.cy), f32(config.depth_tol_rel),
-                  f32(config.resolution_weight), f32(config.penalty_eps), f32(1.0 / float(config.feather_px)), out)
+    arrays = _BlendArrays(inp.color, inp.depth_m, inp.source, inp.view_ids.astype(np.int32), inp.view_depth_m, vcp,
+                          counts, np.ascontiguousarray(inp.centres, np.float32),
+                          np.ascontiguousarray(inp.quality, np.float32))
+    cam = _BlendCam(np.ascontiguousarray(T_world_cam, np.float32), f32(K.fx), f32(K.fy), f32(K.cx), f32(K.cy))
+    params = _BlendParams(fscale, f32(config.depth_tol_rel), f32(config.resolution_weight), f32(config.penalty_eps),
+                          f32(1.0 / float(config.feather_px)))
+    _blend_kernel(arrays, cam, params, out)
     return out
 
 
@@ -405,7 +438,6 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
                 T_world_cam: np.ndarray, K: Intrinsics, config: BlendConfig,
                 front_image: Callable[[int, np.ndarray, np.ndarray], None],
                 centre_of: Callable[[int], np.ndarray], quality_of: Callable[[int], float] | None = None,
-                color_transform: Callable[[int, np.ndarray], np.ndarray] | None = None,
                 use_reference: bool = False, buffers: dict | None = None) -> tuple[np.ndarray, float]:
     """Blend the first ``config.max_views`` of ``views`` into the loop's winner image.
 
@@ -418,7 +450,6 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
             :func:`front_of_layers`).
         centre_of: ``centre_of(id)`` -> (3,) camera centre, world.
         quality_of: per-view factor (sharpness); None = 1.
-        color_transform: the frame's per-view photometric correction (the core's hook), or None.
         use_reference: run :func:`blend_reference` instead of the numba kernel (tests).
         buffers: a dict the caller keeps across frames; the per-view stacks are reused from it.
     Returns:
@@ -435,8 +466,6 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
     vd, vc, fc = d_all[:n], c_all[:n], f_all[:n]
     for i, v in enumerate(use):
         front_image(v, vd[i], vc[i])  # the caller may have filled slot i already (the loop's warp)
-        if color_transform is not None:
-            vc[i] = color_transform(v, vc[i])
         if not use_reference:
             coverage_counts(vd[i], config.feather_px, out=fc[i])
     inp = BlendInput(color, depth_m, source, np.asarray(use, np.int32), vd, vc,

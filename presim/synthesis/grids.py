@@ -22,7 +22,6 @@ and the pixel-centre rule of ``nearest_pixel``), tested equal.
 
 from __future__ import annotations
 
-import functools
 from typing import Callable, Sequence
 
 import numba as nb
@@ -30,7 +29,7 @@ import numpy as np
 
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
-from presim.synthesis.lod import LodConfig, choose_level, level_thresholds
+from presim.synthesis.lod import LodConfig, choose_level
 
 __all__ = ["grid_pixels", "per_coordinate", "project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
 
@@ -189,42 +188,6 @@ def _select_kth(a, m, k):  # pragma: no cover
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _level_by_counts_kernel(z_src, z_t, pix, near, taus):  # pragma: no cover
-    # The LOD level of the median of r = z_src / z_t over the points _median_ratio_kernel takes,
-    # decided from counts: -1 when no point counts (nan median), -2 when a threshold lies between
-    # the two middle values of an even count (then only the exact median can tell), else the level
-    # = how many thresholds (taus, decreasing) the median does not exceed; a median <= 0 is
-    # level 0 (choose_level). With c = #(r <= t) and m points, half = m // 2: median <= t when
-    # c >= half + 1 (both middle values <= t, and their float32 mean too), median > t when
-    # c <= half - 1 or (m odd and c == half). Each counting pass has no branch: it vectorizes.
-    n = z_src.shape[0]
-    m = 0
-    for i in range(n):
-        m += (z_src[i] > near) & (z_t[i] > near) & (pix[i] >= 0)
-    if m == 0:
-        return -1
-    half = m // 2
-    level = 0
-    for k in range(-1, taus.shape[0]):
-        t = np.float32(0.0) if k < 0 else taus[k]
-        c = 0
-        for i in range(n):
-            a = z_src[i]
-            b = z_t[i]
-            c += (a > near) & (b > near) & (pix[i] >= 0) & (a / b <= t)
-        if c >= half + 1:
-            if k < 0:
-                return 0
-            level = k + 1
-        elif c <= half - 1 or m % 2 == 1:
-            if k >= 0:
-                return level
-        else:
-            return -2
-    return level
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _count_front_kernel(pix, z, near):  # pragma: no cover
     # np.count_nonzero((pix >= 0) & (z > near)) (near float32, as numpy compares it with float32 z).
     n = 0
@@ -296,11 +259,11 @@ def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, 
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _next_view_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, scale, use_need, need, frac, counts,
-                      sums):  # pragma: no cover
+def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, counts, sums):  # pragma: no cover
     # _hole_scores_kernel, then the adaptive loop's choice from its scores (core.synthesize_frame's
     # rules): a view counts only when its fill area sums[k] * scale[k] reaches ``need`` (with
     # use_need); none counts -> -1; else the first view whose count reaches frac x the largest.
+    pix, z_t, z_src, starts, ends = points
     _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums)
     cmax = 0
     for k in range(counts.shape[0]):
@@ -313,15 +276,6 @@ def _next_view_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, scale, use
         if counts[k] > 0 and counts[k] >= frac * cmax:
             return k
     return -1
-
-
-@functools.lru_cache(maxsize=256)
-def _thresholds(f_target_px: float, f_source_px: float, config: LodConfig) -> np.ndarray:
-    """:func:`~presim.synthesis.lod.level_thresholds`, cached (a bisection costs ~0.1 ms; a
-    trajectory asks the same few focal pairs every frame); read-only."""
-    t = level_thresholds(f_target_px, f_source_px, config)
-    t.setflags(write=False)
-    return t
 
 
 def _flat_f32(parts: list[np.ndarray], n: int) -> np.ndarray:
@@ -447,39 +401,10 @@ class FrameGrids:
         return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)
 
     def lod_level(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float, config: LodConfig) -> int:
-        """= ``choose_level(self.footprint_ratio(v, z_src, f_src_px, near_m), config)``, decided in most
-        frames by counting the grid's ratios against :func:`~presim.synthesis.lod.level_thresholds`
-        (cached per focal pair) instead of selecting the median (tested equal): 4.2 µs against
-        15-18 µs for a 4 400-point grid of the apc capture. The exact median runs only when a
-        threshold lies between the two middle ratios of an even count."""
+        """= :func:`~presim.synthesis.lod.choose_level` of :meth:`footprint_ratio` (0 without levels)."""
         if config.levels == 0:
             return 0
-        pix, z_t = self.projection(v)
-        if len(z_t) == 0:
-            return 0
-        taus = _thresholds(float(np.sqrt(self.K.fx * self.K.fy)), float(f_src_px), config)
-        lv = _level_by_counts_kernel(np.ascontiguousarray(z_src, np.float32), z_t, pix, np.float32(near_m), taus)
-        if lv == -2:
-            return choose_level(self.footprint_ratio(v, z_src, f_src_px, near_m), config)
-        return max(int(lv), 0)
-
-    def hole_scores(self, ids: Sequence[int], mask_flat: np.ndarray, z_src: Callable[[int], np.ndarray],
-                    f_src_px: Callable[[int], float], near_m: float, stride_px: float
-                    ) -> tuple[list[int], list[float]]:
-        """For each view of ``ids``, in one kernel call: how many of its grid points land on
-        ``mask_flat`` (= ``count_in_mask(mask_flat, self.pixels(v, near_m))``) and the target pixels
-        they stand for (= :meth:`fill_area`; ``z_src(v)`` / ``f_src_px(v)``: the view's cached source
-        depths and focal length). The adaptive loop asks this for every pending candidate after each
-        warped view; one call instead of two per candidate (tested equal). ``z_src`` must give a view
-        the same depths at every call on this object (they are gathered once per projection buffer)."""
-        ids = [int(v) for v in ids]
-        counts = np.zeros(len(ids), np.int64)
-        sums = np.zeros(len(ids), np.float64)
-        if ids:
-            points = self._score_points(ids, z_src)  # (projects the views not projected yet)
-            _hole_scores_kernel(_mask_u8(mask_flat), *points, np.float32(near_m), counts, sums)
-        fills = [float(s * q) for s, q in zip(sums.tolist(), self._fill_scales(ids, f_src_px, stride_px))]
-        return counts.tolist(), fills
+        return choose_level(self.footprint_ratio(v, z_src, f_src_px, near_m), config)
 
     def next_view(self, ids: Sequence[int], mask_flat: np.ndarray, z_src: Callable[[int], np.ndarray],
                   f_src_px: Callable[[int], float], near_m: float, stride_px: float, need: float | None,
@@ -497,7 +422,7 @@ class FrameGrids:
         sums = np.empty(len(ids), np.float64)
         points = self._score_points(ids, z_src)  # (projects the views not projected yet)
         scale = np.array(self._fill_scales(ids, f_src_px, stride_px), np.float64)
-        return int(_next_view_kernel(_mask_u8(mask_flat), *points, np.float32(near_m), scale,
+        return int(_next_view_kernel(_mask_u8(mask_flat), points, np.float32(near_m), scale,
                                      need is not None, float(need) if need is not None else 0.0, float(frac),
                                      counts, sums))
 

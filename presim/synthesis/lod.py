@@ -37,7 +37,7 @@ from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis.threads import parallel_kernel
 
 __all__ = ["LodConfig", "pool_depth_aware", "pool_depth_aware_ref", "half_intrinsics", "build_level",
-           "footprint_ratio", "choose_level", "level_thresholds"]
+           "footprint_ratio", "choose_level"]
 
 
 @dataclass(frozen=True)
@@ -230,34 +230,3 @@ def choose_level(ratio0: float, config: LodConfig) -> int:
     while k < config.levels and (2 ** (k + 1)) * ratio0 <= config.max_footprint:
         k += 1
     return k
-
-
-def level_thresholds(f_target_px: float, f_source_px: float, config: LodConfig) -> np.ndarray:
-    """float32 (config.levels,): entry k - 1 is the largest float32 median ``m`` >= 0 whose ratio
-    ``ratio0 = float(np.float32(m) * np.float64(f_target_px) / f_source_px)`` (the factor
-    :meth:`presim.synthesis.grids.FrameGrids.footprint_ratio` applies to the median of
-    ``z_src / z_target``, in that order of operations) passes level k's test in :func:`choose_level`
-    (``2^k * ratio0 <= max_footprint``). A positive median's level is then the number of thresholds
-    it does not exceed. Found by bisection over the float32 values (each probe is choose_level's
-    float64 arithmetic), so a level decided by comparing float32 ratios with these thresholds is
-    exactly the one :func:`choose_level` gives."""
-    if not (np.isfinite(f_target_px) and f_target_px > 0 and np.isfinite(f_source_px) and f_source_px > 0):
-        raise ValueError(f"level_thresholds: focal lengths must be finite and > 0, got {f_target_px}, {f_source_px}")
-    f_t = np.float64(f_target_px)
-    f_s = float(f_source_px)
-    out = np.zeros(config.levels, np.float32)
-
-    def passes(bits: int, k: int) -> bool:
-        m = np.array([bits], np.uint32).view(np.float32)[0]
-        return (2 ** k) * float(m * f_t / f_s) <= config.max_footprint
-
-    for k in range(1, config.levels + 1):
-        lo, hi = 0, 0x7F800000  # float32 bit patterns of 0 and +inf (monotone in the value)
-        while hi - lo > 1:  # invariant: passes(lo) (0 <= max_footprint), not passes(hi) (inf)
-            mid = (lo + hi) // 2
-            if passes(mid, k):
-                lo = mid
-            else:
-                hi = mid
-        out[k - 1] = np.array([lo], np.uint32).view(np.float32)[0]
-    return out

@@ -17,6 +17,7 @@ geometry.py. Layers are independent, so the kernel runs them in parallel (``pran
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -24,13 +25,61 @@ import numpy as np
 from presim.geometry import Intrinsics, unproject_depth
 from presim.synthesis.threads import parallel_kernel
 
-__all__ = ["CHUNK_PTS", "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility", "layer_slots",
+__all__ = ["CHUNK_PTS", "TargetCam", "TileMarks", "ChunkBounds", "target_cam", "tile_marks", "chunk_bounds_of",
+           "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility", "layer_slots",
            "prepare_view", "prepare_view_ref", "warp_layers"]
 
 CHUNK_PTS = 32
 """Points per chunk of a prepared view: consecutive points (source raster order within a layer, so
 a chunk is a short run of neighbouring source pixels) whose bounds the warp tests against the
 target frustum and its tiles (:func:`chunk_visibility`) before it projects them."""
+
+
+class TargetCam(NamedTuple):
+    """The target camera as the warp kernels take it (numba reads a named tuple like separate
+    arguments). The warp kernel takes float32 fields (its arithmetic), the culling float64 ones."""
+
+    M: np.ndarray
+    """float32 (3, 4): world -> target camera."""
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    near: float
+    """Points closer than this to the target camera are dropped."""
+    W: int
+    H: int
+
+
+def target_cam(T_cam_world: np.ndarray, K: Intrinsics, near_m: float, dtype=np.float32) -> TargetCam:
+    """:class:`TargetCam` of a 4x4 world -> target transform, intrinsics in ``dtype`` (float64 values
+    of the float32 numbers for the culling, which bounds the warp kernel's float32 rounding)."""
+    f = (lambda x: np.float32(x)) if dtype == np.float32 else (lambda x: float(np.float32(x)))
+    M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
+    return TargetCam(M, f(K.fx), f(K.fy), f(K.cx), f(K.cy), f(near_m), int(K.width), int(K.height))
+
+
+class TileMarks(NamedTuple):
+    """Tiles a later view is warped into (``use`` False: every pixel)."""
+
+    tiles: np.ndarray
+    """uint8 (th, tw) marks of ``tile_px`` x ``tile_px`` tiles."""
+    use: bool
+    tile_px: int
+    of_px: np.ndarray
+    """uint8 (H * W,): each pixel's tile mark (a byte load per point instead of two divisions)."""
+    sat: np.ndarray
+    """int32 (th + 1, tw + 1) summed-area table of the marks (the culling's tile test)."""
+
+
+class ChunkBounds(NamedTuple):
+    """A prepared view's chunk bounds (:class:`ViewPoints` fields of the same names)."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    projective: bool
+    to_world: np.ndarray
+    abs_max: float
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -403,12 +452,15 @@ def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.n
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _corner_boxes(L0, L1, L2, H0, H1, H2, projective, f00, f01, f02, f03, f10, f11, f12, f13, f20, f21, f22, f23,
-                  fx, fy, box):  # pragma: no cover
+def _corner_boxes(lo, hi, projective, F, fx, fy, box):  # pragma: no cover
     # Per chunk c: box[:, c] = the range of its 8 corners' fx x / z and fy y / z (pixels before
-    # + c + 0.5) and of their z in the target. Only min / max and arithmetic in the loop, so that
-    # it vectorizes (with abs(), or with 4 more ranges, it did not: ~120 against ~26 us per 4 400
-    # chunks).
+    # + c + 0.5) and of their z in the target. The frame F (3, 4) is unpacked into scalars and the
+    # loop holds only min / max and arithmetic, so that it vectorizes.
+    L0, L1, L2 = lo[0], lo[1], lo[2]
+    H0, H1, H2 = hi[0], hi[1], hi[2]
+    f00, f01, f02, f03 = F[0, 0], F[0, 1], F[0, 2], F[0, 3]
+    f10, f11, f12, f13 = F[1, 0], F[1, 1], F[1, 2], F[1, 3]
+    f20, f21, f22, f23 = F[2, 0], F[2, 1], F[2, 2], F[2, 3]
     m = L0.shape[0]
     for c in range(m):
         a0, a1, b0, b1, zm, zx = np.inf, -np.inf, np.inf, -np.inf, np.inf, -np.inf  # running ranges
@@ -437,8 +489,7 @@ def _corner_boxes(L0, L1, L2, H0, H1, H2, projective, f00, f01, f02, f03, f10, f
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division branch (the loops vectorize)
-def chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H, margin_rel, sat, tile_px,
-                       use_tiles, vis):  # pragma: no cover
+def chunk_keep_kernel(b, cam, margin_rel, tm, vis):  # pragma: no cover
     # Per chunk, from its bounds (rows of lo / hi: one per coordinate; world boxes: corners
     # (x, y, z); source-frame bounds: corners (a z, b z, z) of a frustum piece that holds every
     # point of the chunk). The loops over chunks are branch-free so that they vectorize.
@@ -455,6 +506,9 @@ def chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H,
     #    hull is the hull of the corners' images); culled when that box, widened by a rounding
     #    margin, meets no marked tile (sat: summed-area table of the marks).
     # Bounds with a non-finite value are kept (x - x == 0 only for finite x).
+    lo, hi, projective, S, A = b.lo, b.hi, b.projective, b.to_world, b.abs_max
+    M32, fx, fy, cx, cy, near, W, H = cam.M, cam.fx, cam.fy, cam.cx, cam.cy, cam.near, cam.W, cam.H
+    sat, tile_px, use_tiles = tm.sat, tm.tile_px, tm.use
     # F = M S: the bounds' frame -> target (M: the warp kernel's float32 world -> target matrix in
     # float64; S: the frame -> world); mag[r]: a bound of |M[r, :3] w| + |M[r, 3]| for every world
     # point w of the view (|w_j| <= A).
@@ -510,8 +564,7 @@ def chunk_keep_kernel(lo, hi, projective, M32, S, A, fx, fy, cx, cy, near, W, H,
         vis[c] = np.uint8(keep | (not finite))
     if use_tiles:
         box = np.empty((6, m))
-        _corner_boxes(L0, L1, L2, H0, H1, H2, projective, F[0, 0], F[0, 1], F[0, 2], F[0, 3], F[1, 0], F[1, 1],
-                      F[1, 2], F[1, 3], F[2, 0], F[2, 1], F[2, 2], F[2, 3], fx, fy, box)
+        _corner_boxes(lo, hi, projective, F, fx, fy, box)
         z_safe = near + margin_rel * (mag[2] + abs(near))
         tpx = np.float64(tile_px)
         tw1 = np.float64(sat.shape[1] - 2)  # the last tile column / row
@@ -574,16 +627,23 @@ def _tile_sat(tiles: np.ndarray) -> np.ndarray:
     return sat
 
 
-def _visibility(view: ViewPoints, M32: np.ndarray, K: Intrinsics, near_m: float, tiles: np.ndarray | None = None,
-                tile_px: int = 16) -> np.ndarray:
+def tile_marks(tiles: np.ndarray | None, K: Intrinsics, tile_px: int, who: str) -> TileMarks:
+    """:class:`TileMarks` of optional tile marks for a K-sized target (checked)."""
+    if tiles is None:
+        return TileMarks(NO_TILES, False, int(tile_px), NO_TILES.reshape(-1), NO_SAT)
+    _check_tiles(tiles, K, tile_px, who)
+    of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
+    return TileMarks(tiles, True, int(tile_px), of_px.reshape(-1), _tile_sat(tiles))
+
+
+def chunk_bounds_of(view: ViewPoints) -> ChunkBounds:
+    return ChunkBounds(view.chunk_lo, view.chunk_hi, view.chunk_projective, view.chunk_to_world, view.chunk_abs_max)
+
+
+def _visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float, tm: TileMarks) -> np.ndarray:
     vis = np.ones(view.chunk_lo.shape[1], np.uint8)
-    A = view.chunk_abs_max
-    if near_m > 0 and A < np.inf:
-        use = tiles is not None
-        chunk_keep_kernel(view.chunk_lo, view.chunk_hi, view.chunk_projective, M32, view.chunk_to_world, A,
-                           float(np.float32(K.fx)), float(np.float32(K.fy)), float(np.float32(K.cx)),
-                           float(np.float32(K.cy)), float(np.float32(near_m)), K.width, K.height, CULL_MARGIN,
-                           _tile_sat(tiles) if use else NO_SAT, int(tile_px), use, vis)
+    if near_m > 0 and view.chunk_abs_max < np.inf:
+        chunk_keep_kernel(chunk_bounds_of(view), target_cam(T_cam_world, K, near_m, np.float64), CULL_MARGIN, tm, vis)
     return vis
 
 
@@ -594,10 +654,7 @@ def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, n
     ``tile_px`` x ``tile_px`` tiles, as :func:`warp_layers` takes them), outside every marked tile,
     so :func:`warp_layers` can skip it without projecting; 1 otherwise (conservative: a 1 may
     still drop all its points). With ``near_m`` <= 0 nothing is culled."""
-    if tiles is not None:
-        _check_tiles(tiles, K, tile_px, "chunk_visibility")
-    M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    return _visibility(view, M, K, near_m, tiles, tile_px)
+    return _visibility(view, T_cam_world, K, near_m, tile_marks(tiles, K, tile_px, "chunk_visibility"))
 
 
 def _check_tiles(tiles: np.ndarray, K: Intrinsics, tile_px: int, who: str) -> None:
@@ -619,8 +676,7 @@ assert WARP_BLOCK_PTS % CHUNK_PTS == 0 and WARP_BLOCK_PTS >= CHUNK_PTS  # a bloc
 
 
 @parallel_kernel(fastmath=FASTMATH, cache=True, error_model="numpy")
-def warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near, tiles, use_tiles, tile_px,
-                        tile_of_px, vis, chunk, block, clear_c, zbuf, cbuf):  # pragma: no cover
+def warp_layers_kernel(xyz, rgb, layer_start, n_threads, cam, tm, vis, clear_c, zbuf, cbuf):  # pragma: no cover
     # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was;
     # the colour only with clear_c, else it is undefined where the depth stays 0),
     # then per block of up to ``block`` points of its kept chunks: copy their coordinates into
@@ -628,6 +684,9 @@ def warp_layers_kernel(xyz, rgb, layer_start, n_threads, M, fx, fy, cx, cy, near
     # other points: it vectorizes), then z-buffer them in their (source) order. The z-buffer sees
     # the points in the same order as one pass over the layer would.
     L, H, W = zbuf.shape
+    M, fx, fy, cx, cy, near = cam.M, cam.fx, cam.fy, cam.cx, cam.cy, cam.near
+    tiles, use_tiles, tile_px, tile_of_px = tm.tiles, tm.use, tm.tile_px, tm.of_px
+    chunk, block = CHUNK_PTS, WARP_BLOCK_PTS
     th, tw = tiles.shape
     Wf = np.float32(W)
     Hf = np.float32(H)
@@ -746,20 +805,11 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     if out is None or out.depth_m.shape != (L, K.height, K.width):
         out = LayeredImage(np.empty((L, K.height, K.width), np.float32),
                            np.empty((L, K.height, K.width, 3), np.uint8))
-    M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    use = tiles is not None
-    tile_of_px = NO_TILES.reshape(-1)
-    if use:
-        _check_tiles(tiles, K, tile_px, "warp_layers")
-        # per pixel: its tile's flag (a byte load per point instead of two integer divisions)
-        tile_of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
-        tile_of_px = tile_of_px.reshape(-1)
+    tm = tile_marks(tiles, K, tile_px, "warp_layers")
     if cull:
-        vis = _visibility(view, M, K, near_m, tiles, tile_px)
+        vis = _visibility(view, T_cam_world, K, near_m, tm)
     else:
         vis = np.ones(view.chunk_lo.shape[1], np.uint8)
-    warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), M, np.float32(K.fx),
-                        np.float32(K.fy), np.float32(K.cx), np.float32(K.cy), np.float32(near_m),
-                        tiles if use else NO_TILES, use, int(tile_px), tile_of_px, vis, CHUNK_PTS, WARP_BLOCK_PTS,
-                        bool(clear_color), out.depth_m, out.color)
+    warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), target_cam(T_cam_world, K, near_m),
+                       tm, vis, bool(clear_color), out.depth_m, out.color)
     return out

@@ -44,7 +44,7 @@ import threading
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba as nb
 import numpy as np
@@ -54,8 +54,8 @@ from numba.extending import intrinsic
 
 from presim.geometry import Intrinsics
 from presim.synthesis.cracks import LOWEST_SET_BIT, banded_crack_kernel, rows_per_band
-from presim.synthesis.warp import (CULL_MARGIN, NO_SAT, NO_TILES, CHUNK_PTS, WARP_BLOCK_PTS, LayeredImage,
-                                   chunk_keep_kernel, warp_layers_kernel)
+from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, LayeredImage, chunk_keep_kernel, target_cam, tile_marks,
+                                   warp_layers_kernel)
 
 __all__ = ["WarpAhead", "AheadImage", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
 
@@ -111,38 +111,45 @@ def _load_acquire(typingctx, arr, idx):  # pragma: no cover - compiled into the 
     return types.int32(arr, idx), codegen
 
 
+class Jobs(NamedTuple):
+    """One frame's jobs: per view (tuples of :data:`MAX_JOBS` entries) its points and chunk bounds,
+    and the output buffers."""
+
+    xyz: tuple
+    rgb: tuple
+    layer_start: tuple
+    bounds: tuple
+    """:class:`~presim.synthesis.warp.ChunkBounds` per view."""
+    zb: tuple
+    cb: tuple
+    d: tuple
+    c: tuple
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _warp_jobs_kernel(state, cancel, n, xyz, rgb, layer_start, lo, hi, projective, S, A, M, fx, fy, cx, cy, near,
-                      W, H, zb, cb, crack, band, dout, cout):  # pragma: no cover
+def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # pragma: no cover
     # Jobs k < n in order: what warp_layers(view k, ...) computes without tiles, on one thread, into
     # zb[k] / cb[k], and with ``crack`` then the crack pass of filtered_composite_banded over the
-    # whole image (no replace mask) into dout[k] / cout[k]. A job not queued any more (claimed by
-    # the loop) is skipped; once cancel[0] is set (the frame's loop has ended) nothing more is done.
-    fx32 = np.float32(fx)
-    fy32 = np.float32(fy)
-    cx32 = np.float32(cx)
-    cy32 = np.float32(cy)
-    near32 = np.float32(near)
+    # whole image (no replace mask) into d[k] / c[k]. A job not queued any more (claimed by the
+    # loop) is skipped; once cancel[0] is set (the frame's loop has ended) nothing more is done.
     for k in range(n):
         if _load_acquire(cancel, 0) != 0:
             return
         if _load_acquire(state, k) != QUEUED:
             continue
         _store_release(state, k, RUNNING)
-        vis = np.ones(lo[k].shape[1], np.uint8)
-        if near > 0 and A[k] < np.inf:
-            chunk_keep_kernel(lo[k], hi[k], projective[k], M, S[k], A[k], np.float64(fx32), np.float64(fy32),
-                               np.float64(cx32), np.float64(cy32), np.float64(near32), W, H, CULL_MARGIN, NO_SAT,
-                               16, False, vis)
-        # (with the crack pass, which reads colour only where the depth is > 0, the colour planes
-        # are not cleared; without it, the loop composites the layers itself: cleared)
-        _warp_serial(xyz[k], rgb[k], layer_start[k], 1, M, fx32, fy32, cx32, cy32, near32, NO_TILES, False, 16,
-                     NO_TILES.reshape(-1), vis, CHUNK_PTS, WARP_BLOCK_PTS, not crack, zb[k], cb[k])
+        b = jobs.bounds[k]
+        vis = np.ones(b.lo.shape[1], np.uint8)
+        if cam.near > 0 and b.abs_max < np.inf:
+            chunk_keep_kernel(b, cam64, CULL_MARGIN, tm, vis)
+        # with the crack pass, which reads colour only where the depth is > 0, the colour planes
+        # are not cleared
+        _warp_serial(jobs.xyz[k], jobs.rgb[k], jobs.layer_start[k], 1, cam, tm, vis, not crack, jobs.zb[k], jobs.cb[k])
         if crack:
             if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
                 _store_release(state, k, CLAIMED)
                 return
-            _crack_serial(zb[k], cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, dout[k], cout[k])
+            _crack_serial(jobs.zb[k], jobs.cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, jobs.d[k], jobs.c[k])
         _store_release(state, k, DONE)  # after the images: the loop reads them once it sees DONE
 
 
@@ -290,13 +297,12 @@ class WarpAhead:
         n = len(views)
         fields = [self._fields(v) for v in views]
         fields += [fields[0]] * (MAX_JOBS - n)  # fixed-size tuples; jobs >= n are never run
-        M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
         state = np.full(MAX_JOBS, CLAIMED, np.int32)
         state[:n] = QUEUED
         cancel = np.zeros(1, np.int32)
-        args = (state, cancel, n, *zip(*fields), M, float(K.fx), float(K.fy), float(K.cx), float(K.cy),
-                float(near_m), int(W), int(H), bufs.padded("zb", n), bufs.padded("cb", n), bool(crack),
-                int(rows_per_band(H)), bufs.padded("d", n), bufs.padded("c", n))
+        jobs = Jobs(*zip(*fields), bufs.padded("zb", n), bufs.padded("cb", n), bufs.padded("d", n), bufs.padded("c", n))
+        args = (state, cancel, n, jobs, target_cam(T_cam_world, K, near_m), target_cam(T_cam_world, K, near_m, np.float64),
+                tile_marks(None, K, 16, "warp ahead"), bool(crack), int(rows_per_band(H)))
         frame = _Frame(views, state, cancel, bufs, bool(crack), args)
         with sh.cv:
             bufs.user = frame
@@ -314,9 +320,10 @@ class WarpAhead:
             self._views.move_to_end(id(view))
             return got[1]
         f = (np.ascontiguousarray(view.xyz_world), np.ascontiguousarray(view.rgb),
-             np.ascontiguousarray(view.layer_start), np.ascontiguousarray(view.chunk_lo),
-             np.ascontiguousarray(view.chunk_hi), bool(view.chunk_projective),
-             np.ascontiguousarray(view.chunk_to_world), float(view.chunk_abs_max))
+             np.ascontiguousarray(view.layer_start),
+             ChunkBounds(np.ascontiguousarray(view.chunk_lo), np.ascontiguousarray(view.chunk_hi),
+                         bool(view.chunk_projective), np.ascontiguousarray(view.chunk_to_world),
+                         float(view.chunk_abs_max)))
         self._views[id(view)] = (view, f)
         while len(self._views) > _FIELDS_KEPT:
             self._views.popitem(last=False)
