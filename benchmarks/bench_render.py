@@ -13,9 +13,9 @@ Each case is also measured with "today" = ``RenderConfig(lod_levels=0, reuse_mov
 pipeline before level of detail and temporal reuse) in the same process, measured passes
 alternating with the default config (``--passes``), reported as ``results[...]["today"]``,
 ``speedup_vs_today`` (wall) and ``cpu_speedup_vs_today``; ``--no-today`` skips it.
-``--kernels-before`` adds, the same way, the default pipeline with the crack and fill kernels as
-they were before issue 13 item 2 (``RenderConfig(packed_cracks=False, fill_kernel="opencv")``; the
-hole analysis has no switch): ``results[...]["kernels_before"]`` and ``cpu_speedup_vs_kernels_before``.
+``--kernels-before`` adds, the same way, the default pipeline with the plain crack filter and
+OpenCV's fill (``RenderConfig(packed_cracks=False, fill_kernel="opencv")``; the hole analysis has
+no switch): ``results[...]["kernels_before"]`` and ``cpu_speedup_vs_kernels_before``.
 
 Prints medians of wall ms/frame, frames/s, per-stage wall ms, views per frame, hole fraction, the
 ratio baseline/pipeline, the CPU time per frame (process time summed over threads: on a machine
@@ -274,7 +274,7 @@ def main() -> int:
     ap.add_argument("--no-today", action="store_true",
                     help="skip the same-run pass with the pre-LOD pipeline (lod_levels=0, no selection reuse)")
     ap.add_argument("--kernels-before", action="store_true",
-                    help="also time the default pipeline with the crack/fill kernels before issue 13 item 2, same run")
+                    help="also time the default pipeline with the plain crack filter and OpenCV fill, same run")
     ap.add_argument("--batch", type=int, default=0,
                     help="also time render_batch in chunks of this many poses against frame by frame, same run")
     ap.add_argument("--compare-blend", action="store_true",

@@ -1,4 +1,5 @@
-"""Issue 11 target (b): perturbed poses, refined, come back to the poses refined from the unperturbed ones.
+"""Perturbation check of ``presim align``: perturbed poses, refined, come back to the poses refined
+from the unperturbed ones.
 
 Every given pose of a saved scene is perturbed by a seeded random rigid motion of fixed size
 (``--trans-m`` along a random direction, ``--rot-deg`` about a random axis), then ``align_poses`` runs
@@ -19,7 +20,7 @@ The output says whether the auto rule fired in each run, with its measured noise
     PYTHONPATH=. python benchmarks/check_align_perturbed.py out/tum --trans-m 0.03 --rot-deg 2 --seed 0 \
         --json out/tum_perturbed.json
 
-Target (issue 11): refined-from-perturbed within 1 cm ATE of refined-from-unperturbed.
+Target: refined-from-perturbed within 1 cm ATE of refined-from-unperturbed (docs/alignment.md).
 """
 
 from __future__ import annotations

@@ -52,12 +52,12 @@ TARGET_EXPOSURE = "<target>"
 # refinement), "raw" (sensor depth), "guided" / "median" (filters of the raw depth used in place of
 # the refinement), "fused" (sensor depth aligned to and fused with the refinement, thesis §5.3.4,
 # presim.depth.scene_fuse), or "tsdf" (the mesh baseline, no Renderer).
-# "full" is the best measured combination (issue 12: photometric correction matched to the target's
+# "full" is the best measured combination (photometric correction matched to the target's
 # exposure + sharpness-aware views + blending of 6 views; docs/evaluation.md); "thesis" is the
-# thesis pipeline (RenderConfig() defaults but the thesis's adaptive loop, min_view_gain = 0), the
-# "full" of earlier tables; "default" is RenderConfig() as it is (what `presim render` and the
-# simulator use: the loop stops at diminishing returns, docs/synthesis.md). Every other method
-# keeps the thesis's loop too (THESIS_LOOP), so the tables of earlier sessions stay comparable.
+# thesis pipeline (RenderConfig() defaults but the thesis's adaptive loop, min_view_gain = 0);
+# "default" is RenderConfig() as it is (what `presim render` and the simulator use: the loop stops
+# at diminishing returns, docs/synthesis.md). Every other method keeps the thesis's loop too
+# (THESIS_LOOP), so each one measures the algorithm it names, not the stop.
 THESIS_LOOP: dict = {"min_view_gain": 0.0}
 BEST: dict = {"use_photometric": True, "exposure_frame": TARGET_EXPOSURE, "sharpness": True, "blend": True, "blend_views": 6}
 METHODS: dict[str, tuple[dict, str]] = {
@@ -78,7 +78,7 @@ METHODS: dict[str, tuple[dict, str]] = {
     "depth_median": ({}, "median"),
     **{f"layers_{k}": ({"num_layers": k}, "refined") for k in range(1, 9)},
     "tsdf_mesh": ({}, "tsdf"),
-    # Beyond the thesis (issue 12). Photometric methods use a calibration of the capture
+    # Beyond the thesis. Photometric methods use a calibration of the capture
     # (presim.capture.photometric, refined depth); exposure_frame "<target>" = the target's own.
     "photo": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
     "photo_mean": ({"use_photometric": True}, "refined"),

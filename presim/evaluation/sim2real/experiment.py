@@ -1,4 +1,4 @@
-"""The sim2real depth experiment (issue 15; thesis §4.5, Table 4.3) as one pure-ish entry function:
+"""The sim2real depth experiment (thesis §4.5, Table 4.3) as one pure-ish entry function:
 
     run_depth_experiment(scene, DepthExperimentConfig(capture_every=12, synth=200), out_dir)
 
