@@ -15,6 +15,8 @@ Cases (only APIs both trees have):
 - ``vector``: ``PointNavVectorEnv(scene, 8)`` with the numba backend, per env-step;
 - ``prepare:LEVEL``: one view prepared at pyramid level LEVEL, as on a view-cache miss
   (``Renderer._build_view``: load, pool, back-project, chunk bounds), the scene's frames in turn;
+- ``--base-perf`` / ``--new-perf``: ``PerfConfig`` fields for each side (e.g. the same tree with and
+  without ``warp_ahead``: what a scheduling mechanism earns);
 - ``drive``: the simulator with one 640x480 camera at 10 Hz and the default robot on the built-in
   seeded route (``presim demo``'s drive loop without sinks).
 
@@ -56,6 +58,17 @@ def timed(fn):
     cpu.append((time.process_time() - c) * 1e3)
 
 rng = np.random.default_rng(0)
+PERF = PERFKW
+
+
+def make_renderer(**perf):
+    from presim.synthesis.renderer import RenderConfig, Renderer
+    if not PERF and not perf:
+        return Renderer(scene, RenderConfig())
+    from presim.synthesis.renderer import PerfConfig
+    return Renderer(scene, RenderConfig(), PerfConfig(**{**perf, **PERF}))
+
+
 if case.startswith("render:"):
     from presim.geometry import Intrinsics
     from presim.synthesis.renderer import RenderConfig, Renderer
@@ -66,7 +79,7 @@ if case.startswith("render:"):
     for i in range(n):
         a, b = T[i % (len(T) - 1)], T[i % (len(T) - 1) + 1]
         p = a.copy(); p[:3, 3] = (a[:3, 3] + b[:3, 3]) / 2.0; poses.append(p)
-    r = Renderer(scene, RenderConfig())
+    r = make_renderer()
     for p in poses + poses:
         r.render(p, K)
     for p in poses:
@@ -84,7 +97,7 @@ elif case.startswith("prepare:"):
         timed(lambda: build(k % len(scene), level))
 elif case == "pointnav":
     from presim.sim.envs import PointNavEnv
-    env = PointNavEnv(scene); env.reset(seed=0)
+    env = PointNavEnv(scene, renderer=make_renderer(cache_mb=160.0) if PERF else None); env.reset(seed=0)
     def step():
         _, _, te, tr, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
         if te or tr:
@@ -130,8 +143,11 @@ def main() -> int:
     ap.add_argument("--warm", type=int, default=10, help="env warm-up steps per child")
     ap.add_argument("--repeats", type=int, default=2, help="base/new pairs per case")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--base-perf", default="{}", help='PerfConfig fields of the base children, JSON, e.g. \'{"warp_ahead": false}\'')
+    ap.add_argument("--new-perf", default="{}", help="PerfConfig fields of the new children, JSON")
     args = ap.parse_args()
     trees = {"base": str(Path(args.base).resolve()), "new": str(Path(args.new).resolve())}
+    perfs = {"base": json.loads(args.base_perf), "new": json.loads(args.new_perf)}
     print(f"scene {args.scene}  load average at start {os.getloadavg()}", flush=True)
     res: dict[str, dict] = {}
     for case in args.cases.split(","):
@@ -143,7 +159,8 @@ def main() -> int:
             order = list(trees.items()) if rep % 2 == 0 else list(trees.items())[::-1]
             for name, tree in order:
                 code = (CHILD.replace("TREE", repr(tree)).replace("SCENE", repr(args.scene))
-                        .replace("CASE", repr(case)).replace("WARM", str(args.warm)).replace("NFRAMES", str(args.n)))
+                        .replace("CASE", repr(case)).replace("WARM", str(args.warm)).replace("NFRAMES", str(args.n))
+                        .replace("PERFKW", repr(perfs[name])))
                 env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
                 p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tree)
                 if p.returncode != 0:
@@ -164,7 +181,8 @@ def main() -> int:
               f"new {med['new']['wall_ms']:7.1f}   mean wall ms: base {mean['base']:7.1f}  new {mean['new']:7.1f} "
               f"-> x{mean['base'] / mean['new']:.2f}   load {os.getloadavg()[0]:.1f}", flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps({"scene": args.scene, "trees": trees, "results": res}, indent=2))
+        Path(args.json).write_text(json.dumps({"scene": args.scene, "trees": trees, "perf": perfs, "results": res},
+                                              indent=2))
     return 0
 
 
