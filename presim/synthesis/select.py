@@ -1,23 +1,15 @@
 """View selection (thesis §3.4.2): distance -> angle vs FOV -> zero-overlap removal -> order.
 
-1. Rank all input views by camera-centre distance to the target (eq. 3.5), keep the top
-   ``max_candidates`` (the thesis' "local group" of ten).
-2. Drop views whose viewing direction (optical axis) makes an angle (eq. 3.6) larger than the input
-   camera's horizontal field of view with the target's.
-3. Drop views with zero overlap: a sub-sampled grid of the view's valid depth pixels (every
-   ``overlap_stride_px``-th pixel, prepared once per view) is projected into the target; the overlap
-   is the fraction of those points that land inside the target image in front of the camera.
-4. Fallback: when steps 1-3 leave no view (the target looks where none of the nearest views
-   looked), the ``max_candidates`` views of smallest viewing angle (any distance) that overlap the
-   target are used, largest overlap first, so a robot's camera still gets an image wherever some
-   view saw the scene.
-5. Order the survivors: by distance (default) or by overlap, descending. Which view is warped
-   first matters most — it is the only view that covers the whole image, later ones only fill
-   holes — and the nearest view proved better than the largest overlap on the real capture
-   (leave-one-out PSNR, docs/synthesis.md).
+1. Keep the ``max_candidates`` views nearest to the target by camera-centre distance (eq. 3.5).
+2. Drop views whose optical axis makes an angle (eq. 3.6) with the target's above the input camera's hfov.
+3. Drop views with zero overlap: the fraction of the view's sub-sampled valid depth grid (every
+   ``overlap_stride_px``-th pixel) that projects inside the target image, in front of the camera.
+4. Fallback when nothing is left: the ``max_candidates`` views of smallest angle (any distance) that overlap,
+   largest overlap first.
+5. Order by distance (default; the first view covers the whole image, and the nearest beat the largest
+   overlap in leave-one-out PSNR, docs/synthesis.md) or by overlap, descending.
 
-Ablations (thesis Table 3.4): ``mode="distance"`` keeps the ``max_candidates`` nearest views in
-distance order; ``mode="angle"`` the ``max_candidates`` views of smallest angle in angle order.
+Ablations (thesis Table 3.4): ``mode="distance"`` (nearest, distance order), ``mode="angle"`` (smallest angle).
 """
 
 from __future__ import annotations
@@ -63,8 +55,7 @@ def view_overlap(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrins
 
 def _first_overlaps(idx: np.ndarray, overlaps: Callable[[np.ndarray], np.ndarray],
                     overlapping: Callable[[np.ndarray], np.ndarray], n_exact: int) -> np.ndarray:
-    """(k,) overlaps of ``idx`` in order until ``n_exact`` of them are > 0; the views after those get
-    ``overlapping``'s test only: nan where they overlap, 0 where they do not."""
+    """(k,) overlaps of ``idx`` until ``n_exact`` are > 0; later views get ``overlapping`` only (nan / 0)."""
     ov = np.full(len(idx), np.nan)
     done = found = 0
     while done < len(idx) and found < n_exact:
@@ -86,24 +77,16 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
                  exact_overlaps: int = 0) -> Selection:
     """Select and order the input views for a target camera.
 
-    Args:
-        T_world_cam: 4x4 target pose; K: target intrinsics.
-        centres_world: (N, 3) input camera centres; directions_world: (N, 3) unit optical axes.
-        hfov_deg: (N,) horizontal field of view of each input camera.
-        grid_points: ``grid_points(i)`` -> (m, 3) float32 world points of view i's sub-sampled grid
-            (only called for views that reach the overlap test).
-        mode: ``"adaptive"`` (thesis), ``"distance"`` or ``"angle"``.
-        max_candidates: size of the local group.
-        order: ``"distance"`` or ``"overlap"`` (thesis mode only).
-        overlaps: optional fast path: ``overlaps(idx)`` -> (k,) :func:`view_overlap` of each view of
-            ``idx`` in the target (the Renderer projects all grids in one call,
-            :class:`presim.synthesis.grids.FrameGrids`); None = :func:`view_overlap` per view.
-        overlapping: optional fast path with ``exact_overlaps`` > 0 and ``order="distance"``:
-            ``overlapping(idx)`` -> bool (k,) = ``overlaps(idx) > 0`` (cheaper: it may stop at the
-            first grid point that lands in the target). Only the first ``exact_overlaps`` selected
-            views then get their overlap computed (the Renderer passes ``max_views``: the adaptive
-            loop never draws beyond them); later selected views report nan. The selected views and
-            their order are the same.
+    T_world_cam: 4x4 target pose; K: target intrinsics; centres_world, directions_world: (N, 3) input camera
+    centres and unit optical axes; hfov_deg: (N,) input horizontal FOV; grid_points(i) -> (m, 3) float32 world
+    points of view i's sub-sampled grid (called only at the overlap test); mode: ``"adaptive"`` (thesis),
+    ``"distance"`` or ``"angle"``; max_candidates: size of the local group; order: ``"distance"`` or
+    ``"overlap"`` (adaptive mode only).
+    overlaps: fast path, ``overlaps(idx)`` -> (k,) :func:`view_overlap` per view (reference; the Renderer uses
+    :class:`presim.synthesis.grids.FrameGrids`). overlapping: with ``exact_overlaps`` > 0 and order
+    ``"distance"``, ``overlapping(idx)`` -> bool (k,) = ``overlaps(idx) > 0`` (stops at the first point
+    inside); only the first ``exact_overlaps`` selected views get an overlap, later ones nan; selection and
+    order are unchanged.
     """
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")

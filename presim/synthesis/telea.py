@@ -1,28 +1,12 @@
-"""Telea's fast-marching inpainting (Telea 2004) in numba, equal to ``cv2.inpaint(..., INPAINT_TELEA)``.
+"""Telea's fast-marching inpainting (Telea 2004) in numba, pixel-equal to ``cv2.inpaint(..., INPAINT_TELEA)``.
 
-The final fill of small holes (:mod:`presim.synthesis.fill`, method ``"telea"``) used OpenCV's
-implementation, which costs ~7-10 us per hole pixel: its narrow band is a sorted linked list, it
-allocates and clears five padded full-size images per call, and it recomputes every neighbour's
-weight (distance, level-set and direction factors) once per colour channel. This module is the same
-algorithm with the same discretisation, so the output equals OpenCV's (tested on random and real
-hole masks), but with:
-
-- a binary heap keyed by (arrival time, push order), which pops in exactly the order of OpenCV's
-  sorted list (ties first in, first out);
-- the weights computed once per neighbour for all three channels;
-- only the holes, their 4-neighbour band and the ring around them visited (no full-image pass but
-  the allocation of the flag and time images).
-
-Conventions follow OpenCV's (checked against the installed OpenCV 5.1) so that the two agree pixel
-for pixel: images are padded by one pixel (padded row ``i`` is image row ``i - 1``); the outside of
-the holes gets negative arrival times from a first fast-marching pass over the ring within
-``radius`` (Chebyshev) of the holes, starting from the band; a hole pixel is filled once, when a
-neighbour leaves the queue, from the known pixels within ``radius`` (weights: direction to the
-front x 1 / distance^3 x level-set closeness), plus OpenCV's normalised gradient term; the image
-gradients keep OpenCV's rules (central differences scaled by 2, the first and last rows' gradients
-read from their neighbours). Float32 arithmetic in the same order as OpenCV's; ties in the queue pop
-first in, first out. Should a future OpenCV change its discretisation, the tests against
-``cv2.inpaint`` say so.
+Final fill of small holes (:mod:`presim.synthesis.fill`, method ``"telea"``); ``cv2.inpaint`` is its reference
+(tests compare on random and real masks). Faster than OpenCV (~7-10 us per hole pixel there): a binary heap keyed
+by (arrival time, push order) pops in OpenCV's order (ties first in, first out), weights are computed once per
+neighbour for all three channels, and only the holes, their band and ring are visited. OpenCV's discretisation
+is kept: one-pixel padding (padded row ``i`` = image row ``i - 1``), negative outside arrival times from a first
+pass over the ring within ``radius`` (Chebyshev), fill weights direction x 1/distance^3 x level-set closeness
+plus the normalised gradient term, gradients scaled by 2, float32 arithmetic in OpenCV's order.
 """
 
 from __future__ import annotations
@@ -141,8 +125,7 @@ def _arrival(f, t, i, j):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
-    # img: (H, W, 3) uint8, inpainted in place; hole_idx: the holes' flat indices in raster order;
-    # dst_tab: 1 / |r|^3 over the (2 rng + 1)^2 window.
+    # img: (H, W, 3) uint8, inpainted in place; hole_idx: flat hole indices, raster order; dst_tab: 1/|r|^3.
     H, W = img.shape[0], img.shape[1]
     eh, ew = H + 2, W + 2
     mask = np.zeros((eh, ew), np.uint8)      # INSIDE in the holes (the inpainting pass's flags)
@@ -151,8 +134,7 @@ def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
     n_hole = hole_idx.size
     for h in range(n_hole):
         mask[hole_idx[h] // W + 1, hole_idx[h] % W + 1] = _INSIDE
-    # Band: known image pixels 4-adjacent to a hole (in raster order: the initial queue's order).
-    # Ring: known image pixels within rng (Chebyshev) of a hole, outside the band.
+    # Band: known pixels 4-adjacent to a hole (raster order = queue order); ring: within rng, outside the band.
     band = np.empty(4 * n_hole, np.int64)
     ring_px = np.empty(min((2 * rng + 1) ** 2 * n_hole, eh * ew), np.int64)
     n_band = 0
@@ -327,8 +309,7 @@ def _telea_kernel(img, hole_idx, rng, dst_tab):  # pragma: no cover
 
 @functools.lru_cache(maxsize=8)
 def _dst_table(rng: int) -> np.ndarray:
-    # 1 / |r|^3 per window offset (float32 of the double expression, as OpenCV computes it);
-    # cached: building it costs more than inpainting a few holes of a small frame.
+    # 1 / |r|^3 per window offset (float32 of the double expression, as OpenCV); cached (costly on small frames).
     dy, dx = np.mgrid[-rng:rng + 1, -rng:rng + 1].astype(np.float64)
     L = dy * dy + dx * dx
     with np.errstate(divide="ignore"):
@@ -342,12 +323,9 @@ def _dst_table(rng: int) -> np.ndarray:
 def telea_inpaint(color: np.ndarray, holes: np.ndarray, radius: int = 3) -> np.ndarray:
     """``cv2.inpaint(color, holes, radius, cv2.INPAINT_TELEA)`` for uint8 (H, W, 3) colour.
 
-    Args:
-        color: uint8 (H, W, 3); holes: bool (H, W), True where the colour is to be filled;
-        radius: the neighbourhood radius in pixels (OpenCV rounds it and clamps it to [1, 100]).
-    Returns:
-        A new uint8 (H, W, 3) image; pixels outside ``holes`` unchanged. Images of one row or one
-        column go to ``cv2.inpaint`` itself (its border rules read outside such an image).
+    color: uint8 (H, W, 3); holes: bool (H, W), True where to fill; radius: pixels (rounded, clamped to [1, 100]).
+    Returns a new uint8 (H, W, 3) image, pixels outside ``holes`` unchanged; one-row or one-column images go to
+    ``cv2.inpaint`` itself (its border rules read outside such an image).
     """
     if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
         raise ValueError(f"telea_inpaint: colour must be uint8 (H, W, 3), got {color.dtype} {color.shape}")

@@ -1,26 +1,11 @@
-"""The Renderer's cache of prepared views: LRU, bounded in bytes, optionally filled ahead of need.
+"""Cache of prepared views (:class:`presim.synthesis.warp.ViewPoints`): LRU, bounded in bytes, optionally filled ahead.
 
-A prepared view (:class:`presim.synthesis.warp.ViewPoints`, one per capture frame and level of
-detail) costs 2-9 ms to build at 640x480 (read the frame, pool the level, back-project and sort by
-layer). A robot that drives or walks through a scene keeps meeting views it has not prepared yet,
-and without help each of them stalls the frame that first needs it (the demo drive prepared a new
-view every second step; a PointNav episode's first hundred steps spend ~17 % of their time there).
-
-:class:`ViewCache` can prepare such views **ahead, in one background thread**: when a frame starts,
-the Renderer hands over the selected candidates 2..``max_views`` that have no cached level yet (the
-first is warped at once), and the thread picks the level of detail this frame would pick for each
-and builds it while the main thread renders. A view the main thread needs is taken from the
-cache, or waited for when the thread is building it right now, or built in the main thread as
-before when the thread has not reached it (the thread then skips it; a job still queued when the
-next frame hands over its own is dropped). The images do not depend
-on who built a view: the build functions are the same, and the thread runs serial numba kernels
-that release the GIL (``nogil=True``; a parallel kernel would share numba's thread pool with the
-main thread's kernels, which the ``workqueue`` threading layer does not allow).
-
-The background thread only helps where a core would otherwise idle: frames of at most
-:data:`presim.synthesis.threads.SERIAL_MAX_PIXELS` pixels render on one numba thread (PointNav's
-128x96), and larger frames leave part of the second core idle in their serial stages. Measurements:
-docs/synthesis.md, "Views prepared ahead".
+Owned by :class:`presim.synthesis.execution.Executor`. A prepared view costs 2-9 ms at 640x480 (read, pool
+the level, back-project, sort by layer); :meth:`ViewCache.ahead` builds the views a frame will need in one
+background thread while the main thread renders (a view in progress is waited for, one not reached yet is built
+by the main thread; a job still queued when the next one arrives is dropped). The images do not depend on who
+built a view; the thread runs serial ``nogil`` numba kernels (numba's ``workqueue`` layer forbids sharing the
+parallel pool). Measurements: docs/synthesis.md, "Views prepared ahead".
 """
 
 from __future__ import annotations
@@ -34,13 +19,10 @@ __all__ = ["ViewCache"]
 
 
 class ViewCache:
-    """LRU cache of prepared views bounded in bytes (each value has ``.nbytes``), with optional
-    background preparation (:meth:`prefetch`).
+    """LRU cache of prepared views bounded in bytes (each value has ``.nbytes``), with background builds.
 
-    Args:
-        limit_bytes: the cache evicts least recently used views above this many bytes (it always
-            keeps the newest one).
-        background: allow :meth:`prefetch` (one worker thread, started on first use).
+    limit_bytes: evict least recently used views above this many bytes (the newest always stays);
+    background: allow :meth:`ahead` (one worker thread, started on first use).
     """
 
     def __init__(self, limit_bytes: float, background: bool = False):
@@ -70,8 +52,7 @@ class ViewCache:
         return key in self._items
 
     def _insert(self, key: Hashable, value: Any, ahead: bool = False) -> Any:
-        """Cache ``value`` under ``key`` (an entry already there wins); evict down to the bound.
-        ``ahead``: built by the background thread."""
+        """Cache ``value`` under ``key`` (an entry already there wins; ``ahead``: built in the background)."""
         with self._lock:
             old = self._items.get(key)
             if old is not None:
@@ -94,9 +75,8 @@ class ViewCache:
             return self._items.get(key)
 
     def get(self, key: Hashable, build: Callable[[], Any]) -> Any:
-        """The view under ``key``: cached, built ahead, or ``build()`` now (then cached). A view that
-        another thread (the background thread, or another thread rendering frames) is building is
-        waited for, not built twice."""
+        """The view under ``key``: cached, built ahead, or ``build()`` now (then cached); a view another
+        thread is building is waited for, not built twice."""
         with self._lock:
             v = self._items.get(key)
             if v is not None:
@@ -134,10 +114,8 @@ class ViewCache:
                 self._pending.pop(key, None)
 
     def ahead(self, job: Callable[[Callable[[Hashable, Callable[[], Any]], None]], None]) -> None:
-        """Run ``job(build_ahead)`` in the background thread (no-op when ``background`` is off); a
-        job still queued from before is dropped (only the newest frame's wishes count). The job calls
-        ``build_ahead(key, build)`` for each view it wants ready; ``build`` must be safe to run beside
-        the main thread."""
+        """Run ``job(build_ahead)`` in the background thread (no-op without ``background``), dropping a job
+        still queued; the job calls ``build_ahead(key, build)`` per view (``build`` must be thread-safe)."""
         if not self.background:
             return
         with self._lock:
@@ -148,8 +126,7 @@ class ViewCache:
             self._queued = self._pool.submit(job, self._build_ahead)
 
     def _build_ahead(self, key: Hashable, build: Callable[[], Any]) -> None:
-        """Build ``key`` in this (background) thread unless it is cached or being built; a failure
-        is left for the main thread's own build of the view to raise."""
+        """Build ``key`` here unless cached or in progress; a failure is raised by the main thread's build."""
         with self._lock:
             if key in self._items or key in self._pending:
                 return
