@@ -1,28 +1,13 @@
 """Level of detail for the per-view point sets: a small pyramid per capture view, one level per frame.
 
-A one-pixel splat costs one projection per source point whatever the target size: a 128x128 frame
-from 640x480 captures would warp ~300 k points per view for 16 k output pixels. Each view therefore
-gets a pyramid of point sets (built lazily, cached by the Renderer beside the full view):
-
-- level 0 = the view's valid pixels (:func:`presim.synthesis.warp.prepare_view`);
-- level k+1 = 2x2 **depth-aware pooling** of level k (:func:`pool_depth_aware`): in each 2x2 block
-  the nearest valid depth ``dmin`` defines the front surface; the block's pixels with
-  ``d <= dmin * (1 + depth_tol)`` (same surface) are averaged — depth and colour together — and the
-  others (background seen past an edge, invalid pixels) are ignored, so colours never mix across a
-  depth edge and no point floats between foreground and background. The pooled point sits at the
-  block centre (intrinsics :func:`half_intrinsics`); the level is then prepared like a full view
-  (back-projection, layers, sort).
-
-Which level a frame uses (:func:`choose_level`) follows the ratio of the source pixel footprint to the
-target pixel footprint: a level-k point of view s seen at source depth ``z_s`` covers
-``r_k = 2^k * (z_s / f_s) / (z_t / f_t)`` target pixels (``z_t`` its depth in the target camera,
-``f`` focal lengths in pixels). The coarsest level with ``r_k <= max_footprint`` (median over the
-view's sub-sampled grid points that land in front of the target) is taken: a point then still
-covers at most about one target pixel, so the switching median closes the cracks as at level 0.
-A 640x480 target from 640x480 captures stays at level 0 (the output is unchanged), 256x256 takes
-level 1 (1/4 of the points), 128x128 level 2 (1/16).
-
-:func:`pool_depth_aware_ref` is the plain numpy reference of the numba kernel (tested equal).
+A splat costs one projection per source point, so a 128x128 frame from 640x480 captures would warp ~300 k
+points per view. Level 0 is the view's valid pixels (:func:`presim.synthesis.warp.prepare_view`); level k+1 is
+2x2 **depth-aware pooling** of level k (:func:`pool_depth_aware`, numpy reference :func:`pool_depth_aware_ref`):
+the pixels with ``d <= dmin * (1 + depth_tol)`` of a block's nearest valid depth are averaged (depth and
+colour), the rest ignored, so nothing mixes across a depth edge; the point sits at the block centre
+(:func:`half_intrinsics`). :func:`choose_level` takes the coarsest level whose median footprint
+``r_k = 2^k * (z_s / f_s) / (z_t / f_t)`` is <= ``max_footprint`` target pixels, so the crack median still
+closes the cracks: 640x480 targets stay at level 0, 256x256 take level 1, 128x128 level 2.
 """
 
 from __future__ import annotations
@@ -42,8 +27,7 @@ __all__ = ["LodConfig", "pool_depth_aware", "pool_depth_aware_ref", "half_intrin
 
 @dataclass(frozen=True)
 class LodConfig:
-    """Knobs of the level of detail (``RenderConfig`` fields ``lod_levels``, ``lod_max_footprint``,
-    ``lod_depth_tol``)."""
+    """Level-of-detail knobs (``RenderConfig.lod_levels``, ``lod_max_footprint``, ``lod_depth_tol``)."""
 
     levels: int = 3
     """Coarsest level (0 = no level of detail: always the full view)."""
@@ -62,8 +46,7 @@ class LodConfig:
 
 
 def half_intrinsics(K: Intrinsics) -> Intrinsics:
-    """Intrinsics of a 2x2-pooled image (``W // 2`` x ``H // 2``; block (i, j) = source pixels
-    2i..2i+1, its centre at source coordinate 2i + 0.5; pixel (0, 0) is the centre of the top-left pixel)."""
+    """Intrinsics of a 2x2-pooled image (``W // 2`` x ``H // 2``; block i = source pixels 2i..2i+1, centre 2i + 0.5)."""
     return Intrinsics(K.fx / 2.0, K.fy / 2.0, (K.cx - 0.5) / 2.0, (K.cy - 0.5) / 2.0,
                       K.width // 2, K.height // 2)
 
@@ -90,10 +73,8 @@ def pool_depth_aware_ref(depth_m: np.ndarray, color: np.ndarray, depth_tol: floa
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _pool_row(d, c, tol, dout, cout, i):  # pragma: no cover
-    # Row i of the pooled level (see pool_depth_aware_ref). The depth is summed in float64 in the
-    # reference's order; the colour in integers, rounded as the reference's floor(sum / n + 0.5):
-    # for n = 1, 2, 4 that is (2 sum + n) // (2 n) exactly, and for n = 3 too (sum / 3 + 0.5 lies
-    # at least 1/6 from an integer, far beyond float64 rounding).
+    # Row i of the pooled level. Depth summed in float64 in the reference's order; colour in integers:
+    # floor(sum / n + 0.5) == (2 sum + n) // (2 n) exactly for n = 1..4 (n = 3: >= 1/6 from an integer).
     W2 = dout.shape[1]
     da = d[2 * i]
     db = d[2 * i + 1]
@@ -164,16 +145,10 @@ def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 
     """2x2 depth-aware pooling (numba): per block, average depth and colour of the valid pixels within
     ``depth_tol`` (relative) of the block's nearest depth; 0 where the block has no valid pixel.
 
-    Args:
-        depth_m: float32 (H, W), 0 (or non-finite) = invalid; color: uint8 (H, W, 3).
-        parallel: False runs the kernel's serial twin, one thread without the GIL (a background
-            thread; same output); True runs it as this thread's mode says
-            (:func:`presim.synthesis.threads.serial_kernels`).
-    Returns:
-        ``(depth (H//2, W//2) float32, color (H//2, W//2, 3) uint8)``.
+    depth_m: float32 (H, W), 0 or non-finite = invalid; color: uint8 (H, W, 3); parallel: False runs the serial
+    GIL-free twin (background threads, same output). Returns ``(depth (H//2, W//2) float32, color uint8)``.
     """
-    # Non-finite depths need no pass of their own: NaN and -inf fail the kernel's z > 0, and +inf
-    # is never a block's nearest depth nor within its band, so they count as invalid (tested).
+    # Non-finite depths count as invalid without a pass: NaN/-inf fail z > 0, +inf is never within the band.
     d = np.ascontiguousarray(depth_m, np.float32)
     H2, W2 = d.shape[0] // 2, d.shape[1] // 2
     dout = np.empty((H2, W2), np.float32)
@@ -185,8 +160,7 @@ def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 
 
 def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02,
                 parallel: bool = True) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
-    """The image of pyramid level ``level`` (0 = the input): ``(color, depth, intrinsics)``
-    (``parallel``: see :func:`pool_depth_aware`)."""
+    """Pyramid level ``level`` (0 = input) as ``(color, depth, intrinsics)``; ``parallel``: :func:`pool_depth_aware`."""
     for _ in range(level):
         if min(depth_m.shape) < 2:
             break
@@ -201,10 +175,8 @@ def footprint_ratio(grid_xyz_world: np.ndarray, T_cam_world_src: np.ndarray, f_s
     """Median over a view's grid points of (source pixel footprint) / (target pixel footprint) at level 0:
     ``(z_s / f_s) / (z_t / f_t)``; nan when no grid point counts.
 
-    A point counts when it is in front of both cameras and, with ``K_tgt`` (what the Renderer passes),
-    lands inside the target image (pixel-centre rule): only drawn points need the detail. Points in
-    front of the target but outside its image (for a low robot camera: the floor right beside it, at
-    a small ``z_t``) would otherwise pull the median up and the level down.
+    A point counts when in front of both cameras and, with ``K_tgt``, inside the target image (pixel-centre
+    rule): off-image points (e.g. the floor beside a low robot camera) would pull the level down.
     """
     if len(grid_xyz_world) == 0:
         return float("nan")
@@ -222,8 +194,7 @@ def footprint_ratio(grid_xyz_world: np.ndarray, T_cam_world_src: np.ndarray, f_s
 
 
 def choose_level(ratio0: float, config: LodConfig) -> int:
-    """Coarsest level k <= ``config.levels`` with ``2^k * ratio0 <= config.max_footprint`` (0 when
-    ``ratio0`` is not finite or level 0 already exceeds it)."""
+    """Coarsest k <= ``config.levels`` with ``2^k * ratio0 <= config.max_footprint`` (0 if ratio0 not finite)."""
     if not np.isfinite(ratio0) or ratio0 <= 0:
         return 0
     k = 0

@@ -1,34 +1,14 @@
 """Per-view photometric correction at render time (the apply half of :mod:`presim.capture.photometric`).
 
-A scene calibrated by ``presim photometric`` carries, per frame ``v``, the forward model
-``observed_v = gain_v * radiance + bias_v`` (per channel). A pixel warped from view ``v`` is mapped
-to the output exposure ``(gain_o, bias_o)``::
-
-    out = gain_o * (observed_v - bias_v) / gain_v + bias_o
-
-with ``(gain_o, bias_o) = (1, 0)`` for the scene's mean exposure (default) or a frame's own
-transform to match that frame (``RenderConfig.exposure_frame``). The map is per channel and its
-input is 8-bit, so it is a 256-entry lookup table per channel (``cv2.LUT``, ~0.3 ms per 640x480
-image), built once per view (:class:`ViewColorTransform`). :func:`apply_gain_bias` is the float
-reference the tables are tested against.
-
-The Renderer applies the calibration to each capture frame's pixels when it prepares the view
-(:class:`SourceColorCorrection`; the prepared view is cached, so there is no per-frame cost).
-Warping, the crack filter's lower median and the merge only move pixels, so for a per-channel
-monotone table this equals correcting every warped view image (the core's ``color_transform``
-hook, which :class:`ViewColorTransform` also fits); frames missing from the calibration are left
-as they are.
-
-**3x3 affine model and vignetting** (``presim photometric --model affine`` / ``--vignetting``): a
-colour matrix mixes channels, so it is no per-channel table, and vignetting depends on where a
-pixel was in its *own* frame, which warping forgets; applied to the source pixels the same way::
-
-    out = A_o (W(r) A_v^-1 (observed_v - b_v)) + b_o,     W(r) = 1 + k1 r^2 + k2 r^4
-
-``W`` undoes the vignetting (the output is vignetting-free at the scene's mean exposure). When the
-output matches a frame (``exposure_frame``), that frame's vignetting is put back on the rendered
-image, per target pixel (:class:`OutputVignetting`: ``out = (c - b_o) / W(r) + b_o``), so the output
-looks like that frame. :func:`correct_colors` is the float reference of both.
+Applied to each capture frame's own pixels when the Renderer prepares a view (:class:`SourceColorCorrection`;
+cached with the view; warping, crack median and merge only move pixels). Per-channel model
+``observed_v = gain_v * radiance + bias_v`` maps to the output exposure as
+``out = gain_o * (observed_v - bias_v) / gain_v + bias_o``, ``(gain_o, bias_o)`` = (1, 0) for the scene mean or
+a frame's own (``RenderConfig.exposure_frame``), as a 256-entry ``cv2.LUT`` table per view (~0.3 ms at 640x480;
+reference :func:`apply_gain_bias`). The 3x3 affine model with vignetting maps
+``out = A_o (W(r) A_v^-1 (observed_v - b_v)) + b_o``, ``W(r) = 1 + k1 r^2 + k2 r^4``; when matching a frame,
+:class:`OutputVignetting` puts its vignetting back per target pixel. Reference of both: :func:`correct_colors`.
+Frames missing from the calibration are left as they are.
 """
 
 from __future__ import annotations
@@ -66,8 +46,8 @@ def output_exposure(calib, exposure_frame: str | None) -> tuple[np.ndarray, np.n
 
 
 class ViewColorTransform:
-    """``(view_idx, color) -> color`` for the core's hook: view ``view_idx`` (scene position) mapped
-    from its own exposure to the output exposure through a cached per-view lookup table."""
+    """``(view_idx, color) -> color``: view ``view_idx`` (scene position) mapped from its own exposure to the
+    output exposure through a cached per-view lookup table (per-channel path of :class:`SourceColorCorrection`)."""
 
     def __init__(self, calib, frame_ids: list[str], exposure_frame: str | None = None):
         self.calib = calib
@@ -117,8 +97,7 @@ def vignetting_gain_map(K, vignetting: tuple[float, float] | None) -> np.ndarray
 
 def correct_colors(color: np.ndarray, A_v: np.ndarray, b_v: np.ndarray, A_o: np.ndarray, b_o: np.ndarray,
                    gain_map: np.ndarray | None = None) -> np.ndarray:
-    """Reference: ``round(clip(A_o (g A_v^-1 (color - b_v)) + b_o))`` per pixel, ``g`` = ``gain_map``
-    (H, W) or 1; uint8 (H, W, 3)."""
+    """Reference: ``round(clip(A_o (g A_v^-1 (color - b_v)) + b_o))``, ``g`` = ``gain_map`` (H, W) or 1; uint8."""
     x = np.asarray(color, np.float64) - np.asarray(b_v, np.float64)
     rad = x @ np.linalg.inv(np.asarray(A_v, np.float64)).T
     if gain_map is not None:
@@ -128,9 +107,8 @@ def correct_colors(color: np.ndarray, A_v: np.ndarray, b_v: np.ndarray, A_o: np.
 
 
 class SourceColorCorrection:
-    """``(view_idx, color) -> color`` on a capture frame's own pixels (before warping): the
-    calibration's affine transform and vignetting, mapped to the output exposure; the Renderer
-    applies it when it prepares a view (frames missing from the calibration are left as they are)."""
+    """``(view_idx, color) -> color`` on a capture frame's pixels before warping: calibration transform and
+    vignetting mapped to the output exposure (applied when a view is prepared; uncalibrated frames unchanged)."""
 
     def __init__(self, calib, frame_ids: list[str], intrinsics, exposure_frame: str | None = None):
         self.calib = calib
@@ -138,7 +116,7 @@ class SourceColorCorrection:
         self.intrinsics = intrinsics
         self.A_o, self.b_o = output_transform(calib, exposure_frame)
         self._maps: dict = {}
-        # Per-channel gain and bias without vignetting: the per-view lookup tables (exact, fast).
+        # Per-channel gain and bias without vignetting: per-view lookup tables (exact, fast).
         self._lut = ViewColorTransform(calib, frame_ids, exposure_frame) if calib.per_channel else None
 
     def __call__(self, view_idx: int, color: np.ndarray) -> np.ndarray:
@@ -157,8 +135,7 @@ class SourceColorCorrection:
 
 
 class OutputVignetting:
-    """Puts the matched frame's vignetting back on a rendered image: ``(c - b_o) / W(r) + b_o`` per
-    target pixel (only when the calibration has a vignetting term and the output matches a frame)."""
+    """Puts the matched frame's vignetting back on a rendered image: ``(c - b_o) / W(r) + b_o`` per pixel."""
 
     def __init__(self, calib, exposure_frame: str):
         self.vignetting = calib.vignetting
