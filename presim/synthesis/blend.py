@@ -1,35 +1,15 @@
 """Multi-view blending instead of winner-takes-all (beyond the thesis; unstructured-lumigraph weights).
 
-The adaptive loop (:func:`presim.synthesis.core.synthesize_frame`) gives every covered target pixel
-one winning view and the front surface depth ``d(p)``. Blending then mixes, per pixel, the colours
-of all views (among the first ``max_views`` the loop warped) that see the **same surface** there:
-view ``k`` is a candidate at ``p`` when its front-most warped depth ``d_k(p)`` agrees with ``d(p)``
-within ``depth_tol_rel * d(p)``; the winner always is (with its crack-filtered colour). Weights,
-after Buehler et al.'s unstructured lumigraph rendering (ULR):
-
-- **angle** ``a_k``: the angle at the surface point ``X`` between the target ray ``X - C_t`` and
-  view k's ray ``X - C_k`` (the colour a view recorded is most likely what the target sees when
-  both look at ``X`` along the same ray), computed as the chord ``sqrt(2 - 2 cos)`` of the unit
-  rays (the angle in radians within 0.1 % below 8 degrees, no arccos);
-- **resolution** ``r_k = max(0, |X - C_k| / |X - C_t| - 1)``: a view farther from the surface
-  than the target samples it more coarsely (magnified, blurrier);
-- penalty ``P_k = a_k + resolution_weight * r_k``; ULR's k-nearest threshold becomes a softened
-  inverse: ``w_k = feather_k(p) * quality_k / (P_k + penalty_eps)``;
-- **feathering**: ``feather_k(p)`` ramps from 0 at the border of view k's coverage in the target
-  to 1 about ``feather_px / 2`` pixels inside it (:func:`feather_map`), so a view fades in and
-  out instead of leaving a visible seam (the winner keeps at least ``1 / feather_px``);
-- ``quality_k``: a per-view factor from the caller (sharpness, :mod:`presim.synthesis.sharpness`;
-  1 by default).
-
-The blended colour ``sum_k w_k c_k / sum_k w_k`` replaces the winner's colour only where at least two
-views agree; depth, validity and source view stay those of the winner. Identical candidate colours
-give exactly that colour back. :func:`blend_reference` is the plain numpy definition the numba
-kernel is tested against.
-
-Cost per blended view: its front surface (for the views the adaptive loop warped, written by the
-packed crack pass from the reads it makes anyway, ``Workspace.front``; other views: one plain
-z-buffer warp, no crack filter: cracks only mean fewer candidates), one integer box filter of its
-coverage (:func:`coverage_counts`, the feathering), and its share of the per-pixel weight kernel.
+Optional stage after the adaptive loop (:func:`presim.synthesis.pipeline.synthesize_frame`), which gives each
+covered pixel a winning view and front depth ``d(p)``. Among the first ``max_views`` warped views, view ``k`` is
+a candidate at ``p`` when its front-most depth agrees with ``d(p)`` within ``depth_tol_rel * d(p)`` (the winner
+always is). Weights after Buehler et al.'s ULR: ``w_k = feather_k(p) * quality_k / (P_k + penalty_eps)`` with
+``P_k = a_k + resolution_weight * r_k``; ``a_k`` the angle at the surface point between target and view rays
+(as the chord ``sqrt(2 - 2 cos)``, within 0.1 % below 8 degrees), ``r_k = max(0, |X - C_k| / |X - C_t| - 1)``,
+``feather_k`` ramping 0 -> 1 over ``feather_px / 2`` inside the view's coverage (:func:`feather_map`; the winner
+keeps >= ``1 / feather_px``), ``quality_k`` a caller factor (sharpness). ``sum w_k c_k / sum w_k`` replaces
+the winner's colour where >= 2 views agree; depth, validity and source stay the winner's.
+:func:`blend_reference` is the numpy reference of the numba kernel :func:`blend_numba`.
 """
 
 from __future__ import annotations
@@ -58,8 +38,7 @@ class BlendConfig:
     max_views: int = 3
     """Blend among the first this many views the adaptive loop warped (winner included)."""
     depth_tol_rel: float = 0.02
-    """A view is a candidate at a pixel when its depth agrees with the front surface within this
-    fraction of the depth."""
+    """A view is a candidate where its depth agrees with the front surface within this fraction of it."""
     resolution_weight: float = 1.0
     """Weight of the resolution penalty against the angle penalty (radians)."""
     penalty_eps: float = 0.02
@@ -91,22 +70,18 @@ class BlendInput:
     view_depth_m: np.ndarray
     """float32 (n, H, W) each candidate's front-most warped depth, 0 = empty."""
     view_color: np.ndarray
-    """uint8 (n, H, W, 3) their colours (already photometrically corrected; any strides: the
-    renderer's stacks are planar, ``(n, 3, H, W)`` memory seen through a transposed view)."""
+    """uint8 (n, H, W, 3) their colours (photometrically corrected; any strides, the renderer's are planar)."""
     centres: np.ndarray
     """float64 (n, 3) candidate camera centres, world."""
     quality: np.ndarray
     """float64 (n,) per-view factor (sharpness), > 0."""
     feather_count: np.ndarray | None = None
-    """Optional (n, H, W) :func:`coverage_counts` of the views (the fast path's feathering input;
-    None = computed from ``view_depth_m``). The reference always uses :func:`feather_map`."""
+    """Optional (n, H, W) :func:`coverage_counts` (fast path's feathering; None = computed; unused by the reference)."""
 
 
 def feather_map(depth_m: np.ndarray, feather_px: float) -> np.ndarray:
-    """Feathering factor of a view's coverage (float32 (H, W), 0 outside it): the fraction ``m`` of
-    covered pixels in a ``feather_px`` box around each pixel, mapped by ``clip(2 m - 1, 0, 1)`` —
-    0 at a straight coverage border, 1 from ``feather_px / 2`` inside it; isolated one-pixel cracks
-    barely lower it. A box filter is O(1) per pixel (a distance transform cost ~3x more)."""
+    """Feathering factor of a view's coverage (float32 (H, W), 0 outside): ``clip(2 m - 1, 0, 1)`` of the covered
+    fraction ``m`` in a ``feather_px`` box (0 at a straight border, 1 from ``feather_px / 2`` inside)."""
     cov = (depth_m > 0).astype(np.float32)
     if feather_px <= 1:
         return cov
@@ -124,12 +99,9 @@ def feather_box(feather_px: float) -> int:
 
 def coverage_counts(depth_m: np.ndarray, feather_px: float, out: np.ndarray | None = None,
                     coverage: np.ndarray | None = None) -> np.ndarray:
-    """Integer form of :func:`feather_map` (the fast path's input): per pixel the number of covered
-    pixels in the ``feather_box`` box around it (border replicated), uint8 (uint16 for boxes over
-    15 px). :func:`feather_map` equals ``clip(2 * float32(count * (1 / box**2)) - 1, 0, 1)`` on
-    covered pixels, 0 elsewhere, bit for bit (OpenCV's float box filter sums in double and scales
-    once; tested), and the blend kernel evaluates exactly that. ``coverage``: ``depth_m > 0`` as
-    uint8, if the caller has it."""
+    """Integer form of :func:`feather_map`: covered pixels in the ``feather_box`` box (border replicated), uint8
+    (uint16 for boxes over 15 px). :func:`feather_map` equals ``clip(2 * float32(count * (1 / box**2)) - 1, 0, 1)``
+    on covered pixels bit for bit (tested), which the blend kernel evaluates. ``coverage``: ``depth_m > 0`` uint8."""
     k = feather_box(feather_px)
     dt = np.uint8 if k * k <= 255 else np.uint16
     cov = (depth_m > 0).view(np.uint8) if coverage is None else coverage
@@ -142,19 +114,16 @@ def coverage_counts(depth_m: np.ndarray, feather_px: float, out: np.ndarray | No
 
 def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
                        depth_out: np.ndarray, color_out: np.ndarray) -> None:
-    """Front-most surface of a prepared view (:class:`~presim.synthesis.warp.ViewPoints`) in the
-    target, written into ``depth_out`` (float32 (H, W)) / ``color_out`` (uint8 (H, W, 3)): all its
-    points z-buffered as one layer (nearest pixel, smallest z, the projection of the warp kernel),
-    no crack filter."""
+    """Front-most surface of a prepared view (:class:`~presim.synthesis.warp.ViewPoints`) in the target into
+    ``depth_out`` (float32 (H, W)) / ``color_out`` (uint8 (H, W, 3)): one z-buffered layer, no crack filter."""
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     _front_warp_kernel(view.xyz_world, view.rgb, M, np.float32(K.fx), np.float32(K.fy), np.float32(K.cx),
                        np.float32(K.cy), np.float32(near_m), depth_out, color_out.transpose(2, 0, 1))
 
 
-@nb.njit(fastmath=WARP_FASTMATH, cache=True, nogil=True, error_model="numpy")  # the warp kernel's flags: bit-equal projections
+@nb.njit(fastmath=WARP_FASTMATH, cache=True, nogil=True, error_model="numpy")  # warp kernel's flags: equal bits
 def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
-    # Same arithmetic as presim.synthesis.warp.warp_layers_kernel with one layer (tested equal);
-    # colours into the planes cbuf (3, H, W).
+    # Same arithmetic as warp.warp_layers_kernel with one layer (tested equal); colours into planes cbuf (3, H, W).
     H, W = zbuf.shape
     zbuf[:] = 0.0
     cbuf[:] = 0
@@ -183,17 +152,14 @@ def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma
 
 def front_of_layers(layer_depth_m: np.ndarray, layer_color: np.ndarray, depth_out: np.ndarray,
                     color_out: np.ndarray) -> None:
-    """Front-most surface of an already warped view (the loop's (L, H, W) z-buffered layers): per
-    pixel the smallest depth over the layers, written into ``depth_out`` / ``color_out`` (the same
-    surface :func:`front_image_points` z-buffers, without warping the view again). ``color_out``
-    may be a view of planar memory (the blend's stacks)."""
+    """Front-most surface of an already warped view (the loop's (L, H, W) layers): smallest depth per pixel into
+    ``depth_out`` / ``color_out`` (= :func:`front_image_points` without warping again; planar colour allowed)."""
     _front_of_layers_kernel(layer_depth_m, layer_color, depth_out, color_out.transpose(2, 0, 1))
 
 
 @parallel_kernel(fastmath=True, cache=True, error_model="numpy")
 def _front_of_layers_kernel(ld, lc, zout, cp):  # pragma: no cover
-    # Per row: depths first (branch-free, vectorises), then one colour gather from the chosen layer
-    # into the three colour planes ``cp`` (3, H, W).
+    # Per row: depths first (branch-free, vectorises), then one colour gather into the planes cp (3, H, W).
     L, H, W = ld.shape
     for v in nb.prange(H):
         best = np.empty(W, np.int32)
@@ -293,11 +259,8 @@ class _BlendParams(NamedTuple):
 
 @parallel_kernel(fastmath=True, error_model="numpy", cache=True)
 def _blend_kernel(a, cam, p, out):  # pragma: no cover
-    # Row by row; the inner loops over u are branch-free (selects, unconditional loads) in float32
-    # over contiguous rows (view colours planar: vcp (n, 3, H, W)), so they vectorise; the numpy
-    # error model drops the division-by-zero branches that kept the weight loop scalar. Same
-    # formulas and order of operations as blend_reference (float32); the feathering factor is
-    # computed from the box counts exactly as feather_map computes it.
+    # Row by row; branch-free float32 inner loops over contiguous rows (planar vcp (n, 3, H, W)) vectorise.
+    # Same formulas and order as blend_reference; feathering from the box counts exactly as feather_map.
     color, depth, source, ids, vdepth, vcp, fcount = a.color, a.depth, a.source, a.ids, a.vdepth, a.vcp, a.fcount
     centres, quality = a.centres, a.quality
     M, fx, fy, cx, cy = cam.M, cam.fx, cam.fy, cam.cx, cam.cy
@@ -395,10 +358,8 @@ def _blend_kernel(a, cam, p, out):  # pragma: no cover
 
 
 def blend_numba(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config: BlendConfig) -> np.ndarray:
-    """numba fast path of :func:`blend_reference` (float32: the same result up to a level where the
-    blended value falls within float rounding of a .5 level, or a depth within rounding of the
-    tolerance). Reads the view colours as planes (copies them when ``view_color`` is not planar
-    memory) and feathers from :func:`coverage_counts` (``inp.feather_count`` or computed here)."""
+    """numba fast path of :func:`blend_reference` (float32: equal except values within rounding of a .5 level or
+    depths within rounding of the tolerance); feathers from :func:`coverage_counts`."""
     out = np.empty_like(inp.color)
     f32 = np.float32
     vcp = inp.view_color.transpose(0, 3, 1, 2)
@@ -421,10 +382,8 @@ def blend_numba(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
 
 def blend_stacks(buffers: dict, max_views: int, H: int, W: int, feather_px: float = 8.0
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The per-view ``(depth (n, H, W), color (n, H, W, 3), feather counts (n, H, W))`` stacks kept
-    in ``buffers`` across frames (allocated once per output size). Slot ``i`` holds the ``i``-th
-    blended view, so a caller can write a view's front surface there before :func:`blend_frame`.
-    The colours are planar memory ``(n, 3, H, W)`` seen as ``(n, H, W, 3)`` (what the kernel reads)."""
+    """Per-view ``(depth (n, H, W), color (n, H, W, 3), feather counts (n, H, W))`` stacks kept in ``buffers``
+    (once per output size); slot ``i`` = ``i``-th blended view; colours planar ``(n, 3, H, W)`` memory."""
     dt = np.uint8 if feather_box(feather_px) ** 2 <= 255 else np.uint16
     if buffers.get("shape") != (max_views, H, W, dt):
         buffers["shape"] = (max_views, H, W, dt)
@@ -441,19 +400,11 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
                 use_reference: bool = False, buffers: dict | None = None) -> tuple[np.ndarray, float]:
     """Blend the first ``config.max_views`` of ``views`` into the loop's winner image.
 
-    Args:
-        views: the views the loop warped, in order; color / depth_m / source: its merged result.
-        T_world_cam, K: target camera.
-        front_image: ``front_image(id, depth_out, color_out)`` writes the view's front-most warped
-            surface in the target into ``depth_out`` (float32 (H, W)) and ``color_out`` (uint8
-            (H, W, 3)) (a plain z-buffer warp, :func:`front_image_points`, or the loop's own warp,
-            :func:`front_of_layers`).
-        centre_of: ``centre_of(id)`` -> (3,) camera centre, world.
-        quality_of: per-view factor (sharpness); None = 1.
-        use_reference: run :func:`blend_reference` instead of the numba kernel (tests).
-        buffers: a dict the caller keeps across frames; the per-view stacks are reused from it.
-    Returns:
-        ``(blended color uint8 (H, W, 3), milliseconds)``.
+    views: the warped views in order; color / depth_m / source: the merged result; T_world_cam, K: target camera;
+    front_image(id, depth_out, color_out): writes the view's front surface (float32 (H, W), uint8 (H, W, 3)),
+    via :func:`front_image_points` or :func:`front_of_layers`; centre_of(id) -> (3,) world camera centre;
+    quality_of: per-view factor (None = 1); use_reference: :func:`blend_reference` (tests); buffers: dict kept
+    across frames for the stacks. Returns ``(blended color uint8 (H, W, 3), milliseconds)``.
     """
     t0 = time.perf_counter()
     use = [int(v) for v in list(views)[:config.max_views]]

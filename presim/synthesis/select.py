@@ -1,15 +1,10 @@
 """View selection (thesis §3.4.2): distance -> angle vs FOV -> zero-overlap removal -> order.
 
-1. Keep the ``max_candidates`` views nearest to the target by camera-centre distance (eq. 3.5).
-2. Drop views whose optical axis makes an angle (eq. 3.6) with the target's above the input camera's hfov.
-3. Drop views with zero overlap: the fraction of the view's sub-sampled valid depth grid (every
-   ``overlap_stride_px``-th pixel) that projects inside the target image, in front of the camera.
-4. Fallback when nothing is left: the ``max_candidates`` views of smallest angle (any distance) that overlap,
-   largest overlap first.
-5. Order by distance (default; the first view covers the whole image, and the nearest beat the largest
-   overlap in leave-one-out PSNR, docs/synthesis.md) or by overlap, descending.
-
-Ablations (thesis Table 3.4): ``mode="distance"`` (nearest, distance order), ``mode="angle"`` (smallest angle).
+Keep the ``max_candidates`` nearest views (eq. 3.5); drop those whose optical axis angle to the target's (eq. 3.6)
+exceeds their hfov, and those whose sub-sampled depth grid has no point inside the target image; if none is left,
+take the smallest-angle views that overlap, largest overlap first. Order by distance (default: nearest beat
+largest overlap in leave-one-out PSNR, docs/synthesis.md) or overlap. Ablations (thesis Table 3.4):
+``mode="distance"`` (nearest, distance order), ``mode="angle"`` (smallest angle, angle order).
 """
 
 from __future__ import annotations

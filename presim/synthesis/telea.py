@@ -1,12 +1,9 @@
 """Telea's fast-marching inpainting (Telea 2004) in numba, pixel-equal to ``cv2.inpaint(..., INPAINT_TELEA)``.
 
 Final fill of small holes (:mod:`presim.synthesis.fill`, method ``"telea"``); ``cv2.inpaint`` is its reference
-(tests compare on random and real masks). Faster than OpenCV (~7-10 us per hole pixel there): a binary heap keyed
-by (arrival time, push order) pops in OpenCV's order (ties first in, first out), weights are computed once per
-neighbour for all three channels, and only the holes, their band and ring are visited. OpenCV's discretisation
-is kept: one-pixel padding (padded row ``i`` = image row ``i - 1``), negative outside arrival times from a first
-pass over the ring within ``radius`` (Chebyshev), fill weights direction x 1/distance^3 x level-set closeness
-plus the normalised gradient term, gradients scaled by 2, float32 arithmetic in OpenCV's order.
+(tested on random and real masks). Same discretisation, float32 order and padding as OpenCV, but faster (OpenCV:
+~7-10 us per hole pixel): a binary heap keyed by (arrival time, push order) pops in OpenCV's order (ties first
+in, first out), weights are computed once for all three channels, and only holes, band and ring are visited.
 """
 
 from __future__ import annotations
