@@ -1,27 +1,13 @@
 """Slow, obviously correct numpy reference of the synthesis kernels, and the naive baseline.
 
-Every fast path (numba in :mod:`presim.synthesis.warp` / :mod:`presim.synthesis.crack_filter` /
-:mod:`presim.synthesis.composite`, torch in :mod:`presim.synthesis.torch_backend`) is tested against
-these functions (tests/test_synthesis_kernels.py). They use :mod:`presim.geometry` for every
-projection, float64 arithmetic and plain loops where a loop is the clearest statement.
-
-Conventions shared by all backends (the reference *defines* them):
-
-- A warped point lands on the pixel nearest to its projection: ``ui = floor(u + 0.5)`` (pixel
-  centres, docs/conventions.md).
-- Points with camera z <= ``near_m`` are dropped.
-- Within one layer the z-buffer keeps the smallest z (as the float32 depth that is stored); on an
-  exact tie, the point that comes first in the view's point order (the lower index) wins.
-  These three rules are :func:`presim.capture.reprojection.zbuffer_splat`, the project's one splat,
-  which the reference calls.
-- Empty pixels have depth 0 and color 0.
-- Switching median (thesis eq. 3.9): an empty pixel is filled when more than half of the N x N
-  window (the pixel itself included, out-of-image positions counting as empty) is non-empty; its
-  depth and each color channel become the lower median of the non-empty neighbours' values.
-- Plain median: every pixel becomes the median of its whole N x N window, empty (0) values and
-  zero padding included, per channel (the traditional filter, which also moves edges).
-- Layers are composited front to back: a pixel takes the first layer (lowest layer index = nearest
-  in the source view) that has a value.
+Every fast path (numba in :mod:`presim.synthesis.warp` / :mod:`presim.synthesis.cracks`, torch in
+:mod:`presim.synthesis.torch_kernels`) is tested against these (tests/test_synthesis_kernels.py). They *define*
+the conventions: a point lands on pixel ``floor(u + 0.5)``; camera z <= ``near_m`` is dropped; per layer the
+z-buffer keeps the smallest float32 z, exact ties to the lower point index
+(:func:`presim.capture.reprojection.zbuffer_splat`); empty pixels have depth 0 and colour 0; the switching median
+(thesis eq. 3.9) fills an empty pixel when more than half of its N x N window (out-of-image = empty) is non-empty,
+with the lower median of the non-empty values per channel; the plain median takes the whole zero-padded window;
+layers composite front to back (lowest layer index = nearest wins).
 """
 
 from __future__ import annotations
@@ -42,13 +28,8 @@ __all__ = [
 
 
 def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> np.ndarray:
-    """Layer index per valid depth value: ``num_layers`` equal slices of [min, max] of the values.
-
-    Args:
-        depth_m: (n,) float depth values, all > 0.
-    Returns:
-        (n,) int64 layer indices in [0, num_layers); layer 0 holds the nearest depths.
-    """
+    """(n,) int64 layer of each depth in (n,) ``depth_m`` (all > 0): ``num_layers`` equal slices of [min, max],
+    layer 0 nearest."""
     d = np.asarray(depth_m, dtype=np.float64)
     if d.size == 0:
         return np.zeros(0, np.int64)
@@ -66,14 +47,8 @@ def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, n
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Forward-warp world points into ``num_layers`` z-buffered images of the target camera.
 
-    Args:
-        xyz_world: (n, 3) points in the world frame, metres.
-        rgb: (n, 3) uint8 colors.
-        layer: (n,) int layer index of each point.
-        T_cam_world: 4x4 world-to-target-camera transform.
-        K: target intrinsics.
-    Returns:
-        ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty.
+    xyz_world: (n, 3) world points, metres; rgb: (n, 3) uint8; layer: (n,) int; T_cam_world: 4x4; K: target.
+    Returns ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty.
     """
     H, W = K.height, K.width
     depth = np.zeros((num_layers, H, W), np.float32)
@@ -91,8 +66,7 @@ def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, n
 
 
 def _splat_front(uv: np.ndarray, z: np.ndarray, near_m: float, W: int, H: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`zbuffer_splat` of the points with float64 ``z > near_m``, depths compared as the float32
-    values that are stored. Returns (flat pixel, winning index into ``uv`` / ``z``)."""
+    """:func:`zbuffer_splat` of points with ``z > near_m`` (float32 depths) -> (flat pixel, winning index)."""
     front = np.flatnonzero(z > near_m)
     lin, win = zbuffer_splat(uv[front], z[front].astype(np.float32), W, H)
     return lin, front[win]
@@ -160,13 +134,9 @@ def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.n
                       T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
     """The naive baseline: vectorized numpy z-buffer splat of whole frames, no layers, no filters.
 
-    Each call unprojects every view from its depth map again (nothing cached), transforms, projects,
-    and resolves visibility with a lexsort — what a straightforward numpy DIBR does per frame.
-
-    Args:
-        views: list of ``(color (h,w,3) uint8, depth_m (h,w) float32, K_view, T_world_view)``.
-    Returns:
-        ``(color (H, W, 3) uint8, depth_m (H, W) float32)``.
+    Unprojects every view again per call (nothing cached), as a straightforward numpy DIBR does.
+    views: ``(color (h,w,3) uint8, depth_m (h,w) float32, K_view, T_world_view)`` each.
+    Returns ``(color (H, W, 3) uint8, depth_m (H, W) float32)``.
     """
     from presim.geometry import compose, invert, unproject_depth
 
@@ -188,10 +158,8 @@ def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.n
 
 
 def tile_any_ref(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
-    """Reference of :func:`presim.synthesis.composite.tile_any`: uint8 (ceil(H / tile_h),
-    ceil(W / tile_w)), 1 where a nonzero pixel of ``mask`` lies within ``grow`` pixels (Chebyshev
-    distance) of the tile's pixels, i.e. the mask dilated by a (2 grow + 1) square has a nonzero
-    pixel in the tile."""
+    """Reference of :func:`presim.synthesis.cracks.tile_any`: uint8 (ceil(H / tile_h), ceil(W / tile_w)), 1 where
+    a nonzero ``mask`` pixel lies within ``grow`` pixels (Chebyshev) of the tile."""
     m = np.asarray(mask) != 0
     H, W = m.shape
     grown = np.zeros_like(m)
