@@ -1,41 +1,14 @@
-"""Later candidate views warped on a second thread while the main thread composites (issue 13).
+"""Later candidate views warped on a helper thread while the main thread runs the adaptive loop.
 
-A frame of at most :data:`presim.synthesis.threads.SERIAL_MAX_PIXELS` pixels renders on one numba
-thread (parallel regions cost more than they give there), so on a 2-core machine one core idles.
-The adaptive loop (:func:`presim.synthesis.core.synthesize_frame`) warps its views one after the
-other, and which view comes next depends on the holes the previous ones left. It cannot be known
-before the frame, but it can be guessed: a camera that moves a little draws mostly the views its
-previous frame drew.
-
-:class:`WarpAhead` owns one helper thread. When a frame starts, the Renderer hands it the later
-candidates (2..``max_views``) that the camera stream's previous frame drew too (a camera that moves
-a little draws mostly the same views again; handing over the next candidates in order instead
-found more of the views the loop then drew but warped twice as many it did not, and a thread
-warping views nobody needs slows the main thread's kernels on a shared 2-core machine), provided
-their prepared views are cached (at the level of detail this frame picks) and hold at least
-:data:`WARP_AHEAD_MIN_POINTS` points. The thread warps them in candidate order, each into buffers
-of its own, **in one call of a numba kernel that holds no GIL** (:func:`_warp_jobs_kernel`: per
-view the chunk culling and the serial warp kernel of :func:`presim.synthesis.warp.warp_layers`).
-A first version called ``warp_layers`` once per view from Python: each call took the GIL back for
-~20 µs, and the main thread, which needs the GIL between its own kernels, lost about half of what
-the thread saved (apc capture, 128x128: warp 1.0 → 0.35 ms per frame, the other stages +0.25 ms).
-
-Each job has a state in a small int32 array shared by the two threads: queued, running, done,
-claimed. When the loop wants a view (:meth:`WarpAhead.take`) and its job is done, it gets the
-layers; running, it waits for them (a short spin: the kernel sets the state when the view is
-done); queued, it claims the job and warps the view itself as before (the kernel skips claimed
-jobs). Both threads may write a state at the same moment; the outcomes are all safe: if the
-kernel starts a job the loop has just claimed, the loop warps the view itself and the kernel's
-buffer is not read. The kernel stores ``done`` after a memory fence, so the layers are complete
-when the loop sees it. When the loop ends, the jobs not started are claimed (:meth:`stop`); a
-warp still running finishes on its own and the next frame waits for the kernel before it reuses
-the buffers.
-
-The layers do not depend on who warped them: the same kernels with the same view, pose and
-intrinsics give the same arrays, and a frame of this size warps its later views fully anyway
-(tiles from :data:`presim.synthesis.composite.TILED_MIN_PIXELS` on). The images are therefore
-identical with and without the thread (tested); a candidate the loop never draws costs the
-second core a warp.
+Frames of at most :data:`presim.synthesis.threads.SERIAL_MAX_PIXELS` pixels render on one numba thread, leaving a
+core idle. :class:`WarpAhead` (driven by :meth:`presim.synthesis.execution.Executor.warp_ahead`) warps the later
+candidates the camera stream's previous frame drew too (cached, >= :data:`WARP_AHEAD_MIN_POINTS` points) in one
+GIL-free numba call (:func:`_warp_jobs_kernel`: chunk culling, the serial warp kernel and the banded crack pass;
+per-view calls from Python retook the GIL and cost the main thread half the gain). Jobs have int32 states shared
+by both threads (queued, running, done, claimed); :meth:`WarpAhead.take` uses a done job, waits for a running
+one, or claims a queued one and lets the loop warp it; ``done`` is stored with release order after the images.
+The layers equal the loop's own warp (same kernels and inputs), so images are identical with and without the
+thread (tested).
 """
 
 from __future__ import annotations
@@ -60,14 +33,11 @@ from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, LayeredImage, chunk
 __all__ = ["WarpAhead", "AheadImage", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
 
 MAX_JOBS = 8
-"""At most this many views are handed to the thread per frame (the kernel takes fixed-size tuples:
-one compilation)."""
+"""At most this many views per frame (the kernel takes fixed-size tuples: one compilation)."""
 
 WARP_AHEAD_MIN_POINTS = 10_000
-"""Views of fewer points are not handed to the thread: the handover costs the main thread about
-what warping such a view does (``start`` took 34 µs alone and 86-107 µs per frame inside
-frames, with the two threads' contention; a warp takes ~5-9 ns per point). Not tuned further: the
-captures here give 19 200-point views at 128x128 (level 2 of 640x480 frames)."""
+"""Views of fewer points are warped by the loop: the handover (~34-107 us per frame) costs about as much as
+warping them (~5-9 ns per point)."""
 
 QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3
 """Job states (int32)."""
@@ -80,8 +50,7 @@ _FIELDS_KEPT = 2 * MAX_JOBS  # views whose kernel arguments are kept (the view o
 
 @intrinsic
 def _store_release(typingctx, arr, idx, val):  # pragma: no cover - compiled into the kernel
-    """``arr[idx] = val`` (int32 array) as an atomic store with release order: the writes before it
-    are visible to a thread that sees the value."""
+    """``arr[idx] = val`` (int32 array) as an atomic store with release order."""
     if not isinstance(arr, types.Array) or arr.dtype != types.int32:
         return None
 
@@ -97,8 +66,7 @@ def _store_release(typingctx, arr, idx, val):  # pragma: no cover - compiled int
 
 @intrinsic
 def _load_acquire(typingctx, arr, idx):  # pragma: no cover - compiled into the kernel
-    """``arr[idx]`` (int32 array) as an atomic load with acquire order (read anew each time: the
-    other thread may have changed it)."""
+    """``arr[idx]`` (int32 array) as an atomic load with acquire order (read anew each time)."""
     if not isinstance(arr, types.Array) or arr.dtype != types.int32:
         return None
 
@@ -112,8 +80,7 @@ def _load_acquire(typingctx, arr, idx):  # pragma: no cover - compiled into the 
 
 
 class Jobs(NamedTuple):
-    """One frame's jobs: per view (tuples of :data:`MAX_JOBS` entries) its points and chunk bounds,
-    and the output buffers."""
+    """One frame's jobs: per view (tuples of :data:`MAX_JOBS`) points, chunk bounds and output buffers."""
 
     xyz: tuple
     rgb: tuple
@@ -128,10 +95,9 @@ class Jobs(NamedTuple):
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # pragma: no cover
-    # Jobs k < n in order: what warp_layers(view k, ...) computes without tiles, on one thread, into
-    # zb[k] / cb[k], and with ``crack`` then the crack pass of filtered_composite_banded over the
-    # whole image (no replace mask) into d[k] / c[k]. A job not queued any more (claimed by the
-    # loop) is skipped; once cancel[0] is set (the frame's loop has ended) nothing more is done.
+    # Jobs k < n in order: warp_layers(view k) without tiles into zb[k] / cb[k], with ``crack`` then
+    # filtered_composite_banded's crack pass (no replace mask) into d[k] / c[k]. Claimed jobs are skipped;
+    # cancel[0] set (the loop has ended) stops the kernel.
     for k in range(n):
         if _load_acquire(cancel, 0) != 0:
             return
@@ -142,8 +108,7 @@ def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # p
         vis = np.ones(b.lo.shape[1], np.uint8)
         if cam.near > 0 and b.abs_max < np.inf:
             chunk_keep_kernel(b, cam64, CULL_MARGIN, tm, vis)
-        # with the crack pass, which reads colour only where the depth is > 0, the colour planes
-        # are not cleared
+        # the crack pass reads colour only where depth > 0: no clearing needed with it
         _warp_serial(jobs.xyz[k], jobs.rgb[k], jobs.layer_start[k], 1, cam, tm, vis, not crack, jobs.zb[k], jobs.cb[k])
         if crack:
             if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
@@ -155,10 +120,8 @@ def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # p
 
 @dataclass(frozen=True)
 class AheadImage:
-    """A view warped by the thread: its layers, and with ``crack`` its crack-filtered composite
-    over the whole image (what :func:`presim.synthesis.composite.filtered_composite_banded` gives
-    without a replace mask; None otherwise). The arrays are the thread's buffers: valid until the
-    next frame starts."""
+    """A view warped by the thread: its layers and, with ``crack``, its crack-filtered composite
+    (:func:`presim.synthesis.cracks.filtered_composite_banded` without replace mask). Valid until the next frame."""
 
     layers: LayeredImage
     depth_m: np.ndarray | None
@@ -200,8 +163,7 @@ class _Buffers:
 
 @dataclass(eq=False)
 class _Frame:
-    """One frame's jobs: the views, their states, the stop flag, the buffer set and the kernel's
-    arguments."""
+    """One frame's views, job states, stop flag, buffer set and kernel arguments."""
 
     views: list[Any]
     state: np.ndarray
@@ -216,8 +178,7 @@ class _Frame:
 
 
 class _Shared:
-    """What the thread shares with its :class:`WarpAhead` (not the object itself: the thread must
-    not keep it alive; when it is collected, the thread is told to end)."""
+    """State shared with the thread (not the :class:`WarpAhead` itself, whose collection ends the thread)."""
 
     def __init__(self) -> None:
         self.cv = threading.Condition()
@@ -251,15 +212,13 @@ def _close(sh: _Shared) -> None:
 
 
 class WarpAhead:
-    """One helper thread that warps a frame's later candidate views ahead of the adaptive loop
-    (see the module doc). For one rendering thread (each Renderer scratch has its own); the thread
-    starts on the first :meth:`start` and ends when this object is collected or :meth:`close` d."""
+    """One helper thread that warps a frame's later candidate views ahead of the adaptive loop, for one rendering
+    thread; starts on the first :meth:`start`, ends on :meth:`close` or collection."""
 
     def __init__(self) -> None:
         self._sh = _Shared()
         self._thread: threading.Thread | None = None
-        # Two buffer sets, one per frame in turn: a new frame does not wait for the thread to end
-        # the previous one's last warp (cancelled, it still finishes it).
+        # Two buffer sets used in turn: a new frame does not wait for the previous one's last (cancelled) warp.
         self._sets = (_Buffers(), _Buffers())
         self._turn = 0
         self._views: OrderedDict[int, tuple[Any, tuple]] = OrderedDict()  # id -> (view, kernel fields)
@@ -273,11 +232,8 @@ class WarpAhead:
 
     def start(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
               crack: bool = False) -> None:
-        """Warp ``views`` (prepared :class:`~presim.synthesis.warp.ViewPoints`, in the order the loop
-        will likely want them; at most :data:`MAX_JOBS` are taken) for this target camera, and with
-        ``crack`` run the banded crack pass on each (:class:`AheadImage`). The thread begins once
-        it has finished the previous frame's running warp (the previous frame's jobs not begun are
-        dropped)."""
+        """Warp ``views`` (prepared :class:`~presim.synthesis.warp.ViewPoints`, likely loop order, at most
+        :data:`MAX_JOBS`) for this camera, with ``crack`` also the banded crack pass; unbegun older jobs are dropped."""
         views = list(views)[:MAX_JOBS]
         if not views:
             return
@@ -313,8 +269,7 @@ class WarpAhead:
             sh.cv.notify_all()
 
     def _fields(self, view: Any) -> tuple:
-        """The kernel's per-view arguments (xyz, rgb, layer_start, chunk bounds, projective, frame,
-        abs max), kept per view object (a view's arrays never change)."""
+        """The kernel's per-view arguments (points, layer starts, chunk bounds), kept per view object."""
         got = self._views.get(id(view))
         if got is not None and got[0] is view:
             self._views.move_to_end(id(view))
@@ -330,9 +285,8 @@ class WarpAhead:
         return f
 
     def take(self, view: Any) -> AheadImage | None:
-        """``view`` warped by the thread (waited for while it works on it), or None when the loop
-        must warp it itself (not handed over, not reached yet, or the kernel failed: the loop's own
-        warp then raises the error)."""
+        """``view`` warped by the thread (waited for while running), or None: the loop warps it itself (not
+        handed over, not reached, or the kernel failed; the loop's warp then raises)."""
         frame = self._sh.frame
         if frame is None:
             return None
@@ -361,8 +315,7 @@ class WarpAhead:
                 sh.cv.wait()
 
     def stop(self) -> None:
-        """The frame's loop has ended: claim the jobs not begun and tell the kernel to stop (a
-        running warp finishes; its crack pass is skipped)."""
+        """The loop has ended: claim unbegun jobs, stop the kernel (a running warp finishes, without crack pass)."""
         frame = self._sh.frame
         if frame is not None:
             frame.cancel[0] = 1
