@@ -1,16 +1,10 @@
-"""Torch path of the synthesis kernels: runs on CUDA when available, else on CPU.
+"""Torch path of the synthesis kernels (``PerfConfig(backend="torch")``): CUDA when available, else CPU.
 
-Same definitions as :mod:`presim.synthesis.kernels_reference` (tested against it on CPU):
-
-- z-buffer: one ``scatter_reduce(..., "amin")`` of the depths over the flat (layer, pixel) keys, then
-  a second ``amin`` scatter of point indices among the points whose depth equals the winner, which
-  reproduces the reference's "lowest index wins a tie" exactly;
-- switching median: only the empty pixels with a majority of non-empty neighbours are gathered
-  (flat indices into a zero-padded copy) and sorted, so memory stays proportional to the cracks;
-- composite: first non-empty layer via ``argmax`` of the occupancy (first maximum is returned).
-
-Per-view tensors are built once (:func:`to_device`) and cached by the Renderer.
-:func:`view_image_torch` is this backend's view image (:func:`presim.synthesis.pipeline.view_image`).
+Same definitions as :mod:`presim.synthesis.kernels_reference` (tested against it on CPU): the z-buffer is an
+``amin`` scatter of depths, then of point indices among the depth winners (lowest index wins a tie); the
+switching median gathers and sorts only the empty pixels with a non-empty majority; the composite takes the first
+non-empty layer by ``argmax``. :func:`view_image_torch` is this backend's
+:func:`presim.synthesis.pipeline.view_image`; per-view tensors (:func:`to_device`) are cached by the Renderer.
 """
 
 from __future__ import annotations
@@ -159,10 +153,7 @@ def composite_layers_torch(depth_m: torch.Tensor, color: torch.Tensor) -> tuple[
 def view_image_torch(view: TorchView, T_cam_world: np.ndarray, K: Intrinsics, near_m: float, crack_filter: str,
                      kernel_px: int) -> tuple[np.ndarray, np.ndarray, float, float, float]:
     """Warp + per-layer crack filter + composite + seam pass on every pixel.
-
-    Returns:
-        ``(depth_m (H, W), color (H, W, 3), warp_ms, crack_ms, composite_ms)`` as numpy.
-    """
+    Returns ``(depth_m (H, W), color (H, W, 3), warp_ms, crack_ms, composite_ms)`` as numpy."""
     t0 = time.perf_counter()
     d, c = warp_layers_torch(view, T_cam_world, K, near_m)
     if d.is_cuda:
