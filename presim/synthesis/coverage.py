@@ -1,9 +1,7 @@
 """Is a render pose covered by the capture? (``presim render`` warns when it is not.)
 
-A pose far from every captured view sees little or nothing the capture saw: the synthesized image
-is mostly filled (or black with ``--no-fill``). :func:`far_poses` reports, per frame, the distance
-from the render camera centre to the nearest captured camera centre and the hole fraction before
-filling, when the distance exceeds ``far_m`` or the hole fraction exceeds ``max_hole_frac``.
+:func:`far_poses` reports frames whose camera centre is more than ``far_m`` from every captured one or whose hole
+fraction before filling exceeds ``max_hole_frac`` (such images are mostly filled, or black with ``--no-fill``).
 """
 
 from __future__ import annotations
@@ -32,8 +30,7 @@ class FarPose:
 
 def far_poses(scene, T_world_cams: np.ndarray, hole_fracs, far_m: float = 1.0,
               max_hole_frac: float = 0.5) -> list[FarPose]:
-    """Frames whose pose is more than ``far_m`` from every captured view, or whose hole fraction
-    before fill is above ``max_hole_frac``."""
+    """Frames more than ``far_m`` from every captured view or with hole fraction above ``max_hole_frac``."""
     centres = np.asarray(scene.camera_centres, dtype=np.float64).reshape(-1, 3)
     T = np.asarray(T_world_cams, dtype=np.float64).reshape(-1, 4, 4)
     out = []

@@ -1,22 +1,11 @@
 """Final filling of pixels no input view covered (a robot camera must deliver a complete image).
 
-The filled pixels stay ``valid=False`` in the RGBD mask; the Renderer can skip this step
-(``RenderConfig(fill_holes=False)``).
-
-Methods:
-- ``"telea"``: fast-marching inpainting (Telea 2004) of the colour, radius 3 px
-  (:func:`presim.synthesis.telea.telea_inpaint`, equal to ``cv2.inpaint(..., INPAINT_TELEA)`` pixel
-  for pixel and 1.5-3.5x faster). Best on small and thin holes; its cost grows with the hole area.
-- ``"pushpull"``: pull-push pyramid interpolation (Gortler et al. 1996): average the known pixels
-  down a 2x pyramid, then blend coarse estimates back up into the unknown pixels. A fixed cost per
-  pixel whatever the hole size, smooth inside large holes. :func:`pushpull_rgbd` runs the two
-  full-size steps in numba; :func:`pushpull_fill` is its reference (OpenCV resizes throughout,
-  equal up to float rounding).
-- ``"auto"`` (default): telea while holes are below ``telea_max_hole_frac`` of the image, else
-  pushpull, so a pose far outside the capture never stalls the frame loop.
-
-Depth is always filled by pull-push; its filled values are a plausible surface for a simulated
-sensor, never ground truth, which is why those pixels stay invalid.
+Last stage of the frame (``RenderConfig(fill_holes=False)`` skips it); filled pixels stay ``valid=False``.
+Methods: ``"telea"`` inpaints the colour, radius 3 px (:func:`presim.synthesis.telea.telea_inpaint`, reference
+``cv2.inpaint``, 1.5-3.5x faster; best on small, thin holes); ``"pushpull"`` is pull-push pyramid interpolation
+(Gortler et al. 1996), a fixed cost per pixel (:func:`pushpull_rgbd`, reference :func:`pushpull_fill`);
+``"auto"`` (default) uses telea below ``telea_max_hole_frac`` of the image, else pushpull. Depth is always
+filled by pull-push: a plausible surface, never ground truth.
 """
 
 from __future__ import annotations
@@ -36,9 +25,7 @@ FILL_METHODS = ("auto", "telea", "pushpull")
 def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """Pull-push interpolation of ``values`` (H, W) or (H, W, C) where ``known`` (H, W bool) is False.
 
-    Known pixels are returned unchanged; returns float32 of the input shape. With no known pixel at
-    all the result is zeros. Only the coarser levels are computed densely; at full resolution just
-    the unknown pixels are written.
+    Returns float32 of the input shape, known pixels unchanged (zeros when nothing is known).
     """
     squeeze = values.ndim == 2
     v = values[..., None] if squeeze else values
@@ -69,10 +56,8 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 @parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], size_arg=1, error_model="numpy")  # size of depth
 def _pull0_kernel(color, depth, known, with_color, acc, w):  # pragma: no cover
-    # Level 0 -> 1 for even H and W: means over the 2x2 children (premultiplied values, 0/1
-    # weights). The known children are added in row order as selects (an unknown child adds +0.0,
-    # which leaves a sum of non-negative values bit for bit unchanged): no branch on the speckled
-    # mask.
+    # Level 0 -> 1 for even H and W: 2x2 means (premultiplied values, 0/1 weights), known children added in
+    # row order as selects (+0.0 for unknown leaves the sum bit for bit unchanged): no branch on the mask.
     h2, w2 = w.shape
     C = acc.shape[2]
     zero = np.float32(0.0)
@@ -114,8 +99,7 @@ def _taps(i, n_coarse):  # pragma: no cover
 
 @parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], error_model="numpy")
 def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no cover
-    # Level 0: only the unknown pixels are written (outputs arrive as copies of the inputs). The
-    # column taps are computed once per column (the same values _taps gives per pixel).
+    # Level 0: only unknown pixels are written (outputs are copies of the inputs); column taps computed once.
     H, W = known.shape
     hc, wc, C = est_c.shape
     tx0 = np.empty(W, np.int64)
@@ -143,8 +127,7 @@ def _push0_kernel(known, with_color, est_c, color_out, depth_out):  # pragma: no
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _blend_level_kernel(acc, w, up, out):  # pragma: no cover
-    # One push step of pushpull_fill: acc / max(w, 1e-12) * a + up * (1 - a), a = clip(w, 0, 1);
-    # float32 throughout, no fused multiply-add (same rounding as the numpy expression).
+    # One push step of pushpull_fill: acc / max(w, 1e-12) * a + up * (1 - a), a = clip(w, 0, 1); float32, no FMA.
     h, ww, C = acc.shape
     eps = np.float32(1e-12)
     one = np.float32(1.0)
@@ -163,16 +146,10 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
                   ) -> tuple[np.ndarray | None, np.ndarray]:
     """:func:`pushpull_fill` of colour (optional) and depth, with the full-size steps in numba.
 
-    The two steps that touch every pixel — pooling level 0 into level 1 and sampling level 1 back
-    into the unknown pixels — are numba kernels that read the uint8 colour and the depth directly
-    (no float copy of the image) and write only the unknown pixels; the coarser levels (a quarter
-    of the pixels and less) are :func:`pushpull_fill`'s OpenCV resizes. For even H and W this
-    equals :func:`pushpull_fill` up to float rounding (tested); odd sizes use :func:`pushpull_fill`.
-
-    Args:
-        color: uint8 (H, W, 3) or None (depth only); depth_m: float32 (H, W); valid: bool (H, W).
-    Returns:
-        New ``(color or None, depth_m)``; known pixels unchanged, colour rounded to nearest.
+    Level 0 -> 1 pooling and the final push read uint8 colour and depth directly and write only unknown
+    pixels; coarser levels use OpenCV resizes. Equals :func:`pushpull_fill` up to float rounding for even H, W
+    (tested); odd sizes use it. color: uint8 (H, W, 3) or None; depth_m: float32 (H, W); valid: bool (H, W).
+    Returns new ``(color or None, depth_m)``, known pixels unchanged, colour rounded to nearest.
     """
     H, W = valid.shape
     with_color = color is not None
@@ -200,8 +177,7 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     for acc_l, w_l in reversed(levels):
         h, ww = w_l.shape
         up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
-        # = acc_l / max(w_l, 1e-12) * clip(w_l, 0, 1) + up * (1 - clip(w_l, 0, 1)) in one pass
-        # (the same float32 operations in the same order as pushpull_fill's numpy expression).
+        # pushpull_fill's numpy blend in one pass (same float32 operations and order).
         est = np.empty_like(up)
         _blend_level_kernel(acc_l, w_l, up, est)
     out_c = col.copy() if with_color else None
@@ -214,12 +190,9 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
                telea_max_hole_frac: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """Fill color and depth where ``valid`` is False.
 
-    Args:
-        color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W).
-        method: one of :data:`FILL_METHODS`.
-        telea_max_hole_frac: hole fraction above which ``"auto"`` switches to pull-push.
-    Returns:
-        New ``(color, depth_m)``; unchanged copies when nothing is missing or nothing is known.
+    color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W); method: one of :data:`FILL_METHODS`;
+    telea_max_hole_frac: hole fraction above which ``"auto"`` uses pull-push. Returns new ``(color, depth_m)``
+    (unchanged copies when nothing is missing or nothing is known).
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")

@@ -15,10 +15,7 @@ __all__ = ["RGBD"]
 class RGBD:
     """A synthesized RGB-D image at one camera pose.
 
-    ``color`` and ``depth_m`` are complete images (pixels no input view covers are filled by the
-    final hole-filling step, unless the renderer was told to leave them empty); ``valid`` says which
-    pixels were synthesized from captured views. ``source_view`` is the scene frame index each pixel
-    came from (-1 = filled / none).
+    ``color`` and ``depth_m`` are complete unless hole filling is off; ``valid`` marks synthesized pixels.
     """
 
     color: np.ndarray

@@ -1,14 +1,9 @@
 """Sharpness-aware views at render time: prefer sharp capture frames (beyond the thesis).
 
-Every capture frame gets a blur score once, lazily, the first time it is a candidate
-(:func:`presim.capture.sharpness.sharpness_score`, ~2 ms per VGA frame, cached). Scores are compared
-only among the candidate views of one target (they look at similar content):
-
-- **selection order** (:meth:`ViewSharpness.order`): a candidate whose score is below
-  ``demote_frac`` x the best candidate's is moved behind the sharp ones (relative order kept).
-  The first warped view covers most of the image, so this is where a sharp view matters most;
-- **blending** (:meth:`ViewSharpness.quality`): a view's ULR weight is multiplied by
-  ``(score / best score) ** gamma`` (:mod:`presim.synthesis.blend`).
+Each candidate frame gets a cached blur score on first use (:func:`presim.capture.sharpness.sharpness_score`,
+~2 ms per VGA frame), compared among one target's candidates: :meth:`ViewSharpness.order` moves candidates below
+``demote_frac`` x the best behind the sharp ones (the first warped view matters most), and
+:meth:`ViewSharpness.quality` scales a view's blend weight by ``(score / best) ** gamma``.
 """
 
 from __future__ import annotations
@@ -40,9 +35,8 @@ class ViewSharpness:
         return s
 
     def order(self, candidates: Sequence[int]) -> np.ndarray:
-        """Permutation (int64 positions into ``candidates``) that moves the blurred candidates
-        (score < demote_frac x best) behind the sharp ones, each group in its given order; also sets
-        the reference (best score) :meth:`quality` uses for this target."""
+        """int64 permutation of ``candidates`` moving blurred ones (score < demote_frac x best) behind the sharp
+        ones, order kept within each group; sets the best score :meth:`quality` uses."""
         cand = [int(v) for v in candidates]
         if not cand:
             return np.zeros(0, np.int64)
