@@ -64,6 +64,8 @@ METHODS: dict[str, tuple[dict, str]] = {
     "full": (BEST, "refined"),
     "thesis": ({}, "refined"),
     "default": ({}, "refined"),
+    # the default without backward colour sampling (the forward warp's colours)
+    "default_forward": ({"backward_color": False}, "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),
     "DIBR_DR": ({"num_layers": 1}, "refined"),
     "LDIBR": ({}, "raw"),
@@ -349,7 +351,7 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
                     overrides = {**overrides, "exposure_frame": cap.frame_ids[k]}
                 photo_calib = photo_calibs.get(_photometric_key(overrides, config.photometric))
                 overrides = {o: x for o, x in overrides.items() if not o.startswith("photometric_")}
-                rc, why = _render_config(overrides, use_refined=variant != "raw", thesis_loop=name != "default")
+                rc, why = _render_config(overrides, use_refined=variant != "raw", thesis_loop=not name.startswith("default"))
                 if rc is None:
                     skipped[name] = why
                     warnings.warn(f"eval-views: method {name} skipped: {why}", stacklevel=2)

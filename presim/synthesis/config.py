@@ -61,6 +61,12 @@ class RenderConfig:
     hole holds ~2 grid points)."""
     near_m: float = 0.01
     """Points closer than this to the target camera are dropped."""
+    backward_color: bool = True
+    """Colour of each rendered pixel sampled bilinearly in its source view's image at the exact
+    position it back-projects to (depth-aware taps), instead of the nearest splatted point's colour
+    (:mod:`presim.synthesis.resample`). False = the thesis's forward colour."""
+    backward_depth_tol: float = 0.05
+    """A bilinear tap counts when its source depth is within this fraction of the projected depth."""
     crack_filter: str = "switching_median"
     """``"switching_median"`` (eq. 3.9), ``"median"`` (plain) or ``"none"``."""
     crack_kernel_px: int = 3
@@ -125,6 +131,7 @@ class RenderConfig:
             (0.0 <= self.min_view_gain < 1.0, "min_view_gain must be in [0, 1)"),
             (self.time_budget_ms >= 0, "time_budget_ms must be >= 0"),
             (self.overlap_stride_px >= 1, "overlap_stride_px must be >= 1"),
+            (0.0 < self.backward_depth_tol < 1.0, "backward_depth_tol must be in (0, 1)"),
             (self.crack_filter in CRACK_FILTERS, f"crack_filter must be one of {CRACK_FILTERS}"),
             (self.crack_kernel_px >= 1 and self.crack_kernel_px % 2 == 1, "crack_kernel_px must be odd"),
             (self.fill_method in FILL_METHODS, f"fill_method must be one of {FILL_METHODS}"),

@@ -14,8 +14,10 @@ Stages, in order:
 2. **merge + hole analysis** (:mod:`holes`): the view's image goes into the accumulated image on
    the pixels still missing (big holes dilated against ghost contours); the largest hole decides
    whether a further view is warped;
-3. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
-4. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``.
+3. **resample** (:mod:`resample`, ``backward_color``): each covered pixel's colour is sampled in its
+   source view's image at the exact position it back-projects to;
+4. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
+5. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from typing import Protocol
 
 import numpy as np
 
-from presim.geometry import Intrinsics
+from presim.geometry import Intrinsics, invert
 from presim.synthesis import kernels_reference as ref
 from presim.synthesis.blend import front_of_layers
 from presim.synthesis.config import RenderConfig
@@ -34,12 +36,13 @@ from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MI
                                      composite_layers, crack_filter, filtered_composite_banded, warp_tiles)
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.holes import analyse_hole_mask, merge_into_holes, merge_view_holes
+from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
            "synthesize_frame"]
 
-STAGES = ("select", "load", "warp", "crack", "composite", "holes", "fill", "blend")
+STAGES = ("select", "load", "warp", "crack", "composite", "holes", "resample", "fill", "blend")
 """Keys of the per-stage milliseconds (``FrameResult.ms``, ``RenderStats.ms``)."""
 
 
@@ -141,11 +144,25 @@ def view_image(backend: str, view, T_cam_world: np.ndarray, K: Intrinsics, confi
                                                      config.crack_kernel_px))
 
 
+def resample(backend: str, color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
+             T_world_cam: np.ndarray, sources: SourceStack, depth_tol: float) -> np.ndarray:
+    """Backward colour sampling (:mod:`presim.synthesis.resample`) on ``backend``."""
+    if backend == "numba":
+        return resample_colors(color, depth_m, source, K, T_world_cam, sources, depth_tol)
+    if backend == "reference":
+        return resample_colors_ref(color, depth_m, source, K, T_world_cam, sources, depth_tol)
+    from presim.synthesis import torch_kernels  # torch is imported only when asked for
+
+    return torch_kernels.resample_colors_torch(color, depth_m, source, K, T_world_cam, sources, depth_tol)
+
+
 class FrameViews(Protocol):
     """The views of one target camera, as the adaptive loop sees them."""
 
     candidates: list[int]
     """Ordered candidate view ids (scene frame indices), best first."""
+    backend: str
+    """The backend of the view images (and of the stages after the loop that have several)."""
 
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
         """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
@@ -157,6 +174,9 @@ class FrameViews(Protocol):
 
     def blend(self, warped: list[int], color: np.ndarray, depth_m: np.ndarray, source: np.ndarray) -> np.ndarray:
         """The merged colour blended over the views that agree with its front surface."""
+
+    def sources(self, warped: list[int]) -> SourceStack:
+        """The source images of the views ``warped`` (backward colour sampling)."""
 
 
 @dataclass(frozen=True)
@@ -249,6 +269,11 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
     else:  # the same float operations as 1 - valid.mean()
         valid = holes == 0
         hole_frac = float(1.0 - (H * W - n_hole) / float(H * W))
+    if cfg.backward_color and warped:
+        t = time.perf_counter()
+        acc_c = resample(views.backend, acc_c, acc_d, acc_src, K, invert(T_cam_world), views.sources(warped),
+                         cfg.backward_depth_tol)
+        ms["resample"] = (time.perf_counter() - t) * 1e3
     if cfg.blend and len(warped) > 1:
         t = time.perf_counter()
         acc_c = views.blend(warped, acc_c, acc_d, acc_src)

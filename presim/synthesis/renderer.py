@@ -31,6 +31,7 @@ from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.pipeline import STAGES, ViewImage, synthesize_frame, view_image
+from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import Selection, select_views
 from presim.synthesis.sharpness import ViewSharpness
@@ -97,6 +98,7 @@ class _FrameViews:
                  grids: FrameGrids, sel: Selection):
         self.r, self.T_world_cam, self.T_cam_world, self.K, self.grids = r, T_world_cam, T_cam_world, K, grids
         self.candidates = [int(v) for v in sel.view_idx]
+        self.backend = r.perf.backend
         self.levels: dict[int, int] = {}
         self.fronts: list[int] = []  # views whose front surface the loop wrote into the blend stacks
 
@@ -126,6 +128,10 @@ class _FrameViews:
         r = self.r
         return self.grids.next_view(pending, big_flat, r.grid_zsrc, lambda v: float(r.src_focal[v]), r.config.near_m,
                                     float(r.config.overlap_stride_px), need_px, frac)
+
+    def sources(self, warped: list[int]) -> SourceStack:
+        r = self.r
+        return stack_sources(warped, [r.view(v, self.level(v)).image for v in warped])
 
     def blend(self, warped: list[int], color: np.ndarray, depth_m: np.ndarray, source: np.ndarray) -> np.ndarray:
         r = self.r
@@ -246,7 +252,10 @@ class Renderer:
         c, d = color, depth
         if level > 0:
             c, d, K = build_level(color, depth, K, level, self.config.lod_depth_tol)
-        view = prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers)
+        image = None
+        if self.config.backward_color:  # kept with the points (the map's pages are dropped below)
+            image = SourceImage(np.array(c, np.uint8), np.array(d, np.float32), K, self._T_cam_world_src[idx])
+        view = prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers, image)
         unmap_pages(color)
         unmap_pages(depth)
         return view

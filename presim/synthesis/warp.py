@@ -17,7 +17,7 @@ geometry.py. Layers are independent, so the kernel runs them in parallel (``pran
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numba as nb
 import numpy as np
@@ -224,6 +224,9 @@ class ViewPoints:
     T_world_src: np.ndarray | None = field(default=None, repr=False, compare=False)
     """4x4 pose of the camera the points were seen from (:func:`prepare_view` sets it), or None.
     Only the chunk bounds use it: with a pose they are taken in that camera's frame (tighter)."""
+    image: Any = field(default=None, repr=False, compare=False)
+    """The image the points were prepared from (:class:`presim.synthesis.resample.SourceImage`), kept
+    for backward colour sampling; None when not asked for."""
     chunk_lo: np.ndarray = field(init=False, repr=False, compare=False)
     """float32 (3, ceil(n / CHUNK_PTS)): lower bounds of each run of :data:`CHUNK_PTS` points
     (:func:`chunk_bounds`): of ``(x / z, y / z, z)`` in the source camera when
@@ -264,7 +267,7 @@ class ViewPoints:
     @property
     def nbytes(self) -> int:
         return int(self.xyz_world.nbytes + self.rgb.nbytes + self.layer_start.nbytes + self.chunk_lo.nbytes
-                   + self.chunk_hi.nbytes + self.chunk_to_world.nbytes)
+                   + self.chunk_hi.nbytes + self.chunk_to_world.nbytes + (self.image.nbytes if self.image is not None else 0))
 
 
 @dataclass(frozen=True)
@@ -304,6 +307,7 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
     Args:
         color: uint8 (h, w, 3); depth_m: float32 (h, w), 0 = invalid; K: the view's intrinsics.
         T_world_cam: 4x4 pose of the view.
+        image: kept as ``ViewPoints.image`` (backward colour sampling).
     """
     if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
         raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
@@ -383,13 +387,14 @@ def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no 
 
 
 def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
-                 num_layers: int) -> ViewPoints:
+                 num_layers: int, image: Any = None) -> ViewPoints:
     """Back-project the valid pixels of one RGB-D view, assign layers and sort by layer (numba, one
     pass per step; :func:`prepare_view_ref` is the numpy reference, tested equal).
 
     Args:
         color: uint8 (h, w, 3); depth_m: float32 (h, w), 0 = invalid; K: the view's intrinsics.
         T_world_cam: 4x4 pose of the view.
+        image: kept as ``ViewPoints.image`` (backward colour sampling).
     """
     if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
         raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
@@ -402,7 +407,7 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
         np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(color), float(K.fx), float(K.fy),
         float(K.cx), float(K.cy), np.ascontiguousarray(np.asarray(T_world_cam, np.float64)), int(num_layers))
     rng = (float(lo), float(hi)) if len(xyz) else (0.0, 0.0)
-    return ViewPoints(xyz, rgb, start, rng, T_world_cam)
+    return ViewPoints(xyz, rgb, start, rng, T_world_cam, image)
 
 
 # fastmath without "nnan"/"ninf": the kernel relies on comparisons that must stay IEEE-exact.
