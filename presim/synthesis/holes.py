@@ -1,15 +1,11 @@
 """Merging a view into the target image, and the hole analysis that drives the adaptive loop (§3.4.4).
 
-- :func:`merge_view_holes` / :func:`merge_into_holes`: write a view's image into the accumulated
-  target image only on the pixels the accumulator marks as replaceable (its holes, big ones grown by
-  the hole dilation); earlier (better ranked) views are never overwritten elsewhere. The hole mask
-  of the result comes out of the same pass.
-- :func:`analyse_hole_mask`: 8-connected components of the empty pixels (runs + union-find). The
-  largest component decides whether another view is warped; components of at least
-  ``big_hole_px`` pixels are dilated by ``hole_dilation_px`` so that the next view also replaces the
-  rim of a big hole, where ghost contours (misaligned colour/depth edges) live.
-
-Reference: :func:`presim.synthesis.kernels_reference.analyse_holes_ref` (scipy labelling).
+:func:`merge_view_holes` / :func:`merge_into_holes` write a view's image into the accumulated target image only
+on replaceable pixels (holes, big ones dilated), never over earlier views elsewhere, and update the hole mask in
+the same pass. :func:`analyse_hole_mask` finds 8-connected hole components (row runs + union-find): the largest
+decides whether another view is warped, and components of >= ``big_hole_px`` are dilated by ``hole_dilation_px``
+so the next view also replaces their rim, where ghost contours live. Reference: scipy's 8-connected labelling
+plus ``cv2.dilate`` (tests/test_synthesis_core.py).
 """
 
 from __future__ import annotations
@@ -38,9 +34,8 @@ def _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id):  # pragma: no cover
 
 @parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], error_model="numpy")
 def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
-    # The merge (where replace and the view has a value, take the view's pixel; for the first view
-    # only its source ids) + the hole mask of the result (1 where the accumulated depth is not > 0)
-    # and its count, in one pass.
+    # Merge (take the view's pixel where replace and it has a value; first view: source ids only) + the
+    # result's hole mask (1 where the accumulated depth is not > 0) and its count, in one pass.
     H, W = acc_d.shape
     n = 0
     for v in nb.prange(H):
@@ -58,15 +53,9 @@ def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, ho
 def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
                      replace: np.ndarray | None, depth_m: np.ndarray, color: np.ndarray, view_id: int,
                      holes: np.ndarray) -> int:
-    """:func:`merge_view` and the hole mask of the merged image in one pass (numba).
-
-    With ``replace`` None (the first view, whose image IS the accumulator: ``acc_depth_m`` is
-    ``depth_m``), only ``acc_source`` is written: ``view_id`` where the view has a value, else -1.
-    Then ``holes`` (uint8 (H, W)) = 1 where ``acc_depth_m`` is not > 0, else 0 (what
-    :func:`analyse_holes` derives from the coverage mask ``acc_depth_m > 0``).
-
-    Returns:
-        The number of hole pixels.
+    """Merge a view into the accumulator where ``replace`` (bool (H, W)) and write ``holes`` (uint8 (H, W), 1 where
+    ``acc_depth_m`` is not > 0) in one numba pass; returns the number of hole pixels. ``replace`` None: the first
+    view, whose image is the accumulator; only ``acc_source`` is written (``view_id`` where it has a value, else -1).
     """
     first = replace is None
     return int(_merge_holes_kernel(acc_depth_m, acc_color, acc_source, _NO_MASK if first else replace, depth_m,
@@ -75,11 +64,8 @@ def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source:
 
 @parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["map"], error_model="numpy")
 def _merge_into_holes_kernel(acc_d, acc_c, acc_src, replace, words, d, c, view_id, holes):  # pragma: no cover
-    # The merge of a later view, updating the previous hole mask in place: a pixel stops being a
-    # hole exactly where the merge writes a depth > 0 (elsewhere the accumulator is unchanged).
-    # Returns the number of hole pixels filled. Reads the replace mask 8 pixels at a time as
-    # ``words`` (its rows as uint64, :func:`row_words`; (H, 0): every pixel), the rest only where
-    # it is set.
+    # Merge of a later view, clearing holes where it writes a depth > 0; returns the holes filled. Skips zero
+    # 8-pixel groups of the replace mask via ``words`` (:func:`row_words`; (H, 0): read every pixel).
     H, W = acc_d.shape
     nw = words.shape[1]
     filled = 0
@@ -105,14 +91,8 @@ def _merge_into_holes_kernel(acc_d, acc_c, acc_src, replace, words, d, c, view_i
 def merge_into_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
                      replace: np.ndarray, depth_m: np.ndarray, color: np.ndarray, view_id: int,
                      holes: np.ndarray) -> int:
-    """:func:`merge_view`, and ``holes`` (uint8 (H, W), the accumulator's hole mask before the merge,
-    as :func:`merge_view_holes` or this function left it) updated in place to the merged image's
-    (1 where ``acc_depth_m`` is not > 0). Only the replaceable pixels are visited besides the
-    mask itself: what a later view of the adaptive loop needs (same result as
-    :func:`merge_view_holes`, tested).
-
-    Returns:
-        The number of hole pixels the view filled (the new hole count is the old one minus this).
+    """The merge of :func:`merge_view_holes` for a later view, updating ``holes`` (uint8 (H, W), the mask before
+    the merge) in place and visiting only replaceable pixels (same result, tested). Returns the holes filled.
     """
     r8 = replace.view(np.uint8)
     return int(_merge_into_holes_kernel(acc_depth_m, acc_color, acc_source, r8, row_words(r8), depth_m, color,
@@ -144,16 +124,11 @@ def _root(parent, i):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _hole_runs_kernel(holes, words, n_hole, big_hole_px, big, half, replace):  # pragma: no cover
-    # 8-connected components of the nonzero pixels of holes (uint8 (H, W)): the runs of each row,
-    # each joined (union-find) with the runs of the row above that overlap it or touch it
-    # diagonally ([x0, x1) and [y0, y1) touch when x0 <= y1 and y0 <= x1). Zero 8-pixel groups are
-    # skipped with ``words`` (the rows as uint64; (H, 0) to read every pixel). Returns (area of
-    # the largest component, whether one has >= big_hole_px pixels); when ``big`` has the shape of
-    # holes, writes it: 1 on the components of >= big_hole_px pixels, else 0. When ``replace`` has
-    # the shape of holes, writes it too: holes OR big dilated by a structuring element whose row i
-    # (of len(half), centred) is the column range [-half[i], half[i]] (empty when half[i] < 0;
-    # cv2.dilate of such an element, pixels outside the image contributing nothing). n_hole (the
-    # nonzero pixels) bounds the number of runs.
+    # 8-connected components of holes (uint8 (H, W)): row runs joined (union-find) with the runs above that
+    # overlap or touch diagonally ([x0, x1), [y0, y1) touch when x0 <= y1 and y0 <= x1); zero 8-pixel groups
+    # skipped via ``words``. Returns (largest area, any component >= big_hole_px). If shaped like holes, writes
+    # ``big`` (1 on big components) and ``replace`` = holes OR big dilated by the element whose centred row i
+    # spans [-half[i], half[i]] (empty if < 0), as cv2.dilate. n_hole bounds the number of runs.
     H, W = holes.shape
     nw = words.shape[1]
     cap = max(n_hole, 1)
@@ -241,12 +216,8 @@ def _hole_runs_kernel(holes, words, n_hole, big_hole_px, big, half, replace):  #
 
 
 def row_words(mask: np.ndarray) -> np.ndarray:
-    """The rows of a uint8 (H, W) mask as uint64 words, 8 pixels each (pixel 8k + j is byte j of
-    word k on a little-endian machine): ``ceil(W / 8)`` words per row. A C-contiguous mask whose W
-    is a multiple of 8 is viewed as is; any other is copied into rows padded with zeros to a
-    multiple of 8 (a copy of the mask, ~20 us at 638x478, against the pixel-by-pixel scans it
-    replaces: ~0.5 ms per hole analysis and per tile marking there). The kernels that read the
-    words bound every pixel index by W. (H, 0) when W is 0."""
+    """The rows of a uint8 (H, W) mask as ``ceil(W / 8)`` uint64 words (pixel 8k + j = byte j of word k,
+    little-endian); a view when C-contiguous with W % 8 == 0, else a zero-padded copy; (H, 0) when W is 0."""
     H, W = mask.shape
     if W % 8 == 0 and mask.flags.c_contiguous:
         return mask.view(np.uint64) if W else np.zeros((H, 0), np.uint64)
@@ -272,8 +243,7 @@ _NO_U8 = np.zeros((0, 0), np.uint8)
 
 
 def _ellipse_rows(k: int) -> np.ndarray:
-    """int64 (k,): the half width of each row of :func:`_ellipse` (k) about the centre column (-1
-    for an empty row): each row of OpenCV's ellipse is one run centred on the centre column."""
+    """int64 (k,): half width of each row of :func:`_ellipse` (k) about the centre column (-1: empty row)."""
     half = _ELLIPSE_ROWS.get(k)
     if half is None:
         r = k // 2
@@ -293,22 +263,11 @@ def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: in
                   want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
     """Hole statistics of a coverage mask, and the mask of pixels the next view may replace.
 
-    Args:
-        valid: bool (H, W), True where the accumulated image has a value.
-        big_hole_px: holes of at least this many pixels are "big" and get dilated.
-        hole_dilation_px: dilation radius of big holes (0 = no dilation).
-        want_replace: also build the replace mask (skipped when no further view will be warped).
-        stop_px: when all holes together have at most this many pixels the largest one does too:
-            the components are not computed (``largest_hole_px`` is then that upper bound and
-            ``replace`` / ``big`` are None) — the adaptive loop stops there anyway.
-        want_largest: False (with ``want_replace`` False): only the hole fraction is wanted (the
-            last view of a frame); ``largest_hole_px`` is then the total hole area, an upper bound.
-
-    Components are found as runs of hole pixels along the rows joined by union-find with the runs
-    of the row above (numba, :func:`_hole_runs_kernel`; empty groups of 8 pixels skipped when the
-    width is a multiple of 8): one pass for the components, their areas and the big-hole mask
-    (apc capture, 640x480: 93 against 499 us per mask for OpenCV's labelling + an areas pass + a
-    lookup pass; tested against scipy's labelling).
+    valid: bool (H, W), True where the accumulated image has a value; big_hole_px: holes this large are dilated
+    by ``hole_dilation_px`` (0 = none); want_replace: build the replace mask; stop_px: if all holes total at most
+    this, components are skipped (``largest_hole_px`` = total, ``replace`` / ``big`` None); want_largest False
+    (with want_replace False): only the hole fraction, ``largest_hole_px`` = total. One numba pass
+    (:func:`_hole_runs_kernel`; 93 vs 499 us for OpenCV labelling + area passes at 640x480).
     """
     holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
     return analyse_hole_mask(holes, cv2.countNonZero(holes), big_hole_px, hole_dilation_px, want_replace,
@@ -317,8 +276,7 @@ def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: in
 
 def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hole_dilation_px: int = 2,
                       want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
-    """:func:`analyse_holes` from the hole mask itself: ``holes`` uint8 (H, W), 1 = empty pixel,
-    and its count ``n_hole`` (what :func:`merge_view_holes` returns)."""
+    """:func:`analyse_holes` from ``holes`` uint8 (H, W) (1 = empty) and its count ``n_hole``."""
     H, W = holes.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
@@ -326,9 +284,7 @@ def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hol
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
     holes = np.ascontiguousarray(holes)
     big = np.empty((H, W) if want_replace else (0, 0), np.uint8)
-    # The replace mask (holes, big ones dilated by OpenCV's ellipse) is written by the same kernel
-    # call: a cv2.dilate and a cv2.bitwise_or less per view (their cold calls cost ~15-25 µs at
-    # 128x128 inside frames).
+    # The same kernel call writes the replace mask (saves a cv2.dilate + bitwise_or, ~15-25 us at 128x128).
     half = _ellipse_rows(2 * hole_dilation_px + 1) if hole_dilation_px > 0 else _NO_HALF
     replace = np.empty((H, W), np.uint8) if want_replace else _NO_U8
     largest, _ = _hole_runs_kernel(holes, row_words(holes), int(n_hole), int(big_hole_px), big, half, replace)

@@ -1,9 +1,7 @@
 """Render a saved scene at a list of camera poses into a capture folder (what ``presim render`` runs).
 
-The folder is the KinectFusion / 7-Scenes layout of :mod:`presim.formats.kinfu_folder` (so
-``presim import`` reads a render back as a capture) plus, per frame, ``frame-XXXXXX.valid.png``
-(255 = synthesized, 0 = filled) and ``render.json`` (written last: a folder without it is not a
-finished render).
+Layout of :mod:`presim.formats.kinfu_folder` (``presim import`` reads it back) plus ``frame-XXXXXX.valid.png``
+(255 = synthesized, 0 = filled) and ``render.json``, written last (without it the render is unfinished).
 """
 
 from __future__ import annotations
@@ -25,8 +23,8 @@ __all__ = ["output_intrinsics", "render_to_folder"]
 
 def output_intrinsics(K: Intrinsics, width: int | None = None, height: int | None = None, fx: float | None = None,
                       fy: float | None = None, cx: float | None = None, cy: float | None = None) -> Intrinsics:
-    """The render camera from the scene's ``K``: resampled to ``width`` x ``height`` (one of them
-    given keeps the aspect ratio), then ``fx``/``fy``/``cx``/``cy`` replaced where given (pixels).
+    """The scene's ``K`` resampled to ``width`` x ``height`` (one given keeps the aspect ratio), then
+    ``fx``/``fy``/``cx``/``cy`` replaced where given (pixels).
 
     Example:
         >>> output_intrinsics(Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480), width=320).size_wh
@@ -42,16 +40,11 @@ def output_intrinsics(K: Intrinsics, width: int | None = None, height: int | Non
 
 def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarray, K: Intrinsics, out: Path,
                      config: RenderConfig, batch_size: int = 16, perf: PerfConfig = PerfConfig()) -> dict:
-    """Render every pose ``T_world_cams`` (B, 4, 4) with intrinsics ``K`` into the folder ``out``
-    (created), each file atomically; ``stamps_s`` (B,) go to the timestamps and TUM files.
-
-    The poses are rendered ``batch_size`` at a time through :meth:`Renderer.render_batch` (pose ``i``
-    continues the camera stream of pose ``i - batch_size``); ``ms_per_frame_median`` is the median
-    of batch time / frames.
-
-    Depth PNGs are uint16 millimetres (0 = unknown; filled pixels keep their filled depth, the valid
-    mask tells them apart; depths that do not fit are written 0 and counted in ``depth_clipped_px``).
-    Returns the summary written to ``render.json``.
+    """Render poses ``T_world_cams`` (B, 4, 4) with ``K`` into folder ``out`` (created), each file atomically;
+    ``stamps_s`` (B,) go to the timestamps and TUM files. ``batch_size`` poses per :meth:`Renderer.render_batch`
+    (pose ``i`` continues the camera stream of pose ``i - batch_size``). Depth PNGs are uint16 mm (filled pixels
+    keep their depth; values that do not fit are 0, counted in ``depth_clipped_px``). Returns the
+    ``render.json`` summary (``ms_per_frame_median``: median of batch time / frames).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
