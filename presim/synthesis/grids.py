@@ -1,23 +1,13 @@
 """Per-frame projection of the views' sub-sampled grids into the target camera, done once per frame.
 
-Three per-frame questions are answered from each candidate view's sub-sampled grid of valid depth
-points (``RenderConfig.overlap_stride_px``, prepared once per view by the Renderer):
-
-- the **overlap** of the view with the target (selection, :func:`presim.synthesis.select.view_overlap`);
-- the **target pixels** the grid lands on (the adaptive loop's "can this view fill a big hole" test,
-  :func:`presim.synthesis.core.grid_pixels`);
-- the **footprint ratio** that picks the level of detail (:func:`presim.synthesis.lod.footprint_ratio`).
-
-The reference functions each transform and project the grid again (numpy, float64 temporaries).
-:class:`FrameGrids` projects every asked view's grid once per target camera, all views in one call
-of a small single-threaded numba kernel (:func:`project_grid`; a parallel region's start costs more
-than the ~50 k points of ten grids), and answers the three questions from that one projection. The
-kernel reads the points per coordinate (the Renderer stores its grids that way, :func:`per_coordinate`)
-and computes every point's pixel without a branch, so its loop vectorizes: 3.6x faster than reading
-(n, 3) rows with an early exit behind the camera (the apc capture's six grids of a frame, ~26 k points:
-250 → 69 µs), with the same arithmetic and the same results.
-:func:`project_grid_ref` is the numpy reference (geometry.py's ``transform_points`` / ``project``
-and the pixel-centre rule of ``nearest_pixel``), tested equal.
+Each candidate view's grid of valid depth points (``RenderConfig.overlap_stride_px``) answers three per-frame
+questions: the **overlap** with the target (selection; reference :func:`presim.synthesis.select.view_overlap`),
+the **target pixels** it lands on and the fill area (the adaptive loop's next view; references
+:func:`grid_pixels`, :func:`fill_area_ref`, :func:`count_in_mask`), and the **footprint ratio** that picks the
+level of detail (reference :func:`presim.synthesis.lod.footprint_ratio`). :class:`FrameGrids` projects every
+asked grid once per target camera in one single-threaded numba call (:func:`project_grid`, reference
+:func:`project_grid_ref`); points are read per coordinate (:func:`per_coordinate`) and the loop is branch-free,
+so it vectorizes: 3.6x faster than reading (n, 3) rows with an early exit, same results.
 """
 
 from __future__ import annotations
@@ -45,8 +35,7 @@ def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
 
 
 def grid_pixels(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> np.ndarray:
-    """Flat pixel indices (v * W + u) where a view's grid (m, 3) lands in the target (reference of
-    :meth:`FrameGrids.pixels`)."""
+    """Flat pixels (v * W + u) where a view's grid (m, 3) lands in the target (reference: FrameGrids.pixels)."""
     if len(grid_xyz_world) == 0:
         return np.zeros(0, np.int64)
     uv, z = project(K, transform_points(T_cam_world, grid_xyz_world))
@@ -56,19 +45,15 @@ def grid_pixels(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
 
 
 def per_coordinate(xyz_world: np.ndarray) -> np.ndarray:
-    """World points (n, 3) as a C-contiguous float32 (3, n) array, one row per coordinate (what the
-    projection kernels read). No copy when ``xyz_world`` is already stored that way: a float32
-    F-ordered (n, 3) array, as the Renderer keeps its grids (``Renderer.grid_points``)."""
+    """World points (n, 3) as C-contiguous float32 (3, n), one row per coordinate; no copy for a float32
+    F-ordered (n, 3) array (how the Renderer keeps its grids)."""
     return np.ascontiguousarray(np.asarray(xyz_world, np.float32).T)
 
 
 @nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _grid_pixel(P, i, M, fx, fy, cx, cy, W, H):  # pragma: no cover
-    # Point i's (P: (3, n), a row per coordinate) float32 z in the target camera (as transform_points
-    # returns for float32 points) and its flat pixel by the pixel-centre rule, -1 behind the camera
-    # or outside the image. Branch-free (every point computes its pixel, invalid ones are then
-    # replaced by -1), so that the loop over points vectorizes; the arithmetic is that of the
-    # reference, operation by operation.
+    # Point i's (P: (3, n)) float32 target z and flat pixel (pixel-centre rule; -1 behind or outside).
+    # Branch-free so the loop vectorizes; the reference's arithmetic, operation by operation.
     x = np.float64(P[0, i])
     y = np.float64(P[1, i])
     z = np.float64(P[2, i])
@@ -101,13 +86,8 @@ def _any_front_kernel(P, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
 
 
 def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points (n, 3) into a target camera (numba, one thread; the points are read per
-    coordinate, :func:`per_coordinate`, which copies them unless they are stored that way).
-
-    Returns:
-        ``(pix, z)``: int64 (n,) flat target pixel ``v * W + u`` by the pixel-centre rule
-        (``floor(u + 0.5)``), -1 when the point is behind the camera or outside the image; float32
-        (n,) z-depth in the target camera (any sign).
+    """Project world points (n, 3) into a target camera (numba, one thread). Returns ``(pix, z)``: int64 (n,)
+    flat pixel ``v * W + u`` by ``floor(u + 0.5)``, -1 behind the camera or outside; float32 (n,) target z.
     """
     P = per_coordinate(np.asarray(xyz_world).reshape(-1, 3))
     n = P.shape[1]
@@ -122,11 +102,8 @@ def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: also run by the view cache's background thread
 def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
-    # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), z and near
-    # float32 (as numpy compares a float32 array with a Python float); pix: the target pixel of each
-    # point (-1 outside the image); nan when no point is ok. Exact order
-    # statistics (quickselect in place); an even count averages the two middle values as np.median
-    # does (their float32 sum, halved).
+    # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), float32; nan if none.
+    # Exact order statistics (in-place quickselect); an even count halves the float32 sum of the middle two.
     n = z_src.shape[0]
     r = np.empty(n, np.float32)
     m = 0
@@ -151,9 +128,7 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _select_kth(a, m, k):  # pragma: no cover
-    # Quickselect (Hoare partition, median-of-3 pivot) on a[:m] in place, for values without NaN:
-    # afterwards a[k] is the k-th smallest and a[:k] <= a[k] <= a[k + 1:m]. An order statistic is
-    # one value whatever the algorithm, so the median equals np.partition's (tested).
+    # In-place quickselect (Hoare, median-of-3) on NaN-free a[:m]: a[:k] <= a[k] <= a[k + 1:m] afterwards.
     lo = 0
     hi = m
     while hi - lo > 1:
@@ -230,8 +205,8 @@ def _fill_area_kernel(mask_flat, pix, z_src, z_t, near):  # pragma: no cover
 
 
 def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t: np.ndarray, near_m: float) -> float:
-    """Reference of the fill-area sum (numpy): ``sum((z_src / z_t)^2)`` over the grid points inside the
-    image, in front of both cameras, that land on ``mask_flat``."""
+    """Reference of the fill-area sum: ``sum((z_src / z_t)^2)`` over grid points inside the image, in front of
+    both cameras, landing on ``mask_flat``."""
     near = np.float32(near_m)
     ok = (pix >= 0) & (z_src > near) & (z_t > near)
     ok[ok] &= np.asarray(mask_flat).reshape(-1)[pix[ok]] != 0
@@ -240,10 +215,8 @@ def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums):  # pragma: no cover
-    # For each view k (its grid's points are [starts[k], ends[k]) of pix / z_t / z_src):
-    # counts[k] = count_in_mask(mask_flat, its front pixels (pix >= 0, z_t > near)) and sums[k] =
-    # _fill_area_kernel(mask_flat, ...): the same points in the same order, so the same integer and
-    # the same float64 sum.
+    # Per view k (points [starts[k], ends[k])): counts[k] = count_in_mask of its front pixels, sums[k] =
+    # _fill_area_kernel, same points in the same order (equal results).
     for k in range(starts.shape[0]):
         n = 0
         s = 0.0
@@ -260,9 +233,8 @@ def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, counts, sums):  # pragma: no cover
-    # _hole_scores_kernel, then the adaptive loop's choice from its scores (core.synthesize_frame's
-    # rules): a view counts only when its fill area sums[k] * scale[k] reaches ``need`` (with
-    # use_need); none counts -> -1; else the first view whose count reaches frac x the largest.
+    # _hole_scores_kernel, then the choice: a view counts when sums[k] * scale[k] >= need (with use_need);
+    # the first whose count reaches frac x the largest, -1 if none counts.
     pix, z_t, z_src, starts, ends = points
     _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums)
     cmax = 0
@@ -279,8 +251,7 @@ def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, coun
 
 
 def _flat_f32(parts: list[np.ndarray], n: int) -> np.ndarray:
-    """The arrays of ``parts`` (each cast to float32 as ``np.ascontiguousarray(a, np.float32)``),
-    end to end in one float32 (n,) array."""
+    """The arrays of ``parts`` end to end in one float32 (n,) array."""
     out = np.empty(n, np.float32)
     o = 0
     for a in parts:
@@ -297,19 +268,15 @@ def _mask_u8(mask_flat: np.ndarray) -> np.ndarray:
 
 
 class FrameGrids:
-    """The views' grids projected into one target camera, each view at most once (see module doc).
-
-    Args:
-        T_cam_world: 4x4 world -> target camera; K: target intrinsics.
-        grid_points: ``grid_points(id)`` -> (m, 3) float32 world grid of view ``id`` (cached by the caller).
+    """The views' grids projected into one target camera (``T_cam_world`` 4x4, ``K``), each view at most once;
+    ``grid_points(id)`` -> (m, 3) float32 world grid of view ``id`` (cached by the caller).
     """
 
     def __init__(self, T_cam_world: np.ndarray, K: Intrinsics, grid_points: Callable[[int], np.ndarray]):
         self.T_cam_world, self.K = T_cam_world, K
         self._grid_points = grid_points
         self._proj: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        # Each project() call writes its views' grids into one buffer: view -> (buffer, start, end),
-        # buffer -> its views in order and (for hole_scores) their source depths in the same layout.
+        # Each project() call fills one buffer: view -> (buffer, start, end); buffer -> views, source depths.
         self._where: dict[int, tuple[int, int, int]] = {}
         self._bufs: list[tuple[np.ndarray, np.ndarray, list[int]]] = []
         self._zsrc_of_buf: dict[int, np.ndarray] = {}
@@ -348,9 +315,7 @@ class FrameGrids:
         return self._args
 
     def overlapping(self, ids: Sequence[int], near_m: float = 1e-3) -> np.ndarray:
-        """bool (k,): whether each view's overlap (:meth:`overlaps`) is > 0, without projecting the
-        whole grid of a view not projected yet (the test stops at the first grid point inside the
-        target image in front of it; same arithmetic as :func:`project_grid`)."""
+        """bool (k,): :meth:`overlaps` > 0, stopping at the first grid point inside for unprojected views."""
         near = np.float32(near_m)
         out = np.zeros(len(ids), bool)
         for i, v in enumerate(ids):
@@ -381,7 +346,7 @@ class FrameGrids:
         return out
 
     def pixels(self, v: int, near_m: float) -> np.ndarray:
-        """Flat target pixels of view ``v``'s grid points = :func:`presim.synthesis.core.grid_pixels`."""
+        """Flat target pixels of view ``v``'s grid points = :func:`grid_pixels`."""
         key = (int(v), float(near_m))
         px = self._px.get(key)
         if px is None:
@@ -390,8 +355,7 @@ class FrameGrids:
         return px
 
     def footprint_ratio(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float) -> float:
-        """= :func:`presim.synthesis.lod.footprint_ratio` (with the target intrinsics: points inside the
-        target image) from the view's cached source depths ``z_src``."""
+        """= :func:`presim.synthesis.lod.footprint_ratio` (with ``K_tgt``) from the view's source depths ``z_src``."""
         pix, z_t = self.projection(v)
         if len(z_t) == 0:
             return float("nan")
@@ -409,12 +373,9 @@ class FrameGrids:
     def next_view(self, ids: Sequence[int], mask_flat: np.ndarray, z_src: Callable[[int], np.ndarray],
                   f_src_px: Callable[[int], float], near_m: float, stride_px: float, need: float | None,
                   frac: float) -> int:
-        """The adaptive loop's next view from :meth:`hole_scores`, decided in the same kernel call:
-        the index in ``ids`` of the first view whose count reaches ``frac`` x the largest count,
-        counting only views whose fill area reaches ``need`` (None: every view), or -1 when no view
-        counts (the rules of :func:`presim.synthesis.core.synthesize_frame`, tested equal). One
-        kernel call and no per-view Python lists: in the render loop, :meth:`hole_scores` and the
-        choice took ~75 µs per view at 128x128 (cold calls)."""
+        """The adaptive loop's next view in one kernel call: index in ``ids`` of the first view whose count of grid
+        pixels on ``mask_flat`` reaches ``frac`` x the largest, counting only views whose :meth:`fill_area` reaches
+        ``need`` (None: all); -1 if none. References: :func:`count_in_mask` / :meth:`pixels`, :meth:`fill_area`."""
         ids = [int(v) for v in ids]
         if not ids:
             return -1
@@ -427,8 +388,7 @@ class FrameGrids:
                                      counts, sums))
 
     def _score_points(self, ids: list[int], z_src: Callable[[int], np.ndarray]) -> tuple:
-        """``(pix, z_t, z_src, starts, ends)`` of the views ``ids`` (projected now if not yet): view k's
-        grid points are ``[starts[k], ends[k])`` of the three flat arrays."""
+        """``(pix, z_t, z_src, starts, ends)`` of views ``ids``; view k's points are ``[starts[k], ends[k])``."""
         self.project(ids)
         where = [self._where[v] for v in ids]
         b = where[0][0]
@@ -448,8 +408,7 @@ class FrameGrids:
         return pix, z_t, zs, starts, ends
 
     def _fill_scales(self, ids: list[int], f_src_px: Callable[[int], float], stride_px: float) -> list[float]:
-        """Per view: the target pixels one grid point stands for per unit of ``(z_src / z_t)^2``,
-        ``(stride_px x f_t / f_src)^2`` (0 for an empty grid), cached per view and stride."""
+        """Per view ``(stride_px x f_t / f_src)^2`` (0 for an empty grid), cached per view and stride."""
         out = []
         for v in ids:
             key = (v, stride_px)
@@ -462,11 +421,8 @@ class FrameGrids:
 
     def fill_area(self, v: int, mask_flat: np.ndarray, z_src: np.ndarray, f_src_px: float, near_m: float,
                   stride_px: float) -> float:
-        """Target pixels that view ``v``'s grid points landing on ``mask_flat`` (H * W, nonzero =
-        wanted) stand for: each point covers ``(stride_px x z_src / z_t x f_t / f_src)^2`` target pixels
-        (its grid cell of ``stride_px`` source pixels seen from the target). The adaptive loop's
-        diminishing-returns test (``RenderConfig.min_view_gain``); :func:`fill_area_ref` is the numpy
-        reference of the sum."""
+        """Target pixels view ``v``'s grid points on ``mask_flat`` (H * W, nonzero = wanted) stand for, each
+        ``(stride_px x z_src / z_t x f_t / f_src)^2``: the loop's ``min_view_gain`` test; ref. :func:`fill_area_ref`."""
         pix, z_t = self.projection(v)
         if len(z_t) == 0:
             return 0.0
