@@ -15,8 +15,7 @@ import pytest
 from presim.geometry import Intrinsics, invert, look_at, make_pose, transform_points
 from presim.synthesis import kernels_reference as ref
 from presim.testing import rect_scene as S
-from presim.synthesis.composite import composite_layers
-from presim.synthesis.crack_filter import crack_filter
+from presim.synthesis.cracks import composite_layers, crack_filter
 from presim.synthesis.warp import assign_layers, prepare_view, warp_layers
 
 K_SMALL = Intrinsics.from_fov(96, 72, 60.0)
@@ -85,7 +84,7 @@ def test_numba_composite_matches_reference_exactly():
 
 def test_torch_paths_match_reference_on_cpu():
     import torch
-    from presim.synthesis import torch_backend as tb
+    from presim.synthesis import torch_kernels as tb
 
     vp, T_cam_world = _room_view(L=4)
     tv = tb.to_device(vp, "cpu")
@@ -107,12 +106,12 @@ def test_torch_paths_match_reference_on_cpu():
 
 
 def test_renderer_backends_agree():
-    from presim.synthesis.renderer import RenderConfig, Renderer
+    from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
     K = Intrinsics.from_fov(64, 48, 60.0)
     scene = S.make_scene(S.room_rects(), S.orbit_poses(4), K)
     T = look_at((0.1, -1.0, 1.25), (0.0, 0.5, 0.4))
-    outs = {b: Renderer(scene, RenderConfig(backend=b, fill_holes=False)).render(T, K)
+    outs = {b: Renderer(scene, RenderConfig(fill_holes=False), PerfConfig(backend=b)).render(T, K)
             for b in ("reference", "numba", "torch")}
     for b in ("numba", "torch"):
         assert _frac_diff(outs[b].valid, outs["reference"].valid) < 0.01, b
@@ -131,71 +130,11 @@ def test_naive_baseline_matches_single_layer_warp():
     assert _frac_diff(cb, cr[0]) < 0.005
 
 
-def test_masked_composite_equals_dense_on_mask():
-    from presim.synthesis.composite import filtered_composite_masked
-
-    vp, T_cam_world = _room_view(L=4)
-    lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
-    d, c = crack_filter(lay.depth_m, lay.color, "switching_median", 3)
-    d, c = composite_layers(d, c)
-    d, c = crack_filter(d, c, "switching_median", 3)
-    rng = np.random.default_rng(3)
-    mask = rng.random(d.shape) < 0.2
-    md, mc = filtered_composite_masked(lay.depth_m, lay.color, mask, 3, seam_pass=True)
-    np.testing.assert_array_equal(md[mask], d[mask])
-    np.testing.assert_array_equal(mc[mask], c[mask])
-
-
-@pytest.mark.parametrize("L", [1, 4])
-def test_fused_filter_composite_equals_filter_then_composite(L):
-    from presim.synthesis.composite import filtered_composite
-
-    vp, T_cam_world = _room_view(L=L)
-    lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
-    d, c = crack_filter(lay.depth_m, lay.color, "switching_median", 3)
-    d, c = composite_layers(d, c)
-    fd, fc = filtered_composite(lay.depth_m, lay.color, 3)
-    np.testing.assert_array_equal(fd, d)
-    np.testing.assert_array_equal(fc, c)
-
-
 def _reference_view_chain(ld, lc):
     """Per-layer switching median -> front-to-back composite -> seam pass, all numpy reference."""
     pairs = [ref.switching_median_ref(ld[i], lc[i], 3) for i in range(ld.shape[0])]
     d, c = ref.composite_layers_ref(np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs]))
     return ref.switching_median_ref(d, c, 3)
-
-
-@pytest.mark.parametrize("L", [1, 4])
-def test_packed_composite_matches_reference_on_warp(L):
-    from presim.synthesis.composite import filtered_composite_packed
-
-    vp, T_cam_world = _room_view(L=L)
-    lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
-    d, c = _reference_view_chain(lay.depth_m, lay.color)
-    pd, pc = filtered_composite_packed(lay.depth_m, lay.color)
-    np.testing.assert_array_equal(pd, d)
-    np.testing.assert_array_equal(pc, c)
-
-
-@pytest.mark.parametrize("L,density", [(2, 0.55), (4, 0.35), (8, 0.6)])
-def test_packed_composite_matches_reference_on_random_cracks(L, density):
-    """Random sparse layers: many windows with exactly 4 / 5 neighbours (the switching threshold),
-    per-channel medians that differ from the depth median's pixel, ties in depth."""
-    from presim.synthesis.composite import filtered_composite_packed
-
-    rng = np.random.default_rng(L)
-    shape = (L, 23, 31)
-    d = np.where(rng.random(shape) < density, rng.choice([0.5, 0.7, 1.0, 1.3], shape), 0).astype(np.float32)
-    c = rng.integers(0, 256, shape + (3,), dtype=np.uint8) * (d > 0)[..., None].astype(np.uint8)
-    rd, rc = _reference_view_chain(d, c)
-    pd, pc = filtered_composite_packed(d, c)
-    np.testing.assert_array_equal(pd, rd)
-    np.testing.assert_array_equal(pc, rc)
-    mask = rng.random(shape[1:]) < 0.3  # only the masked pixels are defined
-    md, mc = filtered_composite_packed(d, c, mask)
-    np.testing.assert_array_equal(md[mask], rd[mask])
-    np.testing.assert_array_equal(mc[mask], rc[mask])
 
 
 @pytest.mark.parametrize("L", [1, 4])
@@ -250,21 +189,21 @@ def test_prepare_view_layers_at_the_layer_boundaries_match_the_reference():
 
 
 @pytest.mark.parametrize("L,density,band", [(1, 0.6, 16), (2, 0.55, 3), (4, 0.35, 32), (8, 0.6, 1), (4, 0.5, 7)])
-def test_banded_composite_matches_packed_and_reference(L, density, band):
-    """The row-band fusion of the crack pass = the three-kernel packed chain = the numpy reference
-    chain, bit for bit (all pixels; with a mask, the masked pixels), whatever the band height."""
-    from presim.synthesis.composite import filtered_composite_banded, filtered_composite_packed
+def test_banded_composite_matches_reference(L, density, band):
+    """The row-band fusion of the crack pass = the numpy reference chain, bit for bit (all pixels;
+    with a mask, the masked pixels), whatever the band height. Random sparse layers: many windows
+    with exactly 4 / 5 neighbours (the switching threshold), per-channel medians that differ from
+    the depth median's pixel, ties in depth."""
+    from presim.synthesis.cracks import filtered_composite_banded
 
     rng = np.random.default_rng(10 + L)
     shape = (L, 37, 29)
     d = np.where(rng.random(shape) < density, rng.choice([0.5, 0.7, 1.0, 1.3], shape), 0).astype(np.float32)
     c = rng.integers(0, 256, shape + (3,), dtype=np.uint8) * (d > 0)[..., None].astype(np.uint8)
     rd, rc = _reference_view_chain(d, c)
-    pd, pc = filtered_composite_packed(d, c)
     bd, bc = filtered_composite_banded(d, c, band_rows=band)
     np.testing.assert_array_equal(bd, rd)
     np.testing.assert_array_equal(bc, rc)
-    np.testing.assert_array_equal(bd, pd)
     mask = rng.random(shape[1:]) < 0.3
     md, mc = filtered_composite_banded(d, c, mask, band_rows=band)
     np.testing.assert_array_equal(md[mask], rd[mask])
@@ -274,7 +213,7 @@ def test_banded_composite_matches_packed_and_reference(L, density, band):
 def test_banded_composite_takes_non_contiguous_layers():
     """The crack pass indexes the layers flat: strided views (a crop of bigger buffers) give the
     same output as contiguous copies of them (and as the reference chain)."""
-    from presim.synthesis.composite import filtered_composite_banded
+    from presim.synthesis.cracks import filtered_composite_banded
 
     rng = np.random.default_rng(3)
     shape = (4, 41, 35)
@@ -293,7 +232,7 @@ def test_tiled_crack_pass_and_masked_warp_match_reference(band, tile_cols):
     """Later views (a replace mask): the crack pass on runs of tiles holding masked pixels, over
     layers warped only into the tiles within 2 px of them (stale garbage elsewhere), equals the
     numpy reference chain over a full warp on every masked pixel, whatever the tile sizes."""
-    from presim.synthesis.composite import filtered_composite_banded, tile_any, warp_tiles
+    from presim.synthesis.cracks import filtered_composite_banded, tile_any, warp_tiles
 
     vp, T_cam_world = _room_view(L=4)
     full = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
@@ -330,7 +269,7 @@ def test_large_frames_run_a_later_views_crack_pass_on_small_tiles(monkeypatch):
     """From TILED_MIN_PIXELS on, a replace mask of small scattered holes runs the crack pass on
     runs of TILE_ROWS x TILE_COLS tiles (work items no taller than TILE_ROWS, covering only a part
     of the image), with the same values on the replace pixels as the whole-band pass."""
-    from presim.synthesis import composite as CO
+    from presim.synthesis import cracks as CO
 
     rng = np.random.default_rng(11)
     L, H, W = 3, 400, 400
@@ -342,13 +281,13 @@ def test_large_frames_run_a_later_views_crack_pass_on_small_tiles(monkeypatch):
     mask[100:106, 200:260] = True
     bd, bc = CO.filtered_composite_banded(d, c)  # whole bands, every pixel
     items = []
-    tiled = CO._tiled_crack_kernel
+    tiled = CO.tiled_crack_kernel
 
     def record(*args):
         items.append(args[6].copy())
         return tiled(*args)
 
-    monkeypatch.setattr(CO, "_tiled_crack_kernel", record)
+    monkeypatch.setattr(CO, "tiled_crack_kernel", record)
     md, mc = CO.filtered_composite_banded(d, c, mask)
     np.testing.assert_array_equal(md[mask], bd[mask])
     np.testing.assert_array_equal(mc[mask], bc[mask])
@@ -367,7 +306,7 @@ def test_tile_any_matches_reference():
     the pixel scan with early exit (big-endian machines) = the dilate-then-block-any reference, for
     sparse, clustered and dense masks, tile sizes that do and do not divide the image, grow 0-5
     (wider than some tiles)."""
-    from presim.synthesis.composite import _tile_any_kernel, tile_any
+    from presim.synthesis.cracks import _tile_any_kernel, tile_any
     from presim.synthesis.kernels_reference import tile_any_ref
 
     rng = np.random.default_rng(7)
@@ -389,25 +328,38 @@ def test_tile_any_matches_reference():
 
 
 def test_masked_warp_renders_identical_frames(monkeypatch):
-    """The Renderer with masked later views (forced at every image size) = without, bit for bit."""
-    import presim.synthesis.composite as comp
-    import presim.synthesis.core as core
-    from presim.synthesis.renderer import RenderConfig, Renderer
+    """The Renderer with tiled later views (forced at every image size) = the full warps (the
+    default below TILED_MIN_PIXELS), bit for bit."""
+    import presim.synthesis.cracks as cracks
+    import presim.synthesis.pipeline as pipeline
+    from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
-    monkeypatch.setattr(core, "TILED_MIN_PIXELS", 0)
-    monkeypatch.setattr(comp, "TILED_MIN_PIXELS", 0)
     scene = S.make_scene(S.room_rects(), S.orbit_poses(6, span_m=1.2), K_SMALL)
+    assert K_SMALL.width * K_SMALL.height < cracks.TILED_MIN_PIXELS
     poses = [make_pose(scene.T_world_cam[i][:3, :3], (scene.T_world_cam[i][:3, 3] + scene.T_world_cam[i + 1][:3, 3]) / 2)
              for i in range(4)]
-    on, off = Renderer(scene, RenderConfig()), Renderer(scene, RenderConfig(masked_warp=False))
+    perf = PerfConfig(warp_ahead=False, prefetch=False)  # the loop warps every view itself
+    full = Renderer(scene, RenderConfig(), perf)
+    want = [full.render(T, K_SMALL) for T in poses]
+    tiled = Renderer(scene, RenderConfig(), perf)
+    calls = []
+    warp_tiles = pipeline.warp_tiles
+
+    def counted(replace, *args):
+        calls.append(1)
+        return warp_tiles(replace, *args)
+
+    monkeypatch.setattr(pipeline, "TILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(cracks, "TILED_MIN_PIXELS", 0)
+    monkeypatch.setattr(pipeline, "warp_tiles", counted)
     n_later = 0
-    for T in poses:
-        a, b = on.render(T, K_SMALL), off.render(T, K_SMALL)
+    for T, b in zip(poses, want):
+        a = tiled.render(T, K_SMALL)
         np.testing.assert_array_equal(a.color, b.color)
         np.testing.assert_array_equal(a.depth_m, b.depth_m)
         np.testing.assert_array_equal(a.valid, b.valid)
-        n_later += len(on.last.views) - 1
-    assert n_later > 0  # later views were warped with tiles
+        n_later += len(tiled.last.views) - 1
+    assert n_later > 0 and len(calls) == n_later  # later views were warped with tiles
 
 
 @pytest.mark.parametrize("L", [1, 4])
@@ -416,7 +368,7 @@ def test_banded_pass_ignores_the_colour_of_empty_layer_pixels(L):
     point (here: filled with garbage first); the banded crack pass reads colour only where the
     depth is > 0, so its output is the same as from cleared layers, with and without a replace
     mask, in bands and in tiles."""
-    from presim.synthesis.composite import filtered_composite_banded
+    from presim.synthesis.cracks import filtered_composite_banded
 
     vp, T_cam_world = _room_view(L=L)
     clean = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
@@ -439,7 +391,7 @@ def test_banded_pass_ignores_the_colour_of_empty_layer_pixels(L):
 
 @pytest.mark.parametrize("L", [1, 4])
 def test_banded_composite_matches_reference_on_warp(L):
-    from presim.synthesis.composite import filtered_composite_banded
+    from presim.synthesis.cracks import filtered_composite_banded
 
     vp, T_cam_world = _room_view(L=L)
     lay = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
