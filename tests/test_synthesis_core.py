@@ -1,10 +1,9 @@
-"""Known answers for the per-frame core: final fill, hole analysis, view merge (dilation ring), the
-adaptive loop with a scripted backend, the backend table, and the one z-buffer splat."""
+"""Known answers for the per-frame pipeline: final fill, hole analysis, view merge (dilation ring),
+the adaptive loop with scripted views, the backends, and the one z-buffer splat."""
 
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import cv2
 import numpy as np
@@ -12,10 +11,11 @@ import pytest
 
 from presim.capture.reprojection import forward_warp, nearest_pixel, zbuffer_splat
 from presim.geometry import Intrinsics
-from presim.synthesis.composite import analyse_holes, merge_view
-from presim.synthesis.core import (BACKEND_TABLE, BACKENDS, FrameConfig, ViewImage, Workspace, get_backend,
-                                   grid_pixels, synthesize_frame, view_image_numba, view_image_reference)
+from presim.synthesis.config import BACKENDS, PerfConfig, RenderConfig
 from presim.synthesis.fill import fill_holes
+from presim.synthesis.grids import FrameGrids, grid_pixels
+from presim.synthesis.holes import analyse_holes, merge_view_holes
+from presim.synthesis.pipeline import ViewImage, Workspace, synthesize_frame, view_image
 
 H, W = 48, 64
 
@@ -76,76 +76,6 @@ def test_fill_switches_from_telea_to_pushpull_above_two_percent():
     valid = _hole(0, 8, 0, 8)  # 64 px = 2.08 %
     assert np.array_equal(fill_holes(color, depth, valid, "auto", telea_max_hole_frac=0.05)[0],
                           fill_holes(color, depth, valid, "telea")[0])
-
-
-def test_telea_fill_runs_the_depth_pullpush_on_a_second_thread_with_the_same_result(monkeypatch):
-    """With numba threads to spare, the depth's pull-push runs on the fill's side thread while this
-    thread inpaints the colour; a serial thread (one-thread frames, render_batch's threads) keeps
-    both here. Same arrays either way."""
-    import threading
-
-    import numba
-
-    from presim.synthesis import fill as F
-    from presim.synthesis.threads import numba_threads, serial_kernels
-
-    rng = np.random.default_rng(3)
-    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    depth = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
-    valid = _hole(10, 14, 20, 29)  # 1.2 % of the image: Telea
-    ran_on = []
-    orig = F.pushpull_rgbd
-
-    def spy(c, d, v):
-        ran_on.append(threading.current_thread().name)
-        return orig(c, d, v)
-
-    monkeypatch.setattr(F, "pushpull_rgbd", spy)
-    want = fill_holes(color, depth, valid, "auto", side_thread=False)
-    assert ran_on == [threading.current_thread().name]
-    assert numba.get_num_threads() >= 2  # the test machine and CI have 2 cores
-    got = fill_holes(color, depth, valid, "auto")
-    assert ran_on[-1].startswith("presim-fill")
-    for x, y in zip(got, want):
-        np.testing.assert_array_equal(x, y)
-    for ctx in (serial_kernels(), numba_threads(1)):
-        with ctx:
-            got = fill_holes(color, depth, valid, "auto")
-        assert ran_on[-1] == threading.current_thread().name
-        for x, y in zip(got, want):
-            np.testing.assert_array_equal(x, y)
-
-
-def _fill_in_child(conn, color, depth, valid) -> None:  # pragma: no cover - runs in a forked child
-    got = fill_holes(color, depth, valid, "auto")
-    conn.send([np.asarray(a) for a in got])
-    conn.close()
-
-
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
-def test_telea_fill_side_thread_survives_a_fork():
-    """A process forked after the side thread started gets a thread of its own (the parent's is
-    not copied); its fill must not wait forever for the parent's."""
-    import multiprocessing as mp
-
-    rng = np.random.default_rng(4)
-    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    depth = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
-    valid = _hole(10, 14, 20, 29)
-    want = fill_holes(color, depth, valid, "auto")  # starts the side thread here
-    ctx = mp.get_context("fork")
-    a, b = ctx.Pipe(duplex=False)
-    p = ctx.Process(target=_fill_in_child, args=(b, color, depth, valid))
-    p.start()
-    try:
-        assert a.poll(60), "the forked child's fill did not finish"
-        got = a.recv()
-    finally:
-        p.join(10)
-        if p.is_alive():
-            p.kill()
-    for x, y in zip(got, want):
-        np.testing.assert_array_equal(x, y)
 
 
 @pytest.mark.parametrize("method", ["telea", "pushpull", "auto"])
@@ -214,9 +144,9 @@ def test_analyse_holes_shortcuts():
     assert analyse_holes(valid.astype(np.uint8)).largest_hole_px == 6
 
 
-# ---- merge_view -------------------------------------------------------------------------------------
+# ---- merge_view_holes -------------------------------------------------------------------------------------
 
-def test_merge_view_writes_only_replaceable_pixels_the_view_covers():
+def test_merge_view_holes_writes_only_replaceable_pixels_the_view_covers():
     acc_d = np.full((H, W), 2.0, np.float32)
     acc_c = np.full((H, W, 3), 50, np.uint8)
     acc_s = np.full((H, W), 3, np.int32)
@@ -228,7 +158,8 @@ def test_merge_view_writes_only_replaceable_pixels_the_view_covers():
     c = np.full((H, W, 3), 200, np.uint8)
     d[12, 22] = 0  # the second view misses one hole pixel
     before = acc_d.copy(), acc_c.copy(), acc_s.copy()
-    merge_view(acc_d, acc_c, acc_s, replace, d, c, 7)
+    holes = np.full((H, W), 7, np.uint8)  # scratch: rewritten whole
+    n_hole = merge_view_holes(acc_d, acc_c, acc_s, replace, d, c, 7, holes)
     took = replace & (d > 0)
     assert took.sum() == 73 - 1  # the hole (minus one pixel) and its dilation ring
     assert (acc_d[took] == 1.0).all() and (acc_c[took] == 200).all() and (acc_s[took] == 7).all()
@@ -239,19 +170,55 @@ def test_merge_view_writes_only_replaceable_pixels_the_view_covers():
     # The ring replaced pixels the first view had (ghost contours): 2 px around the hole.
     ring = replace & (before[0] > 0)
     assert ring.sum() == 73 - 25 and (acc_s[ring] == 7).all()
+    # The hole mask after the merge: the one pixel no view covers.
+    assert n_hole == 1 and np.array_equal(holes, (acc_d <= 0).astype(np.uint8))
 
 
-# ---- the adaptive loop with a scripted backend ------------------------------------------------------
+# ---- the adaptive loop with scripted views ----------------------------------------------------------
 
 K8 = Intrinsics(fx=8.0, fy=8.0, cx=3.5, cy=3.5, width=8, height=8)
 
 
-def _scripted(images: dict[int, tuple[np.ndarray, np.ndarray]], calls: list):
-    def view_image(view, T_cam_world, K, config, replace, workspace):
-        calls.append((view, None if replace is None else replace.copy()))
-        d, c = images[view]
+def _cfg(**kw) -> RenderConfig:
+    """The loop's knobs; no view gain threshold, forward colour (the scripted views have no images)."""
+    return RenderConfig(**{"min_view_gain": 0.0, "backward_color": False, **kw})
+
+
+class _Views:
+    """A FrameViews test double: scripted view images; the next view by FrameGrids.next_view over
+    the given grids (identity target pose, K8; each grid point stands for ``z_src(v)^2`` target
+    pixels at stride 1)."""
+
+    backend = "numba"
+
+    def __init__(self, candidates, images, grids, calls=None, z_src=None, near_m=0.01):
+        self.candidates = list(candidates)
+        self.images, self.calls, self.near_m = images, calls if calls is not None else [], near_m
+        self.grids = FrameGrids(np.eye(4), K8, grids.__getitem__)
+        self._grid = grids
+        self._z = z_src or {}
+        self.masks: list[int] = []  # big-hole pixels of each next_view call
+
+    def view_image(self, view_id, replace):
+        self.calls.append((view_id, None if replace is None else replace.copy()))
+        d, c = self.images[view_id]
         return ViewImage(d.copy(), c.copy())
-    return view_image
+
+    def next_view(self, pending, big_flat, need_px, frac):
+        self.masks.append(int(big_flat.sum()))
+        return self.grids.next_view(pending, big_flat, self.z_src, lambda v: K8.fx, self.near_m, 1.0, need_px, frac)
+
+    def z_src(self, v):
+        return np.full(len(self._grid[v]), self._z.get(v, 1.0), np.float32)
+
+    def blend(self, warped, color, depth_m, source):
+        raise AssertionError("blend is off")
+
+    def sources(self, warped):
+        raise AssertionError("backward colour is off")
+
+    def exposure(self, source):
+        return None  # no photometric calibration: the working exposure
 
 
 def _grid_at(pixels: list[tuple[int, int]]) -> np.ndarray:
@@ -259,7 +226,7 @@ def _grid_at(pixels: list[tuple[int, int]]) -> np.ndarray:
     return np.array([[(u - K8.cx) / K8.fx, (v - K8.cy) / K8.fy, 1.0] for u, v in pixels], np.float32)
 
 
-def test_synthesize_frame_adaptive_loop_order_stop_and_hook():
+def test_synthesize_frame_adaptive_loop_order_and_stop():
     d0 = np.ones((8, 8), np.float32)
     d0[:, 4:] = 0  # view 10 covers the left half
     c0 = np.zeros((8, 8, 3), np.uint8)
@@ -270,10 +237,8 @@ def test_synthesize_frame_adaptive_loop_order_stop_and_hook():
     grids = {10: _grid_at([(0, 0)]), 11: _grid_at([(1, 1)]),  # 11 cannot reach the hole
              12: _grid_at([(5, 5), (6, 6)]), 13: _grid_at([(6, 1)])}
     calls: list = []
-    cfg = FrameConfig(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
-    res = synthesize_frame([10, 11, 12, 13], np.eye(4), K8, cfg, _scripted(images, calls),
-                           get_view=lambda i: i, get_grid=grids.__getitem__,
-                           color_transform=lambda i, c: c + np.uint8(i))
+    cfg = _cfg(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
+    res = synthesize_frame(_Views([10, 11, 12, 13], images, grids, calls), np.eye(4), K8, cfg)
     # 10 first (whole image), then the first candidate whose grid lands in the big hole: 12 (11 is
     # skipped over, 13 would also do but comes later). After 12 there is no hole: stop.
     assert res.views == [10, 12] and res.skipped == []
@@ -282,13 +247,11 @@ def test_synthesize_frame_adaptive_loop_order_stop_and_hook():
     assert res.hole_frac_per_view == [0.5, 0.0] and res.hole_frac == 0.0
     assert np.array_equal(res.source_view, np.where(d0 > 0, 10, 12))
     assert np.array_equal(res.depth_m, np.where(d0 > 0, 1.0, 3.0).astype(np.float32))
-    # color_transform(view id, color) ran on each view before merging: 10 + 10 and 25 + 12.
-    assert np.array_equal(res.color[..., 0], np.where(d0 > 0, 20, 37))
+    assert np.array_equal(res.color[..., 0], np.where(d0 > 0, 10, 25))  # each pixel from its view
     # greedy (next_view_fill_frac = 1): 12 puts 2 grid points into the hole, 13 puts 0 -> 12.
     calls.clear()
-    res = synthesize_frame([10, 13, 12], np.eye(4), K8, FrameConfig(big_hole_px=4, hole_dilation_px=0,
-                           stop_hole_frac=0.0, next_view_fill_frac=1.0), _scripted(images, calls),
-                           lambda i: i, grids.__getitem__)
+    res = synthesize_frame(_Views([10, 13, 12], images, grids, calls), np.eye(4), K8,
+                           _cfg(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, next_view_fill_frac=1.0))
     assert res.views == [10, 12]
 
 
@@ -302,26 +265,24 @@ def test_synthesize_frame_min_view_gain_known_answer():
     c1 = np.full((8, 8, 3), 20, np.uint8)
     images = {10: (d0, c0), 12: (d1, c1), 13: (d1, c1)}
     grids = {10: _grid_at([(0, 0)]), 12: _grid_at([(5, 5), (6, 6)]), 13: _grid_at([(6, 1)])}
-    fill = {12: 2.0, 13: 10.0}  # predicted fill (target pixels of the grid points in the hole)
+    # predicted fill (target pixels of the grid points in the hole): 12: 2 x 1 px, 13: 1 x 10 px
+    z_src = {13: float(np.sqrt(10.0))}
+    cfg = _cfg(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
     seen = []
 
-    def area(v, big_flat):
-        seen.append((v, int(big_flat.sum())))
-        return fill[v]
-    cfg = FrameConfig(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
-
-    def run(gain, grid_fill=area):
-        return synthesize_frame([10, 12, 13], np.eye(4), K8, dataclasses.replace(cfg, min_view_gain=gain),
-                                _scripted(images, []), lambda i: i, grids.__getitem__, grid_fill=grid_fill)
+    def run(gain):
+        views = _Views([10, 12, 13], images, grids, z_src=z_src)
+        res = synthesize_frame(views, np.eye(4), K8, dataclasses.replace(cfg, min_view_gain=gain))
+        seen.extend(views.masks)
+        return res
     assert run(0.0).views == [10, 12]  # off: the first candidate that lands in the hole
     assert run(0.03).views == [10, 12]  # need 1.92 px: 12's 2 px are enough
     assert run(0.1).views == [10, 13]  # need 6.4 px: 12 (2 px) is passed over, 13 (10 px) taken
     res = run(0.2)  # need 12.8 px: nobody -> stop, the hole stays
     assert res.views == [10] and res.skipped == [12, 13] and res.hole_frac == 0.5
-    assert run(0.2, grid_fill=None).views == [10, 12]  # no fill estimate: the rule cannot apply
-    assert seen and all(n == 32 for _, n in seen)  # asked with the big-hole mask (the right half)
+    assert seen and all(n == 32 for n in seen)  # asked with the big-hole mask (the right half)
     with pytest.raises(ValueError, match="min_view_gain"):
-        FrameConfig(min_view_gain=1.0)
+        RenderConfig(min_view_gain=1.0)
 
 
 def test_synthesize_frame_stops_when_no_candidate_can_fill_and_fixed_views():
@@ -332,23 +293,20 @@ def test_synthesize_frame_stops_when_no_candidate_can_fill_and_fixed_views():
     images = {1: (d0, c0), 2: (d0, c0), 3: (d0, c0)}
     grids = {i: _grid_at([(0, 0)]) for i in images}  # nobody lands in the right half
     calls: list = []
-    cfg = FrameConfig(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
-    res = synthesize_frame([1, 2, 3], np.eye(4), K8, cfg, _scripted(images, calls), lambda i: i, grids.__getitem__)
+    cfg = _cfg(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False)
+    res = synthesize_frame(_Views([1, 2, 3], images, grids, calls), np.eye(4), K8, cfg)
     assert res.views == [1] and res.skipped == [2, 3] and res.hole_frac == 0.5
     assert (res.color[:, 4:] == 0).all() and not res.valid[:, 4:].any()
     # fixed_views = 2 warps the first two whatever they add; max_views bounds the adaptive pool.
-    res = synthesize_frame([3, 1, 2], np.eye(4), K8, FrameConfig(fixed_views=2, fill_holes=False),
-                           _scripted(images, []), lambda i: i, grids.__getitem__)
+    res = synthesize_frame(_Views([3, 1, 2], images, grids), np.eye(4), K8, _cfg(fixed_views=2, fill_holes=False))
     assert res.views == [3, 1] and res.skipped == []
-    res = synthesize_frame([3, 1, 2], np.eye(4), K8, FrameConfig(max_views=1, fill_holes=False),
-                           _scripted(images, []), lambda i: i, grids.__getitem__)
+    res = synthesize_frame(_Views([3, 1, 2], images, grids), np.eye(4), K8, _cfg(max_views=1, fill_holes=False))
     assert res.views == [3]
     # With filling on, the uncovered half gets a color/depth but stays invalid.
-    res = synthesize_frame([1], np.eye(4), K8, FrameConfig(), _scripted(images, []), lambda i: i,
-                           grids.__getitem__)
+    res = synthesize_frame(_Views([1], images, grids), np.eye(4), K8, _cfg())
     assert (res.depth_m > 0).all() and not res.valid[:, 4:].any() and res.hole_frac == 0.5
     # No candidate at all: an empty (filled-with-nothing) frame.
-    res = synthesize_frame([], np.eye(4), K8, FrameConfig(), _scripted(images, []), lambda i: i, grids.__getitem__)
+    res = synthesize_frame(_Views([], images, grids), np.eye(4), K8, _cfg())
     assert res.views == [] and res.hole_frac == 1.0 and not res.color.any()
     assert (res.source_view == -1).all() and not res.valid.any() and not res.depth_m.any()
 
@@ -362,22 +320,18 @@ def test_grid_pixels_uses_the_pixel_centre_rule():
     assert grid_pixels(pts, np.eye(4), K8, 0.01).tolist() == [v * 8 + 3, v * 8 + 0]
 
 
-# ---- backend table ----------------------------------------------------------------------------------
+# ---- backends ---------------------------------------------------------------------------------------
 
-def test_backend_table_dispatch():
-    assert BACKENDS == ("numba", "reference", "torch", "torch_batch") and tuple(BACKEND_TABLE) == BACKENDS
-    assert get_backend("numba").view_image is view_image_numba
-    assert get_backend("reference").view_image is view_image_reference
-    assert get_backend("numba").frame_batch is None
-    from presim.synthesis.batch_torch import synthesize_batch_torch
-
-    assert get_backend("torch_batch").frame_batch is synthesize_batch_torch
-    with pytest.raises(ValueError, match="backend must be one of"):
-        get_backend("cuda")
+def test_backends_are_the_perf_configs():
+    assert BACKENDS == ("numba", "reference", "torch")
+    for name in BACKENDS:
+        assert PerfConfig(backend=name).backend == name
+    for name in ("cuda", "torch_batch"):
+        with pytest.raises(ValueError, match="backend must be one of"):
+            PerfConfig(backend=name)
 
 
 def test_backends_share_one_signature_and_agree_on_a_plane():
-    from presim.synthesis.core import ViewImageConfig
     from presim.synthesis.warp import prepare_view
 
     K = Intrinsics(fx=20.0, fy=20.0, cx=11.5, cy=8.5, width=24, height=18)
@@ -388,16 +342,17 @@ def test_backends_share_one_signature_and_agree_on_a_plane():
     view = prepare_view(color, depth, K, np.eye(4), 4)
     T = np.eye(4)
     T[0, 3] = 0.03
-    cfg = ViewImageConfig()
+    cfg = RenderConfig()
     outs = {}
     for name in BACKENDS:
-        try:
-            b = get_backend(name)
-        except ImportError:  # torch is an optional group
-            continue
-        img = b.view_image(b.upload(view, b.resolve_device("cpu" if name == "torch" else None)), T, K, cfg,
-                           None, Workspace())
-        outs[name] = img
+        v = view
+        if name == "torch":
+            try:
+                from presim.synthesis import torch_kernels
+            except ImportError:  # torch is an optional group
+                continue
+            v = torch_kernels.to_device(view, "cpu")
+        outs[name] = view_image(name, v, T, K, cfg, None, Workspace())
     ref = outs["reference"]
     for name, img in outs.items():
         assert img.depth_m.dtype == np.float32 and img.color.dtype == np.uint8
@@ -445,7 +400,7 @@ def test_synthesis_imports_nothing_above_capture():
     import sys
 
     code = ("import sys, importlib\n"
-            "for m in ('core', 'renderer', 'select', 'warp', 'composite', 'crack_filter', 'fill',\n"
+            "for m in ('pipeline', 'execution', 'renderer', 'select', 'warp', 'cracks', 'holes', 'fill',\n"
             "          'kernels_reference', 'rgbd'):\n"
             "    importlib.import_module('presim.synthesis.' + m)\n"
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('presim.'))))\n")
@@ -455,7 +410,7 @@ def test_synthesis_imports_nothing_above_capture():
 
 
 @pytest.mark.parametrize("shape,known_frac", [((8, 10), 0.3), ((30, 42), 0.05), ((48, 64), 0.9), ((31, 41), 0.4)])
-def test_numba_pushpull_matches_opencv_pushpull(shape, known_frac):
+def test_numba_pushpull_matches_reference_pushpull(shape, known_frac):
     """The numba full-size steps against pushpull_fill (the OpenCV version, the reference): sparse
     and dense known pixels; an odd size takes pushpull_fill itself."""
     from presim.synthesis.fill import pushpull_fill, pushpull_rgbd
@@ -512,14 +467,18 @@ def test_pull0_kernel_is_the_exact_mean_of_known_children(with_color):
     assert np.isfinite(acc).all()
 
 
-def test_numba_and_opencv_pushpull_agree_on_a_ramp():
-    """Both kernels reproduce a linear ramp inside a hole (the pyramids differ only at odd sizes)."""
+def test_numba_and_reference_pushpull_agree_on_a_ramp():
+    """The numba fill and its reference (pushpull_fill) reproduce a linear ramp inside a hole the
+    same way (the pyramids differ only at odd sizes)."""
+    from presim.synthesis.fill import pushpull_fill
+
     u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
     color = np.stack([2 * u, 200 - u, np.full_like(u, 77)], -1).astype(np.uint8)
     depth = (1.0 + 0.01 * u).astype(np.float32)
     valid = _hole(20, 26, 30, 36)
-    cn, dn = fill_holes(color, depth, valid, "pushpull", kernel="numba")
-    co, do = fill_holes(color, depth, valid, "pushpull", kernel="opencv")
+    cn, dn = fill_holes(color, depth, valid, "pushpull")
+    both = pushpull_fill(np.concatenate([color.astype(np.float32), depth[..., None]], -1), valid)
+    co, do = np.clip(both[..., :3] + 0.5, 0, 255).astype(np.uint8), both[..., 3]
     holes = ~valid
     assert np.abs(cn[holes].astype(int) - co[holes]).max() <= 1
     assert np.abs(dn[holes] - do[holes]).max() < 1e-3
