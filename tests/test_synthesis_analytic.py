@@ -9,7 +9,7 @@ import pytest
 
 from presim.geometry import Intrinsics, make_pose
 from presim.testing import rect_scene as S
-from presim.synthesis.crack_filter import crack_filter
+from presim.synthesis.cracks import crack_filter
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.warp import assign_layers, prepare_view
 

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from presim.geometry import Intrinsics, invert, look_at
-from presim.synthesis.core import grid_pixels
-from presim.synthesis.grids import FrameGrids, per_coordinate, project_grid, project_grid_ref
+from presim.synthesis.grids import FrameGrids, grid_pixels, per_coordinate, project_grid, project_grid_ref
 from presim.synthesis.lod import footprint_ratio
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.select import view_overlap
@@ -69,10 +68,10 @@ def test_frame_grids_answers_equal_the_reference_functions():
         grid = r.grid_points(v)
         assert ov[i] == pytest.approx(view_overlap(grid, T_cw, Kt), abs=1e-9)
         np.testing.assert_array_equal(g.pixels(v, 0.01), grid_pixels(grid, T_cw, Kt, 0.01))
-        assert r._lod_level_fast(v, g) == r.lod_level(v, T_cw, Kt)
-        ref = footprint_ratio(grid, invert(scene.T_world_cam[v]), float(r._src_focal[v]), T_cw,
+        assert r.lod_level_in(v, g) == r.lod_level(v, T_cw, Kt)
+        ref = footprint_ratio(grid, invert(scene.T_world_cam[v]), float(r.src_focal[v]), T_cw,
                               float(np.sqrt(Kt.fx * Kt.fy)), 0.01, Kt)
-        got = g.footprint_ratio(v, r._grid_zsrc_of(v), float(r._src_focal[v]), 0.01)
+        got = g.footprint_ratio(v, r.grid_zsrc(v), float(r.src_focal[v]), 0.01)
         assert got == pytest.approx(ref, rel=1e-6)
     assert 0.3 < ov.max() <= 1.0
 
@@ -88,8 +87,8 @@ def _rss_of_map_kb(path) -> int:
     return total
 
 
-def test_unmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path):
-    from presim.synthesis.renderer import _unmap_pages
+def testunmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path):
+    from presim.synthesis.renderer import unmap_pages
 
     path = tmp_path / "a.npy"
     a = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(8, 256, 256))
@@ -100,12 +99,12 @@ def test_unmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path)
     frame = np.asarray(m[3])  # what ArrayFrameSource.load returns: a plain view of the map
     assert float(frame.sum()) == 3.0 * 256 * 256
     before = _rss_of_map_kb(path)
-    _unmap_pages(frame)
+    unmap_pages(frame)
     after = _rss_of_map_kb(path)
     assert before >= 256 and after <= before - 200  # the frame's 256 kB left this process's RSS
     assert float(frame.sum()) == 3.0 * 256 * 256  # read again from the page cache
     w = np.ones((4, 4), np.float32)
-    _unmap_pages(w)  # in-memory / writable arrays: untouched
+    unmap_pages(w)  # in-memory / writable arrays: untouched
     assert w.sum() == 16
 
 
@@ -122,16 +121,20 @@ def test_fill_area_known_answers_and_reference():
     full = np.ones(K.width * K.height, np.uint8)
     n_in = int((grids.projection(1)[0] >= 0).sum())
     assert n_in > 50
-    np.testing.assert_allclose(r._grid_fill(1, grids, full), 64.0 * n_in, rtol=1e-5)
+
+    def grid_fill(v, g, mask_flat):  # what the adaptive loop's min_view_gain test asks of a view
+        return g.fill_area(v, mask_flat, r.grid_zsrc(v), float(r.src_focal[v]), r.config.near_m,
+                           float(r.config.overlap_stride_px))
+    np.testing.assert_allclose(grid_fill(1, grids, full), 64.0 * n_in, rtol=1e-5)
     half = K.scaled(K.width // 2, K.height // 2)
     g2 = FrameGrids(invert(scene.T_world_cam[1]), half, r.grid_points)
     n2 = int((g2.projection(1)[0] >= 0).sum())
-    np.testing.assert_allclose(r._grid_fill(1, g2, np.ones(half.width * half.height, bool)), 16.0 * n2, rtol=1e-5)
+    np.testing.assert_allclose(grid_fill(1, g2, np.ones(half.width * half.height, bool)), 16.0 * n2, rtol=1e-5)
     top = np.zeros((K.height, K.width), np.uint8)
     top[:K.height // 2] = 1  # only the points landing in the top half count
     pix = grids.projection(1)[0]
     n_top = int(((pix >= 0) & (pix < (K.height // 2) * K.width)).sum())
-    np.testing.assert_allclose(r._grid_fill(1, grids, top.reshape(-1)), 64.0 * n_top, rtol=1e-5)
+    np.testing.assert_allclose(grid_fill(1, grids, top.reshape(-1)), 64.0 * n_top, rtol=1e-5)
     # numba kernel = numpy reference on random data (points behind / outside / off the mask)
     rng = np.random.default_rng(3)
     pix = rng.integers(-1, 500, 3000)
@@ -141,11 +144,11 @@ def test_fill_area_known_answers_and_reference():
                                fill_area_ref(mask, pix, zs, zt, 0.01), rtol=1e-12)
 
 
-def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
-    """FrameGrids.hole_scores (all pending candidates in one kernel call) = count_in_mask of each
-    view's front pixels and its fill_area, exactly (same points, same order); views projected in
-    separate calls or all in one, views with no point in the image and bool / uint8 masks included.
-    FrameGrids.next_view = the adaptive loop's choice from those scores (core.synthesize_frame)."""
+def test_next_view_is_the_loops_rule_on_the_per_candidate_counts_and_fill_areas():
+    """FrameGrids.next_view (all pending candidates in one kernel call) = the adaptive loop's rule on
+    count_in_mask of each view's front pixels and its fill_area: the first view whose count reaches
+    ``frac`` x the largest, counting only views whose fill area reaches ``need``; views projected in
+    separate calls or all in one, views with no point in the image and bool / uint8 masks included."""
     from presim.synthesis.grids import count_in_mask
 
     K = Intrinsics.from_fov(64, 48, 60.0)
@@ -166,27 +169,23 @@ def test_hole_scores_equal_the_per_candidate_counts_and_fill_areas():
                 mask = (rng.random(Kt.width * Kt.height) < frac).astype(dtype)
                 ids = [5, 0, 7, 2, 1]
                 for near_m in (near, 1.2):  # 1.2 m: drops part of the grids (in the image, too near)
-                    counts, fills = grids.hole_scores(ids, mask, r._grid_zsrc_of,
-                                                      lambda v: float(r._src_focal[v]), near_m, stride)
-                    for v, n, f in zip(ids, counts, fills):
-                        assert n == count_in_mask(mask, grids.pixels(v, near_m))
-                        assert f == grids.fill_area(v, mask, r._grid_zsrc_of(v), float(r._src_focal[v]), near_m,
-                                                    stride)
-                        checked += n
-                    # next_view (the choice in the kernel) = the adaptive loop's rules on these scores
+                    counts = [count_in_mask(mask, grids.pixels(v, near_m)) for v in ids]
+                    fills = [grids.fill_area(v, mask, r.grid_zsrc(v), float(r.src_focal[v]), near_m, stride)
+                             for v in ids]
+                    checked += sum(counts)
                     for need in (None, 0.0, float(np.median(fills)), max(fills) + 1.0):
                         for pick in (0.0, 0.5, 1.0):
                             gated = [n if n > 0 and (need is None or f >= need) else 0 for n, f in zip(counts, fills)]
                             want = -1 if max(gated) == 0 else next(
                                 i for i, n in enumerate(gated) if n > 0 and n >= pick * max(gated))
-                            got = grids.next_view(ids, mask, r._grid_zsrc_of, lambda v: float(r._src_focal[v]),
+                            got = grids.next_view(ids, mask, r.grid_zsrc, lambda v: float(r.src_focal[v]),
                                                   near_m, stride, need, pick)
                             assert got == want
                             nexts += want >= 0
     assert checked > 100 and nexts > 50
     empty = FrameGrids(invert(T), Kt, r.grid_points)
-    assert empty.hole_scores([], np.ones(Kt.width * Kt.height, np.uint8), r._grid_zsrc_of,
-                             lambda v: 1.0, near, stride) == ([], [])
+    assert empty.next_view([], np.ones(Kt.width * Kt.height, np.uint8), r.grid_zsrc, lambda v: 1.0, near, stride,
+                           None, 0.0) == -1
 
 
 def test_overlapping_equals_overlap_above_zero_and_selection_is_unchanged():
@@ -210,7 +209,7 @@ def test_overlapping_equals_overlap_above_zero_and_selection_is_unchanged():
         np.testing.assert_array_equal(g.overlapping(ids), want)
         n_none += int((~want).sum())
         n_some += int(want.sum())
-        args = (T, Kt, r._centres, r._dirs, r._hfov_deg, r.grid_points)
+        args = (T, Kt, r.centres, r.dirs, r.hfov_deg, r.grid_points)
         full = select_views(*args, overlaps=g.overlaps)
         for n_exact in (1, 2, 6):
             fast = select_views(*args, overlaps=g.overlaps, overlapping=g.overlapping, exact_overlaps=n_exact)
