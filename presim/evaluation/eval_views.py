@@ -66,6 +66,8 @@ METHODS: dict[str, tuple[dict, str]] = {
     "default": ({}, "refined"),
     # the default without backward colour sampling (the forward warp's colours)
     "default_forward": ({"backward_color": False}, "refined"),
+    # the default on the capture calibrated by `presim photometric` (predicted exposure)
+    "default_photo": ({"use_photometric": True}, "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),
     "DIBR_DR": ({"num_layers": 1}, "refined"),
     "LDIBR": ({}, "raw"),
@@ -83,7 +85,9 @@ METHODS: dict[str, tuple[dict, str]] = {
     # Beyond the thesis. Photometric methods use a calibration of the capture
     # (presim.capture.photometric, refined depth); exposure_frame "<target>" = the target's own.
     "photo": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
-    "photo_mean": ({"use_photometric": True}, "refined"),
+    "photo_mean": ({"use_photometric": True, "predict_exposure": False}, "refined"),
+    # exposure predicted from the views near the pose (no information from the target)
+    "photo_pred": ({"use_photometric": True}, "refined"),
     # The same with the other colour models of `presim photometric` (the "photometric_*" keys pick
     # the calibration, not a RenderConfig field).
     "photo_affine": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE, "photometric_model": "affine"},

@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 __all__ = ["apply_gain_bias", "gain_bias_lut", "ViewColorTransform", "output_exposure", "output_transform",
-           "vignetting_gain_map", "correct_colors", "SourceColorCorrection", "OutputVignetting"]
+           "vignetting_gain_map", "correct_colors", "SourceColorCorrection", "OutputVignetting", "predict_exposure",
+           "apply_exposure"]
 
 
 def apply_gain_bias(color: np.ndarray, gain_v: np.ndarray, bias_v: np.ndarray, gain_o: np.ndarray,
@@ -147,3 +148,31 @@ class OutputVignetting:
         if key not in self._maps:
             self._maps[key] = 1.0 / vignetting_gain_map(K, self.vignetting)
         return correct_colors(color, np.eye(3), self.b_o, np.eye(3), self.b_o, self._maps[key])
+
+
+def predict_exposure(calib, rows: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The exposure a rendered image takes when no real image exists at its pose: the weighted mean
+    of the forward transforms ``(A, b)`` of the capture frames it is made of (``rows`` of the
+    calibration, ``weights`` >= 0, e.g. each view's share of the image's pixels). When every frame
+    has the same transform, that transform. None without weight."""
+    w = np.asarray(weights, np.float64)
+    if len(w) == 0 or not w.sum() > 0:
+        return None
+    w = w / w.sum()
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for r, wi in zip(rows, w):
+        A_r, b_r = calib.forward(int(r))
+        A += wi * np.asarray(A_r, np.float64)
+        b += wi * np.asarray(b_r, np.float64)
+    return A, b
+
+
+def apply_exposure(color: np.ndarray, A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``round(clip(A x + b))`` per pixel (x at the capture's mean exposure, the renderer's working
+    exposure); a 256-entry table per channel when ``A`` is diagonal. Reference: :func:`correct_colors`
+    with ``A_v = I, b_v = 0``."""
+    A = np.asarray(A, np.float64)
+    if np.count_nonzero(A - np.diag(np.diag(A))) == 0:
+        return cv2.LUT(np.ascontiguousarray(color), gain_bias_lut(np.ones(3), np.zeros(3), np.diag(A), np.asarray(b)))
+    return correct_colors(color, np.eye(3), np.zeros(3), A, b)

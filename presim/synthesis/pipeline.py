@@ -17,7 +17,9 @@ Stages, in order:
 3. **resample** (:mod:`resample`, ``backward_color``): each covered pixel's colour is sampled in its
    source view's image at the exact position it back-projects to;
 4. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
-5. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``.
+5. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``;
+6. **exposure** (:mod:`photometric`, calibrated scenes): the image takes the exposure predicted from
+   the capture frames it is made of.
 """
 
 from __future__ import annotations
@@ -36,13 +38,14 @@ from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MI
                                      composite_layers, crack_filter, filtered_composite_banded, warp_tiles)
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.holes import analyse_hole_mask, merge_into_holes, merge_view_holes
+from presim.synthesis.photometric import apply_exposure
 from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
            "synthesize_frame"]
 
-STAGES = ("select", "load", "warp", "crack", "composite", "holes", "resample", "fill", "blend")
+STAGES = ("select", "load", "warp", "crack", "composite", "holes", "resample", "fill", "blend", "exposure")
 """Keys of the per-stage milliseconds (``FrameResult.ms``, ``RenderStats.ms``)."""
 
 
@@ -178,6 +181,10 @@ class FrameViews(Protocol):
     def sources(self, warped: list[int]) -> SourceStack:
         """The source images of the views ``warped`` (backward colour sampling)."""
 
+    def exposure(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The output exposure ``(A, b)`` predicted for an image whose pixels come from the views in
+        ``source`` (int32 (H, W), -1 = none); None = keep the working exposure."""
+
 
 @dataclass(frozen=True)
 class FrameResult:
@@ -282,4 +289,10 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
     if cfg.fill_holes and hole_frac > 0:
         acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method)
     ms["fill"] = (time.perf_counter() - t) * 1e3
+    if cfg.use_photometric and cfg.predict_exposure and cfg.exposure_frame is None and warped:
+        t = time.perf_counter()
+        exposure = views.exposure(acc_src)
+        if exposure is not None:
+            acc_c = apply_exposure(acc_c, *exposure)
+        ms["exposure"] = (time.perf_counter() - t) * 1e3
     return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, warped, hole_fracs, skipped, ms)

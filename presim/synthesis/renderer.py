@@ -29,7 +29,7 @@ from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.execution import Executor, timed
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
-from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
+from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, predict_exposure
 from presim.synthesis.pipeline import STAGES, ViewImage, synthesize_frame, view_image
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
@@ -133,6 +133,16 @@ class _FrameViews:
         r = self.r
         return stack_sources(warped, [r.view(v, self.level(v)).image for v in warped])
 
+    def exposure(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        r = self.r
+        if r.calib is None:
+            return None
+        counts = np.bincount(source.reshape(-1) + 1, minlength=len(r.scene) + 1)[1:]
+        ids = np.flatnonzero(counts)
+        rows = [r.calib_rows[v] for v in ids]
+        keep = [k for k, row in enumerate(rows) if row >= 0]
+        return predict_exposure(r.calib, np.array([rows[k] for k in keep], np.int64), counts[ids][keep])
+
     def blend(self, warped: list[int], color: np.ndarray, depth_m: np.ndarray, source: np.ndarray) -> np.ndarray:
         r = self.r
         views = list(warped) + [v for v in self.candidates if v not in warped]
@@ -190,7 +200,8 @@ class Renderer:
         self._stream = _Stream()
         self._batch_streams: list[_Stream] = []
         self._source_correction = self._output_vignetting = None
-        calib = getattr(scene, "photometric", None) if config.use_photometric else None
+        calib = self.calib = getattr(scene, "photometric", None) if config.use_photometric else None
+        self.calib_rows = [_calib_row(calib, f) for f in scene.frame_ids] if calib is not None else []
         if calib is not None:  # applied to each frame's pixels when its view is prepared (cached)
             self._source_correction = SourceColorCorrection(calib, scene.frame_ids, scene.intrinsics,
                                                             config.exposure_frame)
@@ -415,6 +426,13 @@ class Renderer:
         if math.degrees(math.acos(min(max(cos, -1.0), 1.0))) > cfg.reuse_turn_deg:
             return None
         return sel
+
+
+def _calib_row(calib, frame_id: str) -> int:
+    try:
+        return calib.index(frame_id)
+    except KeyError:  # a frame the calibration does not know keeps its colours
+        return -1
 
 
 def _check_K(K) -> Intrinsics:

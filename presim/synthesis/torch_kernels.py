@@ -175,55 +175,41 @@ def view_image_torch(view: TorchView, T_cam_world: np.ndarray, K: Intrinsics, ne
 def resample_colors_torch(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
                           T_world_cam: np.ndarray, sources, depth_tol: float = 0.05,
                           device: torch.device | str | None = None) -> np.ndarray:
-    """:func:`presim.synthesis.resample.resample_colors_ref` in torch (float64; CUDA when present).
-    ``sources`` is a :class:`~presim.synthesis.resample.SourceStack`. Returns a new uint8 (H, W, 3)."""
+    """:func:`presim.synthesis.resample.resample_colors_ref` in torch (float64; CUDA when present), one
+    gather per source view. ``sources``: a :class:`~presim.synthesis.resample.SourceStack`."""
     dev = torch.device(device) if device is not None else default_device()
     f64 = torch.float64
     H, W = depth_m.shape
     out = torch.from_numpy(np.ascontiguousarray(color)).to(dev).reshape(-1, 3).clone()
     s = torch.from_numpy(np.ascontiguousarray(source, np.int64)).to(dev).reshape(-1)
     d = torch.from_numpy(np.ascontiguousarray(depth_m, np.float32)).to(dev).reshape(-1).to(f64)
-    lut = torch.from_numpy(sources.lut.astype(np.int64)).to(dev)
-    ok = (s >= 0) & (d > 0) & (s < len(lut))
-    idx = torch.nonzero(ok).squeeze(1)
-    j = lut[s[idx]]
-    keep = j >= 0
-    idx, j = idx[keep], j[keep]
-    if len(idx) == 0:
-        return out.reshape(H, W, 3).cpu().numpy()
-    u = (idx % W).to(f64)
-    v = (idx // W).to(f64)
-    dd = d[idx]
-    p = torch.stack([(u - K.cx) / K.fx * dd, (v - K.cy) / K.fy * dd, dd, torch.ones_like(dd)])
     M = torch.as_tensor(np.asarray(T_world_cam, np.float64)[:3], dtype=f64, device=dev)
-    X = torch.cat([M @ p, torch.ones_like(dd)[None]])
-    T = torch.as_tensor(sources.T, dtype=f64, device=dev)[j]
-    Ps = torch.einsum("nij,jn->in", T, X)
-    zs = Ps[2]
-    intr = torch.as_tensor(sources.intr, dtype=f64, device=dev)[j]
-    size = torch.as_tensor(sources.size, device=dev)[j]
-    ws, hs = size[:, 0], size[:, 1]
-    us = intr[:, 0] * Ps[0] / zs + intr[:, 2]
-    vs = intr[:, 1] * Ps[1] / zs + intr[:, 3]
-    inside = (zs > 0) & (us >= 0) & (us <= ws - 1) & (vs >= 0) & (vs <= hs - 1)
-    us = torch.where(inside, us, torch.zeros_like(us))
-    vs = torch.where(inside, vs, torch.zeros_like(vs))
-    u0, v0 = torch.floor(us).long(), torch.floor(vs).long()
-    a, b = us - u0, vs - v0
-    u1, v1 = torch.minimum(u0 + 1, ws - 1), torch.minimum(v0 + 1, hs - 1)
-    off = torch.as_tensor(sources.offset, device=dev)[j]
-    col = torch.from_numpy(sources.color).to(dev).to(f64)
-    dep = torch.from_numpy(sources.depth).to(dev).to(f64)
-    acc = torch.zeros((len(idx), 3), dtype=f64, device=dev)
-    wsum = torch.zeros(len(idx), dtype=f64, device=dev)
-    for uu, vv, w in ((u0, v0, (1 - a) * (1 - b)), (u1, v0, a * (1 - b)), (u0, v1, (1 - a) * b), (u1, v1, a * b)):
-        q = torch.where(inside, off + vv * ws + uu, torch.zeros_like(off))
-        ds = dep[q]
-        good = inside & (ds > 0) & ((ds - zs).abs() <= depth_tol * zs)
-        w = torch.where(good, w, torch.zeros_like(w))
-        acc += w[:, None] * col[q]
-        wsum += w
-    use = wsum > 1e-9
-    vals = torch.floor(acc[use] / wsum[use, None] + 0.5).clamp(0, 255).to(torch.uint8)
-    out[idx[use]] = vals
+    for view_id in np.flatnonzero(sources.lut >= 0):
+        j = int(sources.lut[view_id])
+        idx = torch.nonzero((s == int(view_id)) & (d > 0)).squeeze(1)
+        if len(idx) == 0:
+            continue
+        img = torch.from_numpy(sources.colors[j]).to(dev).to(f64)
+        dep = torch.from_numpy(sources.depths[j]).to(dev).to(f64)
+        hs, ws = dep.shape
+        u, v, dd = (idx % W).to(f64), (idx // W).to(f64), d[idx]
+        X = M @ torch.stack([(u - K.cx) / K.fx * dd, (v - K.cy) / K.fy * dd, dd, torch.ones_like(dd)])
+        P = torch.as_tensor(sources.T[j], dtype=f64, device=dev) @ torch.cat([X, torch.ones_like(dd)[None]])
+        fx, fy, cx, cy = (float(x) for x in sources.intr[j])
+        zs = P[2]
+        us, vs = fx * P[0] / zs + cx, fy * P[1] / zs + cy
+        inside = (zs > 0) & (us >= 0) & (us <= ws - 1) & (vs >= 0) & (vs <= hs - 1)
+        idx, us, vs, zs = idx[inside], us[inside], vs[inside], zs[inside]
+        u0, v0 = torch.floor(us).long(), torch.floor(vs).long()
+        a, b = us - u0, vs - v0
+        u1, v1 = torch.clamp(u0 + 1, max=ws - 1), torch.clamp(v0 + 1, max=hs - 1)
+        acc = torch.zeros((len(idx), 3), dtype=f64, device=dev)
+        wsum = torch.zeros(len(idx), dtype=f64, device=dev)
+        for uu, vv, w in ((u0, v0, (1 - a) * (1 - b)), (u1, v0, a * (1 - b)), (u0, v1, (1 - a) * b), (u1, v1, a * b)):
+            ds = dep[vv, uu]
+            w = torch.where((ds > 0) & ((ds - zs).abs() <= depth_tol * zs), w, torch.zeros_like(w))
+            acc += w[:, None] * img[vv, uu]
+            wsum += w
+        use = wsum > 1e-9
+        out[idx[use]] = torch.floor(acc[use] / wsum[use, None] + 0.5).clamp(0, 255).to(torch.uint8)
     return out.reshape(H, W, 3).cpu().numpy()
