@@ -196,7 +196,7 @@ def compare_blend(name: str, size: str, scene: Scene, K: Intrinsics, poses: np.n
     """Default pipeline vs blending + sharpness + photometric correction, in one process: a cold
     pass and a warm-up per config, then measured passes alternating (base, blend, base, blend, ...)
     so load changes hit both; prints the ratio of the medians (blend / base), wall and CPU."""
-    from presim.capture.photometric import calibrate_photometric
+    from presim.photometric import calibrate_photometric
 
     t0 = time.perf_counter()
     calib = calibrate_photometric(scene, show_progress=False)

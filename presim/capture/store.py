@@ -26,6 +26,7 @@ from typing import Callable
 
 import numpy as np
 
+from presim.capture.calibration import PhotometricCalib
 from presim.capture.scene import (
     ArrayFrameSource, FloorPlane, PointCloud, Scene, SceneError, SceneMeta, SceneObject,
 )
@@ -223,7 +224,7 @@ def set_has_fused_depth(path: str | Path) -> None:
 
 
 def save_photometric(path: str | Path, calib) -> Path:
-    """Write a :class:`~presim.capture.photometric.PhotometricCalib` into the saved scene at ``path``
+    """Write a :class:`~presim.capture.calibration.PhotometricCalib` into the saved scene at ``path``
     as ``photometric.json`` (atomic; the images are never touched). Its frame ids must be the
     scene's. Returns the file."""
     path = Path(path)
@@ -238,9 +239,7 @@ def save_photometric(path: str | Path, calib) -> Path:
     return out
 
 
-def _load_photometric(path: Path):
-    from presim.capture.photometric import PhotometricCalib
-
+def _load_photometric(path: Path) -> PhotometricCalib | None:
     f = path / PHOTOMETRIC_FILE
     if not f.is_file():
         return None

@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from presim.capture.photometric import PhotometricConfig
+from presim.photometric import PhotometricConfig
 from presim.capture.scene import Scene
 from presim.depth.filters import guided_filter_depth, median_filter_depth
 from presim.depth.refine import RefineConfig
@@ -79,7 +79,7 @@ METHODS: dict[str, tuple[dict, str]] = {
     **{f"layers_{k}": ({"num_layers": k}, "refined") for k in range(1, 9)},
     "tsdf_mesh": ({}, "tsdf"),
     # Beyond the thesis (issue 12). Photometric methods use a calibration of the capture
-    # (presim.capture.photometric, refined depth); exposure_frame "<target>" = the target's own.
+    # (presim.photometric, refined depth); exposure_frame "<target>" = the target's own.
     "photo": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
     "photo_mean": ({"use_photometric": True}, "refined"),
     # The same with the other colour models of `presim photometric` (the "photometric_*" keys pick
@@ -308,7 +308,7 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
         key = _photometric_key(ov, config.photometric)
         if not ov.get("use_photometric") or key in photo_calibs:
             continue
-        from presim.capture.photometric import calibrate_photometric
+        from presim.photometric import calibrate_photometric
 
         t1 = time.perf_counter()
         ref_cap = cap if depth_sets.get("refined") is None else dataclasses.replace(cap, depth_refined=depth_sets["refined"])
