@@ -83,10 +83,10 @@ def _auto_int(s: str) -> int | None:
 def _align(args) -> int:
     import numpy as np
 
-    from presim.capture.align import AlignConfig, align_poses
-    from presim.capture.align.bundle import BAConfig
-    from presim.capture.align.features import FeatureConfig
-    from presim.capture.align.grouping import GroupConfig
+    from presim.align import AlignConfig, align_poses
+    from presim.align.bundle import BAConfig
+    from presim.align.features import FeatureConfig
+    from presim.align.grouping import GroupConfig
     from presim.capture.store import REFINED_POSES_FILE, load_scene, save_refined_poses
     from presim.io_utils import atomic_write_json
 

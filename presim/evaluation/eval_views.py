@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from presim.photometric import PhotometricConfig
+from presim.photometric import PhotometricConfig, calibrate_photometric
 from presim.capture.scene import Scene
 from presim.depth.filters import guided_filter_depth, median_filter_depth
 from presim.depth.refine import RefineConfig
@@ -308,8 +308,6 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
         key = _photometric_key(ov, config.photometric)
         if not ov.get("use_photometric") or key in photo_calibs:
             continue
-        from presim.photometric import calibrate_photometric
-
         t1 = time.perf_counter()
         ref_cap = cap if depth_sets.get("refined") is None else dataclasses.replace(cap, depth_refined=depth_sets["refined"])
         pc = photo_calibs[key] = calibrate_photometric(
