@@ -39,6 +39,8 @@ import json, os, sys, time
 sys.path.insert(0, TREE)
 os.environ["PRESIM_NO_PROGRESS"] = "1"
 import numpy as np
+import presim.runtime
+getattr(presim.runtime, "configure", lambda: None)()  # trees that configure at `import presim` have none
 from presim.capture.store import load_scene
 scene = load_scene(SCENE)
 case, n, warm = CASE, NFRAMES, WARM

@@ -49,7 +49,7 @@ import numpy as np
 
 from presim.capture.calibration import PHOTOMETRIC_MODELS, PhotometricCalib, vignetting_radius_sq
 from presim.capture.reprojection import nearest_pixel
-from presim.geometry import invert, project, transform_points, unproject_depth
+from presim.geometry import invert, project, unproject_depth
 from presim.io_utils import progress
 
 __all__ = ["PhotometricConfig", "calibrate_photometric", "photometric_pairs", "pair_correspondences"]
