@@ -142,19 +142,20 @@ def _reference_poses(ref: Path, scene) -> tuple:
     """(indices into scene, reference poses) matched by stamp (TUM file) or frame id (folder)."""
     import numpy as np
 
-    from presim.evaluation.poses import match_by_stamp, read_tum_trajectory
+    from presim.evaluation.poses import match_by_stamp
+    from presim.formats.tum import read_tum_rows
 
     if not ref.exists():
         raise FileNotFoundError(f"{ref}: reference not found")
     if ref.is_file():
-        st, rows = read_tum_trajectory(ref)
+        st, rows = read_tum_rows(ref)
         return match_by_stamp(scene.stamps_s, st, rows)
     from presim.capture.store import is_scene_dir, load_scene
 
     if is_scene_dir(ref):
         other = load_scene(ref, poses="given")
     elif (ref / "groundtruth.txt").is_file():
-        st, rows = read_tum_trajectory(ref / "groundtruth.txt")
+        st, rows = read_tum_rows(ref / "groundtruth.txt")
         return match_by_stamp(scene.stamps_s, st, rows)
     else:
         from presim.capture.importers import import_capture
