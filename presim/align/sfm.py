@@ -45,6 +45,7 @@ from presim.align.bundle import BAConfig
 from presim.align.features import appearance_similarity
 from presim.align.pipeline import AlignConfig, align_poses
 from presim.capture.scene import Scene
+from presim.geometry import invert
 from presim.io_utils import progress
 
 __all__ = ["SfmConfig", "SfmError", "SfmResult", "SfmUnavailable", "estimate_poses", "estimate_poses_sfm",
@@ -225,8 +226,8 @@ def estimate_poses_sfm(scene: Scene, config: SfmConfig = SfmConfig(),
         M = np.eye(4)
         M[:3] = cam_from_world[i].cam_from_world().matrix()
         M[:3, 3] *= scale
-        T[i] = np.linalg.inv(M)
-    T_first = np.linalg.inv(T[reg[0]])
+        T[i] = invert(M)
+    T_first = invert(T[reg[0]])
     for i in reg:
         T[i] = T_first @ T[i]
     stats = {
