@@ -22,6 +22,7 @@ from presim.outputs.ros.config import RosBridgeConfig
 from presim.outputs.ros.env import import_rospy
 from presim.outputs.ros.messages import diagnostics_msg
 from presim.outputs.ros.publisher import RosPublisherSink
+from presim.sim.controllers import Action
 from presim.sim.types import StepResult
 
 __all__ = ["RosBridgeConfig", "RosBridge"]
@@ -153,7 +154,6 @@ class RosBridge:
     def _step(self, rospy, action):
         """One sim step. A command the simulator still refuses (a check missing above) is logged and
         replaced by a stop, so no message can end the node."""
-        from presim.sim.controllers import Action
 
         try:
             return self.sim.step(action)
@@ -172,7 +172,6 @@ class RosBridge:
 
     def run(self, on_step: Callable[[StepResult], None] | None = None) -> int:
         """Spin the step loop until Ctrl-C, rospy shutdown, :meth:`stop` or ``max_steps``."""
-        from presim.sim.controllers import Action
 
         rospy = self._init_node()
         sim, cfg = self.sim, self.config
