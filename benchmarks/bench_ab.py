@@ -46,6 +46,8 @@ try:  # what the CLI does first (in a tree whose import does not configure the p
 except ImportError:
     pass
 import numpy as np
+import presim.runtime
+getattr(presim.runtime, "configure", lambda: None)()  # trees that configure at `import presim` have none
 from presim.capture.store import load_scene
 scene = load_scene(SCENE)
 case, n, warm = CASE, NFRAMES, WARM

@@ -24,6 +24,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 # (module, attribute, label): looked up where the render loop calls them
 TARGETS = (
     ("presim.synthesis.renderer", "check_rigid", "check_rigid"),

@@ -34,6 +34,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_render import trajectory  # noqa: E402
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.capture.store import load_scene  # noqa: E402
 from presim.geometry import Intrinsics  # noqa: E402
 from presim.synthesis.renderer import RenderConfig, Renderer  # noqa: E402

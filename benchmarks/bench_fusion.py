@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.capture.store import load_scene
 from presim.depth.fuse import FuseConfig, fuse_depth
 from presim.depth.scene_fuse import fuse_one_frame

@@ -18,6 +18,9 @@ import tempfile
 import time
 from pathlib import Path
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
 
 

@@ -20,6 +20,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 LMO_MODEL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lmo_scene000002" / "models_eval" / "obj_000008.ply"
 
 

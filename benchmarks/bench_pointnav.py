@@ -44,6 +44,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 TODAY = dict(lod_levels=0, reuse_move_m=0.0)
 
 

@@ -21,6 +21,8 @@ from dataclasses import replace
 
 import torch
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.pose.nets import models as models_mod
 from presim.pose.nets import train as tr
 from presim.pose.nets.loss import LossConfig

@@ -17,6 +17,8 @@ import time
 
 import torch
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.pose.nets.loss import pose_loss
 from presim.pose.nets.models import ARCHS, ModelConfig, PoseNet, best_pose
 

@@ -24,6 +24,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 
 def _pointnav(scene, prefetch: bool):
     from presim.sim.envs import PointNavEnv

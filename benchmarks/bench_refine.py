@@ -24,6 +24,9 @@ import time
 
 import numpy as np
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 
 def _time(fn, repeats: int) -> float:
     fn()  # warm-up (numba compilation / caches)

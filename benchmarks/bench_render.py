@@ -58,6 +58,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.capture.scene import ArrayFrameSource, Scene  # noqa: E402
 from presim.geometry import Intrinsics, make_pose  # noqa: E402
 from presim.testing import rect_scene as S  # noqa: E402
@@ -196,7 +198,7 @@ def compare_blend(name: str, size: str, scene: Scene, K: Intrinsics, poses: np.n
     """Default pipeline vs blending + sharpness + photometric correction, in one process: a cold
     pass and a warm-up per config, then measured passes alternating (base, blend, base, blend, ...)
     so load changes hit both; prints the ratio of the medians (blend / base), wall and CPU."""
-    from presim.capture.photometric import calibrate_photometric
+    from presim.photometric import calibrate_photometric
 
     t0 = time.perf_counter()
     calib = calibrate_photometric(scene, show_progress=False)

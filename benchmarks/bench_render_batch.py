@@ -23,6 +23,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -34,7 +37,7 @@ def main() -> int:
     ap.add_argument("--json")
     args = ap.parse_args()
     os.environ["PRESIM_NO_PROGRESS"] = "1"
-    from presim.capture.store import load_scene  # first: presim sets OMP_WAIT_POLICY before torch loads OpenMP
+    from presim.capture.store import load_scene
     from presim.geometry import Intrinsics, make_pose
     from presim.synthesis.renderer import RenderConfig, Renderer
 

@@ -24,6 +24,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.geometry import Intrinsics, make_pose  # noqa: E402
 from presim.testing import rect_scene as S  # noqa: E402
 from presim.synthesis.renderer import RenderConfig, Renderer  # noqa: E402

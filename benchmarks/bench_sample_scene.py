@@ -28,6 +28,8 @@ import numpy as np
 
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.capture.reprojection import reprojection_mae  # noqa: E402
 from presim.capture.sample_scene import (  # noqa: E402
     SampleSceneConfig, build_sample_scene, clean_scene, render_view,

@@ -28,6 +28,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
 from presim.outputs.folder_recorder import FolderRecorder  # noqa: E402
 from presim.outputs.mcap_recorder import McapRecorder  # noqa: E402
 from presim.outputs.queue import QueuedSink  # noqa: E402

@@ -21,6 +21,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 
 def _scene(path: str | None) -> Path:
     if path:

@@ -37,6 +37,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 
 def perturb_poses(T: np.ndarray, trans_m: float, rot_deg: float, seed: int) -> np.ndarray:
     """Each pose moved by exactly ``trans_m`` along a random direction and turned by exactly ``rot_deg``
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
-    from presim.capture.align.pipeline import AlignConfig, align_poses, pose_change
+    from presim.align.pipeline import AlignConfig, align_poses, pose_change
     from presim.capture.store import load_scene
     from presim.evaluation.poses import ate_rpe
 

@@ -19,6 +19,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 
 def main() -> int:
     from presim.capture.store import load_scene

@@ -31,6 +31,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import presim.runtime  # noqa: E402
+presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+
 APC = ROOT.parent / "shared" / "data" / "apc_cardboard_bin_kinfu50"
 if not APC.is_dir():
     APC = Path("/work/shared/data/apc_cardboard_bin_kinfu50")

@@ -1,4 +1,30 @@
-"""Process-wide settings that the renderer's speed depends on (applied by ``import presim``).
+"""Process-wide settings that the renderer's speed depends on: :func:`configure`.
+
+``import presim`` leaves the process alone; :func:`configure` applies these settings, once
+(idempotent). The ``presim`` command line calls it first thing, the Gymnasium environments when they
+are constructed, the benchmarks after their imports. A library user calls it first thing too,
+before importing torch or running any renderer kernel::
+
+    import presim.runtime
+    presim.runtime.configure()
+    from presim.synthesis.renderer import Renderer   # ...
+
+What it does (a value the user set always wins):
+
+1. ``OMP_WAIT_POLICY=PASSIVE`` unless set. The numba kernels run on OpenMP threads; GNU OpenMP's
+   default lets idle threads spin for a while after each parallel region, and the renderer launches
+   many short regions between OpenCV/numpy calls, so spinning threads stole the cores from them: 2
+   threads were no faster than 1 on an idle 2-core machine and 2.6x slower with one other busy
+   process (benchmarks/bench_render.py, docs/synthesis.md). libgomp reads the policy once, when it
+   loads (``import torch``, or numba's first parallel kernel), hence "first thing".
+2. When libgomp is already loaded (``import torch`` came first) it is too late for the policy: it
+   spins, and numba's OpenMP layer binds to that runtime (measured: 1.7x the CPU per 640x480
+   frame, docs/synthesis.md "Threads"). numba's own work queue sleeps like PASSIVE OpenMP (same CPU
+   per frame measured), so ``NUMBA_THREADING_LAYER=workqueue`` then, unless the user chose a layer.
+   Safe here: the simulator launches parallel kernels from one thread at a time.
+3. :func:`keep_freed_memory` (below).
+4. Hides numba's warning that the system's TBB is too old (it then uses OpenMP: not the user's
+   problem).
 
 :func:`keep_freed_memory` — glibc's allocator returns freed memory to the kernel eagerly: large
 arrays are mapped fresh for every allocation (above a threshold that moves with use) and the top of
@@ -16,8 +42,9 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+import warnings
 
-__all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "keep_freed_memory"]
+__all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "configure", "keep_freed_memory"]
 
 MMAP_THRESHOLD_BYTES = 32 << 20
 """Allocations below this come from the heap (glibc's ``M_MMAP_THRESHOLD``; 32 MiB is its maximum)."""
@@ -28,6 +55,37 @@ _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 _USER_VARS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "GLIBC_TUNABLES")
 _applied: bool | None = None
+_configured = False
+TBB_WARNING = "The TBB threading layer requires TBB version"
+"""Start of numba's warning about an old system TBB (filtered by :func:`configure`)."""
+
+
+def _gomp_loaded() -> bool:
+    """True when a GNU OpenMP runtime is already loaded in this process (e.g. by ``import torch``)."""
+    try:
+        with open("/proc/self/maps") as f:
+            return "libgomp" in f.read()
+    except OSError:  # not Linux: look for the usual importer
+        return "torch" in sys.modules
+
+
+def configure() -> None:
+    """Apply the process settings of the module docstring (thread wait policy, numba threading layer
+    when torch's OpenMP is already loaded, malloc thresholds, one warning filter). Idempotent: only
+    the first call does anything. Environment variables the user set are never changed.
+    """
+    global _configured
+    if _configured:
+        return
+    _configured = True
+    if "OMP_WAIT_POLICY" not in os.environ:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+        if "NUMBA_THREADING_LAYER" not in os.environ and _gomp_loaded():
+            os.environ["NUMBA_THREADING_LAYER"] = "workqueue"
+            if "numba" in sys.modules:  # read at numba's import; takes effect before its first parallel launch
+                sys.modules["numba"].config.THREADING_LAYER = "workqueue"
+    keep_freed_memory()
+    warnings.filterwarnings("ignore", message=TBB_WARNING)
 
 
 def keep_freed_memory() -> bool:

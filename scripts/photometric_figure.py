@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def main() -> int:
-    from presim.capture.photometric import calibrate_photometric
+    from presim.photometric import calibrate_photometric
     from presim.capture.store import load_scene
     from presim.evaluation.eval_views import (BEST, EvalConfig, _refined_capture_depth, capture_and_targets,
                                               image_metrics)

@@ -16,6 +16,12 @@ from pathlib import Path
 
 import pytest
 
+import presim.runtime
+
+# The suite runs with the process settings the CLI applies (sleeping OpenMP threads, kept freed
+# memory; presim/runtime.py): `import presim` alone applies none.
+presim.runtime.configure()
+
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 """Real captures (``../shared/data`` relative to the repository root); read only, never copied."""

@@ -15,11 +15,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from align_synthetic import perturb, synthetic_scene  # noqa: E402
 
-from presim.capture.align import AlignConfig, AlignError, align_poses  # noqa: E402
-from presim.capture.align.bundle import BAConfig, BAProblem, bundle_adjust  # noqa: E402
-from presim.capture.align.features import appearance_similarity, predicted_match_cov  # noqa: E402
-from presim.capture.align.grouping import GroupConfig, group_poses  # noqa: E402
-from presim.capture.align.pipeline import fit_rigid_to, pose_change, pose_noise_evidence  # noqa: E402
+from presim.align import AlignConfig, AlignError, align_poses  # noqa: E402
+from presim.align.bundle import BAConfig, BAProblem, bundle_adjust  # noqa: E402
+from presim.align.features import appearance_similarity, predicted_match_cov  # noqa: E402
+from presim.align.grouping import GroupConfig, group_poses  # noqa: E402
+from presim.align.pipeline import fit_rigid_to, pose_change, pose_noise_evidence  # noqa: E402
 from presim.capture.scene import ArrayFrameSource  # noqa: E402
 from presim.capture.store import load_scene, read_refined_poses, save_refined_poses, save_scene  # noqa: E402
 from presim.geometry import Intrinsics, invert, make_pose  # noqa: E402
@@ -432,7 +432,9 @@ def test_import_without_poses_estimates_them(tmp_path, syn):
     2 mm / 0.1 deg (depth is stored in whole millimetres). Failure cases: tests/test_sfm.py."""
     from test_capture_writers import SynthFrames, write_kinfu
 
+    from presim.align.sfm import estimate_poses
     from presim.capture.importers import import_capture
+    from presim.capture.scene import SceneError
 
     scene, T = syn
     color = np.array(scene.frames.color)
@@ -440,7 +442,9 @@ def test_import_without_poses_estimates_them(tmp_path, syn):
     src = write_kinfu(tmp_path / "kf", SynthFrames(scene.intrinsics[0], color, depth_mm, T))
     for p in src.glob("frame-*.pose.txt"):
         p.unlink()
-    got = import_capture(src, align_floor=False)
+    with pytest.raises(SceneError, match="no camera poses"):
+        import_capture(src, align_floor=False)  # pose estimation sits above capture: the caller passes it
+    got = import_capture(src, align_floor=False, estimate_poses=estimate_poses)
     assert len(got) == 8 and got.poses_source == "given"
     assert any("pycolmap incremental SfM" in n for n in got.meta.notes)
     dt, dr = _errors(T, got.T_world_cam)

@@ -74,7 +74,7 @@ def test_tum_drops_frames_outside_ground_truth(tmp_path):
 def test_tum_bad_groundtruth(tmp_path):
     src = write_tum(tmp_path / "tum", synth_frames(n=2))
     (src / "groundtruth.txt").write_text("1305031102.0 0 0 0 0 0 0\n")
-    with pytest.raises(SceneError, match="groundtruth.txt:1: expected 8 fields"):
+    with pytest.raises(SceneError, match="groundtruth.txt:1: a TUM line has 8 numbers"):
         import_capture(src, align_floor=False)
 
 

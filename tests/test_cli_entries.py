@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from presim.capture.scene import SceneError
-from presim.capture.store import open_scene, save_scene
+from presim.capture.open import open_scene
+from presim.capture.store import save_scene
 from presim.geometry import Intrinsics
 from presim.sensors.camera import CameraSpec
 from presim.sim.drive import ControllerSpec, DriveConfig, run_drive

@@ -122,4 +122,4 @@ def test_objects_from_ycbv_meta(shared_data):
     o = next(o for o in objs if o.obj_id == int(cls[0]))
     T_cam_obj = compose(invert(scene.T_world_cam[0]), o.T_world_obj)
     assert np.allclose(T_cam_obj[:3, :4], meta["poses"][:, :, 0], atol=1e-9)
-    assert not o.model.is_mesh and len(o.model.vertices_m) > 1000  # points.xyz model
+    assert o.model.faces is None and len(o.model.vertices_m) > 1000  # points.xyz model

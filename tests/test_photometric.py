@@ -1,5 +1,5 @@
-"""Photometric calibration (presim/capture/photometric.py), its storage, and its application at render
-time (presim/synthesis/photometric.py, RenderConfig.use_photometric / exposure_frame)."""
+"""Photometric calibration (presim/photometric/; its types in presim/capture/calibration.py), its
+storage, and its application at render time (presim/synthesis/photometric.py, RenderConfig.use_photometric / exposure_frame)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from presim.capture.photometric import (PhotometricCalib, PhotometricConfig, calibrate_photometric,
-                                        photometric_pairs)
+from presim.capture.calibration import PhotometricCalib
+from presim.photometric.calibrate import PhotometricConfig, calibrate_photometric, photometric_pairs
 from presim.capture.scene import ArrayFrameSource, SceneError
 from presim.capture.store import PHOTOMETRIC_FILE, load_scene, save_photometric, save_scene
 from presim.geometry import Intrinsics
@@ -64,6 +64,25 @@ def test_pairs_respect_neighbours_and_angle():
     T2 = T.copy()
     T2[3, :3, :3] = -T2[3, :3, :3] @ np.diag([1, -1, 1])  # frame 3 looks backwards (still a rotation)
     assert all(3 not in p for p in photometric_pairs(T2, 2, 45.0))
+
+
+@pytest.mark.parametrize("bad_gain, bad_bias, match", [
+    (np.nan, 0.0, "gains must be finite and > 0.*f1="),
+    (-0.5, 0.0, "gains must be finite and > 0.*f1="),
+    (0.0, 0.0, "gains must be finite and > 0"),
+    (1.0, np.inf, "biases must be finite.*f1="),
+])
+def test_calibration_rejects_nan_or_non_positive_gains(bad_gain, bad_bias, match):
+    """A gain of NaN, 0 or below (or a non-finite bias) is refused at construction, naming the frame,
+    and a photometric.json holding one is refused naming the file."""
+    gain, bias = np.ones((3, 3)), np.zeros((3, 3))
+    gain[1, 2], bias[1, 0] = bad_gain, bad_bias
+    with pytest.raises(ValueError, match=match):
+        PhotometricCalib(("f0", "f1", "f2"), gain, bias)
+    good = PhotometricCalib(("f0", "f1", "f2"), np.ones((3, 3)), np.zeros((3, 3))).to_json()
+    good["frames"][1]["gain"][2], good["frames"][1]["bias"][0] = bad_gain, bad_bias
+    with pytest.raises(ValueError, match="scene/photometric.json: malformed"):
+        PhotometricCalib.from_json(good, "scene/photometric.json")
 
 
 def test_lut_equals_the_float_reference():
@@ -189,7 +208,7 @@ def test_known_3x3_colour_transforms_are_recovered_within_1_percent(room):
 
 @pytest.mark.slow
 def test_known_vignetting_is_recovered_within_1_percent(room):
-    from presim.capture.photometric import vignetting_radius_sq
+    from presim.capture.calibration import vignetting_radius_sq
 
     base, _ = room
     K = base.intrinsics[0]
@@ -215,7 +234,7 @@ def test_known_vignetting_is_recovered_within_1_percent(room):
 def test_renderer_applies_affine_and_vignetting_at_the_source(room):
     """A calibration with known 3x3 transforms and vignetting maps every frame back to the radiance
     (mean exposure, no vignetting); matching a frame puts its transform and vignetting back."""
-    from presim.capture.photometric import vignetting_radius_sq
+    from presim.capture.calibration import vignetting_radius_sq
     from presim.synthesis.photometric import SourceColorCorrection, correct_colors, vignetting_gain_map
 
     base, _ = room

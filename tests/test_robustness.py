@@ -167,11 +167,16 @@ def test_env_refuses_bad_sizes(toy):
         PointNavEnv(toy, width=100000, height=100000)
 
 
-def test_import_presim_registers_the_gym_envs_without_importing_gymnasium():
-    code = ("import sys, presim; assert 'gymnasium' not in sys.modules; import gymnasium as gym; "
+def test_gym_ids_resolve_through_the_module_prefix_without_importing_presim(toy):
+    """``gym.make("presim.sim.envs:ID")`` imports the module, which registers the ids: no import hook,
+    and constructing the env applies the process settings (``presim.runtime.configure``)."""
+    code = ("import os, sys, gymnasium as gym; assert 'presim' not in sys.modules; "
+            f"env = gym.make('presim.sim.envs:PreSim-PointNav-v0', scene={str(toy)!r}, width=8, height=6); "
+            "assert os.environ['OMP_WAIT_POLICY'] == 'PASSIVE'; "
             "print(gym.spec('PreSim-PointNav-v0').entry_point, gym.spec('PreSim-PointNavDiscrete-v0').kwargs)")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                       env=dict(os.environ, PYTHONPATH=str(ROOT)))
+                       env=dict(env, PYTHONPATH=str(ROOT)))
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["presim.sim.envs:PointNavEnv", "{'discrete':", "True}"]
 

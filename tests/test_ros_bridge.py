@@ -48,7 +48,7 @@ def test_command_inbox_times_out_and_bounds_requests():
     box.twist_wall_s -= 1.0
     tw, _ = box.current(timeout_s=0.5)
     assert np.all(tw == 0), "a stale /cmd_vel must stop the base"
-    box.set_joint_targets({"head_pan_joint": 0.2})
+    box.set_joint_command(["head_pan_joint"], [0.2])
     assert box.current(1.0)[1] == {"head_pan_joint": 0.2} and box.current(1.0)[1] == {}
     assert box.counters["cmd_vel_accepted"] == 1 and box.counters["joint_command_accepted"] == 1
     with pytest.raises(TimeoutError):

@@ -1,4 +1,5 @@
-"""presim/runtime.py: glibc malloc keeps freed memory (no page faults per frame), unless opted out."""
+"""presim/runtime.py: ``configure()`` applies the process settings (glibc malloc keeps freed memory: no
+page faults per frame, unless opted out; OpenMP wait policy); ``import presim`` applies none."""
 
 from __future__ import annotations
 
@@ -66,12 +67,46 @@ def test_not_glibc_or_refused(fresh, monkeypatch):
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc is Linux-only")
-def test_import_presim_applies_it_on_this_machine():
+def test_configure_applies_it_on_this_machine():
     env = {k: v for k, v in os.environ.items() if k not in runtime._USER_VARS + ("PRESIM_KEEP_FREED_MEMORY",)}
-    code = "import presim.runtime as r; print(r._applied)"
+    code = "import presim.runtime as r; r.configure(); r.configure(); print(r._applied)"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["True"]
     env["PRESIM_KEEP_FREED_MEMORY"] = "0"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.stdout.split() == ["False"]
+
+
+IMPORT_IS_QUIET = """
+import os, sys, warnings
+import numpy  # its own import adds warning filters: taken before the snapshot
+env0, hooks0, filters0 = dict(os.environ), list(sys.meta_path), list(warnings.filters)
+import presim, presim.runtime, presim.capture.scene, presim.geometry
+assert dict(os.environ) == env0, sorted(set(os.environ.items()) ^ set(env0.items()))
+assert sys.meta_path == hooks0, sys.meta_path
+assert warnings.filters == filters0, warnings.filters[:3]
+assert presim.runtime._applied is None and "gymnasium" not in sys.modules
+presim.runtime.configure()
+assert os.environ["OMP_WAIT_POLICY"] == "PASSIVE" and sys.meta_path == hooks0
+assert any(f[1] is not None and f[1].pattern.startswith("The TBB") for f in warnings.filters)
+print("ok")
+"""
+
+
+def test_import_presim_leaves_the_process_alone():
+    """``import presim`` (and leaf modules) changes no environment variable, import hook or warning
+    filter and calls no mallopt; ``configure()`` is what applies the settings."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
+    out = subprocess.run([sys.executable, "-c", IMPORT_IS_QUIET], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["ok"]
+
+
+def test_configure_keeps_the_users_wait_policy(monkeypatch):
+    monkeypatch.setattr(runtime, "_configured", False)
+    monkeypatch.setattr(runtime, "keep_freed_memory", lambda: False)
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    runtime.configure()
+    assert os.environ["OMP_WAIT_POLICY"] == "ACTIVE"

@@ -1,4 +1,4 @@
-"""Initial poses of a capture without poses (presim/capture/align/sfm.py): pycolmap incremental SfM,
+"""Initial poses of a capture without poses (presim/align/sfm.py): pycolmap incremental SfM,
 metric scale from the depth, loop pairs from the capture's own bag of words, and the import around it
 (missing pycolmap, too few registered frames: clear error, nothing written)."""
 
@@ -14,8 +14,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from align_synthetic import synthetic_scene  # noqa: E402
 
-from presim.capture.align.pipeline import fit_rigid_to, pose_change  # noqa: E402
-from presim.capture.align.sfm import (  # noqa: E402
+from presim.align.pipeline import fit_rigid_to, pose_change  # noqa: E402
+from presim.align.sfm import (  # noqa: E402
     SfmConfig, SfmError, SfmUnavailable, estimate_poses_sfm, metric_scale, retrieval_pairs)
 
 

@@ -1,4 +1,5 @@
-"""``import torch`` before ``import presim``: numba must not run on torch's spinning OpenMP runtime."""
+"""``import torch`` before ``presim.runtime.configure()``: numba must not run on torch's spinning OpenMP
+runtime."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import pytest
 
 SCRIPT = """
 import {first}
-import presim, numba, numpy as np
+import presim.runtime, numba, numpy as np
+presim.runtime.configure()
 from presim.synthesis.lod import pool_depth_aware
 pool_depth_aware(np.ones((4, 4), np.float32), np.zeros((4, 4, 3), np.uint8))  # a parallel kernel
 print(numba.threading_layer(), __import__("os").environ.get("OMP_WAIT_POLICY"))
@@ -44,7 +46,8 @@ def test_user_settings_win():
 
 PREFETCH_SCRIPT = """
 import torch
-import presim, numba, numpy as np
+import presim.runtime, numba, numpy as np
+presim.runtime.configure()
 from presim.geometry import Intrinsics, look_at
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.testing import rect_scene as S
@@ -69,7 +72,8 @@ def test_views_built_ahead_under_the_work_queue_layer():
 
 BATCH_SCRIPT = """
 import torch
-import presim, numba, numpy as np
+import presim.runtime, numba, numpy as np
+presim.runtime.configure()
 from presim.geometry import Intrinsics, look_at
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.threads import SERIAL_MAX_PIXELS

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from presim.capture.scene import Scene
+from presim.capture.store import load_scene, read_refined_poses
 
 __all__ = ["scene_info", "format_info"]
 
@@ -71,8 +72,6 @@ def scene_info(scene: Scene, max_sample_frames: int = 50) -> dict:
 
 def _poses_info(scene: Scene) -> dict:
     """Which poses are in use, and how far ``presim align`` moved each frame from the given pose."""
-    from presim.capture.store import load_scene, read_refined_poses
-
     out: dict = {"in_use": scene.poses_source, "refined_available": False}
     if scene.path is None:
         return out

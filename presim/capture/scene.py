@@ -15,14 +15,12 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol, Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 
+from presim.capture.calibration import PhotometricCalib
 from presim.geometry import Intrinsics, compose, transform_points
-
-if TYPE_CHECKING:
-    from presim.capture.photometric import PhotometricCalib
 
 __all__ = [
     "Frame",
@@ -242,7 +240,7 @@ class Scene:
     (placeholders, estimated there)."""
     photometric: "PhotometricCalib | None" = None
     """Per-frame colour transforms keyed by frame id (``presim photometric``,
-    :mod:`presim.capture.photometric`); None if absent. Subsets keep it (lookups are by id)."""
+    :mod:`presim.photometric`); None if absent. Subsets keep it (lookups are by id)."""
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)

@@ -22,10 +22,10 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
+from presim.capture.calibration import PhotometricCalib
 from presim.capture.scene import (
     ArrayFrameSource, FloorPlane, PointCloud, Scene, SceneError, SceneMeta, SceneObject,
 )
@@ -33,7 +33,7 @@ from presim.geometry import Intrinsics, unproject_depth
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
-           "set_has_refined_depth", "set_has_fused_depth", "open_scene",
+           "set_has_refined_depth", "set_has_fused_depth",
            "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses",
            "PHOTOMETRIC_FILE", "save_photometric"]
 
@@ -223,7 +223,7 @@ def set_has_fused_depth(path: str | Path) -> None:
 
 
 def save_photometric(path: str | Path, calib) -> Path:
-    """Write a :class:`~presim.capture.photometric.PhotometricCalib` into the saved scene at ``path``
+    """Write a :class:`~presim.capture.calibration.PhotometricCalib` into the saved scene at ``path``
     as ``photometric.json`` (atomic; the images are never touched). Its frame ids must be the
     scene's. Returns the file."""
     path = Path(path)
@@ -238,9 +238,7 @@ def save_photometric(path: str | Path, calib) -> Path:
     return out
 
 
-def _load_photometric(path: Path):
-    from presim.capture.photometric import PhotometricCalib
-
+def _load_photometric(path: Path) -> PhotometricCalib | None:
     f = path / PHOTOMETRIC_FILE
     if not f.is_file():
         return None
@@ -404,30 +402,3 @@ def model_abspath(scene: Scene, obj: SceneObject) -> Path | None:
         return None
     p = Path(obj.model_path)
     return p if p.is_absolute() or scene.path is None else scene.path / p
-
-
-def open_scene(path: str | Path, allow_capture: bool = False,
-               on_import: Callable[[str], None] | None = None, poses: str = "auto") -> Scene:
-    """The scene a user names on the command line: a saved scene folder, or with ``allow_capture``
-    a capture folder any importer reads (imported in memory, not saved; ``on_import`` gets a
-    one-line note first). Every refusal is a :class:`SceneError` (a ValueError) naming the path:
-    missing, an interrupted save (``.partial``), not a saved scene, or what the loader / importer found.
-    ``poses`` picks a saved scene's camera poses (:data:`POSE_CHOICES`, see :func:`load_scene`).
-    """
-    path = Path(path)
-    if is_scene_dir(path) or path.with_name(path.name + ".partial").exists():
-        return load_scene(path, poses=poses)  # an interrupted save gets load_scene's own message
-    if not path.exists():
-        raise SceneError(f"{path}: scene folder not found")
-    if not allow_capture:
-        raise SceneError(f"{path}: not a saved scene (no scene.json); import a capture first: presim import SRC DST")
-    from presim.capture.importers.registry import import_capture  # importers sit above the store
-
-    if on_import is not None:
-        on_import(f"{path}: not a saved scene; importing it on the fly (save it with `presim import` to skip this)")
-    try:
-        return import_capture(path)
-    except SceneError:
-        raise
-    except (OSError, ValueError) as e:  # the registry's "no importer recognises this", a missing file
-        raise SceneError(str(e)) from e

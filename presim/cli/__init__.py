@@ -8,6 +8,8 @@ import signal
 import sys
 import threading
 
+from presim import runtime
+
 # Order = order in `presim --help`, following the data flow.
 _MODULES = [
     "presim.cli.sample_cmd",      # sample-scene
@@ -69,6 +71,9 @@ def _raise_interrupt(signum, frame):
 
 
 def main(argv: list[str] | None = None) -> int:
+    # First: libgomp reads OMP_WAIT_POLICY once, when a command's first torch import or numba
+    # parallel kernel loads it (presim/runtime.py).
+    runtime.configure()
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

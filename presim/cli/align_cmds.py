@@ -83,10 +83,10 @@ def _auto_int(s: str) -> int | None:
 def _align(args) -> int:
     import numpy as np
 
-    from presim.capture.align import AlignConfig, align_poses
-    from presim.capture.align.bundle import BAConfig
-    from presim.capture.align.features import FeatureConfig
-    from presim.capture.align.grouping import GroupConfig
+    from presim.align import AlignConfig, align_poses
+    from presim.align.bundle import BAConfig
+    from presim.align.features import FeatureConfig
+    from presim.align.grouping import GroupConfig
     from presim.capture.store import REFINED_POSES_FILE, load_scene, save_refined_poses
     from presim.io_utils import atomic_write_json
 
@@ -142,19 +142,20 @@ def _reference_poses(ref: Path, scene) -> tuple:
     """(indices into scene, reference poses) matched by stamp (TUM file) or frame id (folder)."""
     import numpy as np
 
-    from presim.evaluation.poses import match_by_stamp, read_tum_trajectory
+    from presim.evaluation.poses import match_by_stamp
+    from presim.formats.tum import read_tum_rows
 
     if not ref.exists():
         raise FileNotFoundError(f"{ref}: reference not found")
     if ref.is_file():
-        st, rows = read_tum_trajectory(ref)
+        st, rows = read_tum_rows(ref)
         return match_by_stamp(scene.stamps_s, st, rows)
     from presim.capture.store import is_scene_dir, load_scene
 
     if is_scene_dir(ref):
         other = load_scene(ref, poses="given")
     elif (ref / "groundtruth.txt").is_file():
-        st, rows = read_tum_trajectory(ref / "groundtruth.txt")
+        st, rows = read_tum_rows(ref / "groundtruth.txt")
         return match_by_stamp(scene.stamps_s, st, rows)
     else:
         from presim.capture.importers import import_capture

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -52,11 +53,10 @@ def register(sub) -> None:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
+    from presim.align.sfm import SfmConfig, estimate_poses
     from presim.capture.importers import import_capture
     from presim.capture.info import format_info, scene_info
     from presim.capture.store import load_scene, save_scene
-
-    from presim.capture.align.sfm import SfmConfig
 
     if args.dst.exists() and not args.overwrite:
         raise FileExistsError(f"{args.dst}: already exists (pass --overwrite to replace it)")
@@ -64,8 +64,9 @@ def _cmd_import(args: argparse.Namespace) -> int:
         raise ValueError(f"--min-registered must be in (0, 1], got {args.min_registered}")
     scene = import_capture(args.src, fmt=args.fmt, every=args.every, max_frames=args.max_frames,
                            gravity=args.gravity, align_floor=not args.no_floor,
-                           sfm_config=SfmConfig(min_registered_frac=args.min_registered, seed=args.sfm_seed,
-                                                           num_threads=args.sfm_threads))
+                           estimate_poses=functools.partial(estimate_poses, config=SfmConfig(
+                               min_registered_frac=args.min_registered, seed=args.sfm_seed,
+                               num_threads=args.sfm_threads)))
     save_scene(scene, args.dst, overwrite=args.overwrite)
     saved = load_scene(args.dst)
     print(format_info(scene_info(saved, max_sample_frames=10)))

@@ -107,7 +107,7 @@ def run_ros(args: argparse.Namespace) -> int:
     from presim.sim.simulator import SimConfig, Simulator
 
     import_rospy()
-    from presim.capture.store import open_scene
+    from presim.capture.open import open_scene
     from presim.sim.robot import robot_for_scene
 
     scene = open_scene(args.scene)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    from presim.capture.photometric import PHOTOMETRIC_MODELS
+    from presim.capture.calibration import PHOTOMETRIC_MODELS
 
     p = sub.add_parser("photometric", help="calibrate per-frame exposure/white balance of a scene (photometric.json)",
                        description="Solves one colour transform per frame jointly over overlapping frames "
@@ -29,7 +29,7 @@ def register(sub) -> None:
 def _cmd_photometric(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from presim.capture.photometric import PhotometricConfig, calibrate_photometric
+    from presim.photometric import PhotometricConfig, calibrate_photometric
     from presim.capture.store import PHOTOMETRIC_FILE, load_scene, save_photometric
 
     if args.neighbors < 1:

@@ -81,7 +81,7 @@ def _refine(args) -> int:
 def _fuse(args) -> int:
     import time
 
-    from presim.capture.store import open_scene
+    from presim.capture.open import open_scene
     from presim.depth.align import AlignConfig
     from presim.depth.fuse import FuseConfig
     from presim.depth.scene_fuse import fuse_scene

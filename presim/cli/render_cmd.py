@@ -50,7 +50,7 @@ def register(sub) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from presim.capture.store import open_scene
+    from presim.capture.open import open_scene
     from presim.formats.tum import read_tum
     from presim.geometry import pose_from_tum
     from presim.limits import check_intrinsics, check_positive_int

@@ -132,7 +132,8 @@ def _controller(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from presim.capture.store import open_scene
+    from presim.align.sfm import estimate_poses
+    from presim.capture.open import open_scene
     from presim.limits import check_intrinsics, check_positive, check_render_memory
     from presim.sensors.camera import CameraSpec
     from presim.sensors.noise import DepthNoiseConfig
@@ -153,8 +154,8 @@ def run(args: argparse.Namespace) -> int:
     if args.keep_open and args.viewer != "web":
         raise ValueError("--keep-open keeps the web viewer serving: it needs --viewer web")
     _parse_controller(args)
-    scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr),
-                       poses=getattr(args, "scene_poses", "auto"))
+    scene = open_scene(args.scene, allow_capture=True, estimate_poses=estimate_poses,
+                       on_import=lambda note: print(note, file=sys.stderr), poses=getattr(args, "scene_poses", "auto"))
     robot = robot_from_args(args, scene)
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz,
                      noise=DepthNoiseConfig() if args.depth_noise else None)

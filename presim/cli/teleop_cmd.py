@@ -47,12 +47,14 @@ def register(sub) -> None:
 def build_simulator(args: argparse.Namespace):
     """Scene + robot + simulator exactly as ``presim drive`` builds them (the one place teleop calls
     drive's builders)."""
-    from presim.capture.store import open_scene
+    from presim.align.sfm import estimate_poses
+    from presim.capture.open import open_scene
     from presim.sensors.camera import CameraSpec
     from presim.sim.simulator import SimConfig, Simulator
     from presim.synthesis.renderer import RenderConfig
 
-    scene = open_scene(args.scene, allow_capture=True, on_import=lambda note: print(note, file=sys.stderr))
+    scene = open_scene(args.scene, allow_capture=True, estimate_poses=estimate_poses,
+                       on_import=lambda note: print(note, file=sys.stderr))
     robot = robot_from_args(args, scene)
     cam = CameraSpec(width=args.width, height=args.height, hfov_deg=args.hfov_deg, rate_hz=args.rate_hz)
     render = RenderConfig(time_budget_ms=args.render_budget_ms)

@@ -39,6 +39,7 @@ from presim.formats.bop import (
 )
 from presim.formats.ply import PlyMesh, read_ply
 from presim.geometry import Intrinsics
+from presim.io_utils import read_image
 
 __all__ = [
     "MM_TO_M",
@@ -210,17 +211,14 @@ class BopDataset:
 
     def read_rgb(self, scene_id: int, im_id: int) -> np.ndarray:
         """uint8 (H, W, 3) RGB."""
-        from presim.io_utils import read_image
         return read_image(self.image_path(scene_id, im_id, "rgb"), kind="color")
 
     def read_depth_m(self, scene_id: int, im_id: int) -> np.ndarray:
         """float32 (H, W) z-depth in metres, 0 = invalid (``png * depth_scale / 1000``)."""
-        from presim.io_utils import read_image
         raw = read_image(self.image_path(scene_id, im_id, "depth"), kind="depth")
         scale = self.scene_camera(scene_id)[im_id].depth_scale
         return (raw.astype(np.float32) * np.float32(scale * MM_TO_M))  # BOP mm x depth_scale -> m
 
     def read_mask(self, scene_id: int, im_id: int, gt_idx: int, visib: bool = True) -> np.ndarray:
         """bool (H, W) mask of instance ``gt_idx``."""
-        from presim.io_utils import read_image
         return read_image(self.mask_path(scene_id, im_id, gt_idx, visib), kind="mask") > 0

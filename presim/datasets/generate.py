@@ -42,6 +42,7 @@ from presim.datasets.objects import merge_models_dir
 from presim.datasets.real_split import FrameRanges, frame_positions
 from presim.geometry import Intrinsics, compose, invert, transform_points
 from presim.io_utils import atomic_write_bytes, atomic_write_json, progress
+from presim.synthesis.renderer import RenderConfig, Renderer
 
 __all__ = ["GenConfig", "GenJob", "FrameOutput", "FrameGenerator", "GenReport", "generate_bop",
            "WORK_DIR", "COMPLETE_MARKER", "report_path"]
@@ -171,8 +172,6 @@ class FrameGenerator:
 
     def __init__(self, job: GenJob):
         from scipy.spatial import cKDTree
-
-        from presim.synthesis.renderer import RenderConfig, Renderer
 
         self.job = job
         self.cfg = job.config

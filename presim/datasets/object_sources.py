@@ -35,6 +35,7 @@ import numpy as np
 from presim.capture.scene import Scene, SceneError
 from presim.capture.store import model_abspath
 from presim.datasets.objects import ObjectModel, load_model, symmetries_of
+from presim.formats.bop import read_models_info, read_scene_camera, read_scene_gt
 from presim.geometry import check_rigid, compose, invert, make_pose
 
 __all__ = ["PlacedObject", "read_json_items", "objects_from_scene", "objects_from_json", "objects_from_bop",
@@ -177,7 +178,6 @@ def _find_models_dir(start: Path) -> Path:
 
 def objects_from_bop(scene_folder: str | Path, scene: Scene) -> list[PlacedObject]:
     """Objects of a BOP scene placed in ``scene``'s world (see the module docstring)."""
-    from presim.formats.bop import read_models_info, read_scene_camera, read_scene_gt
 
     sdir = Path(scene_folder)
     if not (sdir / "scene_gt.json").is_file():

@@ -21,8 +21,9 @@ from typing import Sequence
 
 import numpy as np
 
-from presim.formats.bop import M_TO_MM, MM_TO_M, ModelInfo
+from presim.formats.bop import M_TO_MM, MM_TO_M, ModelInfo, load_json
 from presim.formats.ply import read_ply, write_ply
+from presim.io_utils import atomic_write_json
 
 __all__ = ["ObjectModel", "load_model", "model_diameter_m", "models_info_entry", "models_info",
            "write_model_ply_mm", "symmetries_of"]
@@ -82,10 +83,6 @@ class ObjectModel:
         if int(self.obj_id) < 1:
             raise ValueError(f"model {self.source}: BOP object ids start at 1, got {self.obj_id}")
         object.__setattr__(self, "obj_id", int(self.obj_id))
-
-    @property
-    def is_mesh(self) -> bool:
-        return self.faces is not None
 
     @property
     def symmetric(self) -> bool:
@@ -248,9 +245,6 @@ def merge_models_dir(out: str | Path, objects, hint: str = "") -> None:
     ``model``), merged with what the folder already holds: the same id must have the same
     ``models_info`` entry, else ``ValueError`` (``hint`` is appended to its message). Shared by every
     split written into one BOP dataset (synthesized and real)."""
-    from presim.formats.bop import load_json
-    from presim.io_utils import atomic_write_json
-
     info_path = Path(out) / "models" / "models_info.json"
     merged = dict(load_json(info_path)) if info_path.is_file() else {}
     for o in objects:

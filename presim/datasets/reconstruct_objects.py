@@ -45,6 +45,8 @@ from typing import Sequence
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
+from presim.datasets.object_sources import read_json_items
+from presim.formats.ply import write_ply
 from presim.geometry import invert, make_pose, transform_points, unproject_depth
 from presim.io_utils import atomic_write_json, progress
 
@@ -448,7 +450,6 @@ def read_boxes_json(path: str | Path) -> list[ObjectBox]:
     ``obj_id`` (default: position + 1), ``R``/``yaw_deg`` (default: world axes; yaw about world z)
     and ``symmetric`` are optional. Overlapping boxes are refused.
     """
-    from presim.datasets.object_sources import read_json_items
 
     path = Path(path)
     items = read_json_items(path, "boxes", "boxes file", "box")
@@ -751,7 +752,6 @@ def write_objects_into_scene(scene_path: str | Path, objects: Sequence[Reconstru
     and ``obj_XXXXXX_points.ply`` (the cloud: colour, normals), metres, object frame. Returns the
     new ``scene.json`` object entries. Nothing changes in the scene unless all of it is written.
     """
-    from presim.formats.ply import write_ply
 
     scene_path = Path(scene_path)
     hdr_path = scene_path / "scene.json"

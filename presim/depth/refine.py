@@ -44,6 +44,7 @@ from typing import NamedTuple, Sequence
 import numba as nb
 import numpy as np
 
+from presim.capture.sharpness import sharpness_score
 from presim.geometry import Intrinsics, compose, invert
 
 __all__ = ["RefineConfig", "RefView", "RefinedDepth", "refine_depth", "select_reference_views",
@@ -134,7 +135,6 @@ class RefView:
 def reference_weights(colors: Sequence[np.ndarray], gamma: float = 2.0) -> list[float]:
     """Sharpness weights of reference images: ``(score / max score) ** gamma`` in (0, 1], the
     sharpest reference 1 (re-blur score, :func:`presim.capture.sharpness.sharpness_score`)."""
-    from presim.capture.sharpness import sharpness_score
 
     sc = np.array([sharpness_score(c) for c in colors], dtype=np.float64)
     if len(sc) == 0:

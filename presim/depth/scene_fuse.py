@@ -17,6 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from presim.capture.scene import Scene
+from presim.capture.store import set_has_fused_depth
 from presim.depth.align import AlignConfig, AlignedDepth, align_depth
 from presim.depth.fuse import FuseConfig, FusedDepth, fuse_depth
 from presim.geometry import Intrinsics
@@ -59,8 +60,6 @@ def fuse_scene(scene: Scene, overwrite: bool = False, align: AlignConfig = Align
     if scene.depth_refined is None:
         raise ValueError(f"{scene.path}: no depth_refined.npy; run `presim refine {scene.path}` first "
                          "(the refined depth is the estimate the sensor depth is aligned to)")
-    from presim.capture.store import set_has_fused_depth
-
     dst = Path(scene.path) / FUSED_FILE
     if dst.exists() and not overwrite:
         raise FileExistsError(f"{dst}: already exists (pass --overwrite to recompute)")

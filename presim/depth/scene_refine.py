@@ -22,6 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from presim.capture.scene import Scene
+from presim.capture.store import load_scene, set_has_refined_depth
 from presim.depth.refine import RefineConfig, RefView, refine_depth, reference_weights, select_reference_views
 from presim.io_utils import atomic_write_json, progress
 
@@ -58,8 +59,6 @@ _W: dict = {}
 
 def _init_worker(scene_path: str, partial: str, done_dir: str, config: RefineConfig, poses: str = "auto") -> None:
     import numba
-
-    from presim.capture.store import load_scene
 
     numba.set_num_threads(1)  # parallelism comes from the processes
     _W.update(scene=load_scene(scene_path, poses=poses), partial=partial, done=Path(done_dir), config=config)
@@ -163,8 +162,6 @@ def refine_scene(scene: Scene, workers: int = 1, overwrite: bool = False,
     (references from all frames). Returns the path when complete, None if stopped by ``max_frames``."""
     if scene.path is None:
         raise ValueError("refine_scene needs a saved scene (load it with presim.capture.store.load_scene)")
-    from presim.capture.store import set_has_refined_depth
-
     out = refine_frames_to_file(scene, Path(scene.path) / "depth_refined.npy", config=config,
                                 workers=workers, overwrite=overwrite, max_frames=max_frames)
     if out is not None:

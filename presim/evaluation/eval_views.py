@@ -34,12 +34,17 @@ from typing import Callable
 
 import numpy as np
 
-from presim.capture.photometric import PhotometricConfig
 from presim.capture.scene import Scene
 from presim.depth.filters import guided_filter_depth, median_filter_depth
+from presim.depth.fuse import FuseConfig
 from presim.depth.refine import RefineConfig
+from presim.depth.scene_fuse import fuse_frames
 from presim.depth.scene_refine import refine_frames_to_file, refine_one_frame
+from presim.evaluation.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
 from presim.io_utils import progress
+from presim.photometric import PhotometricConfig, calibrate_photometric
+from presim.synthesis.fill import fill_holes
+from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.rgbd import RGBD
 
 __all__ = ["METHODS", "DEFAULT_METHODS", "EvalConfig", "EvalResult", "eval_views", "format_table",
@@ -83,7 +88,7 @@ METHODS: dict[str, tuple[dict, str]] = {
     **{f"layers_{k}": ({"num_layers": k}, "refined") for k in range(1, 9)},
     "tsdf_mesh": ({}, "tsdf"),
     # Beyond the thesis. Photometric methods use a calibration of the capture
-    # (presim.capture.photometric, refined depth); exposure_frame "<target>" = the target's own.
+    # (presim.photometric, refined depth); exposure_frame "<target>" = the target's own.
     "photo": ({"use_photometric": True, "exposure_frame": TARGET_EXPOSURE}, "refined"),
     "photo_mean": ({"use_photometric": True, "predict_exposure": False}, "refined"),
     # exposure predicted from the views near the pose (no information from the target)
@@ -201,8 +206,6 @@ def _photometric_key(overrides: dict, base) -> tuple[str, bool]:
 
 
 def _render_config(overrides: dict, use_refined: bool, thesis_loop: bool = True):
-    from presim.synthesis.renderer import RenderConfig
-
     names = {f.name for f in dataclasses.fields(RenderConfig)}
     missing = [k for k in overrides if k not in names]
     if missing:
@@ -217,8 +220,6 @@ def _render_config(overrides: dict, use_refined: bool, thesis_loop: bool = True)
 
 def _fill(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The renderer's final hole filling (same for every method)."""
-    from presim.synthesis.fill import fill_holes
-
     return fill_holes(color, depth_m, valid)
 
 
@@ -268,9 +269,6 @@ def _spread(items: list[int], n: int | None) -> list[int]:
 def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str | Path | None = None,
                log: Callable[[str], None] | None = None) -> EvalResult:
     """Run the leave-one-out evaluation (see module docstring) and return per-method metrics."""
-    from presim.synthesis.renderer import Renderer
-    from presim.evaluation.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
-
     unknown = [m for m in config.methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(METHODS)}")
@@ -287,9 +285,6 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
         depth_sets["refined"] = _refined_capture_depth(scene, capture, config,
                                                        None if cache_dir is None else Path(cache_dir))
     if variants & {"fused", "fused_est"}:
-        from presim.depth.fuse import FuseConfig
-        from presim.depth.scene_fuse import fuse_frames
-
         if depth_sets.get("refined") is None:
             depth_sets["refined"] = _refined_capture_depth(scene, capture, config,
                                                            None if cache_dir is None else Path(cache_dir))
@@ -314,8 +309,6 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
         key = _photometric_key(ov, config.photometric)
         if not ov.get("use_photometric") or key in photo_calibs:
             continue
-        from presim.capture.photometric import calibrate_photometric
-
         t1 = time.perf_counter()
         ref_cap = cap if depth_sets.get("refined") is None else dataclasses.replace(cap, depth_refined=depth_sets["refined"])
         pc = photo_calibs[key] = calibrate_photometric(

@@ -13,13 +13,13 @@ interpolated between bracketing samples) or by frame id.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from presim.formats.tum import interpolate_pose
 from presim.geometry import invert
 
-__all__ = ["TrajectoryErrors", "umeyama", "ate_rpe", "read_tum_trajectory", "match_by_stamp"]
+__all__ = ["TrajectoryErrors", "umeyama", "ate_rpe", "match_by_stamp"]
 
 
 @dataclass(frozen=True)
@@ -82,25 +82,10 @@ def ate_rpe(T_ref: np.ndarray, T_est: np.ndarray, similarity: bool = False, delt
     return TrajectoryErrors(ate, rpe_t, rpe_r, n, "rigid" if not similarity else f"similarity (scale {s:.6f})", A)
 
 
-def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps (N,), rows (N, 7) 'tx ty tz qx qy qz qw') of a TUM trajectory file, sorted by stamp."""
-    from presim.capture.importers.tum import read_list
-
-    rows = read_list(Path(path), 8)
-    if not rows:
-        raise ValueError(f"{path}: empty trajectory")
-    try:
-        vals = np.array([[float(x) for x in v] for _, v in rows])
-    except ValueError as e:
-        raise ValueError(f"{path}: non-numeric pose ({e})") from None
-    return np.array([t for t, _ in rows]), vals
-
-
 def match_by_stamp(stamps_est: np.ndarray, ref_stamps: np.ndarray, ref_rows: np.ndarray,
                    max_gap_s: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """(indices of estimated frames matched, reference poses (M, 4, 4) interpolated at their stamps)."""
-    from presim.capture.importers.tum import interpolate_pose
-
+    """(indices of estimated frames matched, reference poses (M, 4, 4) interpolated at their stamps);
+    ``ref_stamps``, ``ref_rows``: :func:`presim.formats.tum.read_tum_rows` of the reference."""
     idx, poses = [], []
     for i, t in enumerate(np.asarray(stamps_est, float)):
         T = interpolate_pose(ref_stamps, ref_rows, float(t), max_gap_s)

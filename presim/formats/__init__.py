@@ -5,8 +5,8 @@ Modules (each one rule, documented in docs/scene-format.md, "Shared file formats
 - :mod:`presim.formats.png`: PNG bytes of an RGB / gray / uint16 / boolean image.
 - :mod:`presim.formats.depth_png`: metres -> 16-bit depth PNG with a depth scale, one overflow rule
   and a count of the pixels it could not store.
-- :mod:`presim.formats.tum`: TUM trajectories (``stamp x y z qx qy qz qw``), the strict reader and
-  the writer.
+- :mod:`presim.formats.tum`: TUM trajectories (``stamp x y z qx qy qz qw``), the one strict reader
+  (every TUM trajectory PreSim reads goes through it), pose interpolation and the writer.
 - :mod:`presim.formats.kinfu_folder`: the KinectFusion / 7-Scenes capture folder writer (what
   ``presim drive --record`` and ``presim render`` write and the ``kinfu`` importer reads).
 - :mod:`presim.formats.ply`: the PLY reader / writer of point clouds and object models.

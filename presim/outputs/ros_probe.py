@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from presim.geometry import make_pose, quat_xyzw_to_R
 from presim.outputs.ros import import_rospy, pose_to_T
 
 __all__ = ["main"]
@@ -72,8 +73,6 @@ class _Watch:
             for t in m.transforms:
                 self.edges[t.child_frame_id] = t.header.frame_id
                 tr, q = t.transform.translation, t.transform.rotation
-                from presim.geometry import make_pose, quat_xyzw_to_R
-
                 self._tf_T[t.child_frame_id] = make_pose(quat_xyzw_to_R(np.array([q.x, q.y, q.z, q.w])),
                                                          [tr.x, tr.y, tr.z])
             if "odom" in self._tf_T and "base_link" in self._tf_T:

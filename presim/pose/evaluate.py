@@ -29,7 +29,8 @@ import numpy as np
 from presim.datasets.bop_reader import BopDataset
 from presim.formats.bop import GtInstance, Target
 from presim.pose import curves
-from presim.pose.metrics import symmetry_transformations
+from presim.pose.metrics import MeshDepthRenderer, symmetry_transformations, vsd
+from presim.pose.nn_grid import NNGrid, adi_batch_kdtree
 from presim.pose.results import BopResults, Estimate, read_bop_results
 
 __all__ = ["EvalConfig", "TargetRecord", "EvalReport", "evaluate", "evaluate_files"]
@@ -208,7 +209,6 @@ class ObjectData:
 
     def renderer(self):
         if self._renderer is None:
-            from presim.pose.metrics import MeshDepthRenderer
             m = self._ds.model_mesh_m(self._obj_id, eval=False)  # full mesh for rendering, as BOP
             self._renderer = MeshDepthRenderer(m.vertices, m.faces)
         return self._renderer
@@ -218,9 +218,9 @@ class ObjectData:
 
 def _pair_errors(od: ObjectData, R_e, t_e, R_g, t_g, K, cfg: EvalConfig) -> dict[str, np.ndarray]:
     """Errors of E (estimate, GT) pairs of one object; K (E, 3, 3)."""
-    import torch
+    import torch  # optional dependency, imported when a batch is scored
 
-    from presim.pose import metrics_torch as mt
+    from presim.pose import metrics_torch as mt  # imports torch
 
     E = len(R_e)
     if E == 0:
@@ -243,7 +243,6 @@ def _pair_errors(od: ObjectData, R_e, t_e, R_g, t_g, K, cfg: EvalConfig) -> dict
     if dev.startswith("cuda"):
         out["adi"] = mt.adi(Re, te_, Rg, tg, pts).cpu().numpy()
     else:
-        from presim.pose.nn_grid import NNGrid, adi_batch_kdtree
         # The grid index pays off from a few thousand poses; below, one batched KD-tree query.
         out["adi"] = (NNGrid(od.pts).adi(R_e, t_e, R_g, t_g) if E >= 3000
                       else adi_batch_kdtree(od.pts, R_e, t_e, R_g, t_g))
@@ -252,7 +251,6 @@ def _pair_errors(od: ObjectData, R_e, t_e, R_g, t_g, K, cfg: EvalConfig) -> dict
 
 def _vsd_errors(od: ObjectData, ds: BopDataset, scene_id: int, im_id: int, R_e, t_e, R_g, t_g, K,
                 cfg: EvalConfig) -> list[float]:
-    from presim.pose.metrics import vsd
     depth = ds.read_depth_m(scene_id, im_id)
     return vsd(R_e, t_e, R_g, t_g, depth, K, cfg.vsd_delta_m, cfg.vsd_taus, True, od.diameter, od.renderer())
 

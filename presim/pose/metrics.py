@@ -23,7 +23,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from presim.geometry import Intrinsics
+from presim.geometry import Intrinsics, invert, make_pose
 
 __all__ = [
     "transform_pts",
@@ -300,11 +300,11 @@ class MeshDepthRenderer:
         Km = _K(K)
         u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
         dirs_cam = np.stack([(u - Km[0, 2]) / Km[0, 0], (v - Km[1, 2]) / Km[1, 1], np.ones_like(u)], -1)
-        # Cast in the model frame: origin = R^T(0 - t), direction = R^T d (d has z = 1, so the hit
-        # distance along it is the z-depth directly).
-        R = np.asarray(R, dtype=np.float64)
-        origin = -R.T @ np.asarray(t, dtype=np.float64).reshape(3)
-        dirs = dirs_cam.reshape(-1, 3) @ R
+        # Cast in the model frame: origin = the camera centre, direction = R^T d (d has z = 1, so the
+        # hit distance along it is the z-depth directly).
+        T_model_cam = invert(make_pose(np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3)))
+        origin = T_model_cam[:3, 3]
+        dirs = dirs_cam.reshape(-1, 3) @ T_model_cam[:3, :3].T
         rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=1).astype(np.float32)
         hit = self._scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy().reshape(height, width)
         depth = np.where(np.isfinite(hit), hit, 0.0).astype(np.float32)

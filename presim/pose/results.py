@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from presim.datasets.bop_reader import MM_TO_M
+from presim.datasets.bop_reader import BopDataset, MM_TO_M
+from presim.geometry import quat_xyzw_to_R
+from presim.io_utils import atomic_write_text
 
 __all__ = ["Estimate", "Rejection", "BopResults", "read_bop_results", "write_bop_results", "estimates_from_gt", "HEADER"]
 
@@ -157,7 +159,6 @@ def read_bop_results(path: str | Path, known_obj_ids=None, rot_tol: float = 1e-2
 
 def write_bop_results(path: str | Path, estimates: list[Estimate]) -> None:
     """Write estimates as a BOP'19 CSV (t converted to mm), atomically."""
-    from presim.io_utils import atomic_write_text
 
     lines = [",".join(HEADER)]
     for e in estimates:
@@ -175,9 +176,6 @@ def estimates_from_gt(dataset_dir: str | Path, split: str = "test", noise_t_m: f
     ``noise_t_m`` (per-axis std of the translation error, metres) and ``noise_rot_deg`` (std of the
     rotation angle about a random axis) the scores fall by amounts that can be checked on paper.
     """
-    from presim.datasets.bop_reader import BopDataset
-    from presim.geometry import quat_xyzw_to_R
-
     ds = BopDataset(dataset_dir, split=split)
     rng = np.random.default_rng(seed)
     out: list[Estimate] = []

@@ -1,6 +1,7 @@
 """Gymnasium environments (thesis Sec. 4.4, visual navigation).
 
-Registered ids (``import presim`` registers them, lazily: see ``presim.register_gym_envs``):
+Registered ids (importing this module registers them, :func:`register_envs`; so does
+``gym.make("presim.sim.envs:PreSim-PointNav-v0", ...)``, which imports it first):
 
 - ``PreSim-PointNav-v0``: continuous actions ``Box([-1, -1], [1, 1])`` = (forward speed, turn rate)
   as fractions of the base's limits;
@@ -14,14 +15,18 @@ truncated after ``max_episode_steps``. Goals are drawn from the seed among free 
 from the start (same connected component of the map), ``min/max_goal_dist_m`` away (straight line).
 
 Example:
-    >>> import gymnasium as gym, presim                                       # doctest: +SKIP
+    >>> import gymnasium as gym, presim.sim.envs                             # doctest: +SKIP
     >>> env = gym.make("PreSim-PointNav-v0", scene="out/sample", width=64, height=48)   # doctest: +SKIP
+    >>> env = gym.make("presim.sim.envs:PreSim-PointNav-v0", scene="out/sample")  # no import needed  # doctest: +SKIP
     >>> obs, info = env.reset(seed=0)                                         # doctest: +SKIP
     >>> venv = gym.make_vec("PreSim-PointNav-v0", num_envs=8, scene="out/sample", workers=2)  # doctest: +SKIP
 
 ``gym.make_vec`` on these ids makes :class:`presim.sim.vector_env.PointNavVectorEnv` (their vector
 entry point: robots rendered in batches, optionally on worker processes); pass
 ``vectorization_mode="sync"`` or ``"async"`` for gymnasium's wrappers of N single envs.
+
+Constructing an env calls :func:`presim.runtime.configure` (the process settings the renderer's
+speed depends on).
 """
 
 from __future__ import annotations
@@ -34,7 +39,11 @@ import numpy as np
 from gymnasium import spaces
 from scipy.ndimage import label
 
+from presim import runtime
 from presim.capture.scene import Scene
+from presim.capture.store import load_scene
+from presim.geometry import compose
+from presim.limits import check_intrinsics, check_render_memory
 from presim.sensors.camera import CameraSpec
 from presim.sensors.noise import DepthNoiseConfig
 from presim.sim.controllers import wrap_angle
@@ -77,8 +86,6 @@ class PointNavConfig:
 def _load(scene: str | Path | Scene) -> Scene:
     if isinstance(scene, Scene):
         return scene
-    from presim.capture.store import load_scene
-
     return load_scene(scene)
 
 
@@ -90,12 +97,11 @@ class PointNavEnv(gym.Env):
     def __init__(self, scene: str | Path | Scene, discrete: bool = False, width: int = 128, height: int = 96,
                  config: PointNavConfig | None = None, render_mode: str | None = None,
                  render_camera: bool = True, renderer=None):
+        runtime.configure()
         self.cfg = config or PointNavConfig()
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
-        from presim.limits import check_intrinsics, check_render_memory
-
         check_intrinsics(width, height, prefix="")
         check_render_memory(width, height, what="one observation", size_flag="width/height")
         cam = CameraSpec(name="head_camera", width=width, height=height, hfov_deg=self.cfg.hfov_deg,
@@ -152,8 +158,6 @@ class PointNavEnv(gym.Env):
 
     def camera_pose(self) -> np.ndarray:
         """4x4 ``T_world_cam`` of the head camera now (what the observation would be rendered at)."""
-        from presim.geometry import compose
-
         return compose(self.sim.T_world_base, self.sim.T_base_cam(0))
 
     def set_camera_images(self, color: np.ndarray, depth_m: np.ndarray) -> dict:
@@ -208,11 +212,20 @@ class PointNavEnv(gym.Env):
         self.sim.close()
 
 
-def register_envs() -> None:
-    """Register the PreSim environments with gymnasium (idempotent; ``import presim`` does it too)."""
-    from presim import register_gym_envs
+GYM_ENV_IDS = (("PreSim-PointNav-v0", False), ("PreSim-PointNavDiscrete-v0", True))
+"""``(id, discrete)`` of the registered environments."""
 
-    register_gym_envs()
+
+def register_envs() -> None:
+    """Register the PreSim environments with gymnasium (idempotent; importing this module does it).
+
+    ``gym.make_vec(id, num_envs=N, scene=..., [workers=W])`` makes the batched
+    :class:`~presim.sim.vector_env.PointNavVectorEnv` (``vectorization_mode="sync"`` / ``"async"``:
+    gymnasium's wrappers of N single envs)."""
+    for env_id, discrete in GYM_ENV_IDS:
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point="presim.sim.envs:PointNavEnv", kwargs={"discrete": discrete},
+                         vector_entry_point="presim.sim.vector_env:PointNavVectorEnv")
 
 
 register_envs()

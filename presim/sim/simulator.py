@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from presim.capture.scene import Scene
+from presim.capture.store import fuse_point_cloud
 from presim.geometry import Intrinsics, check_rigid, compose, invert, make_pose, rotation_z
 from presim.sensors.camera import CameraSpec
 from presim.sensors.noise import apply_depth_noise
@@ -96,7 +97,6 @@ class Simulator:
         if not config.dt_s > 0:
             raise ValueError(f"dt_s must be > 0, got {config.dt_s}")
         if scene.points is None or len(scene.points) == 0:
-            from presim.capture.store import fuse_point_cloud
 
             # In-memory scenes may come without a cloud: fuse one (the obstacles and the viewer need it).
             self.points = fuse_point_cloud(scene)

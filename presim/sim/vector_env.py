@@ -46,6 +46,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from presim import runtime
 from presim.capture.scene import Scene
 from presim.sim.envs import PointNavConfig, PointNavEnv, _load
 from presim.sim.simulator import SIM_RENDER_CACHE_MB
@@ -66,6 +67,7 @@ class PointNavVectorEnv(VectorEnv):
         renderer's configs (default: ``RenderConfig()``, the cache bounded by ``SIM_RENDER_CACHE_MB``);
         ``workers``: 0 or 1 = all robots in this process, W >= 2 = split over W worker processes
         (at most ``num_envs``; see the module doc). ``renderer`` and ``envs`` are None then."""
+        runtime.configure()
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if workers < 0:

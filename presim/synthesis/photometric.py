@@ -89,7 +89,7 @@ def vignetting_gain_map(K, vignetting: tuple[float, float] | None) -> np.ndarray
     """float32 (H, W) ``W(r) = 1 + k1 r^2 + k2 r^4`` of every pixel of a camera (None: no term)."""
     if vignetting is None:
         return None
-    from presim.capture.photometric import vignetting_radius_sq
+    from presim.capture.calibration import vignetting_radius_sq
 
     u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
     r2 = vignetting_radius_sq(np.stack([u.ravel(), v.ravel()], axis=1), K).reshape(K.height, K.width)

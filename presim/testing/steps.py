@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from presim.geometry import Intrinsics, compose, make_pose, rotation_z
+from presim.sim.robot import default_robot
 from presim.sim.types import CameraObservation, JointStates, Odometry, SimInfo, StepResult
 
 __all__ = ["synthetic_info", "synthetic_steps", "synthetic_color", "synthetic_depth"]
@@ -35,8 +36,6 @@ def synthetic_depth(width: int, height: int, step_idx: int) -> np.ndarray:
 
 
 def synthetic_info(num_points: int = 5000, num_views: int = 6, dt_s: float = 0.1, seed: int = 0) -> SimInfo:
-    from presim.sim.robot import default_robot
-
     robot = default_robot()
     rng = np.random.default_rng(seed)
     xyz = rng.uniform([-2, -2, 0], [2, 2, 2.5], size=(num_points, 3)).astype(np.float32)
@@ -55,7 +54,6 @@ def synthetic_steps(num_steps: int, width: int = 64, height: int = 48, dt_s: flo
 
     ``drift_m``: odometry x offset growing linearly to this value (map->odom then absorbs it).
     """
-    from presim.sim.robot import default_robot
 
     robot = default_robot()
     K = Intrinsics.from_fov(width, height, 60.0)

@@ -14,6 +14,7 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
+from presim.capture.register_depth import register_depth
 from presim.capture.scene import SceneError
 from presim.geometry import Intrinsics, check_rigid
 from presim.io_utils import read_image
@@ -161,8 +162,6 @@ class FileFrameSource:
             raise SceneError(f"{cpath}: resolution {color.shape[1]}x{color.shape[0]} != intrinsics "
                              f"{K.width}x{K.height}")
         if self.depth_camera is not None:
-            from presim.capture.register_depth import register_depth
-
             Kd = self.depth_camera.K
             if depth.shape != (Kd.height, Kd.width):
                 raise SceneError(f"{dpath}: resolution {depth.shape[1]}x{depth.shape[0]} != depth camera "

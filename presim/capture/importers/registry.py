@@ -2,7 +2,8 @@
 
 Every importer module has ``NAME``, ``detect(src: Path) -> bool`` and
 ``read(src: Path, every: int, max_frames: int | None) -> Scene`` (lazy frames, no point cloud, original
-world frame). :func:`import_capture` picks the importer, fuses the point cloud and aligns the floor.
+world frame). :func:`import_capture` picks the importer, fuses the point cloud and aligns the floor; a capture
+without poses gets them from the ``estimate_poses`` function its caller passes.
 """
 
 from __future__ import annotations
@@ -11,16 +12,13 @@ import importlib
 from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import Callable
 
 import numpy as np
 
 from presim.capture.floor import FloorConfig, align_scene_to_floor, gravity_from_cameras
 from presim.capture.scene import Scene, SceneError
 from presim.capture.store import fuse_point_cloud
-
-if TYPE_CHECKING:
-    from presim.capture.align.sfm import SfmConfig
 
 __all__ = ["FORMATS", "importer", "detect_format", "import_capture"]
 
@@ -65,44 +63,10 @@ def detect_format(src: str | Path) -> str:
         "Pass --format to force one.")
 
 
-def _estimate_poses(scene: Scene, sfm_config: "SfmConfig | None") -> Scene:
-    """A capture without poses: incremental SfM (pycolmap) with metric scale from the depth, then the
-    local-to-global alignment (docs/alignment.md). Unregistered frames are dropped and named."""
-    import sys
-
-    from presim.capture.align import AlignConfig, align_poses
-    from presim.capture.align.bundle import BAConfig
-    from presim.capture.align.sfm import SfmConfig, estimate_poses_sfm
-
-    def log(s: str) -> None:
-        print(s, file=sys.stderr)
-
-    res = estimate_poses_sfm(scene, sfm_config or SfmConfig(), log=log)
-    reg = res.registered_idxs
-    lost = [scene.frame_ids[i] for i in range(len(scene)) if i not in set(reg)]
-    sub = replace(scene.subset(reg), T_world_cam=res.T_world_cam[reg], poses_source="given")
-    # depth residuals on and no appearance pairs / second pass (no auto rule): the configuration the
-    # pose-less import was measured with (docs/alignment.md)
-    aligned = align_poses(sub, AlignConfig(keep_unmatched=True, ba=BAConfig(use_depth=True), appearance_neighbours=0,
-                                           rematch_rounds=0), log=log)
-    st = res.stats
-    notes = [f"poses estimated from the images (pycolmap incremental SfM, metric scale "
-             f"{st['scale_m_per_unit']:.4g} m/unit from the depth, spread {st['scale_spread_mad_rel']:.1%} MAD; "
-             f"then local-to-global alignment); {len(reg)} of {len(scene)} frames registered"]
-    if len(st["models"]) > 1:
-        notes.append(f"SfM made {len(st['models'])} models ({st['models']} frames): the largest was kept")
-    if lost:
-        notes.append(f"not registered (left out): {', '.join(lost)}")
-        print(f"import: {len(lost)} frame(s) could not be registered and were left out: {', '.join(lost[:10])}"
-              + (f" and {len(lost) - 10} more" if len(lost) > 10 else ""), file=sys.stderr)
-    return replace(sub, T_world_cam=aligned.T_world_cam,
-                   meta=replace(sub.meta, notes=sub.meta.notes + tuple(notes)))
-
-
 def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_frames: int | None = None,
                    gravity: np.ndarray | None = None, align_floor: bool = True,
                    floor_config: FloorConfig = FloorConfig(), voxel_m: float = 0.01,
-                   sfm_config: "SfmConfig | None" = None) -> Scene:
+                   estimate_poses: Callable[[Scene], Scene] | None = None) -> Scene:
     """Read a capture folder into a :class:`Scene` (frames stay on disk, read lazily).
 
     Args:
@@ -113,7 +77,9 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
         align_floor: estimate the floor and move the world to gravity -z / floor z = 0 when found.
         floor_config: floor search thresholds.
         voxel_m: voxel size of the fused point cloud.
-        sfm_config: SfM settings for a capture without poses (default ``SfmConfig()``; needs pycolmap).
+        estimate_poses: for a capture without poses, the function that gives its frames poses (e.g.
+            :func:`presim.align.sfm.estimate_poses`: pycolmap SfM, then alignment; pose estimation
+            sits above ``capture``, so the caller passes it). None: such a capture is refused.
 
     Returns:
         The scene, with its point cloud; ``scene.meta.transforms`` lists any change of world frame.
@@ -133,7 +99,10 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
     name = detect_format(src) if fmt is None else importer(fmt).NAME
     scene = importer(name).read(src, every=every, max_frames=max_frames)
     if scene.poses_source == "none":
-        scene = _estimate_poses(scene, sfm_config)
+        if estimate_poses is None:
+            raise SceneError(f"{src}: the capture has no camera poses; `presim import SRC DST` estimates them "
+                             "(pycolmap SfM), or pass estimate_poses=presim.align.sfm.estimate_poses")
+        scene = estimate_poses(scene)
     if gravity is not None:
         gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(gravity)) or np.linalg.norm(gravity) < 1e-9:

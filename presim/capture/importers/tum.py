@@ -33,7 +33,8 @@ from presim.capture.importers.common import (
     read_depth_camera, read_matrix_txt, require_file, select_indices,
 )
 from presim.capture.scene import Scene, SceneError, SceneMeta
-from presim.geometry import Intrinsics, make_pose, quat_xyzw_to_R
+from presim.formats.tum import interpolate_pose, read_tum_rows
+from presim.geometry import Intrinsics
 
 NAME = "tum"
 VERSION = "1"
@@ -91,35 +92,6 @@ def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_dt_s: float = MAX_
             used_b.add(j)
             pairs.append((i, j))
     return sorted(pairs)
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
-    q0, q1 = q0 / np.linalg.norm(q0), q1 / np.linalg.norm(q1)
-    d = float(q0 @ q1)
-    if d < 0:  # shortest arc
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + w * (q1 - q0)
-        return q / np.linalg.norm(q)
-    th = np.arccos(d)
-    return (np.sin((1 - w) * th) * q0 + np.sin(w * th) * q1) / np.sin(th)
-
-
-def interpolate_pose(gt_stamps: np.ndarray, gt_vals: np.ndarray, t: float, max_gap_s: float) -> np.ndarray | None:
-    """Pose at stamp ``t`` from TUM rows (x y z qx qy qz qw); None outside the range or in a gap."""
-    k = int(np.searchsorted(gt_stamps, t))
-    if k < len(gt_stamps) and abs(gt_stamps[k] - t) < 1e-9:
-        v = gt_vals[k]
-        return make_pose(quat_xyzw_to_R(v[3:]), v[:3])
-    if k == 0 or k == len(gt_stamps):
-        return None
-    t0, t1 = gt_stamps[k - 1], gt_stamps[k]
-    if t1 - t0 > max_gap_s:
-        return None
-    w = (t - t0) / (t1 - t0)
-    p = (1 - w) * gt_vals[k - 1, :3] + w * gt_vals[k, :3]
-    q = _slerp(gt_vals[k - 1, 3:], gt_vals[k, 3:], w)
-    return make_pose(quat_xyzw_to_R(q), p)
 
 
 def valid_rectangle_intrinsics(K: Intrinsics, dist: tuple[float, ...]) -> Intrinsics:
@@ -198,20 +170,13 @@ def read(src: Path, every: int = 1, max_frames: int | None = None, max_dt_s: flo
     gt_path = src / "groundtruth.txt"
     if not gt_path.is_file():
         return _read_without_poses(src, rgb, dep, every, max_frames, max_dt_s)
-    gt = read_list(gt_path, 8)
-    if not rgb or not dep or not gt:
-        empty = [p for p, l in (("rgb.txt", rgb), ("depth.txt", dep), ("groundtruth.txt", gt)) if not l]
+    if not rgb or not dep:
+        empty = [p for p, l in (("rgb.txt", rgb), ("depth.txt", dep)) if not l]
         raise SceneError(f"{src}: empty {', '.join(empty)}")
-    gt_stamps = np.array([t for t, _ in gt])
     try:
-        gt_vals = np.array([[float(x) for x in v] for _, v in gt])
+        gt_stamps, gt_vals = read_tum_rows(gt_path)  # the one TUM trajectory reader (file:line errors)
     except ValueError as e:
-        raise SceneError(f"{gt_path}: non-numeric pose ({e})") from None
-    if not np.all(np.isfinite(gt_vals)):
-        bad = int(np.nonzero(~np.all(np.isfinite(gt_vals), axis=1))[0][0])
-        raise SceneError(f"{gt_path}: non-finite pose at stamp {gt_stamps[bad]:.6f}")
-    if np.any(np.linalg.norm(gt_vals[:, 3:], axis=1) < 1e-6):
-        raise SceneError(f"{gt_path}: zero quaternion (not a rotation)")
+        raise SceneError(str(e)) from None
     pairs = associate(np.array([t for t, _ in rgb]), np.array([t for t, _ in dep]), max_dt_s)
     if not pairs:
         raise SceneError(f"{src}: no rgb/depth pair within {max_dt_s} s")

@@ -24,6 +24,7 @@ from presim.capture.sample_scene.corrupt import corrupt_depth
 from presim.capture.sample_scene.layout import capture_trajectory
 from presim.capture.sample_scene.render import SceneRaycaster, render_view, scene_raycaster
 from presim.capture.scene import ArrayFrameSource, FloorPlane, Scene, SceneError, SceneMeta, SceneObject
+from presim.capture.store import fuse_point_cloud, load_scene, save_scene
 from presim.geometry import Intrinsics, check_rigid
 from presim.io_utils import atomic_dir, atomic_write_json, progress
 
@@ -108,8 +109,6 @@ def build_sample_scene(dst: str | Path, seed: int = 0, config: SampleSceneConfig
     The folder is a saved scene (:func:`presim.capture.store.load_scene`) whose depth is the corrupted
     sensor depth, plus ``dst/ground_truth/`` (exact depth, object masks, room mesh, parts, config).
     """
-    from presim.capture.store import fuse_point_cloud, save_scene
-
     _check_config(config)
     dst = Path(dst)
     if dst.exists() and not overwrite:
@@ -260,8 +259,6 @@ def load_sample_ground_truth(dst: str | Path) -> SampleGroundTruth:
 
 def clean_scene(dst: str | Path):
     """The sample scene at ``dst`` with its frames reading the exact depth instead of the sensor depth."""
-    from presim.capture.store import load_scene
-
     scene = load_scene(dst)
     gt = load_sample_ground_truth(dst)
     color = scene.frames.color  # memmap of color.npy

@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from presim.capture.scene import Scene
+from presim.depth.scene_refine import refine_frames_to_file
 from presim.evaluation.sim2real.metrics import DepthErrorSums
 from presim.evaluation.sim2real.split import BINS, CaptureSplit, SynthPoseConfig, split_capture, synth_poses
 from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text, progress
@@ -178,7 +179,6 @@ def capture_subscene(scene: Scene, split: CaptureSplit) -> Scene:
 def refine_capture(capture_scene: Scene, out_dir: Path) -> Scene:
     """``capture_scene`` with refined depth computed from its own frames only (resumable file
     ``refined_capture-<key>.npy`` in ``out_dir``)."""
-    from presim.depth.scene_refine import refine_frames_to_file
 
     key = hashlib.sha1(json.dumps(capture_scene.frame_ids).encode()).hexdigest()[:12]
     path = Path(out_dir) / f"refined_capture-{key}.npy"
@@ -366,7 +366,7 @@ def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet,
     """Train one arm with one seed; returns (result dict, example predictions (3, H, W))."""
     import torch
 
-    from presim.evaluation.sim2real.model import DepthNet, depth_loss
+    from presim.evaluation.sim2real.model import DepthNet, depth_loss  # imports torch (optional)
 
     if arm not in ARMS:
         raise ValueError(f"arm must be one of {ARMS}, got {arm!r}")

@@ -29,7 +29,7 @@ _WHERE = {
     "CommandInbox": "commands", "CommandLimits": "commands", "check_twist": "commands",
     "check_joint_command": "commands", "check_pose": "commands",
     "RosPublisherSink": "publisher",
-    "RosBridge": "node", "RosBridgeConfig": "node",
+    "RosBridge": "node", "RosBridgeConfig": "config",
     "master_alive": "master", "start_roscore": "master", "stop_process_group": "master",
     "RosCore": "master",
 }

@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from presim.geometry import make_pose, quat_xyzw_to_R
 
 __all__ = ["CommandLimits", "check_twist", "check_joint_command", "check_pose", "CommandInbox"]
 
@@ -101,7 +102,6 @@ def check_joint_command(names, positions, joint_limits: dict[str, tuple[float, f
 def check_pose(position, quat_xyzw, frame_id: str, expected_frame: str = "map",
                limits: CommandLimits = CommandLimits()) -> tuple[np.ndarray | None, str | None]:
     """``(T_world_pose 4x4, None)`` for a valid pose in ``expected_frame`` ('' accepted), else ``(None, reason)``."""
-    from presim.geometry import make_pose, quat_xyzw_to_R
 
     if frame_id not in ("", expected_frame):
         return None, f"pose must be in '{expected_frame}', got frame {_short(frame_id)}"
@@ -175,9 +175,6 @@ class CommandInbox:
         with self._lock:
             T, self._teleport = self._teleport, None
         return T
-
-    def set_joint_targets(self, targets: dict[str, float]) -> str | None:
-        return self.set_joint_command(list(targets), list(targets.values()))
 
     # ---- readers (step loop) -------------------------------------------------------------------
     def current(self, timeout_s: float) -> tuple[np.ndarray, dict[str, float]]:

@@ -12,45 +12,20 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from presim.outputs.frames import MAP_FRAME
-from presim.outputs.ros.commands import CommandInbox, CommandLimits, check_pose
+from presim.outputs.ros.commands import CommandInbox, check_pose
+from presim.outputs.ros.config import RosBridgeConfig
 from presim.outputs.ros.env import import_rospy
 from presim.outputs.ros.messages import diagnostics_msg
 from presim.outputs.ros.publisher import RosPublisherSink
+from presim.sim.controllers import Action
 from presim.sim.types import StepResult
 
 __all__ = ["RosBridgeConfig", "RosBridge"]
-
-
-@dataclass(frozen=True)
-class RosBridgeConfig:
-    """ROS node settings."""
-
-    node_name: str = "presim"
-    """ROS node name."""
-    cmd_timeout_s: float = 0.5
-    """Wall seconds after the last valid /cmd_vel before the base is stopped (safety, like most drivers)."""
-    real_time_factor: float = 1.0
-    """Sim seconds per wall second; 0 = as fast as possible."""
-    path_every_n_steps: int = 5
-    """Publish /path every n steps (it grows with the drive)."""
-    publisher_queue: int = 2
-    """rospy publisher queue size (per subscriber; oldest dropped when a subscriber is slow)."""
-    seed: int = 0
-    """Seed of the start pose (and of each reset)."""
-    max_steps: int = 0
-    """Stop after this many steps (0 = run until Ctrl-C / rosnode kill)."""
-    limits: CommandLimits = CommandLimits()
-    """What commands are accepted (invalid ones are dropped)."""
-    warn_period_s: float = 2.0
-    """At most one /rosout warning per topic in this many wall seconds about dropped commands."""
-    diagnostics_period_s: float = 1.0
-    """Wall seconds between /diagnostics reports."""
 
 
 def _pose_parts(pose):
@@ -179,7 +154,6 @@ class RosBridge:
     def _step(self, rospy, action):
         """One sim step. A command the simulator still refuses (a check missing above) is logged and
         replaced by a stop, so no message can end the node."""
-        from presim.sim.controllers import Action
 
         try:
             return self.sim.step(action)
@@ -198,7 +172,6 @@ class RosBridge:
 
     def run(self, on_step: Callable[[StepResult], None] | None = None) -> int:
         """Spin the step loop until Ctrl-C, rospy shutdown, :meth:`stop` or ``max_steps``."""
-        from presim.sim.controllers import Action
 
         rospy = self._init_node()
         sim, cfg = self.sim, self.config

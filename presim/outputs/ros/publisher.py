@@ -9,6 +9,7 @@ import numpy as np
 from presim.outputs import ros_msgs as rm
 from presim.outputs.frames import BASE_FRAME, MAP_FRAME, ODOM_FRAME, build_frame_tree
 from presim.outputs.mcap_recorder import camera_topics
+from presim.outputs.ros.config import RosBridgeConfig
 from presim.outputs.ros.env import import_rospy
 from presim.outputs.ros.messages import header, pose_msg, stamp, tf_msg
 from presim.sim.types import SimInfo, StepResult
@@ -22,13 +23,11 @@ STATIC_TF_PERIOD_S = 1.0
 class RosPublisherSink:
     """Sink publishing every StepResult on ROS 1 topics. Needs an initialised rospy node.
 
-    ``config`` is a :class:`~presim.outputs.ros.node.RosBridgeConfig` (``publisher_queue``,
+    ``config`` is a :class:`~presim.outputs.ros.config.RosBridgeConfig` (``publisher_queue``,
     ``path_every_n_steps``); None uses its defaults."""
 
     def __init__(self, config=None):
         if config is None:
-            from presim.outputs.ros.node import RosBridgeConfig
-
             config = RosBridgeConfig()
         self.config = config
         self.time_offset_s = 0.0

@@ -26,6 +26,7 @@ import torch
 
 from presim.datasets.bop_reader import BopDataset
 from presim.geometry import Intrinsics, unproject
+from presim.io_utils import progress
 from presim.pose.metrics import symmetry_transformations
 
 __all__ = ["PoseDataConfig", "InstanceRef", "ObjectTable", "PoseInstanceDataset", "PreparedInstance",
@@ -281,7 +282,6 @@ class PoseInstanceDataset(torch.utils.data.Dataset):
         """Fill the cache for ``indices`` (default all), reading each image once (``cfg.cache``)."""
         if not self.cfg.cache:
             return
-        from presim.io_utils import progress
         todo = [i for i in (range(len(self.refs)) if indices is None else indices) if i not in self._cache]
         by_image: dict[tuple[int, int], list[int]] = {}
         for i in todo:

@@ -22,8 +22,9 @@ import torch
 
 from presim.io_utils import progress
 from presim.pose.nets.data import PoseDataConfig, PoseInstanceDataset, make_instance
+from presim.pose.nets.checkpoint import load_run
 from presim.pose.nets.models import ModelConfig, PoseNet, best_pose
-from presim.pose.nets.train import load_run
+from presim.pose.nets.segmentation import load_seg_net, segment
 from presim.pose.results import Estimate
 
 __all__ = ["PredictConfig", "load_pose_net", "predict"]
@@ -102,7 +103,6 @@ def predict(dataset: str | Path, run_dir: str | Path, cfg: PredictConfig = Predi
             img_time[(r.scene_id, r.im_id)] = img_time.get((r.scene_id, r.im_id), 0.0) + dt
             est_rows.append((r.scene_id, r.im_id, r.obj_id, c, R, t))
     else:
-        from presim.pose.nets.segmentation import load_seg_net, segment
         seg, seg_cfg = load_seg_net(segmentation, cfg.device)
         if tuple(seg_cfg["obj_ids"]) != tuple(run_cfg["obj_ids"]):
             raise ValueError(f"{segmentation}: segmentation objects {seg_cfg['obj_ids']} differ from the pose "

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from presim.datasets.bop_reader import BopDataset
+from presim.pose.nets.checkpoint import load_run
 from presim.pose.nets.data import _IMAGENET_MEAN, _IMAGENET_STD
 
 __all__ = ["SegConfig", "SegNet", "SegImageDataset", "SegTask", "segment", "load_seg_net", "segmentation_iou"]
@@ -157,7 +158,6 @@ class SegTask:
 
 
 def load_seg_net(run_dir: str | Path, device: str = "cpu") -> tuple[SegNet, dict]:
-    from presim.pose.nets.train import load_run
     cfg, ck = load_run(run_dir)
     if cfg.get("model") != "segmentation":
         raise ValueError(f"{run_dir}: is a '{cfg.get('model')}' run; --segmentation takes a segmentation run")

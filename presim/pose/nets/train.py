@@ -17,8 +17,6 @@ import csv
 import io
 import json
 import math
-import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -26,16 +24,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from presim.io_utils import atomic_write_json, atomic_write_text, progress
+from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text, progress
+from presim.pose.nets.checkpoint import CHECKPOINT, load_checkpoint, load_run, save_checkpoint
 from presim.pose.nets.data import PoseDataConfig, PoseInstanceDataset
 from presim.pose.nets.loss import LossConfig, point_distances, pose_loss, symmetric_add
 from presim.pose.nets.models import ARCHS, ModelConfig, PoseNet, best_pose
+from presim.pose.nets.segmentation import SegTask
 
 __all__ = ["TrainConfig", "TrainReport", "TrainingDiverged", "train", "load_run", "save_checkpoint",
            "load_checkpoint", "MODELS"]
 
 MODELS = ARCHS + ("segmentation",)
-CHECKPOINT = "checkpoint_last.pt"
 
 
 class TrainingDiverged(ValueError):
@@ -138,48 +137,12 @@ class TrainReport:
     """Epochs that were already done when this call started."""
 
 
-# ---- checkpoints ------------------------------------------------------------------------------
-
-def save_checkpoint(path: Path, state: dict) -> None:
-    """``torch.save`` to a temporary file in the same folder, then an atomic rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(state, f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def load_checkpoint(path: Path, device: str = "cpu") -> dict:
-    """A checkpoint of :func:`save_checkpoint` (tensors, numbers, strings only: ``weights_only=True``)."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: checkpoint not found")
-    try:
-        return torch.load(path, map_location=device, weights_only=True)
-    except Exception as e:  # a truncated or foreign file: one line naming it
-        raise ValueError(f"{path}: unreadable checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None
-
-
 def _config_json(cfg: TrainConfig, dataset: Path, obj_ids, model_cfg) -> dict:
     d = asdict(cfg)
     d["dataset"] = str(Path(dataset).resolve())
     d["obj_ids"] = [int(o) for o in obj_ids]
     d["model_config"] = asdict(model_cfg) if model_cfg is not None else None
     return json.loads(json.dumps(d))  # tuples -> lists, as read back
-
-
-def load_run(run_dir: str | Path) -> tuple[dict, dict]:
-    """``(config.json, checkpoint)`` of a run folder, with one-line errors."""
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.json").is_file():
-        raise FileNotFoundError(f"{run_dir / 'config.json'}: not a pose-train run folder")
-    with open(run_dir / "config.json", encoding="utf-8") as f:
-        cfg = json.load(f)
-    return cfg, load_checkpoint(run_dir / CHECKPOINT)
 
 
 def _check_resume(run_dir: Path, new: dict) -> None:
@@ -220,7 +183,6 @@ def _write_metrics(run_dir: Path, rows: list[dict]) -> None:
     buf2 = io.BytesIO()
     fig.savefig(buf2, format="png", dpi=90)
     plt.close(fig)
-    from presim.io_utils import atomic_write_bytes
     atomic_write_bytes(run_dir / "learning_curve.png", buf2.getvalue())
 
 
@@ -273,7 +235,6 @@ def train(dataset: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConf
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     if cfg.model == "segmentation":
-        from presim.pose.nets.segmentation import SegTask
         task = SegTask(dataset, cfg)
     else:
         task = _PoseTask(dataset, cfg)

@@ -13,10 +13,16 @@ Stages, each one pure function with its config dataclass beside it:
   pass over all frames, the rigid fit that keeps the scene's world frame, and the per-frame acceptance
   test (a frame keeps its given pose unless the refined one measurably lowers its reprojection
   residuals; kept frames anchor a re-adjustment of the others; per-frame uncertainty).
+- :mod:`.sfm`       -- ``estimate_poses_sfm``: initial poses of a capture without poses (pycolmap
+  incremental SfM, metric scale from the depth); ``estimate_poses``: that, then ``align_poses`` (what
+  ``presim import`` passes to ``import_capture`` for such a capture).
+
+A sub-package above ``capture`` (docs/layout.md): it reads and returns scenes, and ``capture`` never
+imports it.
 
 See docs/alignment.md.
 """
 
-from presim.capture.align.pipeline import AlignConfig, AlignError, AlignResult, align_poses
+from presim.align.pipeline import AlignConfig, AlignError, AlignResult, align_poses
 
 __all__ = ["AlignConfig", "AlignError", "AlignResult", "align_poses"]

@@ -35,11 +35,11 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from presim.capture.align.bundle import (BAConfig, PairObservations, adjust_poses, observation_costs,
+from presim.align.bundle import (BAConfig, PairObservations, adjust_poses, observation_costs,
                                          pose_covariances, pose_information, residuals_px)
-from presim.capture.align.features import (FeatureConfig, Features, PairMatch, appearance_similarity, extract_features,
+from presim.align.features import (FeatureConfig, Features, PairMatch, appearance_similarity, extract_features,
                                            match_pair, unproject_uv)
-from presim.capture.align.grouping import GroupConfig, group_poses, view_angles_rad
+from presim.align.grouping import GroupConfig, group_poses, view_angles_rad
 from presim.capture.scene import Scene
 from presim.geometry import invert as invert_pose
 from presim.io_utils import progress

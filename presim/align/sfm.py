@@ -31,21 +31,25 @@ Needs pycolmap 4.x (``pip install presim[sfm]``); :class:`SfmUnavailable` says s
 
 from __future__ import annotations
 
+import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
 import cv2
 import numpy as np
 
-from presim.capture.align.features import appearance_similarity
+from presim.align.bundle import BAConfig
+from presim.align.features import appearance_similarity
+from presim.align.pipeline import AlignConfig, align_poses
 from presim.capture.scene import Scene
+from presim.geometry import invert
 from presim.io_utils import progress
 
-__all__ = ["SfmConfig", "SfmError", "SfmResult", "SfmUnavailable", "estimate_poses_sfm", "metric_scale",
-           "retrieval_pairs"]
+__all__ = ["SfmConfig", "SfmError", "SfmResult", "SfmUnavailable", "estimate_poses", "estimate_poses_sfm",
+           "metric_scale", "retrieval_pairs"]
 
 
 class SfmError(ValueError):
@@ -222,8 +226,8 @@ def estimate_poses_sfm(scene: Scene, config: SfmConfig = SfmConfig(),
         M = np.eye(4)
         M[:3] = cam_from_world[i].cam_from_world().matrix()
         M[:3, 3] *= scale
-        T[i] = np.linalg.inv(M)
-    T_first = np.linalg.inv(T[reg[0]])
+        T[i] = invert(M)
+    T_first = invert(T[reg[0]])
     for i in reg:
         T[i] = T_first @ T[i]
     stats = {
@@ -324,3 +328,39 @@ def _mapper_options(pycolmap, config: SfmConfig):
 def _names(scene: Scene, idxs: list[int], limit: int = 8) -> str:
     s = ", ".join(scene.frame_ids[i] for i in idxs[:limit])
     return s + (f" and {len(idxs) - limit} more" if len(idxs) > limit else "")
+
+
+def estimate_poses(scene: Scene, config: SfmConfig = SfmConfig()) -> Scene:
+    """Poses for a capture without poses (the ``estimate_poses`` argument of
+    :func:`presim.capture.importers.import_capture`): incremental SfM (pycolmap) with metric scale
+    from the depth, then the local-to-global alignment (docs/alignment.md). Unregistered frames are
+    dropped and named in ``scene.meta.notes`` and on stderr.
+
+    Example:
+        >>> from functools import partial
+        >>> est = partial(estimate_poses, config=SfmConfig(seed=1))
+        >>> scene = import_capture("capture/", estimate_poses=est)     # doctest: +SKIP
+    """
+    def log(s: str) -> None:
+        print(s, file=sys.stderr)
+
+    res = estimate_poses_sfm(scene, config, log=log)
+    reg = res.registered_idxs
+    lost = [scene.frame_ids[i] for i in range(len(scene)) if i not in set(reg)]
+    sub = replace(scene.subset(reg), T_world_cam=res.T_world_cam[reg], poses_source="given")
+    # depth residuals on and no appearance pairs / second pass (no auto rule): the configuration the
+    # pose-less import was measured with (docs/alignment.md)
+    aligned = align_poses(sub, AlignConfig(keep_unmatched=True, ba=BAConfig(use_depth=True), appearance_neighbours=0,
+                                           rematch_rounds=0), log=log)
+    st = res.stats
+    notes = [f"poses estimated from the images (pycolmap incremental SfM, metric scale "
+             f"{st['scale_m_per_unit']:.4g} m/unit from the depth, spread {st['scale_spread_mad_rel']:.1%} MAD; "
+             f"then local-to-global alignment); {len(reg)} of {len(scene)} frames registered"]
+    if len(st["models"]) > 1:
+        notes.append(f"SfM made {len(st['models'])} models ({st['models']} frames): the largest was kept")
+    if lost:
+        notes.append(f"not registered (left out): {', '.join(lost)}")
+        print(f"import: {len(lost)} frame(s) could not be registered and were left out: {', '.join(lost[:10])}"
+              + (f" and {len(lost) - 10} more" if len(lost) > 10 else ""), file=sys.stderr)
+    return replace(sub, T_world_cam=aligned.T_world_cam,
+                   meta=replace(sub.meta, notes=sub.meta.notes + tuple(notes)))

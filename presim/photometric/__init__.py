@@ -1,0 +1,12 @@
+"""Photometric calibration of a capture (a sub-package above ``capture``; docs/layout.md).
+
+:func:`calibrate_photometric` solves one colour transform per frame from depth-reprojected
+correspondences (:mod:`presim.photometric.calibrate`). The result type,
+:class:`~presim.capture.calibration.PhotometricCalib`, lives in the leaf module
+:mod:`presim.capture.calibration`, so the scene, its store and the renderer read a calibration
+without importing this solver.
+"""
+
+from presim.photometric.calibrate import PhotometricConfig, calibrate_photometric
+
+__all__ = ["PhotometricConfig", "calibrate_photometric"]
