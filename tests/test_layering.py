@@ -181,11 +181,7 @@ def test_checker_finds_each_kind_of_bad_import(toy_pkg):
 
 # KNOWN CYCLES -- strongly connected sets of modules accepted for a stated reason; each entry is the
 # exact set, and test_known_cycles_are_still_present fails once one is gone.
-KNOWN_CYCLES: dict[frozenset[str], str] = {
-    frozenset({"presim.synthesis.core", "presim.synthesis.torch_backend", "presim.synthesis.batch_torch"}):
-        "ViewImage lives in synthesis/core.py, which imports the torch backends lazily (issue 41 item 1 "
-        "splits the synthesis stages; the types move out of core.py there)",
-}
+KNOWN_CYCLES: dict[frozenset[str], str] = {}
 
 
 def _is_type_checking(node: ast.If) -> bool:
@@ -331,3 +327,26 @@ def test_cycle_finder_sees_lazy_imports_and_skips_type_checking(tmp_path):
     assert import_cycles(graph) == [["presim.a", "presim.b"], ["presim.p.e", "presim.p.f"]]
     assert graph["presim.b"] == {"presim.a": 2}
     assert "presim/b.py:2: imports presim.a" in _describe(["presim.a", "presim.b"], graph, pkg)
+
+
+def test_no_private_name_is_imported_from_another_module():
+    """``from presim.x import _name``: a private name belongs to its module (issue 41)."""
+    bad = []
+    for path in sorted(PKG.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("presim"):
+                bad += [f"{path.relative_to(PKG.parent)}:{node.lineno} {a.name}" for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not bad, "private names imported across modules:\n" + "\n".join(bad)
+
+
+def test_synthesis_functions_take_at_most_12_positional_parameters():
+    """Kernels take named tuples or small dataclasses instead of long argument lists (issue 41)."""
+    bad = []
+    for path in sorted((PKG / "synthesis").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = len(node.args.posonlyargs) + len(node.args.args)
+                if n > 12:
+                    bad.append(f"{path.name}:{node.lineno} {node.name} ({n})")
+    assert not bad, "\n".join(bad)
