@@ -13,3 +13,21 @@ PreSim-PointNav-v0", ...)``, which imports it).
 """
 
 __version__ = "0.1.0"
+
+# ---- Public API (lazy) -----------------------------------------------------------------------
+# `presim.open_scene`, `presim.Scene`, `presim.Simulator` live in presim/api/ (docs/api.md); they
+# are imported on first use so that `import presim` does not load numba, OpenCV or the renderer.
+_API_NAMES = ("open_scene", "Scene", "Simulator", "RenderConfig")
+
+
+def __getattr__(name: str):
+    if name in _API_NAMES:
+        import presim.api
+
+        return getattr(presim.api, name)
+    raise AttributeError(f"module 'presim' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API_NAMES))
+# ---- end of the public API --------------------------------------------------------------------

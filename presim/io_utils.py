@@ -10,6 +10,7 @@ import contextlib
 import json
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -117,10 +118,29 @@ def atomic_dir(dst: str | os.PathLike, overwrite: bool = False) -> Iterator[Path
         os.replace(tmp, dst)
 
 
+_progress_enabled = True
+
+
+def set_progress(enabled: bool) -> None:
+    """Turn every :func:`progress` bar of this process on or off (``presim ... --quiet``: off)."""
+    global _progress_enabled
+    _progress_enabled = bool(enabled)
+
+
+def progress_on() -> bool:
+    """Whether :func:`progress` shows bars: stderr is a terminal, no ``--quiet``, no PRESIM_NO_PROGRESS=1."""
+    try:
+        tty = sys.stderr.isatty()
+    except (AttributeError, ValueError):  # replaced or closed stderr
+        tty = False
+    return _progress_enabled and tty and os.environ.get("PRESIM_NO_PROGRESS") != "1"
+
+
 def progress(iterable=None, *, total: int | None = None, desc: str = "", unit: str = "it", disable: bool | None = None):
-    """tqdm progress bar on stderr (silenced with PRESIM_NO_PROGRESS=1)."""
+    """tqdm progress bar on stderr; off (:func:`progress_on`) when stderr is not a terminal, after
+    ``--quiet`` or with PRESIM_NO_PROGRESS=1. ``disable``: True/False overrides that."""
     from tqdm.auto import tqdm
 
     if disable is None:
-        disable = os.environ.get("PRESIM_NO_PROGRESS") == "1"
+        disable = not progress_on()
     return tqdm(iterable, total=total, desc=desc, unit=unit, disable=disable, dynamic_ncols=True)

@@ -18,7 +18,7 @@ PKG = Path(__file__).resolve().parents[1] / "presim"
 # Sub-package -> sub-packages it may import. Root modules (presim/*.py and the package __init__) are
 # the base: everybody may import them and they import only each other (see _unit / _violations).
 _ALL = {"formats", "sensors", "capture", "align", "photometric", "depth", "synthesis", "evaluation", "sim",
-        "datasets", "outputs", "pose", "cli", "testing"}
+        "datasets", "outputs", "pose", "api", "cli", "testing"}
 ALLOWED: dict[str, set[str]] = {
     "formats": set(),
     "sensors": set(),
@@ -32,6 +32,7 @@ ALLOWED: dict[str, set[str]] = {
     "datasets": {"formats", "sensors", "capture", "synthesis"},
     "outputs": {"formats", "sensors", "capture", "sim"},
     "pose": {"formats", "capture", "datasets"},
+    "api": {"formats", "sensors", "capture", "synthesis", "sim"},
     "cli": _ALL - {"cli", "testing"},
     "testing": _ALL - {"testing"},
 }
@@ -39,8 +40,12 @@ ROOT = "<root>"  # presim/__init__.py and presim/*.py
 
 # KNOWN EXCEPTIONS -- imports that break the table and are accepted for a stated reason. Each entry:
 # (importing module, imported sub-package); test_known_exceptions_are_still_needed fails once an
-# entry is obsolete. Empty: every import follows the table.
-KNOWN_EXCEPTIONS: set[tuple[str, str]] = set()
+# entry is obsolete.
+KNOWN_EXCEPTIONS: set[tuple[str, str]] = {
+    # presim/__init__.py re-exports the public API (presim/api/) lazily, in a module __getattr__: the
+    # package's front door names it, and nothing is imported until a user asks for it.
+    ("presim", "api"),
+}
 
 
 def _module_name(path: Path, pkg: Path = PKG) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import signal
 import sys
 import threading
@@ -31,29 +32,49 @@ _MODULES = [
 
 
 class _HelpFormatter(argparse.HelpFormatter):
-    """Shows each option's default, unless its help already says it or there is none to show."""
+    """The one help style of every command: each option's default as ``(default: X)``.
+
+    A default the help text does not state is appended; one it states as ``(default X`` /
+    ``; default X`` is written ``default: X``. tests/test_cli_help.py checks the rules on every command.
+    """
 
     def _get_help_string(self, action):
-        h = action.help or ""
-        if ("%(default)" in h or "default" in h or action.default in (None, False, argparse.SUPPRESS)
-                or not action.option_strings):
+        h = _DEFAULT_WORDS.sub(r"\1default: ", action.help or "")
+        if ("%(default)" in h or re.search(r"\bdefault\b", h) or action.default is None or action.default is False
+                or action.default is argparse.SUPPRESS or not action.option_strings):
             return h
         return h + " (default: %(default)s)"
 
 
+# "(default 60)", "; default 0)", ", default 0.015 m" -> "default: ..." (not "'default'", "the default robot")
+_DEFAULT_WORDS = re.compile(r"([(;,] ?)default (?=[^\s(])")
+
+COMMON_OPTIONS_HELP = (
+    "common options of every command:\n"
+    "  --max-memory SIZE  memory the command may plan to use, e.g. 16G (default: half of the memory available\n"
+    "                     at start, or $PRESIM_MAX_MEMORY); a command whose sizes need more refuses to start\n"
+    "  --quiet            no progress bars (they are also off when stderr is not a terminal)")
+
+
 def _add_common_options(p: argparse.ArgumentParser) -> None:
+    """The shared options, one short line each (the full text: COMMON_OPTIONS_HELP, in `presim --help`)."""
     p.formatter_class = _HelpFormatter
-    if not any("--max-memory" in a.option_strings for a in p._actions):
-        p.add_argument("--max-memory", default=None, metavar="SIZE",
-                       help="memory the command may plan to use, e.g. 16G (default: half of the memory "
-                            "available at start, or $PRESIM_MAX_MEMORY); commands whose sizes need more "
-                            "refuse to start")
+    nested = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+    for a in nested:  # e.g. `presim sim2real depth`: the options belong to the leaf commands
+        for q in a.choices.values():
+            _add_common_options(q)
+    if nested:
+        return
+    g = p.add_argument_group("common options (see `presim --help`)")
+    g.add_argument("--max-memory", default=None, metavar="SIZE", help="memory budget, e.g. 16G")
+    g.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="presim",
         description="PreSim: photo-realistic RGB-D robot simulator built from captured RGB-D images.",
+        epilog=COMMON_OPTIONS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     from presim import __version__
 
@@ -92,6 +113,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if getattr(args, "quiet", False):
+        from presim.io_utils import set_progress
+
+        set_progress(False)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -70,6 +70,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
     save_scene(scene, args.dst, overwrite=args.overwrite)
     saved = load_scene(args.dst)
     print(format_info(scene_info(saved, max_sample_frames=10)))
+    print(f"wrote {args.dst}")
     return 0
 
 

@@ -41,9 +41,14 @@ def register(sub) -> None:
                    help="run through roslaunch (presim.launch: roscore + scene + robot + controllers)")
     p.set_defaults(func=run_ros)
 
-    v = sub.add_parser("view", help="open a recorded .rrd in the rerun viewer (native, or web on 127.0.0.1)")
+    v = sub.add_parser("view", help="open a recorded .rrd in the rerun viewer (native, or web on 127.0.0.1)",
+                       description="Show a recording written by `presim drive --rrd` / `--viewer`: in rerun's native "
+                                   "viewer, its web viewer on 127.0.0.1 (--web), or, without a display, as a still "
+                                   "image of the scene, trajectory, robot and last camera images (--screenshot).")
     v.add_argument("rrd", type=Path, help=".rrd file written by --viewer / --rrd")
     v.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead")
+    v.add_argument("--screenshot", type=Path, default=None, metavar="PNG",
+                   help="write a still image of the recording to this PNG and exit (no viewer, no display needed)")
     v.add_argument("--port", type=int, default=0, help="web viewer port (0 = free port)")
     v.set_defaults(func=run_view)
 
@@ -144,6 +149,13 @@ def run_view(args: argparse.Namespace) -> int:
                                        wait_for_port, web_viewer_url)
 
     check_rrd_file(args.rrd)
+    if args.screenshot is not None:
+        from presim.outputs.rrd_snapshot import write_snapshot
+
+        rec = write_snapshot(args.rrd, args.screenshot)
+        print(f"wrote {args.screenshot} ({len(rec.points_xyz)} scene points, {rec.steps} steps, "
+              f"{len(rec.input_T_world_cam)} input views)")
+        return 0
     if not args.web:
         if not has_display():
             raise ViewerError("no display (DISPLAY and WAYLAND_DISPLAY are unset); use --web")

@@ -59,9 +59,6 @@ def register(sub) -> None:
     d.add_argument("--refine", action="store_true",
                    help="refine the capture frames' depth from capture frames only and train/render from it "
                         "(slow on CPU; test labels stay sensor depth)")
-    d.add_argument("--max-memory", default=None, metavar="SIZE",
-                   help="memory the command may plan to use, e.g. 16G (default: half of the memory "
-                        "available at start, or $PRESIM_MAX_MEMORY)")
     d.set_defaults(func=_depth)
 
 

@@ -187,12 +187,26 @@ def run(args: argparse.Namespace) -> int:
     print(f"  final base pose x {p[0]:.2f} y {p[1]:.2f} z {p[2]:.2f} yaw {np.degrees(st.yaw_rad):.0f} deg")
     per = "  ".join(f"{k} {v:.1f}" for k, v in st.stage_ms_per_step.items() if k != "total")
     print(f"  {st.steps_per_s:.1f} steps/s ({st.wall_s:.1f} s wall, setup {st.setup_s:.1f} s); ms/step: {per}")
-    if args.record is not None:
-        print(f"  recorded to {args.record}")
+    for path in _written_paths(args):
+        print(f"wrote {path}")
     if st.ended_early:
         print(f"note: {st.ended_early} (--steps {args.steps} not reached)", file=sys.stderr)
     _wait_for_kept_viewers(sinks)
     return 0
+
+
+def _written_paths(args: argparse.Namespace) -> list[Path]:
+    """The files and folders the sinks of ``args`` wrote (those that exist after the drive)."""
+    from presim.outputs.sinks import CAPTURE_DIR, RECORDING_NAME
+
+    paths = []
+    if args.record is not None:
+        paths += [args.record / RECORDING_NAME, args.record / CAPTURE_DIR]
+    if args.rrd is not None:
+        paths.append(args.rrd)
+    elif args.viewer == "rrd" and args.record is not None:
+        paths.append(args.record / "recording.rrd")
+    return [p for p in paths if p.exists()]
 
 
 def _wait_for_kept_viewers(sinks: list) -> None:

@@ -28,6 +28,7 @@ import numpy as np
 
 from presim.datasets.bop_reader import BopDataset
 from presim.formats.bop import GtInstance, Target
+from presim.io_utils import progress
 from presim.pose import curves
 from presim.pose.metrics import MeshDepthRenderer, symmetry_transformations, vsd
 from presim.pose.nn_grid import NNGrid, adi_batch_kdtree
@@ -411,7 +412,7 @@ def vsd_possible(ds: BopDataset, cases: list[TargetCase], cfg: EvalConfig, notes
 def add_vsd(ds: BopDataset, cases: list[TargetCase], objs: dict[int, ObjectData],
             errors: dict[PairKey, PairErrors], cfg: EvalConfig) -> None:
     """Step 6b: VSD of every pair (needs the test depth map), stored in ``errors``."""
-    for ti, c in enumerate(cases):
+    for ti, c in enumerate(progress(cases, desc="pose-eval: VSD", unit="target")):
         t = c.target
         for r, e in enumerate(c.estimates):
             for gl, g in enumerate(c.valid_gt):

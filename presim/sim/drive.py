@@ -17,6 +17,7 @@ from typing import IO, Callable, Sequence
 import numpy as np
 
 from presim.capture.scene import Scene
+from presim.io_utils import progress
 from presim.sim.controllers import KeyboardTeleop, TrajectoryReplay, load_waypoints
 from presim.sim.robot import Robot
 from presim.sim.routes import (Driver, KeyboardDriver, ReplayDriver, RouteDriver, WaypointDriver, ended_early,
@@ -139,12 +140,15 @@ def run_drive(scene: Scene, robot: Robot, sim_config: SimConfig, controller: Con
     stage_ms: dict[str, float] = {}
     prev = result.T_world_base[:3, 3].copy()
     t0 = time.perf_counter()
+    # keyboard teleop (until_done) owns the terminal: no bar there
+    bar = progress(total=config.steps, desc="drive", unit="step", disable=True if config.until_done else None)
     try:
         while steps < config.steps or config.until_done:
             if driver.done:
                 break
             result = sim.step(driver.action(sim))
             steps += 1
+            bar.update(1)
             contacts += result.contact
             outside += result.outside_captured_area
             images += len(result.cameras)
@@ -158,6 +162,7 @@ def run_drive(scene: Scene, robot: Robot, sim_config: SimConfig, controller: Con
                 if lag > 0:
                     time.sleep(lag)
     finally:
+        bar.close()
         driver.close()
         sim.close()
     wall = time.perf_counter() - t0
