@@ -32,7 +32,7 @@ ALLOWED: dict[str, set[str]] = {
     "datasets": {"formats", "sensors", "capture", "synthesis"},
     "outputs": {"formats", "sensors", "capture", "sim"},
     "pose": {"formats", "capture", "datasets"},
-    "api": {"formats", "sensors", "capture", "synthesis", "sim"},
+    "api": {"formats", "sensors", "capture", "align", "synthesis", "sim"},
     "cli": _ALL - {"cli", "testing"},
     "testing": _ALL - {"testing"},
 }

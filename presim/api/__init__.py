@@ -28,6 +28,8 @@ import numpy as np
 from presim.capture.scene import Scene as _CaptureScene
 from presim.geometry import Intrinsics, check_rigid, pose_from_tum
 import presim.sim.envs  # noqa: F401 - registers the Gymnasium ids
+from presim.align.sfm import estimate_poses
+from presim.capture.open import open_scene as _open_scene
 from presim.runtime import configure
 from presim.sim.simulator import SimConfig
 from presim.sim.simulator import Simulator as _Simulator
@@ -125,9 +127,7 @@ def open_scene(path: str | Path, poses: str = "auto", allow_capture: bool = True
         >>> scene.render(scene.T_world_cam[0], size=(160, 120)).color.shape   # doctest: +SKIP
         (120, 160, 3)
     """
-    from presim.capture.store import open_scene as _open
-
-    return as_scene(_open(path, allow_capture=allow_capture, poses=poses))
+    return as_scene(_open_scene(path, allow_capture=allow_capture, poses=poses, estimate_poses=estimate_poses))
 
 
 def as_scene(scene: _CaptureScene | str | Path) -> Scene:

@@ -452,17 +452,17 @@ def _mix_rows(out: np.ndarray, c: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _srgb_lut() -> np.ndarray:
-    x = np.arange(_SRGB_STEPS + 1) / _SRGB_STEPS
+    x = np.arange(SRGB_STEPS + 1) / SRGB_STEPS
     y = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.rint(y * 255.0).astype(np.uint8)
 
 
-_SRGB_STEPS = 1 << 16
-_SRGB_LUT = _srgb_lut()
+SRGB_STEPS = 1 << 16
+SRGB_LUT = _srgb_lut()
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """Linear [0, 1] -> sRGB uint8 (the standard transfer curve; a 65537-entry table, exact to the
     8-bit rounding except within 1e-5 of a rounding boundary)."""
     x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    return _SRGB_LUT[np.rint(x * _SRGB_STEPS).astype(np.int64)]
+    return SRGB_LUT[np.rint(x * SRGB_STEPS).astype(np.int64)]

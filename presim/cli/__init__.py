@@ -31,7 +31,7 @@ _MODULES = [
 ]
 
 
-class _HelpFormatter(argparse.HelpFormatter):
+class HelpFormatter(argparse.HelpFormatter):
     """The one help style of every command: each option's default as ``(default: X)``.
 
     A default the help text does not state is appended; one it states as ``(default X`` /
@@ -58,7 +58,7 @@ COMMON_OPTIONS_HELP = (
 
 def _add_common_options(p: argparse.ArgumentParser) -> None:
     """The shared options, one short line each (the full text: COMMON_OPTIONS_HELP, in `presim --help`)."""
-    p.formatter_class = _HelpFormatter
+    p.formatter_class = HelpFormatter
     nested = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
     for a in nested:  # e.g. `presim sim2real depth`: the options belong to the leaf commands
         for q in a.choices.values():

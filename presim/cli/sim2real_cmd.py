@@ -22,10 +22,10 @@ def register(sub) -> None:
     p = sub.add_parser("sim2real", help="evidence that synthesized views transfer to real images",
                        description="Sim-to-real experiments (thesis §4.5). See docs/sim2real.md.")
     tasks = p.add_subparsers(dest="sim2real_task", metavar="TASK", title="tasks")
-    from presim.cli import _HelpFormatter
+    from presim.cli import HelpFormatter
 
     d = tasks.add_parser(
-        "depth", formatter_class=_HelpFormatter,
+        "depth", formatter_class=HelpFormatter,
         help="monocular depth: capture vs capture+synth vs synth, tested on real held-out frames",
         description="Train a small DenseDepth-style network three ways (capture frames only; the same real "
                     "batches plus synthesized views; synthesized views only) and test each on the scene's "

@@ -83,7 +83,7 @@ class PointNavConfig:
     """Apply the default seeded depth noise model."""
 
 
-def _load(scene: str | Path | Scene) -> Scene:
+def load_scene_arg(scene: str | Path | Scene) -> Scene:
     if isinstance(scene, Scene):
         return scene
     return load_scene(scene)
@@ -108,7 +108,7 @@ class PointNavEnv(gym.Env):
                          rate_hz=1.0 / self.cfg.dt_s, noise=DepthNoiseConfig() if self.cfg.depth_noise else None)
         # render_camera=False: the simulator renders nothing; images come from outside through
         # set_camera_images() (the vector env renders all its envs in one batch).
-        scene_obj = _load(scene)
+        scene_obj = load_scene_arg(scene)
         self.camera_K = cam.intrinsics(scene_obj.intrinsics[0])
         self.sim = Simulator(scene_obj, default_robot(), SimConfig(dt_s=self.cfg.dt_s, cameras=(cam,) if render_camera else ()),
                              renderer=renderer)

@@ -48,7 +48,7 @@ from gymnasium.vector.utils import batch_space
 
 from presim import runtime
 from presim.capture.scene import Scene
-from presim.sim.envs import PointNavConfig, PointNavEnv, _load
+from presim.sim.envs import PointNavConfig, PointNavEnv, load_scene_arg
 from presim.sim.simulator import SIM_RENDER_CACHE_MB
 from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
@@ -75,7 +75,7 @@ class PointNavVectorEnv(VectorEnv):
         cfg = config or PointNavConfig()
         if cfg.depth_noise:
             raise ValueError("PointNavVectorEnv: depth_noise is not supported (use PointNavEnv)")
-        scene_obj = _load(scene)  # also in the workers' case: a bad scene fails here, in this process
+        scene_obj = load_scene_arg(scene)  # also in the workers' case: a bad scene fails here, in this process
         rcfg = render or RenderConfig()
         pcfg = perf or PerfConfig(cache_mb=SIM_RENDER_CACHE_MB)
         self.num_envs = num_envs

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from presim.capture.procedural import _SRGB_LUT, _SRGB_STEPS, NoiseField, albedo
+from presim.capture.procedural import SRGB_LUT, SRGB_STEPS, NoiseField, albedo
 from presim.capture.sample_scene.config import SampleSceneConfig
 from presim.capture.sample_scene.layout import SampleLayout, sample_layout
 from presim.geometry import Intrinsics, check_rigid, invert
@@ -110,7 +110,7 @@ class SceneRaycaster:
             occ = self.rc.test_occlusions(o3c.Tensor(rays), tnear=0.0, tfar=1.0).numpy()
             E[lit[occ]] -= main[lit[occ]]
         color, depth, obj, lum, cos_inc = _compose_kernel(
-            h * w, hit_idx, alb, E, t_hit, d_cam, R, n, part, self.part_obj_id, _SRGB_LUT, _SRGB_STEPS)
+            h * w, hit_idx, alb, E, t_hit, d_cam, R, n, part, self.part_obj_id, SRGB_LUT, SRGB_STEPS)
         return RenderedView(color.reshape(h, w, 3), depth.reshape(h, w), obj.reshape(h, w),
                             lum.reshape(h, w), cos_inc.reshape(h, w))
 

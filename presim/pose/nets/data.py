@@ -32,8 +32,8 @@ from presim.pose.metrics import symmetry_transformations
 __all__ = ["PoseDataConfig", "InstanceRef", "ObjectTable", "PoseInstanceDataset", "PreparedInstance",
            "prepare_instance", "sample_instance", "make_instance", "load_object_table"]
 
-_IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)  # input normalisation only;
-_IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)   # no pretrained weights are used
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)  # input normalisation only;
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)   # no pretrained weights are used
 
 
 @dataclass(frozen=True)
@@ -185,7 +185,7 @@ def sample_instance(prep: PreparedInstance, cfg: PoseDataConfig,
         crop = crop * rng.uniform(1 - cfg.jitter_brightness, 1 + cfg.jitter_brightness)
         crop = crop * (1 + rng.uniform(-cfg.jitter_color, cfg.jitter_color, size=3)).astype(np.float32)
         crop = np.clip(crop, 0.0, 1.0)
-    crop = (crop - _IMAGENET_MEAN) / _IMAGENET_STD
+    crop = (crop - IMAGENET_MEAN) / IMAGENET_STD
     u, v = prep.u[sel], prep.v[sel]
     z = prep.z[sel].astype(np.float64)
     if cfg.augment and cfg.depth_noise_m > 0:

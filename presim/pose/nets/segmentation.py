@@ -24,7 +24,7 @@ from torch import nn
 
 from presim.datasets.bop_reader import BopDataset
 from presim.pose.nets.checkpoint import load_run
-from presim.pose.nets.data import _IMAGENET_MEAN, _IMAGENET_STD
+from presim.pose.nets.data import IMAGENET_MEAN, IMAGENET_STD
 
 __all__ = ["SegConfig", "SegNet", "SegImageDataset", "SegTask", "segment", "load_seg_net", "segmentation_iou"]
 
@@ -77,7 +77,7 @@ class SegNet(nn.Module):
 
 def _prep(rgb: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     x = cv2.resize(rgb, (hw[1], hw[0]), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
-    return ((x - _IMAGENET_MEAN) / _IMAGENET_STD).transpose(2, 0, 1).copy()
+    return ((x - IMAGENET_MEAN) / IMAGENET_STD).transpose(2, 0, 1).copy()
 
 
 class SegImageDataset(torch.utils.data.Dataset):
