@@ -9,12 +9,12 @@ import numba
 import numpy as np
 import pytest
 
-from presim.synthesis.composite import analyse_hole_mask, analyse_holes, merge_view, merge_view_holes
+from presim.synthesis.holes import analyse_hole_mask, analyse_holes, merge_view_holes
 
 
 def test_merge_view_holes_equals_merge_then_mask():
     """Fused merge + hole mask + count = the numpy merge, then ``acc > 0``; the first view (no
-    replace mask) only writes its source ids; merge_view (the same kernel) merges the same."""
+    replace mask) only writes its source ids."""
     rng = np.random.default_rng(5)
     H, W = 21, 26
     d1 = np.where(rng.random((H, W)) < 0.6, rng.random((H, W)) + 0.1, 0).astype(np.float32)
@@ -37,10 +37,6 @@ def test_merge_view_holes_equals_merge_then_mask():
     n = merge_view_holes(*acc, replace, d2, c2, 9, holes)
     for a, b in zip(acc, ref):
         np.testing.assert_array_equal(a, b)
-    acc2 = [a.copy() for a in (d1, c1, src)]
-    merge_view(*acc2, replace, d2, c2, 9)
-    for a, b in zip(acc2, ref):
-        np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(holes, (~(ref[0] > 0)).view(np.uint8))
     assert n == np.count_nonzero(~(ref[0] > 0))
 
@@ -51,11 +47,11 @@ def test_merge_into_holes_equals_merge_view_holes(words, monkeypatch):
     replaceable pixels, 8 at a time) = the full merge + mask + count, over a chain of views; widths
     that are and are not multiples of 8 (zero-padded words), and the kernel's pixel-by-pixel path
     (no words); NaN depths, empty replace masks."""
-    from presim.synthesis import composite
-    from presim.synthesis.composite import merge_into_holes
+    from presim.synthesis import holes as HO
+    from presim.synthesis.holes import merge_into_holes
 
     if words == "pixels":
-        monkeypatch.setattr(composite, "_row_words", lambda m: np.zeros((m.shape[0], 0), np.uint64))
+        monkeypatch.setattr(HO, "row_words", lambda m: np.zeros((m.shape[0], 0), np.uint64))
     rng = np.random.default_rng(9)
     for H, W in ((21, 26), (17, 24), (9, 64), (1, 8), (6, 3), (4, 9)):
         d0 = np.where(rng.random((H, W)) < 0.5, rng.random((H, W)) + 0.1, 0).astype(np.float32)
@@ -108,7 +104,7 @@ def test_hole_runs_components_equal_scipy_labelling():
     any big, and the big-hole mask; an n_hole below the mask's count is refused."""
     from scipy import ndimage
 
-    from presim.synthesis.composite import _NO_HALF, _NO_U8, _ellipse, _ellipse_rows, _hole_runs_kernel, _row_words
+    from presim.synthesis.holes import _NO_HALF, _NO_U8, _ellipse, _ellipse_rows, _hole_runs_kernel, row_words
 
     rng = np.random.default_rng(21)
     masks = []
@@ -126,7 +122,7 @@ def test_hole_runs_components_equal_scipy_labelling():
         lab, n = ndimage.label(m, structure=np.ones((3, 3)))
         areas = np.bincount(lab.ravel(), minlength=n + 1)[1:]
         # zero groups skipped as words (zero-padded past W when W % 8 != 0), and pixel by pixel
-        for words in (_row_words(holes), np.zeros((holes.shape[0], 0), np.uint64)):
+        for words in (row_words(holes), np.zeros((holes.shape[0], 0), np.uint64)):
             for big_px in (1, 16):
                 big = np.empty(holes.shape, np.uint8)
                 replace = np.empty(holes.shape, np.uint8)
@@ -141,26 +137,26 @@ def test_hole_runs_components_equal_scipy_labelling():
                 np.testing.assert_array_equal(replace, want)
     holes = np.ones((4, 8), np.uint8)
     with pytest.raises(ValueError, match="n_hole"):
-        _hole_runs_kernel(holes, _row_words(holes), 3, 16, np.empty((0, 0), np.uint8), _NO_HALF, _NO_U8)
+        _hole_runs_kernel(holes, row_words(holes), 3, 16, np.empty((0, 0), np.uint8), _NO_HALF, _NO_U8)
 
 
 def test_row_words_are_the_rows_zero_padded_to_8_pixels():
-    """_row_words: a C-contiguous mask whose width is a multiple of 8 is viewed as uint64 rows (no
+    """row_words: a C-contiguous mask whose width is a multiple of 8 is viewed as uint64 rows (no
     copy); any other width, or a strided mask, is copied into rows zero-padded to a multiple of 8;
     the bytes of the words are the mask's pixels in order."""
-    from presim.synthesis.composite import _row_words
+    from presim.synthesis.holes import row_words
 
     rng = np.random.default_rng(3)
     for H, W in ((3, 16), (5, 13), (1, 1), (4, 7), (2, 638)):
         m = (rng.random((H, W)) < 0.5).astype(np.uint8)
         for mask in (m, np.repeat(m, 2, axis=1)[:, ::2]):  # contiguous, strided
-            w = _row_words(mask)
+            w = row_words(mask)
             assert w.dtype == np.uint64 and w.shape == (H, -(-W // 8))
             b = w.view(np.uint8).reshape(H, -1)
             np.testing.assert_array_equal(b[:, :W], m)
             assert not b[:, W:].any()
             assert np.shares_memory(w, mask) == (W % 8 == 0 and mask.flags.c_contiguous)
-    assert _row_words(np.zeros((4, 0), np.uint8)).shape == (4, 0)
+    assert row_words(np.zeros((4, 0), np.uint8)).shape == (4, 0)
 
 
 def test_median_ratio_kernel_equals_numpy_median():
@@ -191,78 +187,31 @@ def test_median_ratio_kernel_equals_numpy_median():
         assert np.float32(got) == ref and float(np.float32(got) * np.sqrt(2.0)) == float(ref * np.sqrt(2.0))
 
 
-def test_level_thresholds_decide_choose_level_exactly():
-    """A positive float32 median's level = the number of thresholds it does not exceed, exactly as
-    choose_level decides it from the float64 ratio (both sides of every threshold, odd focal pairs)."""
-    from presim.synthesis.lod import LodConfig, choose_level, level_thresholds
-
-    rng = np.random.default_rng(3)
-    for cfg in (LodConfig(), LodConfig(levels=5, max_footprint=1.3), LodConfig(levels=1, max_footprint=0.7)):
-        for _ in range(30):
-            f_t, f_s = float(rng.uniform(40, 900)), float(rng.uniform(200, 900))
-            taus = level_thresholds(f_t, f_s, cfg)
-            assert taus.dtype == np.float32 and taus.shape == (cfg.levels,) and np.all(np.diff(taus) < 0)
-            near = [np.nextafter(t, np.float32(np.inf)) for t in taus] + [np.nextafter(t, np.float32(0)) for t in taus]
-            for m in list(taus) + near + list(rng.uniform(0.01, 4, 20).astype(np.float32)):
-                m = np.float32(m)
-                want = choose_level(float(m * np.float64(f_t) / f_s), cfg)
-                assert int(np.count_nonzero(m <= taus)) == want, (m, taus)
-    with pytest.raises(ValueError, match="focal"):
-        level_thresholds(0.0, 500.0, LodConfig())
-
-
-def test_level_by_counts_kernel_equals_choose_level_of_the_median():
-    """The LOD level from counts = choose_level(median) (odd / even counts, ties on a threshold,
-    the two middle values of an even count around one: -2, the caller's cue for the exact median;
-    no point: -1; a zero median: level 0)."""
-    from presim.synthesis.grids import _level_by_counts_kernel, _median_ratio_kernel
-    from presim.synthesis.lod import LodConfig, choose_level, level_thresholds
+def test_frame_grids_lod_level_is_choose_level_of_the_footprint_median():
+    """FrameGrids.lod_level = choose_level of the footprint median (identity target camera: the
+    grid's points on the optical axis at z_t, their source depths z_src = ratio x z_t; odd and even
+    counts, ratios on every level); no levels: level 0."""
+    from presim.geometry import Intrinsics
+    from presim.synthesis.grids import FrameGrids
+    from presim.synthesis.lod import LodConfig, choose_level
 
     cfg = LodConfig()
     f_t, f_s = 150.0, 525.0
-    taus = level_thresholds(f_t, f_s, cfg)
-    near = np.float32(0.1)
-    rng = np.random.default_rng(4)
-    seen = set()
-    for t in range(600):
-        n = int(rng.integers(0, 12 if t % 2 else 300))
-        zt = rng.uniform(0.2, 3, n).astype(np.float32)
-        r = rng.choice(np.concatenate([taus, rng.uniform(0.2, 3, 8).astype(np.float32)]), n)
-        zs = (r * zt).astype(np.float32)  # ratios at (or next to) the thresholds
-        zs[rng.random(n) < 0.1] = 0.05  # not counted (<= near)
-        pix = np.where(rng.random(n) < 0.1, -1, 7).astype(np.int64)
-        lv = _level_by_counts_kernel(zs, zt, pix, near, taus)
-        med = _median_ratio_kernel(zs, zt, pix, near)
-        seen.add(lv if lv < 0 else "level")
-        if lv == -1:
-            assert np.isnan(med)
-        elif lv != -2:
-            assert lv == choose_level(float(np.float32(med) * np.float64(f_t) / f_s), cfg)
-        else:  # a threshold between the two middle ratios of an even count
-            ok = (zs > near) & (zt > near) & (pix >= 0)
-            q = np.sort(zs[ok] / zt[ok])
-            k = len(q) // 2
-            assert len(q) % 2 == 0 and any(q[k - 1] <= x < q[k] for x in np.concatenate([[0], taus]))
-    assert seen == {-1, -2, "level"}
-    assert _level_by_counts_kernel(np.float32([0.0, 0.0, 0.0]), np.float32([1, 1, 1]), np.zeros(3, np.int64),
-                                   np.float32(-1.0), taus) == 0  # median 0: level 0, as choose_level
-
-    # FrameGrids.lod_level: counts, or the exact median when they cannot tell (identity target camera:
-    # the grid's points on the optical axis at z_t, their source depths z_src = ratio x z_t)
-    from presim.geometry import Intrinsics
-    from presim.synthesis.grids import FrameGrids
-
     K = Intrinsics(f_t, f_t, 31.5, 23.5, 64, 48)
-    for ratios in ([taus[1], np.float32(0.9 * taus[1])],  # even count, tau_2 between: exact median
-                   [taus[1], taus[1] * np.float32(1.2)], [taus[0], taus[2], np.float32(3.0)], [np.float32(5.0)]):
+    levels = []
+    for ratios in ([2.0, 1.8], [1.0, 0.9], [0.5, 0.45, 0.4], [0.2], [0.3, 0.1, 5.0, 7.0], [0.4, 0.35, 3.0]):
         ratios = np.float32(ratios)
         z_t = np.linspace(1.0, 2.0, len(ratios)).astype(np.float32)
         pts = np.stack([np.zeros_like(z_t), np.zeros_like(z_t), z_t], 1)
         g = FrameGrids(np.eye(4), K, lambda v: pts)
         z_src = (ratios * z_t).astype(np.float32)
-        want = choose_level(g.footprint_ratio(0, z_src, f_s, 0.01), cfg)
+        r0 = g.footprint_ratio(0, z_src, f_s, 0.01)
+        assert r0 == pytest.approx(float(np.median(ratios)) * f_t / f_s, rel=1e-6)
+        want = choose_level(r0, cfg)
         assert g.lod_level(0, z_src, f_s, 0.01, cfg) == want
         assert g.lod_level(0, z_src, f_s, 0.01, LodConfig(levels=0)) == 0
+        levels.append(want)
+    assert levels == [0, 1, 2, 3, 0, 3]
 
 
 def test_grid_count_kernels_equal_numpy():
@@ -284,8 +233,8 @@ def test_grid_count_kernels_equal_numpy():
 
 def test_frame_threads_rule():
     """Auto: one numba thread up to SERIAL_MAX_PIXELS, the caller's count above; explicit counts are
-    capped at numba's pool; a negative count is an error (here and in RenderConfig)."""
-    from presim.synthesis.renderer import RenderConfig
+    capped at numba's pool; a negative count is an error (here and in PerfConfig)."""
+    from presim.synthesis.renderer import PerfConfig
     from presim.synthesis.threads import SERIAL_MAX_PIXELS, frame_threads, numba_threads
 
     assert frame_threads(128, 128) == 1
@@ -299,7 +248,7 @@ def test_frame_threads_rule():
     with pytest.raises(ValueError, match="threads"):
         frame_threads(64, 48, -1)
     with pytest.raises(ValueError, match="threads must be >= 0"):
-        RenderConfig(threads=-1)
+        PerfConfig(threads=-1)
 
 
 def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
@@ -323,7 +272,7 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     monkeypatch.setattr(R, "synthesize_frame", spy)
     before = numba.get_num_threads()
     auto = R.Renderer(scene, R.RenderConfig()).render(T, K)
-    forced = R.Renderer(scene, R.RenderConfig(threads=numba.config.NUMBA_NUM_THREADS)).render(T, K)
+    forced = R.Renderer(scene, R.RenderConfig(), R.PerfConfig(threads=numba.config.NUMBA_NUM_THREADS)).render(T, K)
     wide = Intrinsics(fx=K.fx, fy=K.fy, cx=199.5, cy=149.5, width=400, height=300)  # no zoom: 120 000 px
     R.Renderer(scene, R.RenderConfig()).render(T, wide)
     n = numba.config.NUMBA_NUM_THREADS
@@ -345,7 +294,7 @@ def test_synthesis_kernels_use_numpy_error_model():
     from presim.synthesis.threads import TwinKernel
 
     seen = 0
-    for name in ("blend", "composite", "crack_filter", "fill", "grids", "lod", "telea", "warp"):
+    for name in ("blend", "cracks", "holes", "fill", "grids", "lod", "resample", "telea", "warp", "warp_ahead"):
         mod = importlib.import_module(f"presim.synthesis.{name}")
         for attr, obj in vars(mod).items():
             if isinstance(obj, TwinKernel):
@@ -366,8 +315,8 @@ def test_light_kernels_run_their_serial_twin_below_their_size():
     """A TwinKernel with serial_below runs the serial twin when its size argument is smaller (and in
     serial mode), the parallel one otherwise; the per-view light kernels declare their sizes, and
     their output does not depend on which twin ran."""
-    from presim.synthesis import composite as C
     from presim.synthesis import fill as F
+    from presim.synthesis import holes as C
     from presim.synthesis.threads import LIGHT_SERIAL_BELOW, TwinKernel, parallel_kernel, serial_kernels
 
     def _double(a, out):  # pragma: no cover
