@@ -18,7 +18,7 @@ import pytest
 
 from presim.capture.scene import ArrayFrameSource, Scene, SceneMeta
 from presim.geometry import Intrinsics, invert
-from presim.synthesis.crack_filter import crack_filter
+from presim.synthesis.cracks import crack_filter
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.warp import prepare_view, warp_layers
 
