@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import signal
 import sys
 import threading
+from pathlib import Path
 
 # Order = order in `presim --help`, following the data flow.
 _MODULES = [
@@ -19,6 +21,7 @@ _MODULES = [
     "presim.cli.sim_cmds",        # drive
     "presim.cli.teleop_cmd",      # teleop
     "presim.cli.outputs_cmds",    # ros
+    "presim.cli.recover_cmd",     # recover
     "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
@@ -39,8 +42,17 @@ class _HelpFormatter(argparse.HelpFormatter):
         return h + " (default: %(default)s)"
 
 
-def _add_common_options(p: argparse.ArgumentParser) -> None:
+SCENE_WRITERS = ("refine", "fuse", "align", "photometric", "objects")
+"""Commands that write into the scene folder they are given (argument ``scene``): each holds the
+folder's lock (:func:`presim.io_utils.folder_lock`) while it runs."""
+
+
+def _add_common_options(p: argparse.ArgumentParser, name: str = "") -> None:
     p.formatter_class = _HelpFormatter
+    if name in SCENE_WRITERS or name == "gen-bop":
+        p.add_argument("--no-wait", action="store_true",
+                       help="when another command is writing into the same folder, stop with an error naming it "
+                            "instead of waiting for it")
     if not any("--max-memory" in a.option_strings for a in p._actions):
         p.add_argument("--max-memory", default=None, metavar="SIZE",
                        help="memory the command may plan to use, e.g. 16G (default: half of the memory "
@@ -59,8 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
     for name in _MODULES:
         importlib.import_module(name).register(sub)
-    for p in sub.choices.values():
-        _add_common_options(p)
+    for name, p in sub.choices.items():
+        _add_common_options(p, name)
     return parser
 
 
@@ -86,9 +98,19 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, old_term)
 
 
+def _call(args: argparse.Namespace) -> int:
+    scene = getattr(args, "scene", None)
+    if args.command in SCENE_WRITERS and scene is not None and Path(scene).is_dir():
+        from presim.io_utils import folder_lock
+
+        with folder_lock(scene, f"presim {args.command}", wait=not args.no_wait):
+            return int(args.func(args) or 0)
+    return int(args.func(args) or 0)
+
+
 def _run(args: argparse.Namespace) -> int:
     try:
-        return int(args.func(args) or 0)
+        return _call(args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
@@ -96,6 +118,9 @@ def _run(args: argparse.Namespace) -> int:
         # Bad input (missing / unreadable / wrong kind of file, bad values): one clear line naming
         # the file and the problem, no traceback.
         msg = str(e) if not isinstance(e, MemoryError) else f"out of memory ({e or 'allocation failed'})"
+        if isinstance(e, OSError) and e.errno == errno.ENOSPC and type(e) is OSError:
+            # a write that found the disk full: the path, not the bare errno
+            msg = f"{e.filename or 'output'}: no space left on device"
         print(f"presim {args.command}: error: {msg}", file=sys.stderr)
         return 1
     except ImportError as e:

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from presim.capture.floor import FloorConfig, align_scene_to_floor, gravity_from_cameras
-from presim.capture.scene import Scene, SceneError
+from presim.capture.importers.common import override_depth_scale
+from presim.capture.scene import Scene, SceneError, check_scene_geometry
 from presim.capture.store import fuse_point_cloud
 
 if TYPE_CHECKING:
@@ -102,7 +103,7 @@ def _estimate_poses(scene: Scene, sfm_config: "SfmConfig | None") -> Scene:
 def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_frames: int | None = None,
                    gravity: np.ndarray | None = None, align_floor: bool = True,
                    floor_config: FloorConfig = FloorConfig(), voxel_m: float = 0.01,
-                   sfm_config: "SfmConfig | None" = None) -> Scene:
+                   sfm_config: "SfmConfig | None" = None, depth_scale_mm: float | None = None) -> Scene:
     """Read a capture folder into a :class:`Scene` (frames stay on disk, read lazily).
 
     Args:
@@ -114,6 +115,8 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
         floor_config: floor search thresholds.
         voxel_m: voxel size of the fused point cloud.
         sfm_config: SfM settings for a capture without poses (default ``SfmConfig()``; needs pycolmap).
+        depth_scale_mm: millimetres per step of the depth images, replacing the format's unit (needed
+            for 8-bit depth images, which are refused otherwise).
 
     Returns:
         The scene, with its point cloud; ``scene.meta.transforms`` lists any change of world frame.
@@ -132,8 +135,11 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
         src = src / "capture"
     name = detect_format(src) if fmt is None else importer(fmt).NAME
     scene = importer(name).read(src, every=every, max_frames=max_frames)
+    if depth_scale_mm is not None:
+        override_depth_scale(scene.frames, depth_scale_mm, str(src))
     if scene.poses_source == "none":
         scene = _estimate_poses(scene, sfm_config)
+    check_scene_geometry(scene.T_world_cam, scene.intrinsics, scene.frame_ids, str(src))
     if gravity is not None:
         gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(gravity)) or np.linalg.norm(gravity) < 1e-9:
