@@ -396,6 +396,9 @@ def _json_kind(v) -> str:
 
 def _check_header(hdr_path: Path, hdr: dict, color: np.ndarray, depth: np.ndarray) -> None:
     """The top-level fields of scene.json, each refusal naming the field at fault."""
+    for key in ("width", "height", "frames"):
+        if key not in hdr:
+            raise SceneError(f"{hdr_path}: missing or malformed field (KeyError: {key!r})")
     for key in ("width", "height"):
         v = hdr.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
