@@ -200,8 +200,8 @@ def check_render_memory(width: int, height: int, num_layers: int = 4, max_memory
 
 GEN_BOP_BYTES_PER_PX = 1.0
 """Bytes ``gen-bop`` writes per image pixel (color PNG + 16-bit depth PNG + two masks per object,
-all compressed). A low estimate, so that only jobs that cannot fit are refused: measured 2.4-2.9
-B/px on the toy room and the sample scene (docs/limits.md)."""
+all compressed). A low estimate, so that only jobs that cannot fit are refused: measured 1.65 B/px
+(sample scene) and 1.79 B/px (toy room) at 320x240; real captures compress worse (docs/limits.md)."""
 GEN_BOP_RECORD_BYTES = 4096
 """Memory per image slot held until ``gen-bop`` writes the scene's JSON files (frame records)."""
 
