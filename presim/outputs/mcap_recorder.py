@@ -71,7 +71,8 @@ class McapConfig:
     """Write the scene point cloud once on /map_cloud."""
     flush_every_n_steps: int = 10
     """Finish the chunk in progress and flush the file every n steps: a recording killed with
-    SIGKILL keeps every step but the last < n (``presim recover`` indexes it). 1 costs ~compression."""
+    SIGKILL keeps every step but the last < n (``presim recover`` indexes it). Smaller chunks compress
+less: 10 made 100 toy-room steps 4.4 % larger at 64x48 and 2.1 % at 320x240 than one chunk per 4 MB."""
 
 
 class McapRecorder:

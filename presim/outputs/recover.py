@@ -159,9 +159,9 @@ def recover_capture(partial: str | os.PathLike, overwrite: bool = False) -> Reco
     stamps: dict[str, float] = {}
     ts = partial / TIMESTAMPS_FILE
     if ts.is_file():
-        for line in ts.read_text(errors="replace").splitlines():
+        for line in ts.read_text(errors="replace").split("\n")[:-1]:  # complete lines only
             parts = line.split()
-            if len(parts) == 2 and line.endswith(parts[1]):
+            if len(parts) == 2:
                 try:
                     stamps[parts[0]] = float(parts[1])
                 except ValueError:
