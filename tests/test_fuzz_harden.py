@@ -145,7 +145,7 @@ def test_full_disk_import_refine_one_line_nothing_left(small_tmpfs, tmp_path, ca
     (small_tmpfs / "filler").write_bytes(b"\0" * (free - 64 * 1024))  # 64 KiB left; refine needs 288 KiB
 
     r = _presim_sub("refine", scene)
-    assert r.returncode == 1, (r.returncode, r.stderr)  # was -7 (SIGBUS), no message
+    assert r.returncode == 1, (r.returncode, r.stderr)  # not -7: a SIGBUS has no message
     line = _one_error_line(r.stderr)
     assert "no space left on device" in line and "depth_refined.npy" in line and "needs 295040 bytes" in line
     assert _digest(scene) == before
