@@ -7,11 +7,14 @@ same folder and renamed into place; folders are built under ``<name>.partial`` a
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import json
 import os
 import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Iterator
 
@@ -19,7 +22,8 @@ import cv2
 import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "atomic_dir",
-           "write_png", "read_image", "progress"]
+           "write_png", "read_image", "progress", "DiskFullError", "open_npy_for_writing", "disk_full_error",
+           "free_disk_bytes", "FolderBusyError", "folder_lock", "LOCK_FILE"]
 
 
 def _umask() -> int:
@@ -144,3 +148,134 @@ def progress(iterable=None, *, total: int | None = None, desc: str = "", unit: s
     if disable is None:
         disable = not progress_on()
     return tqdm(iterable, total=total, desc=desc, unit=unit, disable=disable, dynamic_ncols=True)
+
+
+# ---- disk space ---------------------------------------------------------------------------------
+
+class DiskFullError(OSError):
+    """Not enough free space for an output; the message names the path and the bytes needed."""
+
+    def __init__(self, path: str | os.PathLike, needed_bytes: int, free_bytes: int | None = None):
+        from presim.limits import format_size
+
+        self.path, self.needed_bytes = Path(path), int(needed_bytes)
+        free = "" if free_bytes is None else f", {format_size(free_bytes)} free"
+        super().__init__(errno.ENOSPC, f"{path}: no space left on device: needs {self.needed_bytes} bytes "
+                                       f"({format_size(self.needed_bytes)}){free}; nothing was kept")
+
+    def __str__(self) -> str:
+        return self.strerror
+
+
+def free_disk_bytes(path: str | os.PathLike) -> int:
+    """Bytes an unprivileged writer may still use on the file system of ``path`` (or of its nearest
+    existing parent)."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    st = os.statvfs(p)
+    return st.f_bavail * st.f_frsize
+
+
+def disk_full_error(e: OSError, path: str | os.PathLike, needed_bytes: int) -> OSError:
+    """``e`` as a :class:`DiskFullError` when it is ENOSPC / EDQUOT / EFBIG, else ``e`` itself."""
+    if getattr(e, "errno", None) in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        try:
+            free = free_disk_bytes(path)
+        except OSError:
+            free = None
+        return DiskFullError(path, needed_bytes, free)
+    return e
+
+
+def open_npy_for_writing(path: str | os.PathLike, dtype, shape: tuple[int, ...]) -> np.memmap:
+    """``np.lib.format.open_memmap(path, "w+", ...)`` with every byte of the file reserved first.
+
+    A memory map over a sparse file dies with SIGBUS (no message, exit 135) when the disk fills
+    while its pages are written back; ``posix_fallocate`` makes the file system hand out the blocks
+    up front, so a full disk is an ordinary :class:`DiskFullError` (path and bytes needed) before
+    anything is written, and the half-made file is removed.
+    """
+    path = Path(path)
+    arr = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)
+    size = os.path.getsize(path)
+    del arr
+    try:
+        fd = os.open(path, os.O_RDWR)
+        try:
+            os.posix_fallocate(fd, 0, size)
+        finally:
+            os.close(fd)
+    except OSError as e:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+        raise disk_full_error(e, path, size) from None
+    return np.lib.format.open_memmap(path, mode="r+")
+
+
+# ---- one writer per folder ----------------------------------------------------------------------
+
+LOCK_FILE = ".presim.lock"
+"""Advisory lock file a command holds while it writes into a folder (a scene, a BOP scene)."""
+
+
+class FolderBusyError(OSError):
+    """Another command holds the folder's lock (``--no-wait``); the message names the holder."""
+
+    def __init__(self, message: str):
+        super().__init__(errno.EBUSY, message)
+
+    def __str__(self) -> str:
+        return self.strerror
+
+
+def _holder(fd: int) -> str:
+    try:
+        text = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip()
+        d = json.loads(text) if text else {}
+        since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(d.get("since", 0))))
+        return f"`{d.get('command', 'presim')}` (pid {d.get('pid', '?')}, since {since})"
+    except (OSError, ValueError, TypeError):
+        return "another presim command"
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike, command: str, wait: bool = True,
+                log=None) -> Iterator[Path]:
+    """Hold the advisory lock (``flock`` on ``FOLDER/.presim.lock``) of a folder that a command writes
+    into, so that two commands never write into one scene at once.
+
+    When another process (or another open of the file) holds it: with ``wait`` a one-line message
+    naming the holder goes to ``log`` (default: stderr) and the call blocks until it is free;
+    without, :class:`FolderBusyError` names the holder. The lock is released when the block ends
+    or the process dies (the kernel drops it); the file itself stays (removing it would let a
+    waiter lock a file no longer in the folder).
+    """
+    folder = Path(folder)
+    lock_path = folder / LOCK_FILE
+    try:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, _FILE_MODE)
+    except OSError as e:
+        raise OSError(e.errno, f"{folder}: cannot lock the folder for writing ({e.strerror})") from None
+    held = False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            if not wait:
+                raise FolderBusyError(f"{folder}: busy: {holder} is writing into it; wait for it to finish "
+                                      "or run without --no-wait") from None
+            msg = f"{folder}: waiting for {holder} to finish writing into it (Ctrl-C to give up)"
+            (log or (lambda s: print(s, file=sys.stderr, flush=True)))(msg)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        held = True
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps({"command": command, "pid": os.getpid(), "since": time.time()}).encode(), 0)
+        yield lock_path
+    finally:
+        if held:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)  # no stale holder; the empty file is the same after every run
+        os.close(fd)  # releases the flock

@@ -28,7 +28,8 @@ import re
 __all__ = ["InputError", "MemoryLimitError", "DEFAULT_MEMORY_FRACTION", "parse_size", "format_size",
            "available_memory_bytes", "memory_budget_bytes", "check_memory", "check_positive",
            "check_positive_int", "check_intrinsics", "render_memory_bytes", "sample_scene_memory_bytes",
-           "gen_bop_memory_bytes", "check_render_memory"]
+           "gen_bop_memory_bytes", "check_render_memory", "GEN_BOP_BYTES_PER_PX", "GEN_BOP_RECORD_BYTES",
+           "gen_bop_output_bytes", "check_disk"]
 
 DEFAULT_MEMORY_FRACTION = 0.5
 """Share of the available memory a command may plan to use without ``--max-memory``."""
@@ -193,3 +194,29 @@ def check_render_memory(width: int, height: int, num_layers: int = 4, max_memory
     flag = layers_flag if (num_layers > 4 and base <= budget) else size_flag
     shown = f"{flag} ({width}x{height}, {num_layers} layers)"
     return check_memory(est, shown, what, max_memory)
+
+
+# ---- disk -------------------------------------------------------------------------------------
+
+GEN_BOP_BYTES_PER_PX = 1.0
+"""Bytes ``gen-bop`` writes per image pixel (color PNG + 16-bit depth PNG + two masks per object,
+all compressed). A low estimate, so that only jobs that cannot fit are refused: measured 1.65 B/px
+(sample scene) and 1.79 B/px (toy room) at 320x240; real captures compress worse (docs/limits.md)."""
+GEN_BOP_RECORD_BYTES = 4096
+"""Memory per image slot held until ``gen-bop`` writes the scene's JSON files (frame records)."""
+
+
+def gen_bop_output_bytes(width: int, height: int, frames: int) -> float:
+    """Estimated bytes of the images ``gen-bop`` writes (a low estimate; see GEN_BOP_BYTES_PER_PX)."""
+    return float(frames) * float(width) * float(height) * GEN_BOP_BYTES_PER_PX
+
+
+def check_disk(estimate_bytes: float, path, flag: str, what: str) -> None:
+    """Refuse (``InputError`` naming ``flag``) when ``estimate_bytes`` is more than the free space of
+    the file system that will hold ``path`` (or its nearest existing parent)."""
+    from presim.io_utils import free_disk_bytes
+
+    free = free_disk_bytes(path)
+    if not math.isfinite(estimate_bytes) or estimate_bytes > free:
+        raise InputError(flag, f"{what} needs an estimated {format_size(estimate_bytes)} of disk, more than the "
+                               f"{format_size(free)} free at {path}")

@@ -24,14 +24,16 @@ def scene_info(scene: Scene, max_sample_frames: int = 50) -> dict:
     cov, dmin, dmax = [], np.inf, 0.0
     for i in sample:
         d = scene.depth(int(i), refined=False)
-        v = d > 0
+        v = (d > 0) & np.isfinite(d)
         cov.append(float(v.mean()))
         if v.any():
             dmin, dmax = min(dmin, float(d[v].min())), max(dmax, float(d[v].max()))
     pts = scene.points
     extent = None
-    if pts is not None and len(pts):
-        lo, hi = pts.xyz.min(axis=0), pts.xyz.max(axis=0)
+    xyz = np.asarray(pts.xyz, dtype=np.float64) if pts is not None and len(pts) else np.zeros((0, 3))
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]  # float64: hi - lo of float32 points never overflows
+    if len(xyz):
+        lo, hi = xyz.min(axis=0), xyz.max(axis=0)
         extent = {"min_m": [round(float(x), 4) for x in lo], "max_m": [round(float(x), 4) for x in hi],
                   "size_m": [round(float(x), 4) for x in hi - lo]}
     stamps = scene.stamps_s

@@ -33,11 +33,59 @@ __all__ = [
     "AppliedTransform",
     "Scene",
     "SceneError",
+    "check_scene_geometry",
+    "MAX_COORD_M",
+    "MAX_EXTENT_M",
+    "MIN_FOV_DEG",
 ]
+
+MAX_COORD_M = 100_000.0
+"""Largest camera coordinate a capture may have (±100 km): far beyond any room, building or site a
+handheld capture covers, and far inside what float32 point clouds and voxel keys represent."""
+MAX_EXTENT_M = 10_000.0
+"""Largest extent of a capture's camera centres along any axis (10 km)."""
+MIN_FOV_DEG = 0.01
+"""Smallest field of view along either image axis (fx = 1e30 would give ~0 deg: no pixel sees
+anything a neighbouring view could fill)."""
 
 
 class SceneError(ValueError):
     """Bad input while reading or building a scene; the message names the file and the problem."""
+
+
+def check_scene_geometry(T_world_cam: np.ndarray, intrinsics: Sequence[Intrinsics], frame_ids: Sequence[str],
+                         where: str) -> None:
+    """Refuse absurd geometry with one line naming ``where`` and the first frame at fault: a camera
+    coordinate beyond ±:data:`MAX_COORD_M`, camera centres spread over more than
+    :data:`MAX_EXTENT_M` along an axis, a field of view under :data:`MIN_FOV_DEG`, a focal length
+    or principal point that is not a finite number."""
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    t = T[:, :3, 3]
+    bad = ~np.all(np.isfinite(t) & (np.abs(t) <= MAX_COORD_M), axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise SceneError(f"{where}: frame {frame_ids[i]}: camera position {t[i].tolist()} m is beyond "
+                         f"±{MAX_COORD_M / 1000:.0f} km (wrong unit or a corrupt pose?)")
+    if len(t):
+        ext = t.max(axis=0) - t.min(axis=0)
+        if ext.max() > MAX_EXTENT_M:
+            raise SceneError(f"{where}: the cameras spread over {ext.max() / 1000:.1f} km along "
+                             f"{'xyz'[int(np.argmax(ext))]}, more than {MAX_EXTENT_M / 1000:.0f} km (wrong unit "
+                             "or a corrupt pose?)")
+    seen: set = set()
+    for fid, K in zip(frame_ids, intrinsics):
+        if K in seen:
+            continue
+        seen.add(K)
+        vals = (K.fx, K.fy, K.cx, K.cy)
+        if not all(isinstance(v, (int, float, np.floating, np.integer)) and np.isfinite(v) for v in vals) \
+                or K.fx <= 0 or K.fy <= 0:
+            raise SceneError(f"{where}: frame {fid}: intrinsics fx {K.fx!r} fy {K.fy!r} cx {K.cx!r} cy {K.cy!r} "
+                             "must be finite, focal lengths > 0")
+        if K.hfov_deg < MIN_FOV_DEG or K.vfov_deg < MIN_FOV_DEG:
+            raise SceneError(f"{where}: frame {fid}: field of view {K.hfov_deg:.3g} x {K.vfov_deg:.3g} deg "
+                             f"(fx {K.fx:.6g}, fy {K.fy:.6g} at {K.width}x{K.height}) is under {MIN_FOV_DEG} deg "
+                             "(focal length in the wrong unit?)")
 
 
 @dataclass(frozen=True)

@@ -27,15 +27,17 @@ import numpy as np
 
 from presim.capture.calibration import PhotometricCalib
 from presim.capture.scene import (
-    ArrayFrameSource, FloorPlane, PointCloud, Scene, SceneError, SceneMeta, SceneObject,
+    ArrayFrameSource, FloorPlane, PointCloud, Scene, SceneError, SceneMeta, SceneObject, check_scene_geometry,
 )
 from presim.geometry import Intrinsics, unproject_depth
-from presim.io_utils import atomic_dir, atomic_write_json, progress
+from presim.io_utils import (
+    DiskFullError, atomic_dir, atomic_write_json, disk_full_error, free_disk_bytes, open_npy_for_writing, progress,
+)
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
            "set_has_refined_depth", "set_has_fused_depth",
            "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses",
-           "PHOTOMETRIC_FILE", "save_photometric"]
+           "PHOTOMETRIC_FILE", "save_photometric", "saved_scene_bytes"]
 
 PHOTOMETRIC_FILE = "photometric.json"
 
@@ -120,9 +122,31 @@ def save_scene(scene: Scene, dst: str | Path, overwrite: bool = False,
     """
     dst = Path(dst)
     n, h, w = len(scene), scene.height, scene.width
+    needed = saved_scene_bytes(scene)
+    free = free_disk_bytes(dst.parent)
+    if needed > free:  # refuse before writing anything (an existing dst stays as it is)
+        raise DiskFullError(dst, needed, free)
+    try:
+        return _save_scene(scene, dst, overwrite, voxel_m, n, h, w)
+    except DiskFullError:
+        raise
+    except OSError as e:  # ENOSPC of a file written after the arrays (the partial folder is gone)
+        raise disk_full_error(e, dst, needed) from None
+
+
+def saved_scene_bytes(scene: Scene) -> int:
+    """Bytes of the arrays :func:`save_scene` writes (color, depth, refined / fused depth, points)
+    plus 1 MiB for scene.json and headers: checked against the free disk space before saving."""
+    px = len(scene) * scene.height * scene.width
+    n_depth = 1 + (scene.depth_refined is not None) + (scene.depth_fused is not None)
+    n_points = len(scene.points) if scene.points is not None else min(px // 16, 2_000_000)
+    return int(px * (3 + 4 * n_depth) + 15 * n_points + 2**20)
+
+
+def _save_scene(scene: Scene, dst: Path, overwrite: bool, voxel_m: float, n: int, h: int, w: int) -> Path:
     with atomic_dir(dst, overwrite=overwrite) as tmp:
-        color = np.lib.format.open_memmap(tmp / "color.npy", mode="w+", dtype=np.uint8, shape=(n, h, w, 3))
-        depth = np.lib.format.open_memmap(tmp / "depth.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+        color = open_npy_for_writing(tmp / "color.npy", np.uint8, (n, h, w, 3))
+        depth = open_npy_for_writing(tmp / "depth.npy", np.float32, (n, h, w))
         for i in progress(range(n), desc="saving frames", unit="frame"):
             c, d = scene.frames.load(i)
             if c.shape != (h, w, 3) or c.dtype != np.uint8:
@@ -135,13 +159,13 @@ def save_scene(scene: Scene, dst: str | Path, overwrite: bool = False,
         depth.flush()
         del color, depth
         if scene.depth_refined is not None:
-            ref = np.lib.format.open_memmap(tmp / "depth_refined.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+            ref = open_npy_for_writing(tmp / "depth_refined.npy", np.float32, (n, h, w))
             for i in range(n):
                 ref[i] = scene.depth_refined[i]
             ref.flush()
             del ref
         if scene.depth_fused is not None:
-            fus = np.lib.format.open_memmap(tmp / "depth_fused.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+            fus = open_npy_for_writing(tmp / "depth_fused.npy", np.float32, (n, h, w))
             for i in range(n):
                 fus[i] = scene.depth_fused[i]
             fus.flush()
@@ -343,22 +367,63 @@ def _load_scene_given(path: Path, _skip_points: bool = False) -> Scene:
         hdr = json.loads(hdr_path.read_text())
     except json.JSONDecodeError as e:
         raise SceneError(f"{hdr_path}: corrupt JSON ({e})") from e
+    except UnicodeDecodeError as e:
+        raise SceneError(f"{hdr_path}: not UTF-8 text ({e})") from None
+    if not isinstance(hdr, dict):
+        raise SceneError(f"{hdr_path}: the top level must be a JSON object, got a JSON {_json_kind(hdr)}")
     if hdr.get("format") != FORMAT_NAME:
         raise SceneError(f"{hdr_path}: unknown format {hdr.get('format')!r}")
     if hdr.get("version") != FORMAT_VERSION:
         raise SceneError(f"{hdr_path}: scene format version {hdr.get('version')} is not supported "
                          f"(this PreSim reads version {FORMAT_VERSION})")
+    _check_header(hdr_path, hdr, color, depth)
     try:
-        return _scene_from_header(path, hdr, color, depth)
-    except (KeyError, TypeError, IndexError) as e:
+        scene = _scene_from_header(path, hdr, color, depth)
+    except SceneError:
+        raise
+    except (KeyError, TypeError, IndexError, ValueError) as e:
         raise SceneError(f"{hdr_path}: missing or malformed field ({type(e).__name__}: {e})") from None
+    check_scene_geometry(scene.T_world_cam, scene.intrinsics, scene.frame_ids, str(hdr_path))
+    return scene
+
+
+def _json_kind(v) -> str:
+    return {list: "list", str: "string", bool: "boolean", int: "number", float: "number",
+            type(None): "null"}.get(type(v), type(v).__name__)
+
+
+def _check_header(hdr_path: Path, hdr: dict, color: np.ndarray, depth: np.ndarray) -> None:
+    """The top-level fields of scene.json, each refusal naming the field at fault."""
+    for key in ("width", "height", "frames"):
+        if key not in hdr:
+            raise SceneError(f"{hdr_path}: missing or malformed field (KeyError: {key!r})")
+    for key in ("width", "height"):
+        v = hdr.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise SceneError(f"{hdr_path}: field {key!r} must be a whole number >= 1, got {v!r}")
+    frames = hdr.get("frames")
+    if not isinstance(frames, list) or not all(isinstance(f, dict) for f in frames):
+        raise SceneError(f"{hdr_path}: field 'frames' must be a list of objects, got a JSON {_json_kind(frames)}")
+    n = len(frames)
+    if "num_frames" in hdr and hdr["num_frames"] != n:
+        raise SceneError(f"{hdr_path}: field 'num_frames' is {hdr['num_frames']!r} but 'frames' lists {n}")
+    if depth.shape != color.shape[:3]:
+        raise SceneError(f"{hdr_path.parent}: color.npy {color.shape} and depth.npy {depth.shape} disagree")
+    for axis, (key, want) in enumerate((("frames", n), ("height", hdr["height"]), ("width", hdr["width"]))):
+        if color.shape[axis] != want:
+            raise SceneError(f"{hdr_path}: field {key!r} says {want} but color.npy holds {color.shape[axis]} "
+                             f"(arrays {color.shape})")
+    for key in ("objects",):
+        if key in hdr and not isinstance(hdr[key], list):
+            raise SceneError(f"{hdr_path}: field {key!r} must be a list, got a JSON {_json_kind(hdr[key])}")
+    for key in ("meta", "floor"):
+        if hdr.get(key) is not None and not isinstance(hdr[key], dict):
+            raise SceneError(f"{hdr_path}: field {key!r} must be an object, got a JSON {_json_kind(hdr[key])}")
 
 
 def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarray) -> Scene:
     frames = hdr["frames"]
     n = len(frames)
-    if color.shape != (n, hdr["height"], hdr["width"], 3) or depth.shape != color.shape[:3]:
-        raise SceneError(f"{path}: arrays {color.shape}/{depth.shape} do not match scene.json ({n} frames)")
     refined = None
     if (path / "depth_refined.npy").is_file():
         refined = _load_array(path / "depth_refined.npy")

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import re
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from presim import runtime
 
@@ -22,6 +24,7 @@ _MODULES = [
     "presim.cli.sim_cmds",        # drive
     "presim.cli.teleop_cmd",      # teleop
     "presim.cli.outputs_cmds",    # ros
+    "presim.cli.recover_cmd",     # recover
     "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
@@ -56,13 +59,22 @@ COMMON_OPTIONS_HELP = (
     "  --quiet            no progress bars (they are also off when stderr is not a terminal)")
 
 
-def _add_common_options(p: argparse.ArgumentParser) -> None:
+SCENE_WRITERS = ("refine", "fuse", "align", "photometric", "objects")
+"""Commands that write into the scene folder they are given (argument ``scene``): each holds the
+folder's lock (:func:`presim.io_utils.folder_lock`) while it runs."""
+
+
+def _add_common_options(p: argparse.ArgumentParser, name: str = "") -> None:
     """The shared options, one short line each (the full text: COMMON_OPTIONS_HELP, in `presim --help`)."""
     p.formatter_class = HelpFormatter
+    if name in SCENE_WRITERS or name == "gen-bop":
+        p.add_argument("--no-wait", action="store_true",
+                       help="when another command is writing into the same folder, stop with an error naming "
+                            "it instead of waiting for it")
     nested = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
     for a in nested:  # e.g. `presim sim2real depth`: the options belong to the leaf commands
         for q in a.choices.values():
-            _add_common_options(q)
+            _add_common_options(q, name)
     if nested:
         return
     g = p.add_argument_group("common options (see `presim --help`)")
@@ -82,8 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
     for name in _MODULES:
         importlib.import_module(name).register(sub)
-    for p in sub.choices.values():
-        _add_common_options(p)
+    for name, p in sub.choices.items():
+        _add_common_options(p, name)
     return parser
 
 
@@ -112,13 +124,23 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, old_term)
 
 
+def _call(args: argparse.Namespace) -> int:
+    scene = getattr(args, "scene", None)
+    if args.command in SCENE_WRITERS and scene is not None and Path(scene).is_dir():
+        from presim.io_utils import folder_lock
+
+        with folder_lock(scene, f"presim {args.command}", wait=not args.no_wait):
+            return int(args.func(args) or 0)
+    return int(args.func(args) or 0)
+
+
 def _run(args: argparse.Namespace) -> int:
     if getattr(args, "quiet", False):
         from presim.io_utils import set_progress
 
         set_progress(False)
     try:
-        return int(args.func(args) or 0)
+        return _call(args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
@@ -126,6 +148,9 @@ def _run(args: argparse.Namespace) -> int:
         # Bad input (missing / unreadable / wrong kind of file, bad values): one clear line naming
         # the file and the problem, no traceback.
         msg = str(e) if not isinstance(e, MemoryError) else f"out of memory ({e or 'allocation failed'})"
+        if isinstance(e, OSError) and e.errno == errno.ENOSPC and type(e) is OSError:
+            # a write that found the disk full: the path, not the bare errno
+            msg = f"{e.filename or 'output'}: no space left on device"
         print(f"presim {args.command}: error: {msg}", file=sys.stderr)
         return 1
     except ImportError as e:

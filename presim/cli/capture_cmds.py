@@ -34,6 +34,9 @@ def register(sub) -> None:
                    help="gravity direction in the capture's world frame (default: from the cameras' up axes)")
     p.add_argument("--no-floor", action="store_true", help="keep the capture's world frame (no floor alignment)")
     p.add_argument("--overwrite", action="store_true", help="replace DST if it exists")
+    p.add_argument("--depth-scale", type=float, default=None, metavar="MM",
+                   help="millimetres per step of the depth images (depth_mm = value * MM, the BOP convention), "
+                        "replacing the format's own unit; needed to import 8-bit depth images")
     p.add_argument("--min-registered", type=float, default=0.8, metavar="FRAC",
                    help="captures without poses: fail (writing nothing) when SfM registers fewer than this "
                         "fraction of the frames (default 0.8)")
@@ -66,7 +69,8 @@ def _cmd_import(args: argparse.Namespace) -> int:
                            gravity=args.gravity, align_floor=not args.no_floor,
                            estimate_poses=functools.partial(estimate_poses, config=SfmConfig(
                                min_registered_frac=args.min_registered, seed=args.sfm_seed,
-                               num_threads=args.sfm_threads)))
+                               num_threads=args.sfm_threads)),
+                           depth_scale_mm=args.depth_scale)
     save_scene(scene, args.dst, overwrite=args.overwrite)
     saved = load_scene(args.dst)
     print(format_info(scene_info(saved, max_sample_frames=10)))

@@ -60,15 +60,26 @@ def _gen_bop(args) -> int:
     from presim.datasets.object_sources import resolve_objects
     from presim.datasets.real_split import parse_frame_range
 
-    from presim.limits import check_intrinsics, check_positive, check_positive_int, check_render_memory
+    from presim.datasets.generate import MAX_FRAMES, check_depth_scale
+    from presim.limits import (
+        GEN_BOP_RECORD_BYTES, InputError, check_disk, check_intrinsics, check_memory, check_positive,
+        check_positive_int, check_render_memory, gen_bop_output_bytes,
+    )
 
     check_intrinsics(args.width, args.height)
     check_positive_int(args.frames, "--frames", allow_none=False)
+    if args.frames > MAX_FRAMES:
+        raise InputError("--frames", f"at most {MAX_FRAMES} images per BOP scene (6-digit image ids), got "
+                                     f"{args.frames}; split the job over several --scene-id")
     check_positive_int(args.workers, "--workers", allow_none=False)
     check_positive(args.hfov_deg, "--hfov-deg")
-    check_positive(args.depth_scale, "--depth-scale", allow_none=False)
+    check_depth_scale(args.depth_scale, "--depth-scale")
     check_render_memory(args.width, args.height, max_memory=args.max_memory, copies=args.workers,
                         per_frame_extra_px_bytes=32.0, what=f"generating frames ({args.workers} worker(s))")
+    check_memory(float(args.frames) * GEN_BOP_RECORD_BYTES, "--frames", f"keeping {args.frames} frame records",
+                 args.max_memory)
+    check_disk(gen_bop_output_bytes(args.width, args.height, args.frames), args.out, "--frames/--width/--height",
+               f"writing {args.frames} images of {args.width}x{args.height}")
     scene = load_scene(args.scene, poses=args.scene_poses)
     objects = resolve_objects(scene, args.objects)
     config = GenConfig(
@@ -83,14 +94,18 @@ def _gen_bop(args) -> int:
     )
     rep = generate_bop(args.scene, args.out, objects, config, workers=args.workers, ray_address=args.ray,
                        overwrite=args.overwrite, stop_after=args.max_new_frames,
-                       scene_poses=args.scene_poses)
+                       scene_poses=args.scene_poses, wait=not args.no_wait)
     d = asdict(rep)
     print(json.dumps({k: d[k] for k in ("scene_dir", "frames_written", "frames_requested", "dropped_not_visible",
-                                        "slots_failed", "instances", "complete", "frames_per_s")}))
-    if not rep.complete:
+                                        "slots_failed", "instances", "finished", "complete", "frames_per_s")}))
+    if not rep.finished:
         print(f"stopped before the end: rerun the same command to continue {rep.scene_dir}", file=sys.stderr)
         return 0
     print(f"report: {report_path(args.out, config.split, config.scene_id)}", file=sys.stderr)
+    if 0 < rep.frames_written < rep.frames_requested:
+        print(f"warning: incomplete: {rep.frames_requested - rep.frames_written} of {rep.frames_requested} image "
+              f"slot(s) made no frame (slots {rep.slots_failed[:10]}{' ...' if len(rep.slots_failed) > 10 else ''}; "
+              "every attempt rejected, see the report's 'rejected')", file=sys.stderr)
     no_seed = rep.rejected.get("no_seed_view", 0)
     if no_seed:
         print(f"warning: {no_seed} image slot(s) targeted an object that no captured view sees (object outside "

@@ -20,6 +20,7 @@ refused unless ``overwrite``.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import multiprocessing as mp
 import os
@@ -41,14 +42,42 @@ from presim.datasets.object_sources import PlacedObject
 from presim.datasets.objects import merge_models_dir
 from presim.datasets.real_split import FrameRanges, frame_positions
 from presim.geometry import Intrinsics, compose, invert, transform_points
-from presim.io_utils import atomic_write_bytes, atomic_write_json, progress
+from presim.io_utils import LOCK_FILE, atomic_write_bytes, atomic_write_json, folder_lock, progress
 from presim.synthesis.renderer import RenderConfig, Renderer
 
 __all__ = ["GenConfig", "GenJob", "FrameOutput", "FrameGenerator", "GenReport", "generate_bop",
-           "WORK_DIR", "COMPLETE_MARKER", "report_path"]
+           "WORK_DIR", "COMPLETE_MARKER", "MAX_FRAMES", "report_path", "check_depth_scale"]
 
 WORK_DIR = ".presim_work"
 COMPLETE_MARKER = ".presim_complete"
+MAX_FRAMES = 999_999
+"""Image slots of one BOP scene: BOP names images by 6-digit ids (``rgb/000000.png``)."""
+MIN_DEPTH_RANGE_M = 1.0
+"""A depth PNG unit must let 16 bits reach at least this far (``--depth-scale`` >= 0.0153 mm)."""
+MAX_DEPTH_SCALE_MM = 100.0
+"""Coarsest depth PNG unit accepted (10 cm per step: coarser flattens every object)."""
+
+
+def check_depth_scale(depth_scale_mm: float, flag: str = "--depth-scale") -> None:
+    """Refuse a depth PNG unit (mm per step) whose 16 bits cannot hold :data:`MIN_DEPTH_RANGE_M`
+    (every depth beyond it would be clipped to invalid, and frames dropped) or that is coarser than
+    :data:`MAX_DEPTH_SCALE_MM`; the message starts with ``flag``."""
+    import math
+
+    from presim.limits import InputError
+
+    try:
+        v = float(depth_scale_mm)
+    except (TypeError, ValueError):
+        raise InputError(flag, f"must be a number of millimetres per depth PNG step, got {depth_scale_mm!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise InputError(flag, f"must be a positive finite number of millimetres per step, got {depth_scale_mm!r}")
+    if 65535 * v / 1000.0 < MIN_DEPTH_RANGE_M:
+        raise InputError(flag, f"{v:g} mm per step stores depths up to {65535 * v / 1000.0:.3g} m only; at least "
+                               f"{MIN_DEPTH_RANGE_M * 1000 / 65535:.4f} is needed to reach {MIN_DEPTH_RANGE_M:g} m "
+                               "(BOP uses 0.1: 0.1 mm steps up to 6.55 m, or 1.0: 1 mm up to 65.5 m)")
+    if v > MAX_DEPTH_SCALE_MM:
+        raise InputError(flag, f"{v:g} mm per step is coarser than {MAX_DEPTH_SCALE_MM:g} mm; objects would be flat")
 
 
 @dataclass(frozen=True)
@@ -100,8 +129,9 @@ class GenConfig:
             raise ValueError(f"image format must be png or jpg, got {self.image_format!r}")
         if not 0.0 <= self.min_visib_fract <= 1.0:
             raise ValueError(f"min_visib_fract must be in [0, 1], got {self.min_visib_fract}")
-        if self.depth_scale <= 0:
-            raise ValueError(f"depth_scale must be > 0, got {self.depth_scale}")
+        check_depth_scale(self.depth_scale, "depth_scale")
+        if self.frames > MAX_FRAMES:
+            raise ValueError(f"frames: at most {MAX_FRAMES} per BOP scene (6-digit image ids), got {self.frames}")
         if self.max_attempts < 1:
             raise ValueError(f"max_attempts must be >= 1, got {self.max_attempts}")
 
@@ -326,7 +356,10 @@ class GenReport:
     instances_per_object: dict[str, int] = field(default_factory=dict)
     mean_target_visib_fract: float = 0.0
     depth_clipped_px: int = 0
+    finished: bool = False
+    """Every slot was tried: the scene's JSON files and the completion marker are written."""
     complete: bool = False
+    """Finished with every requested frame written (``frames_written == frames_requested``)."""
     fingerprint: str = ""
     seconds: float = 0.0
     frames_per_s: float = 0.0
@@ -361,7 +394,7 @@ def _store(sdir: Path, work: Path, fo: FrameOutput) -> None:
 def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[PlacedObject],
                  config: GenConfig = GenConfig(), workers: int = 1, ray_address: str | None = None,
                  render_config=None, overwrite: bool = False, stop_after: int | None = None,
-                 show_progress: bool | None = None, scene_poses: str = "auto") -> GenReport:
+                 show_progress: bool | None = None, scene_poses: str = "auto", wait: bool = True) -> GenReport:
     """Generate (or resume) one BOP scene. See the module docstring.
 
     Args:
@@ -374,7 +407,9 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
         render_config: ``RenderConfig`` of the view synthesis (None = defaults).
         overwrite: replace a scene folder made by a different job.
         stop_after: make at most this many new frames, then return without finishing (time-sliced
-            jobs; rerun to continue). The report then has ``complete = False``.
+            jobs; rerun to continue). The report then has ``finished = complete = False``.
+        wait: when another process is generating into the same scene folder, wait for it (a
+            message on stderr) instead of raising :class:`~presim.io_utils.FolderBusyError`.
         show_progress: progress bar (None = unless PRESIM_NO_PROGRESS=1).
         scene_poses: the scene's camera poses (``store.load_scene(poses=...)``: "auto" = refined by
             ``presim align`` when present, "given", "refined").
@@ -390,14 +425,40 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
     job = GenJob(str(scene_path), tuple(objects), config, render_config, scene_poses)
     fp = job.fingerprint()
     sdir = bop_writer.scene_dir(out, config.split, config.scene_id)
+    sdir.mkdir(parents=True, exist_ok=True)
+    # One job per scene folder at a time: a second run waits, then finds the scene finished (or
+    # resumes it) instead of writing frame records into a work folder the first one removed.
+    with folder_lock(sdir, f"presim gen-bop (scene {config.split}/{config.scene_id:06d})", wait=wait):
+        return _generate_locked(job, fp, scene_path, out, sdir, objects, config, workers, ray_address,
+                                overwrite, stop_after, show_progress, scene_poses, t0)
+
+
+def _clear_dir(d: Path) -> None:
+    """Remove everything in ``d`` but its lock file."""
+    for p in d.iterdir():
+        if p.name == LOCK_FILE:
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+
+
+def _generate_locked(job: GenJob, fp: str, scene_path: Path, out: Path, sdir: Path, objects, config: GenConfig,
+                     workers: int, ray_address: str | None, overwrite: bool, stop_after: int | None,
+                     show_progress: bool | None, scene_poses: str, t0: float) -> GenReport:
     work = sdir / WORK_DIR
     marker = sdir / COMPLETE_MARKER
     rpath = report_path(out, config.split, config.scene_id)
 
     if marker.is_file():
         if marker.read_text().strip() == fp and not overwrite:
-            rep = GenReport(**json.loads(rpath.read_text())) if rpath.is_file() else GenReport(
-                str(out), str(sdir), config.frames, 0, complete=True, fingerprint=fp)
+            if rpath.is_file():
+                rep = GenReport(**json.loads(rpath.read_text()))
+            else:
+                rep = GenReport(str(out), str(sdir), config.frames, 0, fingerprint=fp)
+            rep.finished = True
+            rep.complete = rep.frames_written == rep.frames_requested
             return rep
         if not overwrite:
             raise FileExistsError(f"{sdir}: holds a finished scene of a different job (fingerprint "
@@ -406,9 +467,9 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
     if job_file.is_file() and json.loads(job_file.read_text()).get("fingerprint") != fp and not overwrite:
         raise FileExistsError(f"{sdir}: an unfinished run of a different job is there; pass overwrite / "
                               f"--overwrite to discard it")
-    if sdir.exists() and (overwrite and (marker.is_file() or job_file.is_file())):
-        shutil.rmtree(sdir)
-    elif sdir.exists() and not job_file.is_file() and any(sdir.iterdir()):
+    if overwrite and (marker.is_file() or job_file.is_file()):
+        _clear_dir(sdir)
+    elif not job_file.is_file() and any(p.name != LOCK_FILE for p in sdir.iterdir()):
         raise FileExistsError(f"{sdir}: not empty and not made by gen-bop; choose another --out")
     work.mkdir(parents=True, exist_ok=True)
     atomic_write_json(job_file, {"fingerprint": fp, "scene": str(scene_path), "config": _config_dict(config)})
@@ -419,18 +480,21 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
     _write_dataset_level(out, K, objects, config.depth_scale)
     del scene
 
-    todo = [k for k in range(config.frames) if not (work / f"frame_{k:06d}.json").is_file()]
+    # The slots still to make, as a lazy iterator (never a list of `frames` entries).
+    done = _recorded_slots(work, config.frames)
+    n_todo = config.frames - len(done)
     if stop_after is not None:
-        todo = todo[: max(0, int(stop_after))]
+        n_todo = min(n_todo, max(0, int(stop_after)))
+    todo = itertools.islice((k for k in range(config.frames) if k not in done), n_todo)
     backend = "ray" if ray_address else ("processes" if workers > 1 else "serial")
-    if todo:
+    if n_todo:
         if ray_address:
-            it: Iterable[FrameOutput] = _run_ray(job, todo, ray_address, max(1, workers))
+            it: Iterable[FrameOutput] = _run_ray(job, list(todo), ray_address, max(1, workers))
         elif workers > 1:
-            it = _run_processes(job, todo, min(workers, len(todo)))
+            it = _run_processes(job, todo, min(workers, n_todo))
         else:
             it = _run_serial(job, todo)
-        bar = progress(total=len(todo), desc=f"gen-bop {sdir.name}", unit="frame",
+        bar = progress(total=n_todo, desc=f"gen-bop {sdir.name}", unit="frame",
                        disable=None if show_progress is None else not show_progress)
         try:
             for fo in it:
@@ -447,7 +511,7 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
             records.append(json.loads(p.read_text()))
     rep = _report(out, sdir, config, records, fp, backend, max(1, workers))
     rep.seconds = round(t_gen, 3)
-    rep.frames_per_s = round(len(todo) / t_gen, 4) if t_gen > 0 and todo else 0.0
+    rep.frames_per_s = round(n_todo / t_gen, 4) if t_gen > 0 and n_todo else 0.0
     if len(records) < config.frames:
         return rep  # stopped early: no scene JSON, no marker
 
@@ -458,11 +522,25 @@ def generate_bop(scene_path: str | Path, out: str | Path, objects: Sequence[Plac
         coco = bop_writer.coco_scene(ok, rles, [o.model for o in objects], K.width, K.height,
                                      f".{config.image_format}", config.min_visib_fract)
     bop_writer.write_scene_json(sdir, ok, coco)
-    rep.complete = True
+    rep.finished = True
+    rep.complete = rep.frames_written == rep.frames_requested
     atomic_write_json(rpath, asdict(rep))
     atomic_write_bytes(marker, (fp + "\n").encode())
     shutil.rmtree(work, ignore_errors=True)
     return rep
+
+
+def _recorded_slots(work: Path, frames: int) -> set[int]:
+    """Slots below ``frames`` whose frame record is in the work folder."""
+    done: set[int] = set()
+    if work.is_dir():
+        for e in os.scandir(work):
+            name = e.name
+            if name.startswith("frame_") and name.endswith(".json") and name[6:-5].isdigit():
+                k = int(name[6:-5])
+                if k < frames:
+                    done.add(k)
+    return done
 
 
 def _report(out: Path, sdir: Path, config: GenConfig, records: list[dict], fp: str, backend: str,

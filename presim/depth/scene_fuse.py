@@ -21,7 +21,7 @@ from presim.capture.store import set_has_fused_depth
 from presim.depth.align import AlignConfig, AlignedDepth, align_depth
 from presim.depth.fuse import FuseConfig, FusedDepth, fuse_depth
 from presim.geometry import Intrinsics
-from presim.io_utils import progress
+from presim.io_utils import open_npy_for_writing, progress
 
 __all__ = ["FUSED_FILE", "fuse_one_frame", "fuse_frames", "fuse_scene"]
 
@@ -64,12 +64,15 @@ def fuse_scene(scene: Scene, overwrite: bool = False, align: AlignConfig = Align
     if dst.exists() and not overwrite:
         raise FileExistsError(f"{dst}: already exists (pass --overwrite to recompute)")
     partial = dst.with_name(dst.name + ".partial")
-    arr = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float32, shape=(len(scene), scene.height, scene.width))
+    arr = open_npy_for_writing(partial, np.float32, (len(scene), scene.height, scene.width))
     try:
         fuse_frames(scene, scene.depth_refined, align=align, fuse=fuse, out=arr)
         arr.flush()
-    finally:
+    except BaseException:
         del arr
+        partial.unlink(missing_ok=True)
+        raise
+    del arr
     os.replace(partial, dst)
     set_has_fused_depth(scene.path)
     return dst

@@ -24,7 +24,7 @@ import numpy as np
 from presim.capture.scene import Scene
 from presim.capture.store import load_scene, set_has_refined_depth
 from presim.depth.refine import RefineConfig, RefView, refine_depth, reference_weights, select_reference_views
-from presim.io_utils import atomic_write_json, progress
+from presim.io_utils import atomic_write_json, open_npy_for_writing, progress
 
 __all__ = ["refine_frames_to_file", "refine_scene", "refine_one_frame", "config_key"]
 
@@ -123,10 +123,11 @@ def refine_frames_to_file(scene: Scene, out_path: str | Path, indices: Sequence[
         shutil.rmtree(done, ignore_errors=True)
         if partial.exists():
             partial.unlink()
-        done.mkdir(parents=True)
-        arr = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float32, shape=shape)
-        arr.flush()
+        # Every byte reserved before the first row is written: a full disk is an error here, not
+        # a SIGBUS in the middle of the run.
+        arr = open_npy_for_writing(partial, np.float32, shape)
         del arr
+        done.mkdir(parents=True)
         atomic_write_json(done / "fingerprint.json", {"fingerprint": fp})
     todo = [r for r in range(len(idx)) if not (done / f"{r:06d}").is_file()]
     limit = len(todo) if max_frames is None else min(len(todo), max(0, int(max_frames)))

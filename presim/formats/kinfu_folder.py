@@ -12,7 +12,8 @@ Files::
     trajectory_tum.txt        TUM lines of T_world_cam (presim.formats.tum)
 
 Frames are numbered from 0 in the order written. Per-frame files are written atomically as they
-come; :meth:`KinfuFolderWriter.close` writes the two sequence files. Making the folder itself
+come, then the frame's line is appended to ``timestamps.txt``; :meth:`KinfuFolderWriter.close`
+rewrites ``timestamps.txt`` and writes ``trajectory_tum.txt``. Making the folder itself
 appear atomically (``capture.partial`` renamed at the end) is the caller's job.
 """
 
@@ -87,6 +88,10 @@ class KinfuFolderWriter:
         T = np.asarray(T_world_cam, dtype=np.float64)
         atomic_write_text(self.folder / f"{name}.pose.txt",
                           "\n".join(" ".join(f"{v:.10f}" for v in row) for row in T) + "\n")
+        # The frame's stamp line last, appended: a killed writer leaves a folder whose frames with
+        # a stamp line are complete (presim.outputs.recover); close() rewrites the file atomically.
+        with open(self.folder / TIMESTAMPS_FILE, "a") as f:
+            f.write(f"{name} {float(stamp_s):.9f}\n")
         self._stamps.append(float(stamp_s))
         self._poses.append(T)
         self.frames_written += 1

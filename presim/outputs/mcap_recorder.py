@@ -17,7 +17,9 @@ Written with ``mcap`` (container) + ``mcap_ros2`` (CDR encoding). Topics (frames
 
 Every stamp (header and MCAP log time) is sim time. The file is written to ``<path>.partial`` and
 renamed to ``<path>`` when closed, so a complete-looking file is always a finished one; ``close`` is
-also registered with ``atexit`` so an interpreter exit after Ctrl-C still finishes the file.
+also registered with ``atexit`` so an interpreter exit after Ctrl-C still finishes the file. Every
+``flush_every_n_steps`` steps the chunk in progress is written out, so a killed process leaves a
+``.partial`` of complete chunks that ``presim recover`` turns into an indexed file.
 """
 
 from __future__ import annotations
@@ -67,6 +69,10 @@ class McapConfig:
     """Publish /path every n steps (it grows with the drive) and always at close."""
     write_cloud: bool = True
     """Write the scene point cloud once on /map_cloud."""
+    flush_every_n_steps: int = 10
+    """Finish the chunk in progress and flush the file every n steps: a recording killed with
+    SIGKILL keeps every step but the last < n (``presim recover`` indexes it). Smaller chunks compress
+less: 10 made 100 toy-room steps 4.4 % larger at 64x48 and 2.1 % at 320x240 than one chunk per 4 MB."""
 
 
 class McapRecorder:
@@ -125,6 +131,8 @@ class McapRecorder:
             if self._writer is None:
                 raise RuntimeError(f"{self.path}: recorder is closed")
             self._record(result)
+            if self._steps % max(1, self.config.flush_every_n_steps) == 0:
+                self._writer.flush()  # complete chunks on disk: what recovery keeps
 
     def close(self) -> None:
         with self._lock:

@@ -52,6 +52,10 @@ def build_sinks(record_dir: Path | None, viewer: str | None, rrd_path: Path | No
                 if (record_dir / name).exists():
                     raise FileExistsError(f"{record_dir / name}: already exists (choose another --record "
                                           "folder or pass --overwrite)")
+                if (record_dir / (name + ".partial")).exists():
+                    raise FileExistsError(f"{record_dir / (name + '.partial')}: an interrupted recording; "
+                                          f"`presim recover {record_dir}` keeps what it holds, --overwrite "
+                                          "discards it")
         record_dir.mkdir(parents=True, exist_ok=True)
         sinks.append(QueuedSink(McapRecorder(record_dir / RECORDING_NAME, mcap), "mcap", RECORDER_QUEUE))
         fcfg = folder if folder is not None else FolderConfig(overwrite=overwrite)

@@ -22,6 +22,7 @@ from presim.io_utils import read_image
 __all__ = [
     "DepthDecoder", "DepthCamera", "Undistortion", "FileFrameSource", "select_indices",
     "read_matrix_txt", "checked_pose", "decode_depth_png_scale", "image_size_wh", "require_file",
+    "override_depth_scale",
 ]
 
 DepthDecoder = Callable[[np.ndarray, Path], np.ndarray]
@@ -40,6 +41,18 @@ def decode_depth_png_scale(scale_m_per_unit: float, invalid_codes: Sequence[int]
         return depth
 
     return decode
+
+
+def override_depth_scale(source, depth_scale_mm: float, where: str) -> None:
+    """Decode ``source``'s depth images as ``depth_mm = value * depth_scale_mm`` (``presim import
+    --depth-scale``), 8-bit ones included; 0 stays invalid."""
+    if not isinstance(source, FileFrameSource):
+        raise SceneError(f"{where}: --depth-scale applies to captures with integer depth images; this "
+                         "capture's depth is not read from images")
+    if not (np.isfinite(depth_scale_mm) and depth_scale_mm > 0):
+        raise SceneError(f"--depth-scale: must be a positive finite number of millimetres, got {depth_scale_mm!r}")
+    source.decode_depth = decode_depth_png_scale(depth_scale_mm * 1e-3)
+    source.depth_unit_given = True
 
 
 def sanitize_depth(depth: np.ndarray, path: Path) -> np.ndarray:
@@ -89,13 +102,15 @@ class FileFrameSource:
             camera on load (:func:`presim.capture.register_depth.register_depth`).
         undistortion: when set, color and depth are undistorted (depth with nearest interpolation).
         require_depth: raise when a depth map has no valid pixel.
+        depth_unit_given: the user said what one step of the depth images is (``--depth-scale``);
+            without it an 8-bit depth image is refused (its 256 steps have no standard unit).
     """
 
     def __init__(self, color_paths: Sequence[Path], depth_paths: Sequence[Path],
                  K: Intrinsics | Sequence[Intrinsics], decode_depth: DepthDecoder,
                  depth_camera: DepthCamera | None = None,
                  undistortion: Undistortion | Sequence[Undistortion | None] | None = None,
-                 require_depth: bool = True):
+                 require_depth: bool = True, depth_unit_given: bool = False):
         n = len(color_paths)
         if len(depth_paths) != n:
             raise SceneError(f"{n} color files but {len(depth_paths)} depth files")
@@ -109,6 +124,7 @@ class FileFrameSource:
         if len(self.Ks) != n or len(self.undistortions) != n:
             raise SceneError(f"{n} frames but {len(self.Ks)} intrinsics / {len(self.undistortions)} distortions")
         self.require_depth = require_depth
+        self.depth_unit_given = depth_unit_given
         self._maps: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
@@ -141,6 +157,10 @@ class FileFrameSource:
         raw = self._read(dpath, "depth")
         if raw.ndim == 3 and raw.shape[-1] == 1:
             raw = raw[..., 0]
+        if raw.dtype == np.uint8 and not self.depth_unit_given:
+            raise SceneError(f"{dpath}: 8-bit depth image: its unit is unknown (depth images are 16-bit); "
+                             "pass --depth-scale MM (millimetres per step, e.g. 10 for centimetres) if it "
+                             "really is depth")
         depth = sanitize_depth(self.decode_depth(raw, dpath), dpath)
         K = self.Ks[idx]
         u = self.undistortions[idx]

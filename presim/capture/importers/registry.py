@@ -17,7 +17,8 @@ from typing import Callable
 import numpy as np
 
 from presim.capture.floor import FloorConfig, align_scene_to_floor, gravity_from_cameras
-from presim.capture.scene import Scene, SceneError
+from presim.capture.importers.common import override_depth_scale
+from presim.capture.scene import Scene, SceneError, check_scene_geometry
 from presim.capture.store import fuse_point_cloud
 
 __all__ = ["FORMATS", "importer", "detect_format", "import_capture"]
@@ -66,7 +67,8 @@ def detect_format(src: str | Path) -> str:
 def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_frames: int | None = None,
                    gravity: np.ndarray | None = None, align_floor: bool = True,
                    floor_config: FloorConfig = FloorConfig(), voxel_m: float = 0.01,
-                   estimate_poses: Callable[[Scene], Scene] | None = None) -> Scene:
+                   estimate_poses: Callable[[Scene], Scene] | None = None,
+                   depth_scale_mm: float | None = None) -> Scene:
     """Read a capture folder into a :class:`Scene` (frames stay on disk, read lazily).
 
     Args:
@@ -80,6 +82,8 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
         estimate_poses: for a capture without poses, the function that gives its frames poses (e.g.
             :func:`presim.align.sfm.estimate_poses`: pycolmap SfM, then alignment; pose estimation
             sits above ``capture``, so the caller passes it). None: such a capture is refused.
+        depth_scale_mm: millimetres per step of the depth images, replacing the format's unit (needed
+            for 8-bit depth images, which are refused otherwise).
 
     Returns:
         The scene, with its point cloud; ``scene.meta.transforms`` lists any change of world frame.
@@ -98,11 +102,14 @@ def import_capture(src: str | Path, fmt: str | None = None, every: int = 1, max_
         src = src / "capture"
     name = detect_format(src) if fmt is None else importer(fmt).NAME
     scene = importer(name).read(src, every=every, max_frames=max_frames)
+    if depth_scale_mm is not None:
+        override_depth_scale(scene.frames, depth_scale_mm, str(src))
     if scene.poses_source == "none":
         if estimate_poses is None:
             raise SceneError(f"{src}: the capture has no camera poses; `presim import SRC DST` estimates them "
                              "(pycolmap SfM), or pass estimate_poses=presim.align.sfm.estimate_poses")
         scene = estimate_poses(scene)
+    check_scene_geometry(scene.T_world_cam, scene.intrinsics, scene.frame_ids, str(src))
     if gravity is not None:
         gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(gravity)) or np.linalg.norm(gravity) < 1e-9:
