@@ -18,7 +18,7 @@ For every object instance in a frame this gives exactly what BOP's ``calc_gt_inf
 Rasterization is a z-buffer at pixel centres with perspective-correct depth (numba), checked
 against an exact ray cast (Open3D ``RaycastingScene``, :func:`render_model_depth_reference`).
 Point-cloud models (thesis §5.3.5) are splatted to their nearest pixel and their holes closed with
-the renderer's switching median filter (:func:`presim.synthesis.crack_filter.crack_filter`, thesis
+the renderer's switching median filter (:func:`presim.synthesis.cracks.crack_filter`, thesis
 eq. 3.9: a zero pixel whose 3x3 window is more than half set takes the *lower* median of the set
 pixels).
 
@@ -39,7 +39,7 @@ import numpy as np
 from presim.datasets.objects import ObjectModel
 from presim.formats.bop import GtInfo, GtInstance
 from presim.geometry import Intrinsics, check_rigid, project, transform_points
-from presim.synthesis.crack_filter import crack_filter
+from presim.synthesis.cracks import crack_filter
 
 __all__ = ["AnnotateConfig", "ModelRender", "InstanceAnnotation", "render_model_depth",
            "render_model_depth_reference", "annotate_instances", "bbox_from_mask", "ray_norm_image"]

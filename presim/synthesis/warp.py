@@ -794,7 +794,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         tiles: optional uint8 (ceil(H / tile_px), ceil(W / tile_px)): warp only into the marked
             tiles of ``tile_px`` x ``tile_px`` pixels: points landing elsewhere are skipped and only
             the marked tiles are cleared, so the layers are UNDEFINED outside them and exactly
-            what a full warp gives inside (:func:`presim.synthesis.composite.warp_tiles` marks
+            what a full warp gives inside (:func:`presim.synthesis.cracks.warp_tiles` marks
             what a later view's crack pass reads).
         cull: skip the chunks of points that :func:`chunk_visibility` proves fall outside the
             target, or outside the marked ``tiles`` (same output; False projects every point, for
@@ -802,7 +802,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
         clear_color: False leaves the colour UNDEFINED where a layer received no point (the
             colour planes are not cleared: 3 of the 7 bytes per layer pixel not written). For a
             reader that takes colour only where the depth is > 0: the banded crack pass
-            (:func:`presim.synthesis.composite.filtered_composite_banded`, tested).
+            (:func:`presim.synthesis.cracks.filtered_composite_banded`, tested).
     Returns:
         LayeredImage with depth 0 / color 0 (with ``clear_color``) where a layer received no point.
     """
