@@ -82,9 +82,9 @@ def test_render_bad_input_is_a_clear_error(scene_dir, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
-def test_render_torch_batch_backend_renders_batches_on_cpu(scene_dir, tmp_path, capsys):
-    """--backend torch_batch: 5 poses in batches of 2 (2 + 2 + 1) through Renderer.render_batch;
-    each captured pose reproduces its frame's depth like the per-frame backend."""
+def test_render_torch_backend_renders_batches_on_cpu(scene_dir, tmp_path, capsys):
+    """--backend torch: 5 poses in batches of 2 (2 + 2 + 1) through Renderer.render_batch; each
+    captured pose reproduces its frame's depth like the numba backend."""
     from presim.capture.store import load_scene
 
     sc = load_scene(scene_dir)
@@ -92,16 +92,16 @@ def test_render_torch_batch_backend_renders_batches_on_cpu(scene_dir, tmp_path, 
     tum.write_text("".join(f"{i * 0.1} " + " ".join(f"{x:.9f}" for x in pose_to_tum(sc.T_world_cam[i])) + "\n"
                            for i in range(5)))
     out = tmp_path / "rb"
-    assert main(["render", str(scene_dir), "--poses", str(tum), "--out", str(out), "--backend", "torch_batch",
+    assert main(["render", str(scene_dir), "--poses", str(tum), "--out", str(out), "--backend", "torch",
                  "--batch-size", "2"]) == 0
     summary = json.loads((out / "render.json").read_text())
-    assert summary["num_frames"] == 5 and summary["config"]["backend"] == "torch_batch"
-    assert all(1 <= v <= 3 for v in summary["views_used"])  # batch_views = 3
+    assert summary["num_frames"] == 5 and summary["perf"]["backend"] == "torch"
+    assert all(1 <= v <= summary["config"]["max_views"] for v in summary["views_used"])
     for i in range(5):
         depth = cv2.imread(str(out / f"frame-{i:06d}.depth.png"), cv2.IMREAD_UNCHANGED)
         valid = cv2.imread(str(out / f"frame-{i:06d}.valid.png"), cv2.IMREAD_UNCHANGED) > 0
         err = np.abs(depth[valid] / 1000.0 - sc.frames.load(i)[1][valid])
         assert valid.mean() > 0.95 and np.median(err) < 0.0006
     assert main(["render", str(scene_dir), "--frame", "0", "--out", str(tmp_path / "o"), "--backend",
-                 "torch_batch", "--batch-size", "0"]) == 1
+                 "torch", "--batch-size", "0"]) == 1
     assert "--batch-size" in capsys.readouterr().err

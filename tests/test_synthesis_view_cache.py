@@ -11,7 +11,7 @@ import pytest
 from presim.capture.scene import SceneError
 from presim.geometry import Intrinsics, look_at
 from presim.synthesis.lod import pool_depth_aware
-from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 from presim.synthesis.view_cache import ViewCache
 from presim.testing import rect_scene as S
 
@@ -110,7 +110,7 @@ def test_renderer_images_do_not_depend_on_views_built_ahead(size):
     scene = S.make_scene(S.room_rects(), S.orbit_poses(8), K)
     Kt = K.scaled(*size)
     ahead = Renderer(scene, RenderConfig(max_views=6, min_view_gain=0.0))
-    plain = Renderer(scene, RenderConfig(max_views=6, min_view_gain=0.0, prefetch=False))
+    plain = Renderer(scene, RenderConfig(max_views=6, min_view_gain=0.0), PerfConfig(prefetch=False))
     assert ahead.view_cache.background and not plain.view_cache.background
     for T in _path():
         a = ahead.render(T, Kt)
@@ -127,4 +127,4 @@ def test_renderer_images_do_not_depend_on_views_built_ahead(size):
 def test_renderer_prefetch_only_on_the_numba_backend():
     K = Intrinsics.from_fov(32, 24, 60.0)
     scene = S.make_scene(S.room_rects(), S.orbit_poses(3), K)
-    assert not Renderer(scene, RenderConfig(backend="reference")).view_cache.background
+    assert not Renderer(scene, RenderConfig(), PerfConfig(backend="reference")).view_cache.background
