@@ -103,7 +103,9 @@ def test_blend_config_and_render_config_checks():
 
 
 def test_blending_reduces_noise_on_the_room():
-    """Independent per-view colour noise averages out: blended error < winner-takes-all error."""
+    """Independent per-view colour noise averages out: blended error < winner-takes-all error (the
+    winner's forward colour, as the thesis; the backward colour's bilinear taps average some noise
+    themselves)."""
     Kr = Intrinsics.from_fov(160, 120, 60.0)
     poses = S.orbit_poses(5, span_m=0.4)
     clean = S.make_scene(S.room_rects(), poses, Kr)
@@ -120,7 +122,7 @@ def test_blending_reduces_noise_on_the_room():
     truth = clean.frames.load(k)[0].astype(float)
     errs = []
     for blend in (False, True):
-        out = Renderer(others, RenderConfig(blend=blend, fixed_views=3)).render(poses[k], Kr)
+        out = Renderer(others, RenderConfig(blend=blend, fixed_views=3, backward_color=False)).render(poses[k], Kr)
         errs.append(np.sqrt(np.mean((out.color[out.valid] - truth[out.valid]) ** 2)))
     assert errs[1] < 0.85 * errs[0]
 
@@ -135,7 +137,7 @@ def test_front_surface_kernels_match_their_references():
 
     sc = S.make_scene(S.room_rects(), S.orbit_poses(3, span_m=0.4), K)
     r = Renderer(sc, RenderConfig(lod_levels=0))
-    view = r._view(0)
+    view = r.view(0)
     T = np.linalg.inv(S.orbit_poses(3, span_m=0.4)[1])
     d = np.empty((K.height, K.width), np.float32)
     c = np.empty((K.height, K.width, 3), np.uint8)
@@ -152,37 +154,49 @@ def test_front_surface_kernels_match_their_references():
     assert np.array_equal(d2, ref_d) and np.array_equal(c2, ref_c)
     # Same surface as the one-layer z-buffer (ties broken towards the nearer layer in both).
     assert np.array_equal(d2, d) and np.array_equal(c2, c)
-    # The crack/composite pass writes the same front surface while it reads the layers (planar
-    # colour memory, as in the blend's stacks), and its own output does not change.
-    from presim.synthesis.composite import filtered_composite_packed
+    # A view image writes the same front surface from the layers it warps (planar colour memory,
+    # as in the blend's stacks), and its own output does not change.
+    from presim.synthesis.pipeline import Workspace, view_image_numba
 
     d3 = np.empty_like(d)
     c3 = np.empty((3,) + d.shape, np.uint8).transpose(1, 2, 0)
-    plain = filtered_composite_packed(lay.depth_m, lay.color)
-    fused = filtered_composite_packed(lay.depth_m, lay.color, front=(d3, c3))
+    cfg = RenderConfig(lod_levels=0)
+    plain = view_image_numba(view, T, K, cfg, None, Workspace())
+    fused = view_image_numba(view, T, K, cfg, None, Workspace(front=(d3, c3)))
     assert np.array_equal(d3, ref_d) and np.array_equal(c3, ref_c)
-    assert all(np.array_equal(a, b) for a, b in zip(plain, fused))
+    assert np.array_equal(plain.depth_m, fused.depth_m) and np.array_equal(plain.color, fused.color)
 
 
-def test_blend_reuses_the_loops_warps_and_gives_the_same_image():
-    """With the numba backend the views the loop warped are taken from its warps (no re-warp); the
-    blended image equals the one with every view warped again by the blend."""
+def test_blend_reuses_the_loops_warps_and_gives_the_same_image(monkeypatch):
+    """With the numba backend the front surfaces of the views the loop warped are taken from its
+    warps (no re-warp); the blended image equals the one with every view warped again by the blend."""
+    import presim.synthesis.renderer as R
+
     poses = S.orbit_poses(5, span_m=0.4)
     sc = S.make_scene(S.room_rects(), poses, K)
     others = sc.subset([0, 1, 3, 4])
-    outs = []
+    rewarps = []
+    front_points = R.front_image_points
+
+    def counted(*a):
+        rewarps[-1] += 1
+        return front_points(*a)
+
+    monkeypatch.setattr(R, "front_image_points", counted)
+    loop_image = R._FrameViews.view_image
+    outs, warped = [], []
     for reuse in (True, False):
-        r = Renderer(others, RenderConfig(blend=True, fixed_views=2, lod_levels=0))
-        if not reuse:
-            r._workspace.layers = None
-            orig = r._backend.view_image
+        rewarps.append(0)
+        with monkeypatch.context() as m:
+            if not reuse:
+                def forget(self, view_id, replace, _orig=loop_image):
+                    img = _orig(self, view_id, replace)
+                    self.fronts.clear()  # hide the loop's front surfaces from the blend
+                    return img
 
-            def no_layers(*a, _orig=orig, _r=r):
-                img = _orig(*a)
-                _r._workspace.layers = None  # hide the loop's warp from the blend hook
-                return img
-
-            r._backend = dataclasses.replace(r._backend, view_image=no_layers)
-        outs.append(r.render(poses[2], K).color)
-        assert r._warp_capture.get(r.last.views[0]) is not None or not reuse
+                m.setattr(R._FrameViews, "view_image", forget)
+            r = Renderer(others, RenderConfig(blend=True, fixed_views=2, lod_levels=0))
+            outs.append(r.render(poses[2], K).color)
+            warped.append(len(r.last.views))
     assert np.array_equal(outs[0], outs[1])
+    assert warped == [2, 2] and rewarps[1] - rewarps[0] == 2  # the two warped views: reused, or warped again
