@@ -118,7 +118,7 @@ def test_drive_render_budget_defaults(toy_path, monkeypatch, capsys):
     seen = []
 
     def fake_run_drive(scene, robot, sim_config, *a, **k):
-        seen.append(sim_config.render)
+        seen.append(sim_config)
         raise ValueError("stop here")
 
     monkeypatch.setattr(drive, "run_drive", fake_run_drive)
@@ -126,6 +126,6 @@ def test_drive_render_budget_defaults(toy_path, monkeypatch, capsys):
     for extra, budget in (([], 0.0), (["--realtime"], REALTIME_RENDER_BUDGET_MS),
                           (["--realtime", "--render-budget-ms", "0"], 0.0), (["--render-budget-ms", "25"], 25.0)):
         assert main(base + extra) == 1 and "stop here" in capsys.readouterr().err
-        assert seen[-1].time_budget_ms == budget and seen[-1].cache_mb == SIM_RENDER_CACHE_MB
+        assert seen[-1].render.time_budget_ms == budget and seen[-1].perf.cache_mb == SIM_RENDER_CACHE_MB
     assert main(base + ["--render-budget-ms", "-1"]) == 1
     assert "--render-budget-ms must be >= 0" in capsys.readouterr().err

@@ -10,7 +10,7 @@ import pytest
 from presim.capture.store import load_scene, save_scene
 from presim.sim.envs import PointNavEnv
 from presim.sim.vector_env import PointNavVectorEnv
-from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
 
 os.environ.setdefault("PRESIM_NO_PROGRESS", "1")
@@ -47,13 +47,12 @@ def test_vector_env_matches_single_envs_with_the_per_frame_renderer(toy_path):
         e.close()
 
 
-def test_vector_env_on_two_threads_with_temporal_reuse_matches_single_envs(toy_path):
-    """Frames spread over two threads (``batch_threads=2``) with the selection reuse on (each env
-    is its own camera stream): observations equal single envs stepped alone, step after step, also
-    while the robots turn in place (moves small enough for the reuse)."""
-    cfg = RenderConfig(batch_threads=2, reuse_move_m=0.05, reuse_turn_deg=20.0)
+def test_vector_env_with_temporal_reuse_matches_single_envs(toy_path):
+    """The selection reuse on (each env is its own camera stream of render_batch): observations
+    equal single envs stepped alone, step after step, also while the robots turn in place (moves
+    small enough for the reuse)."""
+    cfg = RenderConfig(reuse_move_m=0.05, reuse_turn_deg=20.0)
     venv = PointNavVectorEnv(toy_path, num_envs=3, discrete=True, width=32, height=24, render=cfg)
-    assert venv.renderer.batch_threads(3) == 2
     scene = load_scene(toy_path)
     singles = [PointNavEnv(scene, discrete=True, width=32, height=24, renderer=Renderer(scene, cfg)) for _ in range(3)]
     venv.reset(seed=11)
@@ -74,12 +73,12 @@ def test_vector_env_on_two_threads_with_temporal_reuse_matches_single_envs(toy_p
         e.close()
 
 
-def test_vector_env_torch_batch_and_autoreset(toy_path):
+def test_vector_env_torch_backend_and_autoreset(toy_path):
     from presim.sim.envs import PointNavConfig
 
     venv = PointNavVectorEnv(toy_path, num_envs=3, width=32, height=24,
-                             config=PointNavConfig(max_episode_steps=2), render=RenderConfig(backend="torch_batch"))
-    assert venv.renderer.config.backend == "torch_batch"
+                             config=PointNavConfig(max_episode_steps=2), perf=PerfConfig(backend="torch"))
+    assert venv.renderer.perf.backend == "torch"
     obs, _ = venv.reset(seed=0)
     assert obs["rgb"].shape == (3, 24, 32, 3) and obs["depth"].shape == (3, 24, 32, 1)
     assert (obs["depth"] > 0).mean() > 0.5  # rendered, not the zero placeholder
