@@ -75,6 +75,10 @@ class RenderConfig:
     """Fill pixels no view covers (they stay False in ``RGBD.valid``); False leaves them 0."""
     fill_method: str = "auto"
     """``"auto"``, ``"telea"`` or ``"pushpull"`` (:mod:`presim.synthesis.fill`)."""
+    fill_background_px: int = 0
+    """> 0: holes are filled from their background side: known pixels within this many pixels of a
+    hole that lie in front of the surface behind them do not feed the colour fill
+    (:func:`presim.synthesis.fill.foreground_rim`). 0 = every known pixel feeds it."""
     use_refined_depth: bool = True
     """Use ``scene.depth_refined`` (``presim refine``) when present, else the raw depth."""
     use_fused_depth: bool = False
@@ -140,6 +144,7 @@ class RenderConfig:
             (self.crack_filter in CRACK_FILTERS, f"crack_filter must be one of {CRACK_FILTERS}"),
             (self.crack_kernel_px >= 1 and self.crack_kernel_px % 2 == 1, "crack_kernel_px must be odd"),
             (self.fill_method in FILL_METHODS, f"fill_method must be one of {FILL_METHODS}"),
+            (self.fill_background_px >= 0, "fill_background_px must be >= 0"),
             (self.max_zoom > 0, "max_zoom must be > 0"),
             (0 <= self.lod_levels <= 8, "lod_levels must be in [0, 8]"),
             (self.lod_max_footprint > 0 and self.lod_depth_tol >= 0, "lod_max_footprint must be > 0, lod_depth_tol >= 0"),

@@ -17,7 +17,7 @@ import numpy as np
 from presim.synthesis.telea import telea_inpaint
 from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
-__all__ = ["FILL_METHODS", "pushpull_fill", "pushpull_rgbd", "fill_holes"]
+__all__ = ["FILL_METHODS", "pushpull_fill", "pushpull_rgbd", "foreground_rim", "fill_holes"]
 
 FILL_METHODS = ("auto", "telea", "pushpull")
 
@@ -186,13 +186,41 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     return out_c, out_d
 
 
+def foreground_rim(depth_m: np.ndarray, valid: np.ndarray, rim_px: int = 4, depth_tol: float = 0.05) -> np.ndarray:
+    """bool (H, W): the known pixels within ``rim_px`` of a hole that lie in front of the hole's
+    background by more than ``depth_tol`` (relative): the foreground side of a disocclusion, which a
+    fill should not continue into the hole (the hole hides what is behind the object). A hole's
+    background depth is the 90th percentile of the known depths of its rim (per 8-connected
+    component of the holes grown by ``rim_px``). ``rim_px`` 0: none."""
+    holes = (~valid).view(np.uint8)
+    if rim_px <= 0 or not holes.any():
+        return np.zeros(valid.shape, bool)
+    k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * rim_px + 1, 2 * rim_px + 1))
+    grown = cv2.dilate(holes, k)
+    rim = grown.view(bool) & valid
+    n, labels = cv2.connectedComponents(grown, connectivity=8)
+    lab, d = labels[rim], depth_m[rim]
+    order = np.lexsort((d, lab))
+    lab, d = lab[order], d[order]
+    starts = np.searchsorted(lab, np.arange(n))
+    ends = np.searchsorted(lab, np.arange(n), side="right")
+    bg = np.zeros(n, np.float32)
+    has = ends > starts
+    bg[has] = d[np.minimum(starts[has] + ((ends[has] - starts[has] - 1) * 9) // 10, len(d) - 1)]
+    out = np.zeros(valid.shape, bool)
+    out[rim] = depth_m[rim] < bg[labels[rim]] * np.float32(1.0 - depth_tol)
+    return out
+
+
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
-               telea_max_hole_frac: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+               telea_max_hole_frac: float = 0.02, background_rim_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Fill color and depth where ``valid`` is False.
 
     color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W); method: one of :data:`FILL_METHODS`;
-    telea_max_hole_frac: hole fraction above which ``"auto"`` uses pull-push. Returns new ``(color, depth_m)``
-    (unchanged copies when nothing is missing or nothing is known).
+    telea_max_hole_frac: hole fraction above which ``"auto"`` uses pull-push; background_rim_px > 0: the
+    colour is filled from the background side (:func:`foreground_rim` pixels do not feed the fill and
+    keep their colour). Returns new ``(color, depth_m)`` (unchanged copies when nothing is missing or
+    nothing is known).
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")
@@ -202,6 +230,15 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
         return color.copy(), depth_m.copy()
     if method == "auto":
         method = "telea" if n_hole / holes.size <= telea_max_hole_frac else "pushpull"
+    rim = foreground_rim(depth_m, valid, background_rim_px) if background_rim_px > 0 else None
+    if rim is not None and rim.any():
+        src = valid & ~rim  # the fill reads the background side only
+        if method == "telea":
+            out_c = telea_inpaint(color, ~src, 3)
+        else:
+            out_c = pushpull_rgbd(color, depth_m, src)[0]
+        out_c[rim] = color[rim]
+        return out_c, pushpull_rgbd(None, depth_m, valid)[1]
     if method == "telea":
         return telea_inpaint(color, holes, 3), pushpull_rgbd(None, depth_m, valid)[1]
     return pushpull_rgbd(color, depth_m, valid)

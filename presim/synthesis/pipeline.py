@@ -287,7 +287,7 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         ms["blend"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     if cfg.fill_holes and hole_frac > 0:
-        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method)
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px)
     ms["fill"] = (time.perf_counter() - t) * 1e3
     if cfg.use_photometric and cfg.predict_exposure and cfg.exposure_frame is None and warped:
         t = time.perf_counter()
