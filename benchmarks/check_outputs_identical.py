@@ -16,6 +16,7 @@ What it renders (all deterministic):
     PYTHONPATH=$PWD .venv/bin/python benchmarks/check_outputs_identical.py --save /tmp/fp_before
     PYTHONPATH=$PWD .venv/bin/python benchmarks/check_outputs_identical.py --compare /tmp/fp_before
 
+``--forward-color`` renders without backward colour sampling (trees before it have no such stage);
 ``--thesis-loop`` renders with ``min_view_gain=0`` (the default stops the adaptive loop at
 diminishing returns since 2026-12-02): compare kernels with a tree from before that.
 """
@@ -184,12 +185,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="where the sample scene is built once")
     ap.add_argument("--parts", nargs="+", choices=("sample", "apc", "refine"), default=("sample", "apc", "refine"),
                     help="compute only these parts (--compare then checks only their arrays)")
+    ap.add_argument("--forward-color", action="store_true",
+                    help="render with backward_color=False: the algorithm of trees before backward colour sampling "
+                         "(compare the kernels with such a tree)")
     ap.add_argument("--thesis-loop", action="store_true",
                     help="render with min_view_gain=0 (the thesis's adaptive loop), to compare kernels with a tree "
                          "from before the diminishing-returns default (2026-12-02)")
     args = ap.parse_args(argv)
     if args.thesis_loop:
         EXTRA["min_view_gain"] = 0.0
+    if args.forward_color:
+        EXTRA["backward_color"] = False
     args.work.mkdir(parents=True, exist_ok=True)
     fp = fingerprint(args.work, tuple(args.parts))
     if args.save:
