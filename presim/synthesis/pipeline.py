@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -181,6 +181,10 @@ class FrameViews(Protocol):
     def sources(self, warped: list[int]) -> SourceStack:
         """The source images of the views ``warped`` (backward colour sampling)."""
 
+    beside: Callable | None
+    """Optional ``beside(job) -> wait``: runs ``job`` on another thread (the executor's), for stages
+    with two independent halves (the fill); None: everything runs in the calling thread."""
+
     def exposure(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """The output exposure ``(A, b)`` predicted for an image whose pixels come from the views in
         ``source`` (int32 (H, W), -1 = none); None = keep the working exposure."""
@@ -287,7 +291,8 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         ms["blend"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     if cfg.fill_holes and hole_frac > 0:
-        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px)
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px,
+                                  beside=getattr(views, "beside", None))
     ms["fill"] = (time.perf_counter() - t) * 1e3
     if cfg.use_photometric and cfg.predict_exposure and cfg.exposure_frame is None and warped:
         t = time.perf_counter()

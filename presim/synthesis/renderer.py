@@ -99,6 +99,7 @@ class _FrameViews:
         self.r, self.T_world_cam, self.T_cam_world, self.K, self.grids = r, T_world_cam, T_cam_world, K, grids
         self.candidates = [int(v) for v in sel.view_idx]
         self.backend = r.perf.backend
+        self.beside = r.executor.beside
         self.levels: dict[int, int] = {}
         self.fronts: list[int] = []  # views whose front surface the loop wrote into the blend stacks
 
