@@ -1,17 +1,10 @@
-"""Layered 3D warping (thesis §3.4.3, eq. 3.7-3.8) with a per-layer z-buffer: numba fast path.
+"""Layered 3D warping (thesis §3.4.3, eq. 3.7-3.8) with a per-layer z-buffer (numba).
 
-Per-view data is prepared once (:func:`prepare_view`): the valid pixels of an input depth map are
-back-projected to world points (eq. 3.7, via :func:`presim.geometry.unproject_depth`), given a layer
-index (``num_layers`` equal slices between the map's min and max depth, thesis Fig. 3.8) and sorted
-by layer so each layer is one contiguous slice. Per frame, :func:`warp_layers` projects the points
-into the target camera (eq. 3.8) and z-buffers each in its own layer's image, skipping the runs of
-:data:`CHUNK_PTS` points whose bounds :func:`chunk_visibility` prove outside the target, or, for a
-later view warped only into some tiles, outside those tiles (same output as projecting every point:
-``cull=False``, tested).
-
-The numba kernel re-states the pinhole projection of :func:`presim.geometry.project` inline (a call
-per point would cost more than the arithmetic); tests check it against the reference, which uses
-geometry.py. Layers are independent, so the kernel runs them in parallel (``prange``), race-free.
+:func:`prepare_view` (once per view) back-projects a depth map's valid pixels to world points (eq. 3.7), layers
+them (``num_layers`` equal depth slices, Fig. 3.8) and sorts by layer. :func:`warp_layers` (per frame) projects
+them into the target (eq. 3.8) and z-buffers each in its layer's image, skipping chunks that
+:func:`chunk_visibility` proves outside the target or its marked tiles (same output as ``cull=False``). Layers
+run in parallel, race-free; the inlined projection is tested against the geometry.py reference.
 """
 
 from __future__ import annotations
@@ -30,14 +23,12 @@ __all__ = ["CHUNK_PTS", "TargetCam", "TileMarks", "ChunkBounds", "target_cam", "
            "prepare_view", "prepare_view_ref", "warp_layers"]
 
 CHUNK_PTS = 32
-"""Points per chunk of a prepared view: consecutive points (source raster order within a layer, so
-a chunk is a short run of neighbouring source pixels) whose bounds the warp tests against the
-target frustum and its tiles (:func:`chunk_visibility`) before it projects them."""
+"""Points per chunk: a run of neighbouring source pixels within a layer, culled as one by its bounds
+(:func:`chunk_visibility`)."""
 
 
 class TargetCam(NamedTuple):
-    """The target camera as the warp kernels take it (numba reads a named tuple like separate
-    arguments). The warp kernel takes float32 fields (its arithmetic), the culling float64 ones."""
+    """The target camera for the warp kernels: float32 fields for the warp, float64 for the culling."""
 
     M: np.ndarray
     """float32 (3, 4): world -> target camera."""
@@ -46,14 +37,13 @@ class TargetCam(NamedTuple):
     cx: float
     cy: float
     near: float
-    """Points closer than this to the target camera are dropped."""
+    """Points closer than this are dropped."""
     W: int
     H: int
 
 
 def target_cam(T_cam_world: np.ndarray, K: Intrinsics, near_m: float, dtype=np.float32) -> TargetCam:
-    """:class:`TargetCam` of a 4x4 world -> target transform, intrinsics in ``dtype`` (float64 values
-    of the float32 numbers for the culling, which bounds the warp kernel's float32 rounding)."""
+    """:class:`TargetCam` of a 4x4 world -> target transform; float64 ``dtype`` holds the float32 values."""
     f = (lambda x: np.float32(x)) if dtype == np.float32 else (lambda x: float(np.float32(x)))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     return TargetCam(M, f(K.fx), f(K.fy), f(K.cx), f(K.cy), f(near_m), int(K.width), int(K.height))
@@ -67,7 +57,7 @@ class TileMarks(NamedTuple):
     use: bool
     tile_px: int
     of_px: np.ndarray
-    """uint8 (H * W,): each pixel's tile mark (a byte load per point instead of two divisions)."""
+    """uint8 (H * W,): each pixel's tile mark (one load per point instead of two divisions)."""
     sat: np.ndarray
     """int32 (th + 1, tw + 1) summed-area table of the marks (the culling's tile test)."""
 
@@ -105,9 +95,7 @@ def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _down32(x):  # pragma: no cover
-    # a float32 <= x (finite float64 x), within 3 float32 steps: x moved down by 2^-22 |x| (>= one
-    # step of float32 at x and at the moved value) before rounding to nearest. Cheaper than
-    # nextafter (a library call) and as good for bounds.
+    # a float32 <= x (finite x), within 3 float32 steps: x - 2^-22 |x| (>= one step) rounded to nearest
     return np.float32(x - abs(x) * 2.384185791015625e-07 - 1e-37)
 
 
@@ -125,11 +113,9 @@ def _grow(lo, hi, x):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
-    # Per chunk: ranges of x / z, y / z and z of its points in the source camera (R: world ->
-    # source, float64), rounded outwards to float32 (x / z through a reciprocal: its ~1e-16 error
-    # is far below the culling margins). A chunk with a point not strictly in front of the source
-    # camera (or a non-finite one) gets infinite bounds: the warp then always keeps it. No branch
-    # in the point loop (~1.0 against ~1.9 ms per 280 000 points with an early exit).
+    # Per chunk: ranges of x / z (via a reciprocal, ~1e-16 error), y / z, z in the source camera (R: world -> source),
+    # rounded outwards to float32; infinite (always kept) for a point not strictly in front or not finite.
+    # No branch in the point loop (~1.0 against ~1.9 ms per 280 000 points with an early exit).
     n = xyz.shape[0]
     m = (n + chunk - 1) // chunk
     lo = np.empty((3, m), np.float32)
@@ -174,8 +160,7 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
 
 
 def _chunk_bounds_abs(xyz_world: np.ndarray, T_world_src: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
-    """:func:`chunk_bounds` (``CHUNK_PTS``) and the points' largest |world coordinate| (inf when one
-    is not finite, 0 without points)."""
+    """:func:`chunk_bounds` and the largest |world coordinate| (inf if one is not finite, 0 without points)."""
     xyz = np.ascontiguousarray(xyz_world, np.float32)
     lo, hi = chunk_bounds(xyz, T_world_src=T_world_src)
     A = max(-float(xyz.min()), float(xyz.max())) if len(xyz) else 0.0
@@ -184,16 +169,13 @@ def _chunk_bounds_abs(xyz_world: np.ndarray, T_world_src: np.ndarray | None) -> 
 
 def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS, T_world_src: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of each run of ``chunk`` consecutive points (the last run may be shorter): ``(lo, hi)``,
-    float32 (3, ceil(n / chunk)) each (a row per coordinate: the warp's tests run over chunks;
-    rounded outwards from float64 where not exact).
+    """Bounds of each run of ``chunk`` consecutive points (the last may be shorter): ``(lo, hi)``, float32
+    (3, ceil(n / chunk)), a row per coordinate, rounded outwards from float64 where not exact.
 
-    Without ``T_world_src``: the world axis-aligned box. With it (the 4x4 pose of the camera the
-    points were seen from): the ranges of ``(x / z, y / z, z)`` in that camera, a frustum piece
-    whose 8 corners span every point of the chunk (its image in another camera is the convex hull
-    of the corners' images). A run of source pixels is much thinner in that frame than in the
-    world axes (apc capture: its box projects 2-8x smaller into a nearby target); a chunk with a
-    point not in front of the source camera gets infinite bounds (never culled).
+    Without ``T_world_src``: world axis-aligned boxes. With it (4x4 pose of the source camera): ranges of
+    ``(x / z, y / z, z)`` in that camera, a frustum piece whose 8 corners' images span the chunk's image in any
+    camera (apc capture: 2-8x smaller projected boxes than world boxes). A chunk with a point not in front of
+    the source camera gets infinite bounds (never culled).
     """
     xyz = np.ascontiguousarray(xyz_world, np.float32)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -222,22 +204,18 @@ class ViewPoints:
     depth_range_m: tuple[float, float]
     """(min, max) valid depth of the view, metres (the layer split)."""
     T_world_src: np.ndarray | None = field(default=None, repr=False, compare=False)
-    """4x4 pose of the camera the points were seen from (:func:`prepare_view` sets it), or None.
-    Only the chunk bounds use it: with a pose they are taken in that camera's frame (tighter)."""
+    """4x4 pose of the source camera (set by :func:`prepare_view`) or None; with it the chunk bounds are projective."""
     image: Any = field(default=None, repr=False, compare=False)
-    """The image the points were prepared from (:class:`presim.synthesis.resample.SourceImage`), kept
-    for backward colour sampling; None when not asked for."""
+    """The source image (:class:`presim.synthesis.resample.SourceImage`) for backward colour sampling, or None."""
     chunk_lo: np.ndarray = field(init=False, repr=False, compare=False)
-    """float32 (3, ceil(n / CHUNK_PTS)): lower bounds of each run of :data:`CHUNK_PTS` points
-    (:func:`chunk_bounds`): of ``(x / z, y / z, z)`` in the source camera when
-    ``T_world_src`` is given, else of the world coordinates. Every point lies within them."""
+    """float32 (3, ceil(n / CHUNK_PTS)): lower bounds of each chunk (:func:`chunk_bounds`), of ``(x / z, y / z, z)``
+    in the source camera with ``T_world_src``, else of the world coordinates."""
     chunk_hi: np.ndarray = field(init=False, repr=False, compare=False)
     """float32, the upper bounds."""
     chunk_to_world: np.ndarray = field(init=False, repr=False, compare=False)
     """float64 (3, 4): the frame of the bounds -> world (``T_world_src[:3]``, or the identity)."""
     chunk_abs_max: float = field(init=False, repr=False, compare=False)
-    """Largest absolute world coordinate of the points (inf when one is not finite): bounds the
-    rounding of their projection (:func:`chunk_visibility`'s margins)."""
+    """Largest |world coordinate| of the points (inf if one is not finite): bounds the projection's rounding."""
 
     def __post_init__(self) -> None:
         T = self.T_world_src
@@ -281,13 +259,8 @@ class LayeredImage:
 
 
 def assign_layers(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tuple[float, float]]:
-    """Layer of each depth value: ``num_layers`` equal slices of [min, max] (layer 0 = nearest).
-
-    Args:
-        depth_m: (n,) valid depth values (> 0), metres.
-    Returns:
-        ``(layer (n,) int64, (min, max))``.
-    """
+    """``(layer, (min, max))``: int64 (n,) layer of each valid depth (> 0, metres), ``num_layers`` equal slices
+    of [min, max] (0 = nearest, max in the last)."""
     d = np.asarray(depth_m, dtype=np.float64)
     if num_layers < 1:
         raise ValueError(f"num_layers must be >= 1, got {num_layers}")
@@ -302,13 +275,7 @@ def assign_layers(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tup
 
 def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
                  num_layers: int) -> ViewPoints:
-    """Reference (numpy, via geometry.py) of :func:`prepare_view`.
-
-    Args:
-        color: uint8 (h, w, 3); depth_m: float32 (h, w), 0 = invalid; K: the view's intrinsics.
-        T_world_cam: 4x4 pose of the view.
-        image: kept as ``ViewPoints.image`` (backward colour sampling).
-    """
+    """Reference (numpy, via geometry.py) of :func:`prepare_view`, without ``image``."""
     if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
         raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
     pts, mask = unproject_depth(K, depth_m, T_world_cam)
@@ -326,9 +293,8 @@ def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_wo
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: views are also prepared in a background thread
 def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no cover
-    # Three passes: the depth range; each pixel's layer (kept, num_layers = invalid) and the layer
-    # counts; the points, written at their layer's next slot. The divisions by fx / fy are taken
-    # once per column / row: (u - cx) / fx * z is the same float64 arithmetic as per pixel.
+    # Passes: depth range; each pixel's layer (num_layers = invalid) and layer counts; points at their layer's
+    # next slot. (u - cx) / fx once per column (fy per row): the same float64 arithmetic as per pixel.
     H, W = depth.shape
     n = 0
     lo = np.inf
@@ -388,14 +354,9 @@ def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no 
 
 def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
                  num_layers: int, image: Any = None) -> ViewPoints:
-    """Back-project the valid pixels of one RGB-D view, assign layers and sort by layer (numba, one
-    pass per step; :func:`prepare_view_ref` is the numpy reference, tested equal).
-
-    Args:
-        color: uint8 (h, w, 3); depth_m: float32 (h, w), 0 = invalid; K: the view's intrinsics.
-        T_world_cam: 4x4 pose of the view.
-        image: kept as ``ViewPoints.image`` (backward colour sampling).
-    """
+    """Back-project the valid pixels of one RGB-D view (color uint8 (h, w, 3); depth_m float32 (h, w), 0 = invalid;
+    K its intrinsics; T_world_cam its 4x4 pose), assign layers and sort by layer (numba; reference
+    :func:`prepare_view_ref`, tested equal). ``image`` is kept as ``ViewPoints.image`` (backward colour sampling)."""
     if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
         raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
     depth = np.asarray(depth_m)
@@ -444,23 +405,17 @@ def _layer_slots_kernel(layer_start, n_slots):  # pragma: no cover
 
 
 def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.ndarray]:
-    """Layers grouped into ``n_slots`` groups of similar point counts (largest layer first, each
-    to the lightest group; ties to the lower index), for a parallel loop that gives every thread
-    one group.
-
-    Returns:
-        ``(order, slot_start)``: int64 layer indices grouped by slot; slot ``s`` holds
-        ``order[slot_start[s]:slot_start[s + 1]]`` (at most one slot per layer).
-    """
+    """Layers grouped into ``n_slots`` slots of similar point counts (largest layer first, each to the lightest
+    slot, ties to the lower index), one slot per thread: ``(order, slot_start)``, int64; slot ``s`` holds
+    ``order[slot_start[s]:slot_start[s + 1]]`` (at most one slot per layer)."""
     ls = np.ascontiguousarray(layer_start, np.int64)
     return _layer_slots_kernel(ls, max(1, min(int(n_slots), ls.shape[0] - 1)))
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _corner_boxes(lo, hi, projective, F, fx, fy, box):  # pragma: no cover
-    # Per chunk c: box[:, c] = the range of its 8 corners' fx x / z and fy y / z (pixels before
-    # + c + 0.5) and of their z in the target. The frame F (3, 4) is unpacked into scalars and the
-    # loop holds only min / max and arithmetic, so that it vectorizes.
+    # box[:, c] = ranges of chunk c's 8 corners' fx x / z, fy y / z (pixels before + c + 0.5) and z in the target.
+    # F unpacked into scalars, only min / max in the loop: it vectorizes.
     L0, L1, L2 = lo[0], lo[1], lo[2]
     H0, H1, H2 = hi[0], hi[1], hi[2]
     f00, f01, f02, f03 = F[0, 0], F[0, 1], F[0, 2], F[0, 3]
@@ -495,28 +450,21 @@ def _corner_boxes(lo, hi, projective, F, fx, fy, box):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division branch (the loops vectorize)
 def chunk_keep_kernel(b, cam, margin_rel, tm, vis):  # pragma: no cover
-    # Per chunk, from its bounds (rows of lo / hi: one per coordinate; world boxes: corners
-    # (x, y, z); source-frame bounds: corners (a z, b z, z) of a frustum piece that holds every
-    # point of the chunk). The loops over chunks are branch-free so that they vectorize.
-    # 1. Frustum: the warp kernel's keep tests as 5 linear functions of the target point,
-    #    g_k >= 0: z > near, u >= 0, u < W, v >= 0, v < H (u = fx x / z + cx + 0.5 multiplied out
-    #    by z > 0); G_k = the same functions of the frame point. Their maximum over a box is at a
-    #    corner chosen per coefficient sign; over a frustum piece, g = z (G0 a + G1 b + G2) + G3 is
-    #    largest at z0 or z1 with the bracket at its largest. Culled when for one k even that
-    #    maximum is below -margin_rel x a bound of g_k's magnitude (mag: bounds of |x|, |y|, |z| of
-    #    any target point of the view before cancellation; the kernel's float32 rounding is ~1e-7
-    #    of them).
-    # 2. Tiles (a later view warped only into marked tiles): with every corner in front of the
-    #    near plane, the points' pixels lie in the box of the corners' pixels (the image of the
-    #    hull is the hull of the corners' images); culled when that box, widened by a rounding
-    #    margin, meets no marked tile (sat: summed-area table of the marks).
-    # Bounds with a non-finite value are kept (x - x == 0 only for finite x).
+    # Per chunk from its bounds (world boxes: corners (x, y, z); source-frame bounds: corners (a z, b z, z) of a
+    # frustum piece holding the chunk); branch-free loops over chunks (they vectorize).
+    # 1. Frustum: the warp kernel's keep tests as 5 linear functions g_k >= 0 of the target point (z > near,
+    #    u >= 0, u < W, v >= 0, v < H, multiplied out by z > 0); G_k = the same of the frame point. Their maximum
+    #    is at a corner chosen per coefficient sign (box), or at z0 or z1 with the bracket at its largest
+    #    (frustum piece, g = z (G0 a + G1 b + G2) + G3). Culled when for one k it is below -margin_rel x a bound
+    #    of |g_k| (mag: bounds of any target point's |x|, |y|, |z|; the kernel's float32 rounding is ~1e-7 of them).
+    # 2. Tiles: with every corner in front of the near plane, the points' pixels lie in the box of the corners'
+    #    pixels; culled when that box, widened by a rounding margin, meets no marked tile (sat: summed-area table).
+    # Non-finite bounds are kept (x - x == 0 only for finite x).
     lo, hi, projective, S, A = b.lo, b.hi, b.projective, b.to_world, b.abs_max
     M32, fx, fy, cx, cy, near, W, H = cam.M, cam.fx, cam.fy, cam.cx, cam.cy, cam.near, cam.W, cam.H
     sat, tile_px, use_tiles = tm.sat, tm.tile_px, tm.use
-    # F = M S: the bounds' frame -> target (M: the warp kernel's float32 world -> target matrix in
-    # float64; S: the frame -> world); mag[r]: a bound of |M[r, :3] w| + |M[r, 3]| for every world
-    # point w of the view (|w_j| <= A).
+    # F = M S: bounds' frame -> target (M: the warp kernel's float32 matrix, in float64; S: frame -> world);
+    # mag[r] bounds |M[r, :3] w| + |M[r, 3]| for every world point w of the view (|w_j| <= A).
     F = np.empty((3, 4))
     mag = np.empty(3)
     for r in range(3):
@@ -582,8 +530,7 @@ def chunk_keep_kernel(b, cam, margin_rel, tm, vis):  # pragma: no cover
         mv = margin_rel * fy
         for c in range(m):  # tile range of each chunk's widened pixel box (branch-free: vectorizes)
             zm = box[4, c]
-            # A point's pixel in the kernel: its x, y, z carry errors of ~1e-7 of mag; the margin
-            # is ~1000x that (and a pixel). Its |x| <= max |fx x / z| / fx x (largest z).
+            # kernel's x, y, z err ~1e-7 of mag, margin ~1000x that + a pixel; |x| <= max |fx x / z| / fx * max z
             iz = 1.0 / zm
             xabs = max(box[1, c], -box[0, c]) * box[5, c] / fx
             yabs = max(box[3, c], -box[2, c]) * box[5, c] / fy
@@ -654,11 +601,9 @@ def _visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
 
 def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
                      tiles: np.ndarray | None = None, tile_px: int = 16) -> np.ndarray:
-    """uint8 (n_chunks,): 0 where every point of the chunk certainly falls outside the target
-    camera (behind its near plane or outside the image), or, with ``tiles`` (uint8 marks of
-    ``tile_px`` x ``tile_px`` tiles, as :func:`warp_layers` takes them), outside every marked tile,
-    so :func:`warp_layers` can skip it without projecting; 1 otherwise (conservative: a 1 may
-    still drop all its points). With ``near_m`` <= 0 nothing is culled."""
+    """uint8 (n_chunks,): 0 where every point of the chunk certainly falls outside the target (behind its near
+    plane, outside the image, or outside every tile marked in ``tiles``, as :func:`warp_layers` takes them), so
+    :func:`warp_layers` skips it; 1 otherwise (conservative). ``near_m`` <= 0 culls nothing."""
     return _visibility(view, T_cam_world, K, near_m, tile_marks(tiles, K, tile_px, "chunk_visibility"))
 
 
@@ -673,21 +618,16 @@ def _check_tiles(tiles: np.ndarray, K: Intrinsics, tile_px: int, who: str) -> No
 
 
 WARP_BLOCK_PTS = 256
-"""Points the warp kernel projects at a time (whole chunks): their coordinates are copied into
-per-thread arrays of one coordinate each, on which the projection loop vectorizes. Projecting
-straight from the (n, 3) point array did not vectorize (stride-3 loads): 4.7-4.9 ns per point on
-one thread against ~2 (docs/synthesis.md, "Projection in blocks")."""
+"""Points the warp kernel projects at a time (whole chunks), copied into one array per coordinate so the
+projection loop vectorizes (~2 against 4.7-4.9 ns per point on one thread from the (n, 3) array)."""
 assert WARP_BLOCK_PTS % CHUNK_PTS == 0 and WARP_BLOCK_PTS >= CHUNK_PTS  # a block holds whole chunks
 
 
 @parallel_kernel(fastmath=FASTMATH, cache=True, error_model="numpy")
 def warp_layers_kernel(xyz, rgb, layer_start, n_threads, cam, tm, vis, clear_c, zbuf, cbuf):  # pragma: no cover
-    # Per layer: clear its buffers (with tiles, only the marked tiles: the rest is left as it was;
-    # the colour only with clear_c, else it is undefined where the depth stays 0),
-    # then per block of up to ``block`` points of its kept chunks: copy their coordinates into
-    # one array per coordinate, project them (a loop without branches or stores that depend on
-    # other points: it vectorizes), then z-buffer them in their (source) order. The z-buffer sees
-    # the points in the same order as one pass over the layer would.
+    # Per layer: clear its buffers (with tiles only the marked tiles; colour only with clear_c, else undefined
+    # where depth stays 0); per block of kept chunks: copy coordinates into one array each, project them
+    # (branch-free, no cross-point stores: it vectorizes), then z-buffer in source order (as one pass would).
     L, H, W = zbuf.shape
     M, fx, fy, cx, cy, near = cam.M, cam.fx, cam.fy, cam.cx, cam.cy, cam.near
     tiles, use_tiles, tile_px, tile_of_px = tm.tiles, tm.use, tm.tile_px, tm.of_px
@@ -700,11 +640,10 @@ def warp_layers_kernel(xyz, rgb, layer_start, n_threads, cam, tm, vis, clear_c, 
     m00, m01, m02, m03 = M[0, 0], M[0, 1], M[0, 2], M[0, 3]
     m10, m11, m12, m13 = M[1, 0], M[1, 1], M[1, 2], M[1, 3]
     m20, m21, m22, m23 = M[2, 0], M[2, 1], M[2, 2], M[2, 3]
-    # (the thread count comes in as an argument: nb.get_num_threads() in here makes the kernel uncacheable)
+    # n_threads is an argument: nb.get_num_threads() in here makes the kernel uncacheable
     order, slot_start = _layer_slots_kernel(layer_start, max(1, min(n_threads, L)))
-    # One slot (a group of layers of similar total point count) per thread: the layers of a
-    # capture hold very different numbers of points (apc: ~50 k, 40 k, 10 k, 3 k), and equal
-    # chunks of the layer range would leave one thread with most of them.
+    # One slot (layers of similar total point count) per thread: layer sizes differ widely (apc: ~50 k, 40 k,
+    # 10 k, 3 k), so equal ranges of layers would leave one thread with most points.
     for s in nb.prange(slot_start.shape[0] - 1):
         bx = np.empty(block, np.float32)
         by = np.empty(block, np.float32)
@@ -735,7 +674,7 @@ def warp_layers_kernel(xyz, rgb, layer_start, n_threads, cam, tm, vis, clear_c, 
             i1 = layer_start[l + 1]
             if i1 <= i0:
                 continue
-            # Chunks of points (vis = 0: all certainly outside the target, not projected).
+            # Chunks (vis = 0: certainly outside the target, not projected).
             ch = i0 // chunk
             c1 = (i1 - 1) // chunk + 1
             while ch < c1:
@@ -759,8 +698,7 @@ def warp_layers_kernel(xyz, rgb, layer_start, n_threads, cam, tm, vis, clear_c, 
                     uf = fx * xc / zc + cx + half
                     vf = fy * yc / zc + cy + half
                     bd[k] = zc
-                    # Bounds in float before the int cast (large values would overflow); & not
-                    # `and`: no branch in the loop.
+                    # bounds in float before the int cast (no overflow); & not `and`: no branch
                     ok = (zc > near) & (uf >= zero) & (uf < Wf) & (vf >= zero) & (vf < Hf)
                     bp[k] = np.int64(vf) * W + np.int64(uf) if ok else np.int64(-1)
                 for k in range(m):
@@ -782,29 +720,18 @@ def warp_layers_kernel(xyz, rgb, layer_start, n_threads, cam, tm, vis, clear_c, 
 def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
                 out: LayeredImage | None = None, tiles: np.ndarray | None = None,
                 tile_px: int = 16, cull: bool = True, clear_color: bool = True) -> LayeredImage:
-    """Warp a prepared view into the target camera, one z-buffered image per layer (numba).
+    """Warp a prepared view into the target camera (numba): a :class:`LayeredImage`, one z-buffered image per
+    layer, depth 0 (colour 0 with ``clear_color``) where a layer got no point.
 
     Args:
-        view: from :func:`prepare_view`.
-        T_cam_world: 4x4 world-to-target-camera transform (``invert(T_world_cam)``).
-        K: target intrinsics (any size).
+        view: from :func:`prepare_view`; T_cam_world: 4x4 world -> target; K: target intrinsics (any size).
         near_m: points closer than this to the target camera are dropped.
-        out: buffers of shape (L, H, W) / (L, H, W, 3) to overwrite (the Renderer reuses them);
-            new ones are allocated when None or of another shape.
-        tiles: optional uint8 (ceil(H / tile_px), ceil(W / tile_px)): warp only into the marked
-            tiles of ``tile_px`` x ``tile_px`` pixels: points landing elsewhere are skipped and only
-            the marked tiles are cleared, so the layers are UNDEFINED outside them and exactly
-            what a full warp gives inside (:func:`presim.synthesis.cracks.warp_tiles` marks
-            what a later view's crack pass reads).
-        cull: skip the chunks of points that :func:`chunk_visibility` proves fall outside the
-            target, or outside the marked ``tiles`` (same output; False projects every point, for
-            tests and benchmarks).
-        clear_color: False leaves the colour UNDEFINED where a layer received no point (the
-            colour planes are not cleared: 3 of the 7 bytes per layer pixel not written). For a
-            reader that takes colour only where the depth is > 0: the banded crack pass
-            (:func:`presim.synthesis.cracks.filtered_composite_banded`, tested).
-    Returns:
-        LayeredImage with depth 0 / color 0 (with ``clear_color``) where a layer received no point.
+        out: (L, H, W) / (L, H, W, 3) buffers to overwrite; new ones when None or of another shape.
+        tiles: optional uint8 (ceil(H / tile_px), ceil(W / tile_px)): warp into and clear only the marked
+            tiles; the layers are UNDEFINED outside them and exact inside (:func:`presim.synthesis.cracks.warp_tiles`).
+        cull: skip chunks :func:`chunk_visibility` proves outside the target or ``tiles`` (same output).
+        clear_color: False leaves colour UNDEFINED where a layer got no point (3 of 7 bytes per layer pixel not
+            written), for readers that take colour only where depth > 0 (the banded crack pass, tested).
     """
     L = view.num_layers
     if out is None or out.depth_m.shape != (L, K.height, K.width):
