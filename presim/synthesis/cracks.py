@@ -1,21 +1,15 @@
 """Crack filling and compositing of one view's warped layers (thesis eq. 3.9, §3.4.3-3.4.4).
 
-A forward splat of one pixel per point leaves cracks (empty pixels inside a surface) wherever the
-target samples the surface more densely than the source. The *switching* median fills only empty
-pixels whose N x N window is more than half non-empty, with the lower median of the non-empty
-neighbours' depth and of each colour channel; non-empty pixels are never touched, and an empty pixel
-along a straight edge (3 of 9 non-empty) stays empty, so edges and small textures survive. The
-*plain* median (``mode="median"``) filters every pixel over its whole window, zeros included (the
-traditional filter the thesis compares against). Every layer is filtered on its own, then the
-layers are composited front to back (a crack in a foreground layer is filled with foreground,
-never with background seen through it), then one more pass fills the cracks along layer seams.
+A forward splat leaves cracks (empty pixels inside a surface) where the target samples more densely than the
+source. The *switching* median fills only empty pixels whose N x N window is more than half non-empty, with the
+lower median of the non-empty neighbours' depth and of each colour channel (an empty pixel on a straight edge,
+3 of 9 non-empty, stays empty); the *plain* median (``mode="median"``) filters every pixel over its whole window,
+zeros included. Each layer is filtered alone, the layers are composited front to back (a foreground crack gets
+foreground), then a last pass fills the cracks along layer seams. Exact definitions: :mod:`kernels_reference`.
 
-Two numba paths compute this, with the exact definitions in :mod:`kernels_reference`:
-- :func:`crack_filter` + :func:`composite_layers`: any mode and window (stacks (L, H, W));
-- :func:`filtered_composite_banded`: the default 3 x 3 switching median on up to 8 layers, all three
-  passes fused per band of rows in cache-sized buffers; a crack mask from packed per-layer
-  occupancy counts decides where a window is read at all. With ``replace`` (a later view) only runs
-  of tiles that hold a replaceable pixel are computed (bit-identical to the first path, tested).
+:func:`crack_filter` + :func:`composite_layers` take any mode and window. :func:`filtered_composite_banded`, the
+default 3 x 3 switching median on <= 8 layers, fuses the three passes per band of rows (with ``replace``: only
+tiles holding a ``replace`` pixel), bit-identical to the first path (tested).
 """
 
 from __future__ import annotations
@@ -50,8 +44,7 @@ def _insertion_sort(a, n):  # pragma: no cover
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
-    """Copy the non-empty (depth > 0) pixels of layer ``l`` in rows [y0, y1) x cols [x0, x1) into
-    the buffers (depth, 3 color channels); returns their number."""
+    """Copy the non-empty pixels of layer ``l`` in rows [y0, y1) x cols [x0, x1) into bd, b0-b2; returns n."""
     n = 0
     for y in range(y0, y1):
         for x in range(x0, x1):
@@ -67,8 +60,7 @@ def gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
-    """Sort the first n entries of depth and of each color channel on their own (per-channel
-    median, as eq. 3.9); returns the lower median's index."""
+    """Sort the first n depths and each colour channel separately (eq. 3.9); returns the lower median's index."""
     _insertion_sort(bd, n)
     _insertion_sort(b0, n)
     _insertion_sort(b1, n)
@@ -78,9 +70,8 @@ def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
 
 @parallel_kernel(cache=True, error_model="numpy")
 def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
-    # dout / cout arrive as copies of din / cin; only filled cracks are written.
-    # Occupancy counts per window come from column sums + a running sum along the row (O(1) per
-    # pixel), so the median gathering runs only for the (few) pixels that get filled.
+    # dout / cout arrive as copies of din / cin; only filled cracks are written. Window counts from column
+    # sums + a running sum along the row (O(1) per pixel): only filled pixels gather a median.
     L, H, W = din.shape
     n_win = (2 * r + 1) * (2 * r + 1)
     for row in nb.prange(L * H):
@@ -156,15 +147,12 @@ def _plain_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
 
 def crack_filter(depth_m: np.ndarray, color: np.ndarray, mode: str = "switching_median",
                  kernel_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Fill cracks of warped images (numba, parallel over rows of all layers).
+    """Fill cracks of warped images (numba, parallel over rows of all layers): new ``(depth_m, color)`` of the
+    input shapes (the inputs themselves for ``"none"``).
 
     Args:
-        depth_m: float32 (L, H, W) or (H, W), 0 = empty.
-        color: uint8 (L, H, W, 3) or (H, W, 3).
-        mode: ``"switching_median"`` (thesis), ``"median"`` (plain) or ``"none"``.
-        kernel_px: odd window size N.
-    Returns:
-        New ``(depth_m, color)`` of the input shapes (the inputs are returned as-is for ``"none"``).
+        depth_m: float32 (L, H, W) or (H, W), 0 = empty; color: uint8 (L, H, W, 3) or (H, W, 3).
+        mode: ``"switching_median"`` (thesis), ``"median"`` (plain) or ``"none"``; kernel_px: odd window size N.
     """
     if mode not in CRACK_FILTERS:
         raise ValueError(f"crack filter must be one of {CRACK_FILTERS}, got {mode!r}")
@@ -208,13 +196,8 @@ def _composite_kernel(d, c, dout, cout):  # pragma: no cover
 
 
 def composite_layers(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Front-to-back composite of layers (numba).
-
-    Args:
-        depth_m: float32 (L, H, W), 0 = empty; color: uint8 (L, H, W, 3).
-    Returns:
-        ``(depth_m (H, W) float32, color (H, W, 3) uint8)``.
-    """
+    """Front-to-back composite (numba) of float32 (L, H, W) depth (0 = empty) and uint8 (L, H, W, 3) colour:
+    the first non-empty layer's ``(depth_m (H, W), color (H, W, 3))``."""
     L, H, W = depth_m.shape
     if L == 1:
         return depth_m[0].copy(), color[0].copy()
@@ -224,14 +207,12 @@ def composite_layers(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray
     return dout, cout
 
 
-# ---- crack mask first: packed occupancy counts (3 x 3 switching median, up to 8 layers) -------
+# ---- 3 x 3 switching median on up to 8 layers: occupancy counts packed in nibbles -------------
 #
-# A 3 x 3 switching median fills an empty pixel of layer l when at least 5 of its 9 window pixels are
-# non-empty in layer l. Per pixel, one byte holds which layers are non-empty; a lookup table spreads
-# the byte into one 4-bit counter per layer (a uint32 for 8 layers), so the 3 x 3 sums of all layers
-# are 9 integer additions (column sums reused along the row). ``(P + 3) & 8`` per nibble flags the
-# layers whose count is >= 5: only those pixels (the cracks) gather and sort a window; every other
-# pixel takes its nearest non-empty layer with no neighbourhood read at all.
+# An empty pixel of layer l is filled when >= 5 of its 9 window pixels are non-empty in l. Per pixel, nibble l
+# of a uint32 flags layer l non-empty, so the 3 x 3 counts of all layers are 9 integer additions (column sums
+# reused along the row); ``(P + 3) & 8`` per nibble flags counts >= 5. Only those pixels gather and sort a
+# window; every other pixel takes its nearest non-empty layer without reading neighbours.
 
 _GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's bit 3 (no carry: 9 + 3 < 16)
 _BIT3 = np.uint32(0x88888888)
@@ -271,9 +252,8 @@ def _sort8(a):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
-    """Lower median (depth, each colour channel) of the non-empty pixels of layer ``l`` in the
-    window, whose centre is empty (so at most 8 values): slots past the count are padded with the
-    largest value, which leaves ranks below the count unchanged. Returns the median's index."""
+    """Lower median (depth, each colour channel) of the <= 8 non-empty pixels of layer ``l`` in a window with
+    empty centre; slots past the count padded with the largest value. Returns the median's index."""
     n = gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2)
     for i in range(n, 8):
         bd[i] = np.inf
@@ -289,46 +269,35 @@ def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
 
 _ONES3 = np.ones((3, 3), np.uint8)
 
-# ---- the same three passes fused in row bands (one parallel region per view) ------------------
+# ---- the three passes fused per work item (band of rows, or run of tiles), one parallel region ----
 #
-# filtered_composite_packed runs three image-wide passes (occupancy bits, filter + composite, seam
-# pass) with full-size intermediates and copies between them. Here every thread takes bands of
-# rows and does all three for its band in buffers that stay in cache: the occupancy bits of the
-# band grown by 2 rows, the composite of the band grown by 1 row (what the seam pass reads), then
-# the seam pass of the band itself. The rows of the halos are computed twice (by both bands that
-# touch them); the arithmetic per pixel is that of the three kernels above, so the output is the
-# same bit for bit.
+# Each item computes occupancy bits (its rows grown by 2), composite (grown by 1: what the seam pass reads) and
+# seam pass in buffers that stay in cache. Halo rows are computed by both items touching them; the per-pixel
+# arithmetic is that of crack_filter + composite_layers + crack_filter, so the output is bit-identical.
 
 TILE_COLS = 8
-"""Columns per tile of :func:`filtered_composite_banded` with ``replace`` (a run of tiles holding
-wanted pixels is one work item). With :data:`TILE_ROWS`, 8 x 8 tiles: a later view's crack pass
-inside 640x480 frames took 0.74x (apc capture) and 0.94x (sample scene) the time of 32 x 32 tiles,
-median (docs/synthesis.md, "Smaller crack tiles for later views")."""
+"""Columns per tile of :func:`filtered_composite_banded` with ``replace`` (a run of active tiles is one work
+item). 8 x 8 tiles: a later view's crack pass at 640x480 takes 0.74x (apc) / 0.94x (sample) the time of 32 x 32."""
 
 TILE_ROWS = 8
-"""Rows per band of :func:`filtered_composite_banded` on tiles (whole-width bands keep
-:func:`band_rows`). Small tiles follow the holes of a later view (small, scattered) closely; each
-work item recomputes a 2-pixel halo, which costs more the smaller the tile."""
+"""Rows per band of :func:`filtered_composite_banded` on tiles (whole-width bands: :func:`rows_per_band`).
+Small tiles follow a later view's scattered holes closely, but each work item recomputes a 2-pixel halo."""
 
 WARP_TILE_PX = 16
-"""Side of the tiles :func:`warp_tiles` marks for a masked warp."""
+"""Side of the tiles :func:`warp_tiles` marks for a tiled warp (``warp_layers(tiles=)``)."""
 
 TILED_MIN_PIXELS = 150_000
-"""Images of at least this many pixels run a later view's crack pass on tiles (and its warp on
-:func:`warp_tiles`); smaller ones on whole bands. Measured (benchmarks/bench_ab.py, apc capture
-with refined depth, 2 threads): 1.25x less CPU per frame at 640x480, but 0.93x (CPU) and slower
-wall time at 128x128 and 256x256, where a few uneven work items leave a thread idle."""
+"""Frames of at least this many pixels run a later view's crack pass and warp on tiles, smaller ones on whole
+bands (apc, 2 threads: 1.25x less CPU at 640x480; slower at 128x128 and 256x256, uneven work items)."""
 
 
 TILED_MAX_FRAC = 0.5
-"""A later view uses tiles (crack pass and warp) only while at most this fraction of the tiles is
-active: with speckled holes everywhere (raw depth with 34 % valid pixels: 81 % of the warp tiles
-active) the tiles' bookkeeping cost more than they saved (apc capture, raw depth, 640x480: 0.76x)."""
+"""A later view uses tiles (crack pass and warp) only while at most this fraction of them is active (speckled
+holes, raw apc depth with 81 % of warp tiles active: the bookkeeping costs more than it saves, 0.76x)."""
 
 
 def rows_per_band(H: int) -> int:
-    """Rows per band: 32 (6 % halo recomputation of the composite; 16-row bands made 128x128 frames
-    slower: twice the halo rows and the per-band buffers)."""
+    """Rows per band: 32 (6 % composite halo recomputation; 16 is slower at 128x128: twice the halo rows)."""
     return 32
 
 
@@ -338,8 +307,7 @@ LOWEST_SET_BIT = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
-    # The compare-exchanges of _sort8 on scalars (kept in registers); returns sorted[2], sorted[3]
-    # (the compiler drops the exchanges that cannot reach those two outputs).
+    # _sort8's compare-exchanges on scalars (registers); returns sorted[2], sorted[3] (other exchanges dropped)
     x0, x1 = min(x0, x1), max(x0, x1)
     x2, x3 = min(x2, x3), max(x2, x3)
     x4, x5 = min(x4, x5), max(x4, x5)
@@ -364,8 +332,7 @@ def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _nb_value(df, cf, q):  # pragma: no cover
-    # (depth, r, g, b, 1) of flat pixel q; an empty pixel reads as (+inf, 255, 255, 255, 0). All
-    # loads unconditional and selects after them: no branch on the speckled occupancy.
+    # (depth, r, g, b, 1) of flat pixel q, (+inf, 255, 255, 255, 0) if empty; loads, then selects: no branch
     z = df[q]
     q3 = np.uint64(3) * q
     r = cf[q3]
@@ -378,12 +345,10 @@ def _nb_value(df, cf, q):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
-    """:func:`_median8` of the 3x3 window at an interior pixel whose centre is empty, without
-    buffers: ``df`` / ``cf`` are one layer's (or image's) depth and colour, flat (colour 3 bytes
-    per pixel), ``p`` the centre's flat index and ``w`` the row length (both uint64: no wraparound
-    code). The 8 neighbours are read once into registers, empty ones as +inf / 255 (the padding
-    :func:`_median8` uses), and ranks 2 and 3 of a sorting network give the lower median of the
-    5..8 non-empty ones. Depth returned, colour into ``out_c``."""
+    """:func:`_median8` of the 3x3 window at an interior pixel with empty centre, in registers: ``df`` / ``cf``
+    flat depth / colour (3 bytes per pixel) of one layer or image, ``p`` the centre's flat index, ``w`` the row
+    length (uint64: no wraparound code). Empty neighbours read as +inf / 255; ranks 2 and 3 of a sorting network
+    give the lower median of the 5..8 non-empty ones. Returns the depth; colour into ``out_c``."""
     one = np.uint64(1)
     z0, r0, g0, b0, n0 = _nb_value(df, cf, p - w - one)
     z1, r1, g1, b1, n1 = _nb_value(df, cf, p - w)
@@ -409,16 +374,11 @@ def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  # pragma: no cover
-    # One work item = rows [a, e) x columns [x0, x1) of the output (a band of rows over the whole
-    # width, or a run of tiles that hold wanted pixels). Branch-free per pixel and layer (the
-    # occupancy of warped layers is speckled: a branch per pixel and layer mispredicts often)
-    # except one test "nothing here at all", which holds over whole regions; the pixels that need
-    # a median are first collected into a list. An item reads the layers on its rectangle grown by
-    # 2 pixels (clipped to the image). d and c must be C-contiguous.
-    #
-    # Inner loops index from 0 (k) into row slices taken at the item's offsets, and the gathers
-    # from the layer a pixel takes use unsigned flat offsets: numba then emits no negative-index
-    # wraparound code there (a third less time for the composite loop, docs/synthesis.md).
+    # Work item = output rows [a, e) x columns [x0, x1) (a whole-width band, or a run of tiles holding wanted
+    # pixels); reads the layers on it grown by 2 pixels (clipped); d, c C-contiguous. Branch-free per pixel and
+    # layer (speckled occupancy mispredicts) except one "nothing here" test that holds over whole regions;
+    # pixels needing a median are listed first. Inner loops index from 0 into row slices and gathers use unsigned
+    # flat offsets: no negative-index wraparound code (a third less time for the composite loop).
     L, H, W = d.shape
     r0 = max(a - 1, 0)  # composite rows [r0, r1) x cols [c0, c1): the item and the seam halo
     r1 = min(e + 1, H)
@@ -434,9 +394,8 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
     dflat = d.reshape(L * HW)
     cflat = c.reshape(L * HW * 3)
     uW = np.uint64(W)
-    # Occupancy: bit l of bits = layer l non-empty; sp = the same bits spread to 4-bit counters
-    # (bit l -> nibble l, = _SPREAD[bits]), so that a 3x3 window's per-layer counts are sums of sp
-    # without carries (<= 9 per nibble). Both from comparisons alone (no table lookups: vectorized).
+    # Occupancy: bit l of bits / nibble l of sp = layer l non-empty (3x3 sums of sp: <= 9 per nibble, no
+    # carries), from comparisons alone (no table lookups: vectorized).
     bits = np.empty((s1 - s0, no), np.uint8)
     sp = np.empty((s1 - s0, no), np.uint32)
     for y in range(s0, s1):
@@ -490,8 +449,7 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
         dk = dflat[vb:]  # dk[l * HW + k]: layer l at column c0 + k of row v
         ck = cflat[3 * vb:]
         needk = need[v, c0:c1] if use_need else need[0, 0:0]
-        # Per pixel: bit l of m = layer l has a value here or takes a median here (uint32
-        # arithmetic on whole rows: vectorized); the gathers follow in a second loop.
+        # bit l of m = layer l has a value or takes a median here (uint32 on whole rows: vectorized); gathers after
         for k in range(nw):
             f = (col[k] + col[k + 1] + col[k + 2] + _GE5) & _BIT3
             x = (f >> np.uint32(3)) & np.uint32(0x11111111)  # bits 4l + 3 of f -> bit l of a byte
@@ -605,8 +563,7 @@ def tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout):  
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
-    # Per tile: its rectangle grown by ``grow`` (clipped), scanned pixel by pixel up to the first
-    # nonzero one (on a big-endian machine, where the words' byte order differs; tested on all).
+    # Per tile: its rectangle grown by ``grow`` (clipped), scanned up to the first nonzero pixel (big-endian path)
     H, W = mask.shape
     th = (H + tile_h - 1) // tile_h
     tw = (W + tile_w - 1) // tile_w
@@ -633,10 +590,8 @@ def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _tile_any_words_kernel(words, H, W, tile_h, tile_w, grow):  # pragma: no cover
-    # tile_any from the mask's rows as uint64 words (8 pixels each, little-endian: pixel 8k + j is
-    # byte j of word k): per row of tiles, the OR of the words of its grown rows; per tile, the OR
-    # of the words its grown columns touch, the bytes outside them masked off. A nonzero byte
-    # survives an OR, so the result is nonzero exactly when a pixel of the rectangle is.
+    # tile_any on rows as uint64 words (little-endian: pixel 8k + j is byte j of word k): per row of tiles the
+    # OR of its grown rows' words; per tile the OR of the words its grown columns touch, outside bytes masked off.
     th = (H + tile_h - 1) // tile_h
     tw = (W + tile_w - 1) // tile_w
     nw = words.shape[1]
@@ -674,18 +629,11 @@ _LITTLE = sys.byteorder == "little"
 
 
 def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
-    """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (uint8 or
-    bool, H x W) lies within ``grow`` pixels (Chebyshev distance) of the tile (numba; reference
-    :func:`presim.synthesis.kernels_reference.tile_any_ref`).
-
-    Each tile looks at its rectangle grown by ``grow``. On little-endian machines: the OR of the
-    rows of each row of tiles as 8-pixel words (:func:`row_words`: rows whose width is not a
-    multiple of 8 are copied with zero padding first), then per tile the OR of the words it covers
-    (one pass over the mask whatever its density: 13 against 102 us per 640x480 replace mask of
-    the apc capture for the per-tile scan below, median of 66). Otherwise each tile scans its
-    rectangle pixel by pixel up to the first nonzero one; marking tiles from every nonzero pixel
-    cost ~5 ns per nonzero pixel (1.4 ms for a 640x480 mask 30 % full).
-    """
+    """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (uint8 or bool, H x W)
+    lies within ``grow`` pixels (Chebyshev) of the tile (numba; reference
+    :func:`presim.synthesis.kernels_reference.tile_any_ref`). Little-endian: ORs of 8-pixel words
+    (:func:`row_words`), one pass whatever the density (13 against 102 us per 640x480 apc replace mask for a
+    per-tile scan); otherwise each tile scans its grown rectangle up to the first nonzero pixel."""
     m = np.ascontiguousarray(mask).view(np.uint8)
     H, W = m.shape
     if W and _LITTLE:
@@ -718,27 +666,22 @@ def _tile_items_kernel(active, tile_h, tile_w, H, W):  # pragma: no cover
 
 def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
                               band_rows: int | None = None, tile_cols: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`filtered_composite_packed` (without ``front``) in one pass over bands of rows.
+    """3 x 3 switching median per layer, front-to-back composite and seam pass, fused per band of rows:
+    ``(depth_m (H, W), color (H, W, 3))``, bit-identical to :func:`crack_filter` + :func:`composite_layers` +
+    :func:`crack_filter` and to the numpy reference chain (tested).
 
-    Same output bit for bit on every pixel the packed chain defines (all pixels without
-    ``replace``; the ``replace`` pixels with it — others are UNDEFINED here too), tested against
-    it and against the numpy reference chain. Occupancy, composite and seam pass of a band run in
-    buffers of the band (no full-size intermediates, no copies, one parallel region). With
-    ``replace``, a band is cut into tiles of ``tile_cols`` columns and only runs of tiles holding a
-    ``replace`` pixel are computed; the layers are then read only within 2 pixels of those tiles'
-    ``replace`` pixels' neighbourhoods (:func:`warp_tiles` marks a superset), so the layers may be
-    undefined elsewhere (:func:`presim.synthesis.warp.warp_layers` with ``tiles``).
+    With ``replace`` only the ``replace`` pixels are defined (others UNDEFINED): bands are cut into tiles of
+    ``tile_cols`` columns and only runs of tiles holding a ``replace`` pixel are computed. The output there reads
+    the layers only within 2 pixels of the ``replace`` pixels (:func:`warp_tiles` marks a superset), so the
+    layers may be undefined elsewhere (:func:`presim.synthesis.warp.warp_layers` with ``tiles``).
 
     Args:
         depth_m: float32 (L, H, W) warped layers (L <= :data:`BANDED_MAX_LAYERS`); color: uint8 (L, H, W, 3).
         replace: optional bool (H, W): the pixels whose values are wanted.
-        band_rows: rows per band (default :func:`band_rows`; any value >= 1 gives the same output).
-        tile_cols: columns per tile with ``replace`` (None: :data:`TILE_COLS` from
-            :data:`TILED_MIN_PIXELS` pixels on while at most :data:`TILED_MAX_FRAC` of the tiles
-            hold a ``replace`` pixel, else whole rows; any value >= 1 gives the same output). On
-            tiles, the bands are ``band_rows`` rows high (None: :data:`TILE_ROWS`).
-    Returns:
-        ``(depth_m (H, W), color (H, W, 3))``.
+        band_rows: rows per band (None: :func:`rows_per_band`; on tiles :data:`TILE_ROWS`).
+        tile_cols: columns per tile with ``replace`` (None: :data:`TILE_COLS` from :data:`TILED_MIN_PIXELS`
+            pixels on while at most :data:`TILED_MAX_FRAC` of the tiles are active, else whole rows).
+            Any ``band_rows`` / ``tile_cols`` >= 1 gives the same output.
     """
     L, H, W = depth_m.shape
     if L > BANDED_MAX_LAYERS:
@@ -770,9 +713,7 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
 
 
 def warp_tiles(replace: np.ndarray, tile_px: int = WARP_TILE_PX) -> np.ndarray:
-    """uint8 (ceil(H / tile_px), ceil(W / tile_px)): the tiles of ``tile_px`` x ``tile_px`` pixels
-    within 2 pixels of a ``replace`` pixel — every layer pixel :func:`filtered_composite_banded`
-    reads for the ``replace`` pixels (the 3 x 3 windows of the composite pixels in the 3 x 3
-    windows of the seam pass). :func:`presim.synthesis.warp.warp_layers` warps and clears only
-    those (``tiles=``)."""
+    """uint8 (ceil(H / tile_px), ceil(W / tile_px)): tiles within 2 pixels of a ``replace`` pixel, holding every
+    layer pixel :func:`filtered_composite_banded` reads for the ``replace`` pixels (3 x 3 windows of the seam
+    pass's 3 x 3 windows); :func:`presim.synthesis.warp.warp_layers` (``tiles=``) warps and clears only those."""
     return tile_any(replace.view(np.uint8), tile_px, tile_px, 2)
