@@ -75,10 +75,8 @@ METHODS: dict[str, tuple[dict, str]] = {
     "default_photo": ({"use_photometric": True}, "refined"),
     # candidates for the default (the default's loop): blending of 6 views, with sharpness weighting
     "default_blend6": ({"blend": True, "blend_views": 6}, "refined"),
-    "default_blend6_sharp": ({"blend": True, "blend_views": 6, "sharpness": True}, "refined"),
     "default_fill_bg": ({"fill_background_px": 4}, "refined"),
-    "default_blend6_sharp_photo": ({"blend": True, "blend_views": 6, "sharpness": True, "use_photometric": True},
-                                   "refined"),
+    "default_blend6_photo": ({"blend": True, "blend_views": 6, "use_photometric": True}, "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),
     "DIBR_DR": ({"num_layers": 1}, "refined"),
     "LDIBR": ({}, "raw"),
