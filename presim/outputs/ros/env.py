@@ -4,10 +4,16 @@ rospy comes from Debian's packages (``ros-core``, ``python3-rospy``, message pac
 ``/usr/lib/python3/dist-packages``. The project's venv is not a ``--system-site-packages`` venv, so
 :func:`import_rospy` APPENDS that folder to ``sys.path`` (at the end, so the venv's numpy, yaml etc.
 win) before importing rospy. Both use Python 3.11, so the pure-Python ROS packages load as they are.
+The one exception are ROS message packages (``*_msgs``, ``*_srvs``): the ``[ros2]`` group installs
+ROS 2 packages of the same names (``sensor_msgs``, ``tf2_msgs``...) into the venv, so
+:func:`import_rospy` loads Debian's ROS 1 ones by path first (:func:`_pin_ros1_message_packages`);
+a process is either a ROS 1 or a ROS 2 node, never both.
 """
 
 from __future__ import annotations
 
+import glob
+import importlib.util
 import os
 import sys
 
@@ -16,10 +22,30 @@ __all__ = ["ROS_DIST_PACKAGES", "import_rospy", "ros_env"]
 ROS_DIST_PACKAGES = "/usr/lib/python3/dist-packages"
 
 
+def _pin_ros1_message_packages(folder: str = ROS_DIST_PACKAGES) -> None:
+    """Load every ROS 1 message package of ``folder`` (``*_msgs``, ``*_srvs``) from there, ahead of
+    ROS 2 packages of the same name in the venv; already imported ones are left alone."""
+    for init in sorted(glob.glob(os.path.join(folder, "*_msgs", "__init__.py"))
+                       + glob.glob(os.path.join(folder, "*_srvs", "__init__.py"))):
+        name = os.path.basename(os.path.dirname(init))
+        if name in sys.modules:
+            continue
+        spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[os.path.dirname(init)])
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        try:
+            spec.loader.exec_module(mod)
+        except Exception:
+            del sys.modules[name]
+            raise
+
+
 def import_rospy():
     """Import Debian's rospy from the venv (see the module docstring). Clear error when missing."""
     if ROS_DIST_PACKAGES not in sys.path and os.path.isdir(ROS_DIST_PACKAGES):
         sys.path.append(ROS_DIST_PACKAGES)  # at the END: the venv's own packages keep priority
+    if os.path.isdir(ROS_DIST_PACKAGES):
+        _pin_ros1_message_packages()
     try:
         import rospy  # noqa: F401
     except ImportError as e:
