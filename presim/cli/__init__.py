@@ -19,6 +19,7 @@ _MODULES = [
     "presim.cli.sim_cmds",        # drive
     "presim.cli.teleop_cmd",      # teleop
     "presim.cli.outputs_cmds",    # ros
+    "presim.cli.ros2_cmd",        # ros2
     "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval
