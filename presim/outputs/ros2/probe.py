@@ -150,6 +150,17 @@ def _wait(cond, timeout_s: float, step_s: float = 0.05) -> bool:
     return cond()
 
 
+def _offered_qos(node, topics: list[str]) -> dict[str, list[str]]:
+    """topic -> [reliability, durability] offered by its publishers (from the ROS graph)."""
+    out = {}
+    for t in topics:
+        infos = node.get_publishers_info_by_topic(t)
+        if infos:
+            q = infos[0].qos_profile
+            out[t] = [q.reliability.name.lower(), q.durability.name.lower()]
+    return out
+
+
 def run_e2e(node, st: _State, args) -> dict:
     from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
     from nav_msgs.srv import SetMap
@@ -168,7 +179,11 @@ def run_e2e(node, st: _State, args) -> dict:
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
     joints = node.create_publisher(JointState, "/joint_command", 10)
     initial = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", 10)
-    _wait(lambda: cmd.get_subscription_count() > 0 and joints.get_subscription_count() > 0, 10.0)
+    _wait(lambda: cmd.get_subscription_count() > 0 and joints.get_subscription_count() > 0
+          and initial.get_subscription_count() > 0, 10.0)
+    time.sleep(1.0)  # the node's side of the match can come later than ours (best effort drops until then)
+    out["qos"] = _offered_qos(node, [f"/{args.camera}/color/image_raw", f"/{args.camera}/reliable/color/image_raw",
+                                     "/tf", "/tf_static", "/map_cloud", "/robot_description", "/clock", "/odom"])
 
     # teleport to a known free pose (also checks the service)
     cli = node.create_client(SetMap, "/presim/teleport")
@@ -224,6 +239,7 @@ def run_soak(node, st: _State, args) -> dict:
         return {"error": f"no image within {args.timeout_s} s"}
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
     _wait(lambda: cmd.get_subscription_count() > 0, 10.0)
+    time.sleep(1.0)
     msg = _twist([0, 0, 0, 0, 0, 0])
     period = 1.0 / args.hz
     t0 = time.monotonic()
