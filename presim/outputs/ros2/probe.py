@@ -294,7 +294,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         out = run_e2e(node, st, args) if args.mode == "e2e" else run_soak(node, st, args)
     finally:
-        ex.shutdown(timeout_sec=2.0)
+        # stop the executor and join its thread before destroying the node: a spin thread still in
+        # rcl at interpreter exit aborts the process ("terminate called without an active exception")
+        ex.shutdown(timeout_sec=10.0)
+        th.join(timeout=10.0)
         node.destroy_node()
         rclpy.try_shutdown()
     print(json.dumps(out), flush=True)
