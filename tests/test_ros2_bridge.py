@@ -69,8 +69,14 @@ def sample_scene(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def node(sample_scene):
     """``presim ros2`` on the sample scene at 640x480, 10 Hz (one node for the module's checks)."""
+    import psutil
+
     domain_id = random.randint(1, 100)
     p = _start_node(sample_scene, domain_id, "--width", "640", "--height", "480", "--rate-hz", "10")
+    proc, end = psutil.Process(p.pid), time.monotonic() + 120
+    while p.poll() is None and time.monotonic() < end and not proc.net_connections(kind="udp"):
+        time.sleep(0.2)  # until its DDS participant exists (the scene is loaded by then)
+    assert p.poll() is None, p.communicate()[1][-2000:]
     yield p, domain_id
     rc, err = _stop(p)
     assert rc == 130, err[-2000:]
@@ -81,6 +87,8 @@ def test_ros2_end_to_end_images_tf_commands(node):
     p, domain_id = node
     r = _probe(domain_id, "e2e", "--start", *map(str, START), "--listen-s", "4")
     assert p.poll() is None, "node died"
+    print(f"e2e: color {r['color_rate_hz']:.2f} Hz, depth {r['depth_rate_hz']:.2f} Hz, drive {r['drive_distance_m']:.3f} m "
+          f"in {r['drive_sim_s']:.2f} s sim, diagnostics {r['diagnostics']}")
     # what a stock subscriber gets
     assert r["color"] == [640, 480, "rgb8", 640 * 480 * 3]
     assert r["depth"] == [640, 480, "32FC1", 640 * 480 * 4]
@@ -112,6 +120,22 @@ def test_ros2_end_to_end_images_tf_commands(node):
     # /cmd_vel 0.3 m/s: distance = v x (commanded sim time + 0.5 s timeout), less the acceleration ramps
     expected = r["drive_speed"] * (r["drive_sim_s"] + 0.5)
     assert abs(r["drive_distance_m"] - expected) < 0.15, r
+
+
+@pytest.mark.slow
+def test_ros2_node_receives_on_loopback_only(node):
+    """Host-only by default: every socket the node can be reached on (the RTPS locators: fixed ports
+    below the ephemeral range) is bound to 127.0.0.1, and nothing listens on TCP elsewhere. Fast DDS's
+    send sockets sit on ephemeral ports and are never read."""
+    import psutil
+
+    p, _ = node
+    lo_eph = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    conns = psutil.Process(p.pid).net_connections(kind="inet")
+    fixed = [c.laddr for c in conns if c.type == 2 and c.laddr.port < lo_eph]  # SOCK_DGRAM
+    assert fixed and all(a.ip == "127.0.0.1" for a in fixed), fixed
+    listening = [c.laddr for c in conns if c.status == psutil.CONN_LISTEN]
+    assert all(a.ip in ("127.0.0.1", "::1") for a in listening), listening
 
 
 @pytest.mark.fuzz

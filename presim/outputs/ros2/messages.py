@@ -59,8 +59,10 @@ def qos_profiles() -> dict[str, object]:
     - ``tf``: reliable, keep last 100, volatile (tf2_ros's dynamic broadcaster profile);
     - ``latched``: reliable, keep last 1, transient local (``/tf_static``, ``/map_cloud``,
       ``/robot_description``: late subscribers get the last message);
-    - ``command``: best effort, keep last 1: inputs; a best-effort subscription matches reliable and
-      best-effort publishers, and a flood keeps only the newest message.
+    - ``command``: best effort, keep last 10: inputs; a best-effort subscription matches reliable and
+      best-effort publishers; during a flood the middleware overwrites all but the newest 10 (with
+      keep last 1, commands sent 30 ms apart were lost unread at load 9 on 2 cores, so the
+      /diagnostics counts missed them).
     """
     from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                            qos_profile_sensor_data)
@@ -70,7 +72,7 @@ def qos_profiles() -> dict[str, object]:
 
     R, BE = ReliabilityPolicy.RELIABLE, ReliabilityPolicy.BEST_EFFORT
     return {"sensor": qos_profile_sensor_data, "reliable_sensor": p(5, R), "default": p(10, R),
-            "tf": p(100, R), "latched": p(1, R, DurabilityPolicy.TRANSIENT_LOCAL), "command": p(1, BE)}
+            "tf": p(100, R), "latched": p(1, R, DurabilityPolicy.TRANSIENT_LOCAL), "command": p(10, BE)}
 
 
 def diagnostics_msg(stamp_s: float, node_name: str, counters: dict[str, int], last_drop: str, new_drops: bool):
