@@ -120,6 +120,7 @@ def test_ros2_end_to_end_images_tf_commands(node):
     # /cmd_vel 0.3 m/s: distance = v x (commanded sim time + 0.5 s timeout), less the acceleration ramps
     expected = r["drive_speed"] * (r["drive_sim_s"] + 0.5)
     assert abs(r["drive_distance_m"] - expected) < 0.15, r
+    assert r["reset_ok"] and r["clock_after_reset_increased"], r
 
 
 @pytest.mark.slow

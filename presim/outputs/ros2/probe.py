@@ -8,7 +8,8 @@
 3. sends invalid commands (NaN, ±inf, huge twists; malformed joint commands; bad ``/initialpose``)
    and reads the dropped counters back from ``/diagnostics``, and whether the base moved;
 4. drives ``/cmd_vel`` ``--speed`` m/s forward for ``--drive-s`` seconds (20 Hz) and reports the
-   distance on ``/odom`` and the sim time the commands spanned (``/clock``).
+   distance on ``/odom`` and the sim time the commands spanned (``/clock``);
+5. calls ``/presim/reset`` and checks that ``/clock`` keeps increasing.
 
 ``python -m presim.outputs.ros2.probe soak --hz 1000 --seconds 10`` publishes ``/cmd_vel`` at the given
 rate (a zero twist) and reports the messages sent and the color image rate during the soak.
@@ -229,6 +230,21 @@ def run_e2e(node, st: _State, args) -> dict:
         p1 = st.odom
     out.update(drive_distance_m=math.dist(p0, p1) if p0 and p1 else None,
                drive_sim_s=(c1 - c0) if c0 is not None and c1 is not None else None, drive_speed=v)
+
+    # /presim/reset: answered, and /clock keeps increasing across the new episode
+    from std_srvs.srv import Empty
+
+    reset = node.create_client(Empty, "/presim/reset")
+    out["reset_ok"] = False
+    if reset.wait_for_service(timeout_sec=10.0):
+        with st.lock:
+            c_before = st.clock_s
+        fut = reset.call_async(Empty.Request())
+        _wait(fut.done, 15.0)
+        time.sleep(0.5)
+        with st.lock:
+            out["reset_ok"] = bool(fut.done() and fut.result() is not None)
+            out["clock_after_reset_increased"] = st.clock_s is not None and c_before is not None and st.clock_s > c_before
     return out
 
 
