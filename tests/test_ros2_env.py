@@ -80,3 +80,17 @@ def test_ros1_bridge_loads_debians_message_packages_ahead_of_ros2_ones():
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.count(ROS_DIST_PACKAGES) == 2 and "_Log" in r.stdout
+
+
+def test_ros2_command_refuses_bad_arguments_with_one_line(tmp_path, capsys):
+    from presim.cli import main
+
+    assert main(["ros2", str(tmp_path), "--rate-hz", "0"]) == 1
+    assert "--rate-hz" in capsys.readouterr().err
+    assert main(["ros2", str(tmp_path), "--domain-id", "300"]) == 1
+    assert "--domain-id must be in 0..232" in capsys.readouterr().err
+    assert main(["ros2", str(tmp_path), "--render-budget-ms", "nan"]) == 1
+    assert "--render-budget-ms" in capsys.readouterr().err
+    pytest.importorskip("rclpy", reason="needs the [ros2] group (scripts/setup.sh)")
+    assert main(["ros2", str(tmp_path / "noscene")]) == 1
+    assert "noscene" in capsys.readouterr().err
