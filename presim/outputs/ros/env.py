@@ -44,9 +44,9 @@ def import_rospy():
     """Import Debian's rospy from the venv (see the module docstring). Clear error when missing."""
     if ROS_DIST_PACKAGES not in sys.path and os.path.isdir(ROS_DIST_PACKAGES):
         sys.path.append(ROS_DIST_PACKAGES)  # at the END: the venv's own packages keep priority
-    if os.path.isdir(ROS_DIST_PACKAGES):
-        _pin_ros1_message_packages()
     try:
+        if os.path.isdir(ROS_DIST_PACKAGES):
+            _pin_ros1_message_packages()
         import rospy  # noqa: F401
     except ImportError as e:
         raise ImportError(f"rospy not found ({e}); install Debian's ROS 1 packages: "
