@@ -94,3 +94,25 @@ def test_ros2_command_refuses_bad_arguments_with_one_line(tmp_path, capsys):
     pytest.importorskip("rclpy", reason="needs the [ros2] group (scripts/setup.sh)")
     assert main(["ros2", str(tmp_path / "noscene")]) == 1
     assert "noscene" in capsys.readouterr().err
+
+
+def test_ros1_and_ros2_in_one_interpreter_each_get_their_own_messages():
+    """The suite runs `presim ros` and `presim ros2` in one process: each import evicts the other's
+    message packages."""
+    from presim.outputs.ros.env import ROS_DIST_PACKAGES, import_rospy
+
+    if not os.path.isdir(os.path.join(ROS_DIST_PACKAGES, "rospy")):
+        pytest.skip("needs Debian's ROS 1 packages (scripts/setup.sh --test-system)")
+    pytest.importorskip("rclpy", reason="needs the [ros2] group (scripts/setup.sh)")
+    import_rclpy()
+    import sensor_msgs.msg
+
+    assert not sensor_msgs.__file__.startswith(ROS_DIST_PACKAGES)
+    import_rospy()
+    import sensor_msgs.msg  # noqa: F811
+
+    assert sensor_msgs.__file__.startswith(ROS_DIST_PACKAGES)
+    import_rclpy()
+    from sensor_msgs.msg import Image
+
+    assert hasattr(type(Image), "_TYPE_SUPPORT")

@@ -17,14 +17,33 @@ import importlib.util
 import os
 import sys
 
-__all__ = ["ROS_DIST_PACKAGES", "import_rospy", "ros_env"]
+__all__ = ["ROS_DIST_PACKAGES", "import_rospy", "ros_env", "evict_message_packages"]
 
 ROS_DIST_PACKAGES = "/usr/lib/python3/dist-packages"
 
 
+def evict_message_packages(keep_folder: str | None = None, drop_folder: str | None = None) -> list[str]:
+    """Remove imported ROS message packages (``*_msgs``, ``*_srvs`` and their submodules) from
+    ``sys.modules``: those NOT under ``keep_folder``, or those under ``drop_folder``. Only a process
+    that imports both ROS flavours needs it (the test suite runs ``presim ros`` and ``presim ros2``
+    in one interpreter); returns the evicted top-level names."""
+    tops = {m.split(".")[0] for m in sys.modules if m.split(".")[0].endswith(("_msgs", "_srvs"))}
+    evicted = []
+    for top in sorted(tops):
+        f = getattr(sys.modules.get(top), "__file__", None) or ""
+        under_keep = keep_folder is not None and f.startswith(keep_folder + os.sep)
+        under_drop = drop_folder is not None and f.startswith(drop_folder + os.sep)
+        if (keep_folder is not None and not under_keep) or under_drop:
+            for m in [m for m in sys.modules if m == top or m.startswith(top + ".")]:
+                del sys.modules[m]
+            evicted.append(top)
+    return evicted
+
+
 def _pin_ros1_message_packages(folder: str = ROS_DIST_PACKAGES) -> None:
     """Load every ROS 1 message package of ``folder`` (``*_msgs``, ``*_srvs``) from there, ahead of
-    ROS 2 packages of the same name in the venv; already imported ones are left alone."""
+    ROS 2 packages of the same name in the venv (ROS 2 ones already imported are evicted first)."""
+    evict_message_packages(keep_folder=folder)
     for init in sorted(glob.glob(os.path.join(folder, "*_msgs", "__init__.py"))
                        + glob.glob(os.path.join(folder, "*_srvs", "__init__.py"))):
         name = os.path.basename(os.path.dirname(init))

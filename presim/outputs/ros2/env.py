@@ -48,6 +48,9 @@ def import_rclpy():
     for k, v in ros2_env().items():
         if k in LOCALHOST_ENV:
             os.environ.setdefault(k, v)
+    from presim.outputs.ros.env import ROS_DIST_PACKAGES, evict_message_packages
+
+    evict_message_packages(drop_folder=ROS_DIST_PACKAGES)  # ROS 1 ones, if this process loaded them
     try:
         import rclpy  # noqa: F401
         from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401
