@@ -32,8 +32,8 @@ apt_install() {
 }
 
 if command -v dpkg >/dev/null; then
-  # open3d-cpu links libusb and libgomp.
-  apt_install libusb-1.0-0 libgomp1
+  # open3d-cpu links libusb and libgomp; the tf2_msgs build (presim ros2) needs cmake and a compiler.
+  apt_install libusb-1.0-0 libgomp1 cmake g++
   if [ "$want_test_system" = 1 ]; then
     apt_install ros-core python3-rospy python3-std-msgs python3-sensor-msgs python3-geometry-msgs \
       python3-nav-msgs python3-tf2-msgs python3-std-srvs python3-rosgraph-msgs python3-diagnostic-msgs \
@@ -49,7 +49,7 @@ done
 [ -n "$PY" ] || { echo "setup.sh: PreSim needs Python 3.11" >&2; exit 1; }
 
 stamp=".venv/.presim-installed"
-hash=$(cat pyproject.toml | sha256sum | cut -c1-16)
+hash=$(cat pyproject.toml presim/outputs/ros2/tf2_build.py | sha256sum | cut -c1-16)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$hash" ]; then
   exit 0
 fi
@@ -57,5 +57,7 @@ fi
 # torch first and pinned: the CPU wheel on this disk; an unpinned torch would pull a multi-GB build.
 .venv/bin/pip install -q --disable-pip-version-check "torch==2.13.0"
 .venv/bin/pip install -q --disable-pip-version-check -e ".[all,test]"
+# tf2_msgs is not on the index: generate it into the venv (idempotent; ~15-30 s the first time).
+.venv/bin/python -m presim.outputs.ros2.tf2_build
 echo "$hash" > "$stamp"
 echo "setup.sh: .venv ready"

@@ -25,6 +25,7 @@ _MODULES = [
     "presim.cli.teleop_cmd",      # teleop
     "presim.cli.outputs_cmds",    # ros
     "presim.cli.recover_cmd",     # recover
+    "presim.cli.ros2_cmd",        # ros2
     "presim.cli.objects_cmd",     # objects, gen-bop-real
     "presim.cli.dataset_cmds",    # gen-bop
     "presim.cli.pose_cmds",       # pose-eval

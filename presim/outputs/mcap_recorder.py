@@ -15,7 +15,8 @@ Written with ``mcap`` (container) + ``mcap_ros2`` (CDR encoding). Topics (frames
     /<sensor>/depth/image_raw         sensor_msgs/msg/Image      32FC1 metres, NaN invalid (REP-118)
     /<sensor>/depth/camera_info       sensor_msgs/msg/CameraInfo
 
-Every stamp (header and MCAP log time) is sim time. The file is written to ``<path>.partial`` and
+Every stamp (header and MCAP log time) is sim time. At close, ``metadata.yaml`` is written beside
+the file (:mod:`presim.outputs.rosbag2`), so the folder is a rosbag2 bag. The file is written to ``<path>.partial`` and
 renamed to ``<path>`` when closed, so a complete-looking file is always a finished one; ``close`` is
 also registered with ``atexit`` so an interpreter exit after Ctrl-C still finishes the file. Every
 ``flush_every_n_steps`` steps the chunk in progress is written out, so a killed process leaves a
@@ -34,6 +35,7 @@ import numpy as np
 
 from presim.outputs import ros_msgs as rm
 from presim.outputs.frames import BASE_FRAME, MAP_FRAME, ODOM_FRAME, build_frame_tree, stamp_ns
+from presim.outputs.rosbag2 import write_rosbag2_metadata
 from presim.sim.types import SimInfo, StepResult
 
 __all__ = ["McapConfig", "McapRecorder", "camera_topics", "LATCHED_QOS"]
@@ -147,6 +149,7 @@ class McapRecorder:
                 self._writer = None
                 atexit.unregister(self.close)
             os.replace(self.partial_path, self.path)
+            write_rosbag2_metadata(self.path)  # the folder becomes a rosbag2 bag (ros2 bag info/play)
 
     # -- internals ------------------------------------------------------------------------------
     def _write(self, topic: str, msgtype: str, msg: dict, stamp_s: float) -> None:

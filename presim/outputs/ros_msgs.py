@@ -7,6 +7,8 @@ Two flavours share the same numbers:
   dicts that ``mcap_ros2``'s CDR encoder serialises.
 - ROS 1 (live bridge): :mod:`presim.outputs.ros` (messages.py, publisher.py) fills rospy message classes from the same
   helpers (:func:`image_fields`, :func:`camera_info_fields`, :func:`pose_fields`, :func:`cloud_fields`).
+- ROS 2 (live bridge): :mod:`presim.outputs.ros2` fills rclpy messages from the ROS 2 dicts below
+  (:func:`presim.outputs.ros2.messages.fill`), so its topics carry exactly what the recordings hold.
 
 Encodings (documented in docs/ros.md): color ``rgb8``; depth ``32FC1`` metres registered to the color
 camera, invalid pixels NaN (REP-118; in memory they are 0); CameraInfo ``plumb_bob`` with zero

@@ -42,13 +42,17 @@ class RosBridge:
         robot = sim.robot
         joint_limits = {n: (float(lo), float(hi)) for n, lo, hi in zip(robot.joint_names, robot.lower, robot.upper)}
         self.inbox = CommandInbox(joint_limits, config.limits)
-        self.publisher = RosPublisherSink(config)
+        self.publisher = self._make_publisher()
         self.extra_sinks = extra_sinks
         self.steps = 0
         self.step_errors = 0
         self._stop = threading.Event()
         self._warn_lock = threading.Lock()
         self._warned: dict[str, tuple[float, int]] = {}
+
+    def _make_publisher(self):
+        """The sink publishing every step (the ROS 2 bridge returns its own)."""
+        return RosPublisherSink(self.config)
 
     def stop(self) -> None:
         self._stop.set()

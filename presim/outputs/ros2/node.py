@@ -1,0 +1,167 @@
+"""The ROS 2 node: subscribers, services and ``/diagnostics`` on rclpy; the rest is the ROS 1 bridge's.
+
+:class:`Ros2Bridge` is a :class:`~presim.outputs.ros.node.RosBridge` whose transport is rclpy: the
+paced step loop, the command validation (:mod:`presim.outputs.ros.commands`, the same rules and
+counters), the request hand-over to the loop, the step-error fallback and the throttled warnings are
+shared code, so the two bridges accept and drop exactly the same commands.
+
+Threads: an rclpy ``MultiThreadedExecutor`` (2 threads) runs in a daemon thread. Subscriptions
+(one mutually exclusive callback group) only validate and store the newest command; services (a
+second group) hand a request to the loop through the bounded inbox and wait for the answer. The
+step loop runs in the caller's thread and publishes. rclpy's own signal handlers are off: Ctrl-C
+and SIGTERM reach Python (``presim.cli.main`` turns SIGTERM into KeyboardInterrupt), so the loop's
+``finally`` closes every sink and the node.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+from presim.outputs.frames import MAP_FRAME
+from presim.outputs.ros.commands import check_pose
+from presim.outputs.ros.node import RosBridge, RosBridgeConfig
+from presim.outputs.ros2.env import import_rclpy, use_node_transport_profile
+from presim.outputs.ros2.messages import diagnostics_msg, qos_profiles
+from presim.outputs.ros2.publisher import Ros2PublisherSink
+
+__all__ = ["Ros2BridgeConfig", "Ros2Bridge"]
+
+
+@dataclass(frozen=True)
+class Ros2BridgeConfig(RosBridgeConfig):
+    """ROS 2 node settings (the ROS 1 bridge's, plus these)."""
+
+    reliable_camera_topics: bool = True
+    """Also offer the camera topics reliably under ``/<camera>/reliable/...`` (RViz2's default QoS)."""
+    use_sim_time: bool = True
+    """The node's own ``use_sim_time`` parameter (its clock follows the ``/clock`` it publishes)."""
+    domain_id: int | None = None
+    """ROS_DOMAIN_ID of the node; None = the environment's (default 0)."""
+
+
+def _pose_parts(pose):
+    p, q = pose.position, pose.orientation
+    return (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)
+
+
+class _Transport:
+    """The calls :class:`RosBridge`'s loop makes on ``rospy`` (``logwarn``, ``is_shutdown``,
+    ``signal_shutdown``), answered by an rclpy node, its context and executor."""
+
+    def __init__(self, rclpy, context, node, executor, thread):
+        self.rclpy, self.context, self.node, self.executor, self.thread = rclpy, context, node, executor, thread
+
+    def logwarn(self, msg: str) -> None:
+        self.node.get_logger().warning(msg)
+
+    def is_shutdown(self) -> bool:
+        return not self.context.ok()
+
+    def signal_shutdown(self, reason: str) -> None:
+        # Order matters: stop the executor and its thread, then destroy the node (and with it every
+        # publisher, subscription and service), then the context.
+        try:
+            self.executor.shutdown(timeout_sec=10.0)
+            self.thread.join(timeout=10.0)
+        finally:
+            try:
+                self.node.destroy_node()
+            finally:
+                self.rclpy.try_shutdown(context=self.context)
+
+
+class Ros2Bridge(RosBridge):
+    """Runs a :class:`~presim.sim.simulator.Simulator` as a ROS 2 node (see the module docstring)."""
+
+    def __init__(self, sim, config: Ros2BridgeConfig = Ros2BridgeConfig(), extra_sinks: tuple = ()):
+        super().__init__(sim, config, extra_sinks)
+
+    def _make_publisher(self):
+        return Ros2PublisherSink(self.config)
+
+    def _init_node(self):
+        rclpy = import_rclpy()
+        use_node_transport_profile()
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
+        from nav_msgs.srv import SetMap
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.parameter import Parameter
+        from rclpy.signals import SignalHandlerOptions
+        from sensor_msgs.msg import JointState
+        from std_srvs.srv import Empty
+
+        cfg = self.config
+        context = rclpy.context.Context()
+        rclpy.init(context=context, domain_id=cfg.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        node = rclpy.create_node(cfg.node_name, context=context, parameter_overrides=[
+            Parameter("use_sim_time", Parameter.Type.BOOL, cfg.use_sim_time)])
+        self.publisher.node = node
+        inbox, limits, qos = self.inbox, cfg.limits, qos_profiles()
+        subs_group, srv_group = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
+        transport = None  # set below; the callbacks only run once the executor spins
+
+        def on_twist(m):
+            self._warn(transport, "cmd_vel", inbox.set_twist(
+                [m.linear.x, m.linear.y, m.linear.z, m.angular.x, m.angular.y, m.angular.z]))
+
+        def on_joints(m):
+            self._warn(transport, "joint_command", inbox.set_joint_command(m.name, m.position))
+
+        def on_initialpose(m):
+            T, reason = check_pose(*_pose_parts(m.pose.pose), m.header.frame_id, MAP_FRAME, limits)
+            self._warn(transport, "initialpose", inbox.count("initialpose", reason))
+            if T is not None:
+                inbox.set_teleport(T)  # latest one wins; the loop applies it
+
+        def on_reset(_req, resp):
+            try:
+                inbox.request("reset", None)
+            except (RuntimeError, TimeoutError) as e:
+                self._warn(transport, "presim/reset", str(e))
+            return resp
+
+        def on_teleport(req, resp):
+            p = req.initial_pose
+            T, reason = check_pose(*_pose_parts(p.pose.pose), p.header.frame_id, MAP_FRAME, limits)
+            inbox.count("teleport", reason)
+            resp.success = False
+            if T is None:
+                self._warn(transport, "presim/teleport", reason)
+                return resp
+            try:
+                resp.success = bool(inbox.request("teleport", T))
+            except (ValueError, RuntimeError, TimeoutError) as e:
+                self._warn(transport, "presim/teleport", str(e))
+            return resp
+
+        c = qos["command"]
+        self._subs = [node.create_subscription(Twist, "/cmd_vel", on_twist, c, callback_group=subs_group),
+                      node.create_subscription(JointState, "/joint_command", on_joints, c, callback_group=subs_group),
+                      node.create_subscription(PoseWithCovarianceStamped, "/initialpose", on_initialpose, c,
+                                               callback_group=subs_group)]
+        self._srvs = [node.create_service(Empty, "/presim/reset", on_reset, callback_group=srv_group),
+                      node.create_service(SetMap, "/presim/teleport", on_teleport, callback_group=srv_group)]
+        self._diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", qos["default"])
+        executor = MultiThreadedExecutor(num_threads=2, context=context)
+        executor.add_node(node)
+        thread = threading.Thread(target=self._spin, args=(executor,), name="presim-ros2-executor", daemon=True)
+        transport = _Transport(rclpy, context, node, executor, thread)
+        thread.start()
+        return transport
+
+    @staticmethod
+    def _spin(executor) -> None:
+        try:
+            executor.spin()
+        except Exception:  # the context was shut down under it: the loop ends through is_shutdown()
+            pass
+
+    def _publish_diagnostics(self, transport) -> None:
+        counters, last, new = self.inbox.stats()
+        counters["step_errors"] = self.step_errors
+        counters["steps"] = self.steps
+        self._diag_pub.publish(diagnostics_msg(self.publisher.last_stamp_s, self.config.node_name, counters,
+                                               last, new))

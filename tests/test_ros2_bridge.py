@@ -1,0 +1,189 @@
+"""``presim ros2`` end to end: the node runs as a subprocess on the sample scene, and a separate rclpy
+process (``presim.outputs.ros2.probe``, stock QoS, no PreSim transport settings) checks what a ROS 2
+user sees: images, camera_info, /clock, /odom, the tf tree, QoS, /presim/teleport, invalid commands
+dropped and counted on /diagnostics, /cmd_vel moving the base, a 1 kHz /cmd_vel soak, and clean
+shutdown on SIGTERM / SIGINT / --max-steps with complete recordings.
+
+Every test runs on its own random ROS_DOMAIN_ID, so parallel runs on one host do not see each other.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("rclpy", reason="needs the [ros2] group (scripts/setup.sh)")
+
+ROOT = Path(__file__).resolve().parents[1]
+START = (-1.5, 1.0, 0.0)  # free floor in the sample room, facing +x with 1 m of free floor ahead
+
+
+def _env(domain_id: int) -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+    env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["PRESIM_NO_PROGRESS"] = "1"
+    return env
+
+
+def _start_node(scene: Path, domain_id: int, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "presim", "ros2", str(scene), *args], env=_env(domain_id),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _probe(domain_id: int, *args: str, timeout_s: float = 120) -> dict:
+    r = subprocess.run([sys.executable, "-m", "presim.outputs.ros2.probe", *args], env=_env(domain_id),
+                       capture_output=True, text=True, timeout=timeout_s)
+    assert r.returncode == 0, f"probe failed ({r.returncode}): {r.stdout[-2000:]} {r.stderr[-2000:]}"
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def _stop(p: subprocess.Popen, sig=signal.SIGINT, timeout_s: float = 30) -> tuple[int, str]:
+    if p.poll() is None:
+        p.send_signal(sig)
+    try:
+        _, err = p.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        _, err = p.communicate()
+        pytest.fail(f"node did not stop within {timeout_s} s after {sig!r}: {err[-2000:]}")
+    return p.returncode, err
+
+
+@pytest.fixture(scope="module")
+def sample_scene(tmp_path_factory) -> Path:
+    from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
+
+    return build_sample_scene(tmp_path_factory.mktemp("ros2") / "sample", seed=0,
+                              config=SampleSceneConfig(width=320, height=240, num_frames=16))
+
+
+@pytest.fixture(scope="module")
+def node(sample_scene):
+    """``presim ros2`` on the sample scene at 640x480, 10 Hz (one node for the module's checks)."""
+    import psutil
+
+    domain_id = random.randint(1, 100)
+    p = _start_node(sample_scene, domain_id, "--width", "640", "--height", "480", "--rate-hz", "10")
+    proc, end = psutil.Process(p.pid), time.monotonic() + 120
+    while p.poll() is None and time.monotonic() < end and not proc.net_connections(kind="udp"):
+        time.sleep(0.2)  # until its DDS participant exists (the scene is loaded by then)
+    assert p.poll() is None, p.communicate()[1][-2000:]
+    yield p, domain_id
+    rc, err = _stop(p)
+    assert rc == 130, err[-2000:]
+
+
+@pytest.mark.slow
+def test_ros2_end_to_end_images_tf_commands(node):
+    p, domain_id = node
+    r = _probe(domain_id, "e2e", "--start", *map(str, START), "--listen-s", "4")
+    assert p.poll() is None, "node died"
+    print(f"e2e: color {r['color_rate_hz']:.2f} Hz, depth {r['depth_rate_hz']:.2f} Hz, drive {r['drive_distance_m']:.3f} m "
+          f"in {r['drive_sim_s']:.2f} s sim, diagnostics {r['diagnostics']}")
+    # what a stock subscriber gets
+    assert r["color"] == [640, 480, "rgb8", 640 * 480 * 3]
+    assert r["depth"] == [640, 480, "32FC1", 640 * 480 * 4]
+    w, h, model, k = r["camera_info"]
+    assert (w, h, model) == (640, 480, "plumb_bob") and k[2] == pytest.approx(319.5) and k[8] == 1.0
+    assert r["clock_n"] > 0 and r["odom_n"] > 0
+    edges = {tuple(e) for e in r["tf_edges"]}
+    assert {("map", "odom"), ("odom", "base_link")} <= edges
+    assert ("camera_link", "camera_optical_frame") in {tuple(e) for e in r["static_edges"]}
+    # 10.0 Hz measured for color and depth on this 2-core machine with load 5-6 (docs/ros2.md); the
+    # bound is looser because CI shares its cores with the rendering node and this probe.
+    assert r["color_rate_hz"] >= 6.0 and r["depth_rate_hz"] >= 6.0, r
+    # QoS: sensor data (best effort) + reliable variant; latched topics transient local
+    q = r["qos"]
+    assert q["/head_camera/color/image_raw"] == ["best_effort", "volatile"]
+    assert q["/head_camera/reliable/color/image_raw"] == ["reliable", "volatile"]
+    for t in ("/tf_static", "/map_cloud", "/robot_description"):
+        assert q[t] == ["reliable", "transient_local"], t
+    assert q["/tf"] == ["reliable", "volatile"]
+    # the teleport service, then invalid commands: dropped, counted, the base still, the node alive
+    assert r["teleport_ok"] is True
+    d = {k: (int(v) if v.isdigit() else v) for k, v in r["diagnostics"].items()}
+    sent = r["bad_sent"]
+    assert d["cmd_vel_accepted"] == 0 and d["cmd_vel_dropped"] >= sent["cmd_vel"] - 1, d  # best effort: 1 may be lost
+    assert d["joint_command_accepted"] == 0 and d["joint_command_dropped"] >= sent["joint_command"] - 1, d
+    assert d["initialpose_dropped"] >= sent["initialpose"] - 1 and d["initialpose_accepted"] == 0, d
+    assert d["step_errors"] == 0 and d["last_drop_reason"]
+    assert r["moved_by_bad_m"] < 1e-3 and r["images_after_bad"] > 0
+    # /cmd_vel 0.3 m/s: distance = v x (commanded sim time + 0.5 s timeout), less the acceleration ramps
+    expected = r["drive_speed"] * (r["drive_sim_s"] + 0.5)
+    assert abs(r["drive_distance_m"] - expected) < 0.15, r
+    assert r["reset_ok"] and r["clock_after_reset_increased"], r
+
+
+@pytest.mark.slow
+def test_ros2_node_receives_on_loopback_only(node):
+    """Host-only by default: every socket the node can be reached on (the RTPS locators: fixed ports
+    below the ephemeral range) is bound to 127.0.0.1, and nothing listens on TCP elsewhere. Fast DDS's
+    send sockets sit on ephemeral ports and are never read."""
+    import psutil
+
+    p, _ = node
+    lo_eph = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    conns = psutil.Process(p.pid).net_connections(kind="inet")
+    fixed = [c.laddr for c in conns if c.type == 2 and c.laddr.port < lo_eph]  # SOCK_DGRAM
+    assert fixed and all(a.ip == "127.0.0.1" for a in fixed), fixed
+    listening = [c.laddr for c in conns if c.status == psutil.CONN_LISTEN]
+    assert all(a.ip in ("127.0.0.1", "::1") for a in listening), listening
+
+
+@pytest.mark.fuzz
+def test_ros2_cmd_vel_soak_1khz_keeps_rate_and_memory(node):
+    import psutil
+
+    p, domain_id = node
+    proc = psutil.Process(p.pid)
+    _probe(domain_id, "soak", "--hz", "1000", "--seconds", "1")  # warm-up: the node has served a client
+    rss0 = proc.memory_info().rss
+    r = _probe(domain_id, "soak", "--hz", "1000", "--seconds", "10")
+    rss1 = proc.memory_info().rss
+    assert p.poll() is None
+    print(f"soak: {r['sent']} msgs in {r['seconds']:.1f} s ({r['send_hz']:.0f} Hz), images {r['color_rate_hz']:.1f} Hz, "
+          f"RSS {rss0 / 2**20:.1f} -> {rss1 / 2**20:.1f} MiB")
+    assert r["sent"] >= 6500, r  # the sender shares 2 cores with the node
+    assert r["color_rate_hz"] >= 6.0, r
+    assert rss1 - rss0 < 20 * 2**20
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGINT", "max-steps"])
+def test_ros2_shutdown_leaves_complete_recordings_and_no_process(sample_scene, tmp_path, how):
+    import psutil
+    from rosbags.rosbag2 import Reader
+
+    rec = tmp_path / "rec"
+    extra = ["--max-steps", "15"] if how == "max-steps" else []
+    p = _start_node(sample_scene, random.randint(101, 200), "--width", "160", "--height", "120",
+                    "--record", str(rec), *extra)
+    proc = psutil.Process(p.pid)
+    end = time.monotonic() + 90
+    while time.monotonic() < end and p.poll() is None and len(list(rec.glob("capture.partial/*"))) < 8:
+        time.sleep(0.2)  # until the recorder has written a few frames
+    time.sleep(1.0)
+    children = proc.children(recursive=True) if p.poll() is None else []
+    if how == "max-steps":
+        rc, err = p.wait(timeout=60), p.stderr.read()
+        assert rc == 0, err[-2000:]
+    else:
+        rc, err = _stop(p, getattr(signal, how))
+        assert rc == 130, err[-2000:]
+    assert "stopped after" in err
+    assert not [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
+    assert not list(rec.glob("*.partial")), list(rec.iterdir())
+    with Reader(rec) as reader:  # metadata.yaml + the MCAP it names, complete
+        n_clock = sum(c.msgcount for c in reader.connections if c.topic == "/clock")
+        assert n_clock > 0 and reader.message_count == sum(1 for _ in reader.messages())
+    if how == "max-steps":
+        assert n_clock == 16  # the reset, then 15 steps
