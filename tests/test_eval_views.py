@@ -88,7 +88,7 @@ def test_eval_views_dibr_equals_a_direct_leave_one_out_render():
         f = scene.frame(k)
         out = Renderer(loo, RenderConfig(num_layers=1, use_refined_depth=False)).render(f.T_world_cam, f.K)
         want = image_metrics(out, f.color, f.depth_m)
-        for key in ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel"):
+        for key in ("psnr_db", "psnr_black_db", "psnr_covered_db", "psnr_hole_db", "ssim", "hole_frac", "depth_absrel"):
             assert per[key] == want[key], key
 
 
@@ -114,6 +114,8 @@ def test_image_metrics_hand_computed():
     assert m["psnr_black_db"] == pytest.approx(10 * np.log10(255**2 / 2500), abs=1e-9)
     # The covered pixels are exact: the PSNR cap of identical images.
     assert m["psnr_covered_db"] == 100.0
+    # The 16 hole pixels alone: MSE 100 -> 28.131 dB.
+    assert m["psnr_hole_db"] == pytest.approx(10 * np.log10(255**2 / 100), abs=1e-9)
     assert m["hole_frac"] == 0.25
     # AbsRel over the 47 covered pixels with real depth: |2.5 - 2| / 2 = 0.25 each.
     assert m["depth_absrel"] == pytest.approx(0.25, abs=1e-7)
@@ -133,6 +135,54 @@ def test_image_metrics_hand_computed():
     assert m["psnr_db"] == pytest.approx(10 * np.log10(255**2 / 25), abs=1e-9)  # delivered image
     m = image_metrics(_rgbd(color, depth, np.zeros((8, 8), bool), 1.0), real_c, real_d)
     assert np.isnan(m["psnr_covered_db"]) and np.isnan(m["depth_absrel"])
+    m = image_metrics(_rgbd(color, depth, np.ones((8, 8), bool), 0.0), real_c, real_d)
+    assert np.isnan(m["psnr_hole_db"])  # no holes: nothing to score
+
+
+def test_hole_psnr_is_the_error_of_the_filled_pixels_alone():
+    """Known answer: covered pixels off by 4 levels, holes filled 20 levels off; a real-validity
+    mask (e.g. black undistortion corners) removes its pixels from every metric."""
+    H, W = 20, 30
+    real_c = np.full((H, W, 3), 120, np.uint8)
+    real_d = np.full((H, W), 1.0, np.float32)
+    valid = np.ones((H, W), bool)
+    valid[5:10, 10:22] = False  # 60 hole pixels
+    color = np.full((H, W, 3), 124, np.uint8)
+    color[~valid] = 140
+    m = image_metrics(_rgbd(color, real_d, valid, 60 / 600), real_c, real_d)
+    assert m["psnr_covered_db"] == pytest.approx(10 * np.log10(255**2 / 16), abs=1e-9)  # 36.09 dB
+    assert m["psnr_hole_db"] == pytest.approx(10 * np.log10(255**2 / 400), abs=1e-9)  # 22.11 dB
+    # Delivered: MSE (540 * 16 + 60 * 400) / 600 = 54.4.
+    assert m["psnr_db"] == pytest.approx(10 * np.log10(255**2 / 54.4), abs=1e-9)
+    # A hole pixel far off does not move the covered PSNR; a covered one does not move the hole PSNR.
+    color2 = color.copy()
+    color2[7, 15] = 0
+    m2 = image_metrics(_rgbd(color2, real_d, valid, 0.1), real_c, real_d)
+    assert m2["psnr_covered_db"] == m["psnr_covered_db"]
+    assert m2["psnr_hole_db"] == pytest.approx(10 * np.log10(255**2 / ((59 * 400 + 120**2) / 60)), abs=1e-9)
+    # Left columns without real data (painted 0, i.e. far off in every channel): with the mask,
+    # every metric equals that of the image cropped to the valid columns.
+    rv = np.ones((H, W), bool)
+    rv[:, :8] = False
+    color3 = color.copy()
+    color3[:, :8] = 0
+    valid3 = valid.copy()
+    valid3[:3, :8] = False  # holes outside the real data: not counted
+    K = Intrinsics(fx=8.0, fy=8.0, cx=3.5, cy=3.5, width=W, height=H)
+    full = image_metrics(RGBD(color3, real_d, valid3, np.zeros((H, W), np.int32), K, np.eye(4), 0.15),
+                         real_c, real_d, real_valid=rv)
+    Kc = Intrinsics(fx=8.0, fy=8.0, cx=3.5, cy=3.5, width=W - 8, height=H)
+    crop = image_metrics(RGBD(color3[:, 8:].copy(), real_d[:, 8:].copy(), valid3[:, 8:].copy(),
+                              np.zeros((H, W - 8), np.int32), Kc, np.eye(4), 60 / (H * (W - 8))),
+                         real_c[:, 8:].copy(), real_d[:, 8:].copy())
+    for key in ("psnr_db", "psnr_black_db", "psnr_covered_db", "psnr_hole_db", "hole_frac", "depth_absrel"):
+        assert full[key] == pytest.approx(crop[key], abs=1e-9), key
+    assert full["psnr_hole_db"] == pytest.approx(m["psnr_hole_db"], abs=1e-9)
+    # SSIM with an all-true mask is scikit-image's SSIM.
+    every = image_metrics(_rgbd(color, real_d, valid, 0.1), real_c, real_d, real_valid=np.ones((H, W), bool))
+    assert every["ssim"] == pytest.approx(m["ssim"], abs=1e-12)
+    with pytest.raises(ValueError, match="real_valid shape"):
+        image_metrics(_rgbd(color, real_d, valid, 0.1), real_c, real_d, real_valid=rv[:, :5])
 
 
 def test_eval_views_rejects_bad_requests():
@@ -183,11 +233,23 @@ def test_cli_eval_views(tmp_path, capsys):
     save_scene(two_plane_scene(6, 64, 48), tmp_path / "s")
     out = tmp_path / "m.json"
     assert main(["eval-views", str(tmp_path / "s"), "--stride", "1", "--target-every", "3",
-                 "--methods", "full", "DIBR", "--json", str(out)]) == 0
+                 "--methods", "full", "DIBR", "--json", str(out), "--save-images", str(tmp_path / "img"),
+                 "--strip-width", "32"]) == 0
     data = json.loads(out.read_text())
     assert set(data["methods"]) == {"full", "DIBR"}
     assert set(data["methods"]["full"]) == set(METRICS)
     assert "| full |" in capsys.readouterr().out
+    # One strip per target and method (panels 32 px wide) and the report linking them.
+    from presim.evaluation.report import strip_layout
+
+    top, bottom = strip_layout(24, 32)
+    names = sorted(p.name for p in (tmp_path / "img").glob("*.png"))
+    assert names == ["frame-000003_DIBR.png", "frame-000003_full.png"]
+    from presim.io_utils import read_image
+
+    assert read_image(tmp_path / "img" / names[0], kind="color").shape == (top + 24 + bottom, 128, 3)
+    report = (tmp_path / "img" / "report.md").read_text()
+    assert "PSNR holes dB" in report and "](frame-000003_full.png)" in report and "by `full` PSNR" in report
     assert any((tmp_path / "s" / "eval_cache").glob("refined_*.npy"))  # refinement cached
 
 

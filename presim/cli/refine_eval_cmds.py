@@ -50,6 +50,11 @@ def register(sub) -> None:
                         "photo_sharp_blend photo_sharp_blend_6 fused full_fused fused_est. Every method but `default` "
                         "(RenderConfig() as `presim render` uses it) runs the thesis's adaptive loop (min_view_gain 0)")
     e.add_argument("--json", type=Path, default=None, help="write the metrics as JSON here")
+    e.add_argument("--save-images", type=Path, default=None, metavar="DIR",
+                   help="write a strip per target and method (real | rendered | |error| 0-64 levels | holes "
+                        "before fill) and DIR/report.md (table, the five worst targets first)")
+    e.add_argument("--strip-width", type=int, default=None, metavar="PX",
+                   help="width of each strip panel in pixels (default: the target's width)")
     e.add_argument("--max-targets", type=int, default=None, help="evaluate at most M targets (evenly spread)")
     e.add_argument("--cache-dir", type=Path, default=None,
                    help="where the capture's refined depth is cached (default SCENE/eval_cache)")
@@ -112,10 +117,15 @@ def _eval(args) -> int:
                      methods=tuple(args.methods) if args.methods else DEFAULT_METHODS,
                      max_targets=args.max_targets, refine_workers=args.workers, warmup=not args.no_warmup,
                      refine=RefineConfig(sharp_refs=args.sharp_refs))
-    res = eval_views(scene, cfg, cache_dir=args.cache_dir, log=lambda s: print(s, file=sys.stderr))
+    if args.strip_width is not None and args.strip_width < 16:
+        raise ValueError(f"--strip-width must be >= 16 pixels, got {args.strip_width}")
+    res = eval_views(scene, cfg, cache_dir=args.cache_dir, log=lambda s: print(s, file=sys.stderr),
+                     images_dir=args.save_images, strip_width=args.strip_width)
     print(f"{args.scene}: {len(res.target_ids)} targets, stride {args.stride}, target every {args.target_every}")
     print(format_table(res))
     if args.json is not None:
         atomic_write_json(args.json, json.loads(json.dumps(res.to_json(), allow_nan=True)))
         print(f"wrote {args.json}")
+    if args.save_images is not None:
+        print(f"wrote {args.save_images / 'report.md'} and {len(res.target_ids) * len(res.methods)} strips")
     return 0

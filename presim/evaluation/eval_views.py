@@ -14,11 +14,18 @@ Metrics per method (means over targets):
 - ``psnr_db``: PSNR of the delivered (filled) color image vs the real image.
 - ``psnr_black_db``: PSNR with pixels no view covered set to black (no filling).
 - ``psnr_covered_db``: PSNR over synthesized (covered) pixels only.
+- ``psnr_hole_db``: PSNR of the delivered image over the hole pixels alone (no view covered them,
+  the fill made them); NaN for a target without holes, and the mean is over targets with holes.
 - ``ssim``: SSIM (scikit-image, RGB, data range 255) of the delivered image.
 - ``hole_frac``: fraction of pixels no view covered, before filling.
 - ``depth_absrel``: mean |d - d_real| / d_real over covered pixels where the real depth is valid.
 - ``ms_per_frame``: wall time of one steady-state render (after a warm-up render of the same pose),
   filling included; per-scene preparation (renderer construction, TSDF fusion) excluded.
+
+Every metric is taken over the target's valid pixels (``image_metrics(real_valid=...)``; a scene
+carries no per-pixel validity mask today, the importers crop undistorted frames to their valid
+rectangle, so eval-views scores every pixel). ``images_dir`` adds pictures: one strip per target and
+method and ``report.md`` (:mod:`presim.evaluation.report`).
 """
 
 from __future__ import annotations
@@ -40,8 +47,9 @@ from presim.depth.fuse import FuseConfig
 from presim.depth.refine import RefineConfig
 from presim.depth.scene_fuse import fuse_frames
 from presim.depth.scene_refine import refine_frames_to_file, refine_one_frame
+from presim.evaluation.report import eval_strip, strip_name, write_report
 from presim.evaluation.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
-from presim.io_utils import progress
+from presim.io_utils import progress, write_png
 from presim.photometric import PhotometricConfig, calibrate_photometric
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.renderer import RenderConfig, Renderer
@@ -121,7 +129,8 @@ METHODS: dict[str, tuple[dict, str]] = {
 }
 DEFAULT_METHODS = tuple(m for m in METHODS if not m.startswith("photo_affine") and m != "photo_vig")
 """Every method but the colour-model variants of ``photo`` (each needs its own calibration)."""
-METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "ssim", "hole_frac", "depth_absrel", "ms_per_frame")
+METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "psnr_hole_db", "ssim", "hole_frac", "depth_absrel",
+           "ms_per_frame")
 
 
 @dataclass(frozen=True)
@@ -183,22 +192,46 @@ def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float
     return 100.0 if mse <= 1e-12 else float(10.0 * np.log10(255.0 ** 2 / mse))
 
 
+_SSIM_PAD = 3
+"""Border skimage's SSIM mean leaves out: (win_size - 1) // 2 with its default 7x7 window."""
+
+
 def image_metrics(out: RGBD, real_color: np.ndarray, real_depth_m: np.ndarray,
-                  unfilled_color: np.ndarray | None = None) -> dict[str, float]:
-    """Metrics of one rendered target (see module docstring); ``ms_per_frame`` is added by the caller."""
+                  unfilled_color: np.ndarray | None = None, real_valid: np.ndarray | None = None) -> dict[str, float]:
+    """Metrics of one rendered target (see module docstring); ``ms_per_frame`` is added by the caller.
+
+    ``out.valid`` is the coverage: False = a hole (no view covered the pixel; filled in ``out.color``).
+    ``real_valid`` (bool (H, W), None = all) marks the pixels where the real image has data; every
+    metric ignores the others (SSIM: the mean of its map over them; ``hole_frac``: holes among them).
+    """
     from skimage.metrics import structural_similarity
 
     valid = np.asarray(out.valid, dtype=bool)
+    rv = None if real_valid is None else np.asarray(real_valid, dtype=bool)
+    if rv is not None and rv.shape != valid.shape:
+        raise ValueError(f"image_metrics: real_valid shape {rv.shape} != image {valid.shape}")
+    covered = valid if rv is None else valid & rv
+    holes = ~valid if rv is None else ~valid & rv
     black = (unfilled_color if unfilled_color is not None else out.color).copy()
     black[~valid] = 0
-    m = valid & (real_depth_m > 0) & (out.depth_m > 0)
+    m = covered & (real_depth_m > 0) & (out.depth_m > 0)
     absrel = float(np.mean(np.abs(out.depth_m[m] - real_depth_m[m]) / real_depth_m[m])) if m.any() else float("nan")
+    if rv is None:
+        ssim = float(structural_similarity(out.color, real_color, channel_axis=2, data_range=255))
+        hole_frac = float(out.hole_frac_before_fill)
+    else:
+        _, smap = structural_similarity(out.color, real_color, channel_axis=2, data_range=255, full=True)
+        inner = np.zeros_like(rv)  # skimage's mean leaves out a border of half its 7x7 window
+        inner[_SSIM_PAD:-_SSIM_PAD, _SSIM_PAD:-_SSIM_PAD] = rv[_SSIM_PAD:-_SSIM_PAD, _SSIM_PAD:-_SSIM_PAD]
+        ssim = float(smap.mean(axis=2)[inner].mean()) if inner.any() else float("nan")
+        hole_frac = float(holes.sum() / rv.sum()) if rv.any() else float("nan")
     return {
-        "psnr_db": _psnr(out.color, real_color),
-        "psnr_black_db": _psnr(black, real_color),
-        "psnr_covered_db": _psnr(out.color, real_color, valid),
-        "ssim": float(structural_similarity(out.color, real_color, channel_axis=2, data_range=255)),
-        "hole_frac": float(out.hole_frac_before_fill),
+        "psnr_db": _psnr(out.color, real_color, rv),
+        "psnr_black_db": _psnr(black, real_color, rv),
+        "psnr_covered_db": _psnr(out.color, real_color, covered),
+        "psnr_hole_db": _psnr(out.color, real_color, holes),
+        "ssim": ssim,
+        "hole_frac": hole_frac,
         "depth_absrel": absrel,
     }
 
@@ -271,8 +304,14 @@ def _spread(items: list[int], n: int | None) -> list[int]:
 
 
 def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str | Path | None = None,
-               log: Callable[[str], None] | None = None) -> EvalResult:
-    """Run the leave-one-out evaluation (see module docstring) and return per-method metrics."""
+               log: Callable[[str], None] | None = None, images_dir: str | Path | None = None,
+               strip_width: int | None = None) -> EvalResult:
+    """Run the leave-one-out evaluation (see module docstring) and return per-method metrics.
+
+    ``images_dir``: also write one strip per target and method (``<target>_<method>.png``, panels
+    ``strip_width`` pixels wide, None = the target's width) and ``report.md`` there
+    (:mod:`presim.evaluation.report`).
+    """
     unknown = [m for m in config.methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; choose from {sorted(METHODS)}")
@@ -372,6 +411,12 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
             met = image_metrics(out, f.color, f.depth_m, unfilled)
             met["ms_per_frame"] = ms
             per[name].append(met)
+            if images_dir is not None:
+                tid = cap.frame_ids[k]
+                caption = (f"{tid} {name}: PSNR {met['psnr_db']:.2f} dB, covered {met['psnr_covered_db']:.2f}, "
+                           f"holes {met['psnr_hole_db']:.2f}, SSIM {met['ssim']:.3f}, holes {100 * met['hole_frac']:.2f} %")
+                write_png(Path(images_dir) / strip_name(tid, name),
+                          eval_strip(f.color, out.color, out.valid, caption, panel_width=strip_width))
         if log is not None:
             log(f"target {cap.frame_ids[k]}: " + ", ".join(
                 f"{n} {per[n][-1]['psnr_db']:.2f}" for n in config.methods if n not in skipped and per[n]))
@@ -381,17 +426,25 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
             continue
         methods[name] = {m: float(np.nanmean([p[m] for p in per[name]])) if any(np.isfinite(p[m]) for p in per[name])
                          else float("nan") for m in METRICS}
-    return EvalResult(methods, {n: v for n, v in per.items() if v}, [cap.frame_ids[k] for k in targets],
-                      skipped, refine_s)
+    result = EvalResult(methods, {n: v for n, v in per.items() if v}, [cap.frame_ids[k] for k in targets],
+                        skipped, refine_s)
+    if images_dir is not None and result.per_target:
+        write_report(Path(images_dir) / "report.md", format_table(result), result.target_ids, result.per_target,
+                     protocol=f"Scene `{scene.meta.source}`: {len(result.target_ids)} targets; capture stride "
+                              f"{config.stride}, a target every {config.target_every} capture frames.")
+    return result
 
 
 def format_table(result: EvalResult) -> str:
     """Markdown table of the per-method means."""
-    lines = ["| method | PSNR dB | PSNR black dB | PSNR covered dB | SSIM | hole % | depth AbsRel | ms/frame |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | PSNR dB | PSNR black dB | PSNR covered dB | PSNR holes dB | SSIM | hole % | depth AbsRel "
+             "| ms/frame |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, m in result.methods.items():
+        hole = "n/a" if not np.isfinite(m["psnr_hole_db"]) else f"{m['psnr_hole_db']:.2f}"
         lines.append(f"| {name} | {m['psnr_db']:.2f} | {m['psnr_black_db']:.2f} | {m['psnr_covered_db']:.2f} | "
-                     f"{m['ssim']:.4f} | {100 * m['hole_frac']:.3f} | {m['depth_absrel']:.4f} | {m['ms_per_frame']:.1f} |")
+                     f"{hole} | {m['ssim']:.4f} | {100 * m['hole_frac']:.3f} | {m['depth_absrel']:.4f} | "
+                     f"{m['ms_per_frame']:.1f} |")
     for name, why in result.skipped.items():
-        lines.append(f"| {name} | skipped: {why} | | | | | | |")
+        lines.append(f"| {name} | skipped: {why} | | | | | | | |")
     return "\n".join(lines)
