@@ -24,7 +24,7 @@ import numpy as np
 from presim.geometry import Intrinsics
 from presim.synthesis.threads import parallel_kernel
 
-__all__ = ["MAX_SOURCES", "SourceImage", "SourceStack", "stack_sources", "resample_colors_ref", "resample_colors"]
+__all__ = ["MAX_SOURCES", "SourceImage", "SourceStack", "stack_sources", "source_projection", "resample_colors_ref", "resample_colors"]
 
 
 @dataclass(frozen=True)
@@ -90,79 +90,100 @@ def _check(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrin
                          f"{color.shape}, {depth_m.shape}, {source.shape}")
 
 
+def source_projection(K: Intrinsics, T_world_cam: np.ndarray, sources: SourceStack, j: int) -> np.ndarray:
+    """float64 (3, 4): target camera point -> source view ``j``'s homogeneous pixel ``(u z, v z, z)``
+    (``K_s T_src_world T_world_cam``), one matrix per view and frame."""
+    fx, fy, cx, cy = sources.intr[j]
+    Ks = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    T_wc = np.asarray(T_world_cam, np.float64)
+    return Ks @ (sources.T[j][:, :3] @ T_wc[:3]) + Ks @ np.concatenate([np.zeros((3, 3)), sources.T[j][:, 3:]], 1)
+
+
 def resample_colors_ref(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
                         T_world_cam: np.ndarray, sources: SourceStack, depth_tol: float = 0.05) -> np.ndarray:
     """Reference (numpy, float64). Pixels with ``source`` < 0, depth 0, a source not in ``sources``,
     a projection behind the source camera or outside ``[0, w - 1] x [0, h - 1]``, or no tap within
     ``depth_tol`` keep ``color``; the others get ``floor(sum(w c) / sum(w) + 0.5)`` over the four
-    bilinear taps ``w`` of the valid ones. Returns a new uint8 (H, W, 3)."""
+    bilinear taps ``w`` of the valid ones (:func:`source_projection` maps the target point
+    ``((u - cx) / fx d, (v - cy) / fy d, d)`` into the source). Returns a new uint8 (H, W, 3)."""
     _check(color, depth_m, source, K)
     out = color.copy()
-    H, W = depth_m.shape
     s = source.astype(np.int64)
     j_of = np.full(s.shape, -1, np.int64)
     ok = (s >= 0) & (s < len(sources.lut)) & (depth_m > 0)
     j_of[ok] = sources.lut[s[ok]]
-    M = np.asarray(T_world_cam, np.float64)[:3]
     for j in np.unique(j_of[j_of >= 0]):
+        P = source_projection(K, T_world_cam, sources, j)
         rows, cols = np.nonzero(j_of == j)
-        u, v, d = cols.astype(np.float64), rows.astype(np.float64), depth_m[rows, cols].astype(np.float64)
-        X = M @ np.stack([(u - K.cx) / K.fx * d, (v - K.cy) / K.fy * d, d, np.ones_like(d)])
-        P = sources.T[j] @ np.concatenate([X, np.ones((1, len(d)))])
-        fx, fy, cx, cy = sources.intr[j]
+        d = depth_m[rows, cols].astype(np.float64)
+        x, y = (cols - K.cx) / K.fx * d, (rows - K.cy) / K.fy * d
+        p0 = P[0, 0] * x + P[0, 1] * y + P[0, 2] * d + P[0, 3]
+        p1 = P[1, 0] * x + P[1, 1] * y + P[1, 2] * d + P[1, 3]
+        zs = P[2, 0] * x + P[2, 1] * y + P[2, 2] * d + P[2, 3]
         img, dep = sources.colors[j], sources.depths[j]
         hs, ws = dep.shape
         with np.errstate(divide="ignore", invalid="ignore"):
-            us, vs = fx * P[0] / P[2] + cx, fy * P[1] / P[2] + cy
-        inside = (P[2] > 0) & (us >= 0) & (us <= ws - 1) & (vs >= 0) & (vs <= hs - 1)
-        us, vs, zs = us[inside], vs[inside], P[2][inside]
+            us, vs = p0 / zs, p1 / zs
+        inside = (zs > 0) & (us >= 0) & (us <= ws - 1) & (vs >= 0) & (vs <= hs - 1)
+        us, vs, zs = us[inside], vs[inside], zs[inside]
         u0, v0 = np.floor(us).astype(np.int64), np.floor(vs).astype(np.int64)
         a, b = us - u0, vs - v0
         u1, v1 = np.minimum(u0 + 1, ws - 1), np.minimum(v0 + 1, hs - 1)
         acc = np.zeros((len(us), 3))
         wsum = np.zeros(len(us))
+        lim = depth_tol * zs
         for uu, vv, w in ((u0, v0, (1 - a) * (1 - b)), (u1, v0, a * (1 - b)), (u0, v1, (1 - a) * b), (u1, v1, a * b)):
             ds = dep[vv, uu].astype(np.float64)
-            w = np.where((ds > 0) & (np.abs(ds - zs) <= depth_tol * zs), w, 0.0)
+            w = np.where((ds > 0) & (np.abs(ds - zs) <= lim), w, 0.0)
             acc += w[:, None] * img[vv, uu].astype(np.float64)
             wsum += w
         use = wsum > 1e-9
-        out[rows[inside][use], cols[inside][use]] = np.floor(acc[use] / wsum[use, None] + 0.5).clip(0, 255).astype(np.uint8)
+        inv = 1.0 / wsum[use]
+        out[rows[inside][use], cols[inside][use]] = np.floor(acc[use] * inv[:, None] + 0.5).clip(0, 255).astype(np.uint8)
     return out
 
 
 class _Target(NamedTuple):
-    M: np.ndarray  # float64 (3, 4): target camera -> world
     fx: float
     fy: float
     cx: float
     cy: float
 
 
+@nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _tap(img, dep, uu, vv, w, zs, lim, acc):  # pragma: no cover
+    ds = np.float64(dep[vv, uu])
+    if ds > 0.0 and abs(ds - zs) <= lim:
+        acc[0] += w * img[vv, uu, 0]
+        acc[1] += w * img[vv, uu, 1]
+        acc[2] += w * img[vv, uu, 2]
+        acc[3] += w
+
+
 @parallel_kernel(cache=True, error_model="numpy")
-def _resample_view_kernel(depth, source, view_id, tg, img, dep, intr, T, tol, out):  # pragma: no cover
+def _resample_view_kernel(depth, source, view_id, tg, img, dep, P, tol, out):  # pragma: no cover
     # resample_colors_ref on the pixels of one source view (same float64 formulas, taps in order).
     H, W = depth.shape
-    M = tg.M
     hs, ws = dep.shape
+    wmax = np.float64(ws - 1)
+    hmax = np.float64(hs - 1)
     for v in nb.prange(H):
+        acc = np.empty(4)
+        yn = (v - tg.cy) / tg.fy
         for u in range(W):
             d = np.float64(depth[v, u])
             if source[v, u] != view_id or not d > 0.0:
                 continue
-            xc = (u - tg.cx) / tg.fx * d
-            yc = (v - tg.cy) / tg.fy * d
-            xw = M[0, 0] * xc + M[0, 1] * yc + M[0, 2] * d + M[0, 3]
-            yw = M[1, 0] * xc + M[1, 1] * yc + M[1, 2] * d + M[1, 3]
-            zw = M[2, 0] * xc + M[2, 1] * yc + M[2, 2] * d + M[2, 3]
-            xs = T[0, 0] * xw + T[0, 1] * yw + T[0, 2] * zw + T[0, 3]
-            ys = T[1, 0] * xw + T[1, 1] * yw + T[1, 2] * zw + T[1, 3]
-            zs = T[2, 0] * xw + T[2, 1] * yw + T[2, 2] * zw + T[2, 3]
+            x = (u - tg.cx) / tg.fx * d
+            y = yn * d
+            p0 = P[0, 0] * x + P[0, 1] * y + P[0, 2] * d + P[0, 3]
+            p1 = P[1, 0] * x + P[1, 1] * y + P[1, 2] * d + P[1, 3]
+            zs = P[2, 0] * x + P[2, 1] * y + P[2, 2] * d + P[2, 3]
             if not zs > 0.0:
                 continue
-            us = intr[0] * xs / zs + intr[2]
-            vs = intr[1] * ys / zs + intr[3]
-            if not (us >= 0.0 and us <= ws - 1 and vs >= 0.0 and vs <= hs - 1):
+            us = p0 / zs
+            vs = p1 / zs
+            if not (us >= 0.0 and us <= wmax and vs >= 0.0 and vs <= hmax):
                 continue
             u0 = np.int64(np.floor(us))
             v0 = np.int64(np.floor(vs))
@@ -170,24 +191,17 @@ def _resample_view_kernel(depth, source, view_id, tg, img, dep, intr, T, tol, ou
             b = vs - v0
             u1 = min(u0 + 1, ws - 1)
             v1 = min(v0 + 1, hs - 1)
-            c0 = 0.0
-            c1 = 0.0
-            c2 = 0.0
-            wsum = 0.0
-            for t in range(4):
-                uu = u1 if t == 1 or t == 3 else u0
-                vv = v1 if t >= 2 else v0
-                w = (a if t == 1 or t == 3 else 1.0 - a) * (b if t >= 2 else 1.0 - b)
-                ds = np.float64(dep[vv, uu])
-                if ds > 0.0 and abs(ds - zs) <= tol * zs:
-                    c0 += w * img[vv, uu, 0]
-                    c1 += w * img[vv, uu, 1]
-                    c2 += w * img[vv, uu, 2]
-                    wsum += w
-            if wsum > 1e-9:
-                out[v, u, 0] = np.uint8(min(255.0, max(0.0, np.floor(c0 / wsum + 0.5))))
-                out[v, u, 1] = np.uint8(min(255.0, max(0.0, np.floor(c1 / wsum + 0.5))))
-                out[v, u, 2] = np.uint8(min(255.0, max(0.0, np.floor(c2 / wsum + 0.5))))
+            lim = tol * zs
+            acc[:] = 0.0
+            _tap(img, dep, u0, v0, (1 - a) * (1 - b), zs, lim, acc)
+            _tap(img, dep, u1, v0, a * (1 - b), zs, lim, acc)
+            _tap(img, dep, u0, v1, (1 - a) * b, zs, lim, acc)
+            _tap(img, dep, u1, v1, a * b, zs, lim, acc)
+            if acc[3] > 1e-9:
+                inv = 1.0 / acc[3]
+                out[v, u, 0] = np.uint8(min(255.0, max(0.0, np.floor(acc[0] * inv + 0.5))))
+                out[v, u, 1] = np.uint8(min(255.0, max(0.0, np.floor(acc[1] * inv + 0.5))))
+                out[v, u, 2] = np.uint8(min(255.0, max(0.0, np.floor(acc[2] * inv + 0.5))))
 
 
 def resample_colors(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
@@ -196,12 +210,12 @@ def resample_colors(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, 
     (H, W, 3)."""
     _check(color, depth_m, source, K)
     out = np.array(color, np.uint8, order="C")
-    tg = _Target(np.ascontiguousarray(np.asarray(T_world_cam, np.float64)[:3]), float(K.fx), float(K.fy),
-                 float(K.cx), float(K.cy))
+    tg = _Target(float(K.fx), float(K.fy), float(K.cx), float(K.cy))
     d = np.ascontiguousarray(depth_m, np.float32)
     src = np.ascontiguousarray(source, np.int32)
     for view_id in np.flatnonzero(sources.lut >= 0):
-        j = sources.lut[view_id]
-        _resample_view_kernel(d, src, np.int32(view_id), tg, sources.colors[j], sources.depths[j], sources.intr[j],
-                              sources.T[j], float(depth_tol), out)
+        j = int(sources.lut[view_id])
+        P = np.ascontiguousarray(source_projection(K, T_world_cam, sources, j))
+        _resample_view_kernel(d, src, np.int32(view_id), tg, sources.colors[j], sources.depths[j], P,
+                              float(depth_tol), out)
     return out

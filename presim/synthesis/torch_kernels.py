@@ -177,27 +177,30 @@ def resample_colors_torch(color: np.ndarray, depth_m: np.ndarray, source: np.nda
                           device: torch.device | str | None = None) -> np.ndarray:
     """:func:`presim.synthesis.resample.resample_colors_ref` in torch (float64; CUDA when present), one
     gather per source view. ``sources``: a :class:`~presim.synthesis.resample.SourceStack`."""
+    from presim.synthesis.resample import source_projection
+
     dev = torch.device(device) if device is not None else default_device()
     f64 = torch.float64
     H, W = depth_m.shape
     out = torch.from_numpy(np.ascontiguousarray(color)).to(dev).reshape(-1, 3).clone()
     s = torch.from_numpy(np.ascontiguousarray(source, np.int64)).to(dev).reshape(-1)
     d = torch.from_numpy(np.ascontiguousarray(depth_m, np.float32)).to(dev).reshape(-1).to(f64)
-    M = torch.as_tensor(np.asarray(T_world_cam, np.float64)[:3], dtype=f64, device=dev)
     for view_id in np.flatnonzero(sources.lut >= 0):
         j = int(sources.lut[view_id])
         idx = torch.nonzero((s == int(view_id)) & (d > 0)).squeeze(1)
         if len(idx) == 0:
             continue
+        P = source_projection(K, T_world_cam, sources, j)
         img = torch.from_numpy(sources.colors[j]).to(dev).to(f64)
         dep = torch.from_numpy(sources.depths[j]).to(dev).to(f64)
         hs, ws = dep.shape
-        u, v, dd = (idx % W).to(f64), (idx // W).to(f64), d[idx]
-        X = M @ torch.stack([(u - K.cx) / K.fx * dd, (v - K.cy) / K.fy * dd, dd, torch.ones_like(dd)])
-        P = torch.as_tensor(sources.T[j], dtype=f64, device=dev) @ torch.cat([X, torch.ones_like(dd)[None]])
-        fx, fy, cx, cy = (float(x) for x in sources.intr[j])
-        zs = P[2]
-        us, vs = fx * P[0] / zs + cx, fy * P[1] / zs + cy
+        dd = d[idx]
+        x = ((idx % W).to(f64) - K.cx) / K.fx * dd
+        y = ((idx // W).to(f64) - K.cy) / K.fy * dd
+        p0 = P[0, 0] * x + P[0, 1] * y + P[0, 2] * dd + P[0, 3]
+        p1 = P[1, 0] * x + P[1, 1] * y + P[1, 2] * dd + P[1, 3]
+        zs = P[2, 0] * x + P[2, 1] * y + P[2, 2] * dd + P[2, 3]
+        us, vs = p0 / zs, p1 / zs
         inside = (zs > 0) & (us >= 0) & (us <= ws - 1) & (vs >= 0) & (vs <= hs - 1)
         idx, us, vs, zs = idx[inside], us[inside], vs[inside], zs[inside]
         u0, v0 = torch.floor(us).long(), torch.floor(vs).long()
@@ -205,11 +208,13 @@ def resample_colors_torch(color: np.ndarray, depth_m: np.ndarray, source: np.nda
         u1, v1 = torch.clamp(u0 + 1, max=ws - 1), torch.clamp(v0 + 1, max=hs - 1)
         acc = torch.zeros((len(idx), 3), dtype=f64, device=dev)
         wsum = torch.zeros(len(idx), dtype=f64, device=dev)
+        lim = depth_tol * zs
         for uu, vv, w in ((u0, v0, (1 - a) * (1 - b)), (u1, v0, a * (1 - b)), (u0, v1, (1 - a) * b), (u1, v1, a * b)):
             ds = dep[vv, uu]
-            w = torch.where((ds > 0) & ((ds - zs).abs() <= depth_tol * zs), w, torch.zeros_like(w))
+            w = torch.where((ds > 0) & ((ds - zs).abs() <= lim), w, torch.zeros_like(w))
             acc += w[:, None] * img[vv, uu]
             wsum += w
         use = wsum > 1e-9
-        out[idx[use]] = torch.floor(acc[use] / wsum[use, None] + 0.5).clamp(0, 255).to(torch.uint8)
+        inv = 1.0 / wsum[use]
+        out[idx[use]] = torch.floor(acc[use] * inv[:, None] + 0.5).clamp(0, 255).to(torch.uint8)
     return out.reshape(H, W, 3).cpu().numpy()
