@@ -18,7 +18,7 @@ Sub-commands:
 
     python benchmarks/bench_generate.py sample-scene [--repeats 1] [--dst DIR] [--width 640 --height 480 --frames 60]
     python benchmarks/bench_generate.py gen-bop [--frames 12] [--width 640 --height 360] [--ray]
-    python benchmarks/bench_generate.py sample-scene --quick       # smoke run (64x48, 4 frames)
+    python benchmarks/bench_generate.py sample-scene --quick       # smoke run (128x96, 4 frames)
 """
 
 from __future__ import annotations
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--quick", action="store_true", help="smoke run: 64x48, 4 frames")
+    p.add_argument("--quick", action="store_true", help="smoke run: 128x96, 4 frames")
     p = sub.add_parser("gen-bop", help="gen-bop frames/s with 1 and 2 workers (and Ray)")
     p.add_argument("--frames", type=int, default=12)
     p.add_argument("--width", type=int, default=640)
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="smoke run: 4 frames of 64x48 from an 80x60 scene, 1 repeat")
     args = ap.parse_args(argv)
     if args.quick:
-        args.width, args.height, args.frames = 64, 48, 4
+        args.width, args.height, args.frames = (128, 96, 4) if args.cmd == "sample-scene" else (64, 48, 4)
         if args.cmd == "gen-bop":
             args.scene_width, args.scene_height, args.scene_frames, args.repeats = 80, 60, 6, 1
     common.setup()

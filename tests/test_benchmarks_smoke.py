@@ -82,29 +82,40 @@ def test_common_helpers(tmp_path):
     assert not list((tmp_path / "sub").glob("*.tmp"))
 
 
+@pytest.mark.slow
 def test_fingerprint_save_and_compare(tmp_path):
-    """The fingerprint's refine part: saved, compared equal, and a changed array is named."""
+    """The fingerprint's refine part, saved, then compared after one array changed: that array is
+    named, every other one compares equal."""
     _run(str(BENCH / "check_outputs_identical.py"), "--save", str(tmp_path), "--parts", "refine")
     ref = np.load(tmp_path / "fingerprint.npz")
     assert {"refine__numba__depth", "refine__reference__cost"} <= set(ref.files)  # names old fingerprints use
-    p = _run(str(BENCH / "check_outputs_identical.py"), "--compare", str(tmp_path), "--parts", "refine")
-    assert "0 differ" in p.stdout
     arrays = dict(ref)
     arrays["refine__numba__depth"] = arrays["refine__numba__depth"] + 1
     np.savez_compressed(tmp_path / "fingerprint.npz", **arrays)
     p = subprocess.run([sys.executable, str(BENCH / "check_outputs_identical.py"), "--compare", str(tmp_path),
                         "--parts", "refine"], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert p.returncode == 1 and "DIFF refine/numba/depth" in p.stdout
+    assert p.returncode == 1, p.stderr[-2000:]
+    assert "DIFF refine/numba/depth" in p.stdout and f"{len(arrays)} arrays compared, 1 differ" in p.stdout
 
 
-def test_cheap_runs(tmp_path):
-    """Tiny runs of the scripts that need no scene: pose metrics, refinement, sinks, run_all's list."""
-    _run(str(BENCH / "bench_pose.py"), "metrics", "--quick")
-    _run(str(BENCH / "bench_depth.py"), "refine", "--quick")
-    _run(str(BENCH / "bench_outputs.py"), "sinks", "--quick", "--json", str(tmp_path / "sinks.json"))
-    assert "per_sink_ms" in json.loads((tmp_path / "sinks.json").read_text())
-    p = _run(str(BENCH / "run_all.py"), "--quick", "--list")
-    assert p.stdout.count("=====") >= 10
+CHEAP_RUNS = {  # tiny runs of the scripts that need no scene (a few CPU-seconds each)
+    "pose-metrics": ("bench_pose.py", "metrics", "--quick"),
+    "depth-refine": ("bench_depth.py", "refine", "--quick"),
+    "sample-scene": ("bench_generate.py", "sample-scene", "--quick"),
+    "sinks": ("bench_outputs.py", "sinks", "--quick", "--json", "OUT"),
+    "run-all-list": ("run_all.py", "--quick", "--list"),
+}
+
+
+@pytest.mark.parametrize("name", list(CHEAP_RUNS))
+def test_cheap_run(name, tmp_path):
+    script, *args = CHEAP_RUNS[name]
+    out = tmp_path / "out.json"
+    p = _run(str(BENCH / script), *[str(out) if a == "OUT" else a for a in args])
+    if "OUT" in args:
+        assert json.loads(out.read_text())["per_sink_ms"]
+    if script == "run_all.py":
+        assert p.stdout.count("=====") >= 10
 
 
 @pytest.mark.slow
