@@ -20,8 +20,17 @@ Cases (only APIs both trees have):
 - ``drive``: the simulator with one 640x480 camera at 10 Hz and the default robot on the built-in
   seeded route (``presim demo``'s drive loop without sinks).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_ab.py --base out/base --scene /work/scenes/sample \\
+``--bench-render=ARGS`` (with ``=``: ARGS starts with a dash) instead runs each tree's own ``benchmarks/bench_render.py ARGS --json ...``
+(the speed check of two trees: each tree measured by its own script), children in the same ABBA
+order, and reports per result key (``"NAME WxH"``) the median ``fps_median`` of each tree, the ratio
+new / base of those medians and the median of the per-pair ratios.
+
+    python benchmarks/bench_ab.py --base out/base --scene out/sample \\
         --cases render:128x128,render:256x256,pointnav,vector,drive --json out/ab.json
+    python benchmarks/bench_ab.py --base out/base --new . --base-perf '{"warp_ahead": false}' \\
+        --new-perf '{}' --scene out/apc --cases render:640x480          # what warp-ahead earns
+    python benchmarks/bench_ab.py --base out/base --repeats 3 --json out/speed.json \\
+        --bench-render="--scene out/apc_r --sizes 640x480,128x128 --no-today --frames 30"
 """
 
 from __future__ import annotations
@@ -29,12 +38,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from benchmarks import common  # noqa: E402
 
 CHILD = r'''
 import json, os, sys, time
@@ -110,7 +123,12 @@ elif case == "pointnav":
         timed(step)
 elif case == "vector":
     from presim.sim.vector_env import PointNavVectorEnv
-    venv = PointNavVectorEnv(scene, num_envs=8)
+    if PERF:
+        from presim.sim.simulator import SIM_RENDER_CACHE_MB
+        from presim.synthesis.renderer import PerfConfig
+        venv = PointNavVectorEnv(scene, num_envs=8, perf=PerfConfig(**{"cache_mb": SIM_RENDER_CACHE_MB, **PERF}))
+    else:
+        venv = PointNavVectorEnv(scene, num_envs=8)
     venv.reset(seed=0)
     step = lambda: venv.step(rng.uniform(-1, 1, (8, 2)).astype(np.float32))
     for _ in range(max(1, warm // 8)):
@@ -123,8 +141,11 @@ elif case == "drive":
     from presim.sim.robot import default_robot
     from presim.sim.routes import RouteDriver, ground_route
     from presim.sim.simulator import SimConfig, Simulator
-    sim = Simulator(scene, default_robot(), SimConfig(dt_s=0.1, cameras=(CameraSpec(width=640, height=480,
-                                                                                      rate_hz=10.0),)))
+    cfg = SimConfig(dt_s=0.1, cameras=(CameraSpec(width=640, height=480, rate_hz=10.0),))
+    if PERF:
+        import dataclasses
+        cfg = dataclasses.replace(cfg, perf=dataclasses.replace(cfg.perf, **PERF))
+    sim = Simulator(scene, default_robot(), cfg)
     sim.reset(0)
     drv = RouteDriver(ground_route(sim, np.random.default_rng(0)), sim)
     for _ in range(warm):
@@ -135,11 +156,61 @@ print(json.dumps({"cpu_ms": cpu, "wall_ms": wall}))
 '''
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def _env() -> dict:
+    """The children's environment: no PYTHONPATH (each child imports the presim of its own tree)."""
+    return {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+
+
+def _order(trees: dict, rep: int) -> list:
+    # ABBA order (base, new, new, base, ...): a linear drift of the machine's speed hits both
+    # trees alike; with ABAB the new tree always runs one slot later (two ABAB runs of the
+    # same two trees with their roles swapped measured 0.92x and 1.07x).
+    return list(trees.items()) if rep % 2 == 0 else list(trees.items())[::-1]
+
+
+def bench_render_trees(trees: dict[str, str], script_args: str, repeats: int) -> dict:
+    """Each tree's own ``benchmarks/bench_render.py SCRIPT_ARGS`` in ABBA order; per result key the
+    medians of ``fps_median`` / ``cpu_ms_median`` and the ratios new / base."""
+    runs: dict[str, dict[str, list]] = {name: {} for name in trees}
+    for rep in range(repeats):
+        for name, tree in _order(trees, rep):
+            script = Path(tree) / "benchmarks" / "bench_render.py"
+            if not script.is_file():
+                raise SystemExit(f"{script}: not found (--{name} must be a source tree with benchmarks/)")
+            with tempfile.TemporaryDirectory(prefix="bench_ab_") as d:
+                out = Path(d) / "render.json"
+                cmd = [sys.executable, str(script), *shlex.split(script_args), "--json", str(out)]
+                p = subprocess.run(cmd, capture_output=True, text=True, env=_env(), cwd=tree)
+                if p.returncode != 0 or not out.is_file():
+                    raise SystemExit(f"bench_render.py of {name} ({tree}) failed:\n{p.stdout[-1500:]}{p.stderr[-3000:]}")
+                res = json.loads(out.read_text())["results"]
+            for key, v in res.items():
+                runs[name].setdefault(key, []).append((v["fps_median"], v.get("cpu_ms_median", float("nan"))))
+            print(f"  {name} pass {rep + 1}: " + "  ".join(f"{k} {v['fps_median']:.1f} fps" for k, v in res.items()),
+                  flush=True)
+    out: dict[str, dict] = {}
+    for key in runs["new"]:
+        if key not in runs["base"]:
+            print(f"{key}: only in the new tree's results (not compared)")
+            continue
+        b, n = runs["base"][key], runs["new"][key]
+        fb, fn = statistics.median(x[0] for x in b), statistics.median(x[0] for x in n)
+        cb, cn = statistics.median(x[1] for x in b), statistics.median(x[1] for x in n)
+        pairs = statistics.median(y[0] / x[0] for x, y in zip(b, n))
+        out[key] = {"base_fps_median": fb, "new_fps_median": fn, "fps_ratio_new_over_base": fn / fb,
+                    "fps_ratio_paired_median": pairs, "base_cpu_ms_median": cb, "new_cpu_ms_median": cn,
+                    "base_runs_fps": [x[0] for x in b], "new_runs_fps": [x[0] for x in n]}
+        print(f"{key:36s} fps: base {fb:7.1f}  new {fn:7.1f}  -> new/base x{fn / fb:.3f} (paired x{pairs:.3f})   "
+              f"CPU ms: base {cb:.1f}  new {cn:.1f}", flush=True)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--base", required=True, help="the baseline source tree (holds presim/)")
     ap.add_argument("--new", default=str(ROOT), help="the new source tree (default: this one)")
-    ap.add_argument("--scene", required=True, help="saved scene (with a floor for the env cases)")
+    ap.add_argument("--scene", help="saved scene (with a floor for the env cases); required unless --bench-render")
     ap.add_argument("--cases", default="render:128x128,render:256x256,pointnav,vector,drive")
     ap.add_argument("--n", type=int, default=20, help="measured frames / steps per child")
     ap.add_argument("--warm", type=int, default=10, help="env warm-up steps per child")
@@ -147,24 +218,32 @@ def main() -> int:
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--base-perf", default="{}", help='PerfConfig fields of the base children, JSON, e.g. \'{"warp_ahead": false}\'')
     ap.add_argument("--new-perf", default="{}", help="PerfConfig fields of the new children, JSON")
-    args = ap.parse_args()
+    ap.add_argument("--bench-render", metavar="ARGS",
+                    help="run each tree's own benchmarks/bench_render.py with these arguments instead of the cases")
+    args = ap.parse_args(argv)
     trees = {"base": str(Path(args.base).resolve()), "new": str(Path(args.new).resolve())}
+    for name, tree in trees.items():
+        if not (Path(tree) / "presim").is_dir():
+            ap.error(f"--{name} {tree}: not a source tree (no presim/ folder)")
+    if args.bench_render is not None:
+        print(f"trees {trees}  load average at start {os.getloadavg()}", flush=True)
+        res = bench_render_trees(trees, args.bench_render, args.repeats)
+        common.write_json(args.json, {"trees": trees, "bench_render_args": args.bench_render, "results": res,
+                                      "load_average_end": os.getloadavg()})
+        return 0
+    if not args.scene:
+        ap.error("--scene is required (unless --bench-render)")
     perfs = {"base": json.loads(args.base_perf), "new": json.loads(args.new_perf)}
     print(f"scene {args.scene}  load average at start {os.getloadavg()}", flush=True)
     res: dict[str, dict] = {}
     for case in args.cases.split(","):
         runs: dict[str, dict[str, list]] = {k: {"cpu_ms": [], "wall_ms": []} for k in trees}
         for rep in range(args.repeats):
-            # ABBA order (base, new, new, base, ...): a linear drift of the machine's speed hits both
-            # trees alike; with ABAB the new tree always ran one slot later (2026-12-03: two ABAB
-            # runs of the same two trees with their roles swapped measured 0.92x and 1.07x).
-            order = list(trees.items()) if rep % 2 == 0 else list(trees.items())[::-1]
-            for name, tree in order:
+            for name, tree in _order(trees, rep):
                 code = (CHILD.replace("TREE", repr(tree)).replace("SCENE", repr(args.scene))
                         .replace("CASE", repr(case)).replace("WARM", str(args.warm)).replace("NFRAMES", str(args.n))
                         .replace("PERFKW", repr(perfs[name])))
-                env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-                p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tree)
+                p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), cwd=tree)
                 if p.returncode != 0:
                     raise SystemExit(f"{case} {name} failed:\n{p.stderr[-3000:]}")
                 r = json.loads(p.stdout.strip().splitlines()[-1])
@@ -182,9 +261,7 @@ def main() -> int:
               f"-> x{res[case]['cpu_ratio_base_over_new']:.2f}   wall ms: base {med['base']['wall_ms']:7.1f}  "
               f"new {med['new']['wall_ms']:7.1f}   mean wall ms: base {mean['base']:7.1f}  new {mean['new']:7.1f} "
               f"-> x{mean['base'] / mean['new']:.2f}   load {os.getloadavg()[0]:.1f}", flush=True)
-    if args.json:
-        Path(args.json).write_text(json.dumps({"scene": args.scene, "trees": trees, "perf": perfs, "results": res},
-                                              indent=2))
+    common.write_json(args.json, {"scene": args.scene, "trees": trees, "perf": perfs, "results": res})
     return 0
 
 

@@ -17,7 +17,7 @@ neighbours and second pass on ``auto``) unless an option below overrides them; t
 from ``poses_refined.json`` must have been made by such a run (``presim align SCENE --keep-unmatched``).
 The output says whether the auto rule fired in each run, with its measured noise / spacing ratio.
 
-    PYTHONPATH=. python benchmarks/check_align_perturbed.py out/tum --trans-m 0.03 --rot-deg 2 --seed 0 \
+    python benchmarks/check_align_perturbed.py out/tum --trans-m 0.03 --rot-deg 2 --seed 0 \
         --json out/tum_perturbed.json
 
 Target: refined-from-perturbed within 1 cm ATE of refined-from-unperturbed (docs/alignment.md).
@@ -35,10 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import presim.runtime  # noqa: E402
-presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from benchmarks import common  # noqa: E402
 
 
 def perturb_poses(T: np.ndarray, trans_m: float, rot_deg: float, seed: int) -> np.ndarray:
@@ -84,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="AlignConfig.rematch_rounds for the perturbed run (and --realign) (default: auto)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    common.setup()
 
     from presim.align.pipeline import AlignConfig, align_poses, pose_change
     from presim.capture.store import load_scene
@@ -149,10 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
     print(json.dumps(out, indent=1))
-    if args.json:
-        from presim.io_utils import atomic_write_text
-
-        atomic_write_text(args.json, json.dumps(out, indent=1) + "\n")
+    common.write_json(args.json, out)
     return 0
 
 

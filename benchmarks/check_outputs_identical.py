@@ -4,8 +4,9 @@ compared for exact (byte) equality and every differing array is named with its c
 elements.
 
 What it renders (all deterministic):
-- the built-in sample scene (320x240, 16 frames, built once into ``--work``) and
-  ``../shared/data/apc_cardboard_bin_kinfu50`` (imported with the kinfu importer, raw depth): three
+- the built-in sample scene (320x240, 16 frames, built once into the benchmarks' cache folder, or
+  into ``--work``) and ``../shared/data/apc_cardboard_bin_kinfu50`` relative to the repository root
+  (imported with ``import_capture``, no floor alignment, raw depth): three
   midpoint poses each, with the numba backend under several RenderConfigs (defaults, fixed views,
   one layer, plain median, no crack filter, no fill, max_zoom on a 2x target), at a half and a
   quarter target size (levels of detail), and the torch (CPU) and reference backends at a reduced
@@ -13,12 +14,13 @@ What it renders (all deterministic):
 - ``capture.reprojection.forward_warp`` / ``reprojection_mae`` on apc frame pairs;
 - ``depth.refine.refine_depth`` (numba and reference) on a tiny two-plane case.
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/check_outputs_identical.py --save /tmp/fp_before
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/check_outputs_identical.py --compare /tmp/fp_before
+    python benchmarks/check_outputs_identical.py --save /tmp/fp_before
+    python benchmarks/check_outputs_identical.py --compare /tmp/fp_before
+    python benchmarks/check_outputs_identical.py --save /tmp/fp --parts refine     # seconds: a smoke run
 
 ``--forward-color`` renders without backward colour sampling (trees before it have no such stage);
-``--thesis-loop`` renders with ``min_view_gain=0`` (the default stops the adaptive loop at
-diminishing returns since 2026-12-02): compare kernels with a tree from before that.
+``--thesis-loop`` renders with ``min_view_gain=0`` (the thesis's adaptive loop; the default stops it at
+diminishing returns): compare kernels with a tree whose default has no such stop.
 """
 
 from __future__ import annotations
@@ -31,13 +33,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from benchmarks import common  # noqa: E402
 
-import presim.runtime  # noqa: E402
-presim.runtime.configure()  # process settings the timings depend on (presim/runtime.py)
-
-APC = ROOT.parent / "shared" / "data" / "apc_cardboard_bin_kinfu50"
-if not APC.is_dir():
-    APC = Path("/work/shared/data/apc_cardboard_bin_kinfu50")
+APC = common.APC
 
 CONFIGS = {
     "default": {},
@@ -149,22 +147,26 @@ def _refine(out: dict) -> None:
         out[f"refine/{backend}/cost"] = res.cost
 
 
-def fingerprint(work: Path, parts: tuple[str, ...] = ("sample", "apc", "refine")) -> dict[str, np.ndarray]:
+def fingerprint(work: Path | None, parts: tuple[str, ...] = ("sample", "apc", "refine")) -> dict[str, np.ndarray]:
     from presim.capture.sample_scene import SampleSceneConfig, build_sample_scene
     from presim.capture.store import load_scene
 
     out: dict[str, np.ndarray] = {}
     if "refine" in parts:
         _refine(out)
-    if "sample" not in parts and "apc" not in parts:
-        return out
-    sample_dir = work / "sample"
-    if not sample_dir.is_dir():
-        build_sample_scene(sample_dir, seed=0, config=SampleSceneConfig(width=320, height=240, num_frames=16))
-    if "sample" in parts:
-        _render_scene("sample", load_scene(sample_dir), [(2, 3), (7, 8), (12, 13)], out)
-    if "apc" not in parts:
-        return out
+    if "sample" not in parts:
+        return out if "apc" not in parts else _apc(out)
+    if work is None:
+        sample_dir = common.sample_scene(frames=16, width=320, height=240, seed=0)
+    else:
+        sample_dir = work / "sample"
+        if not sample_dir.is_dir():
+            build_sample_scene(sample_dir, seed=0, config=SampleSceneConfig(width=320, height=240, num_frames=16))
+    _render_scene("sample", load_scene(sample_dir), [(2, 3), (7, 8), (12, 13)], out)
+    return out if "apc" not in parts else _apc(out)
+
+
+def _apc(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     if APC.is_dir():
         from presim.capture.importers import import_capture
 
@@ -181,8 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     g = ap.add_mutually_exclusive_group(required=True)
     g.add_argument("--save", type=Path, help="write the fingerprint into this folder")
     g.add_argument("--compare", type=Path, help="compare with the fingerprint saved in this folder")
-    ap.add_argument("--work", type=Path, default=Path("/tmp/presim_fingerprint_work"),
-                    help="where the sample scene is built once")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="where the sample scene is built once (default: the benchmarks' cache folder)")
     ap.add_argument("--parts", nargs="+", choices=("sample", "apc", "refine"), default=("sample", "apc", "refine"),
                     help="compute only these parts (--compare then checks only their arrays)")
     ap.add_argument("--forward-color", action="store_true",
@@ -190,13 +192,15 @@ def main(argv: list[str] | None = None) -> int:
                          "(compare the kernels with such a tree)")
     ap.add_argument("--thesis-loop", action="store_true",
                     help="render with min_view_gain=0 (the thesis's adaptive loop), to compare kernels with a tree "
-                         "from before the diminishing-returns default (2026-12-02)")
+                         "whose default loop has no diminishing-returns stop")
     args = ap.parse_args(argv)
+    common.setup()
     if args.thesis_loop:
         EXTRA["min_view_gain"] = 0.0
     if args.forward_color:
         EXTRA["backward_color"] = False
-    args.work.mkdir(parents=True, exist_ok=True)
+    if args.work is not None:
+        args.work.mkdir(parents=True, exist_ok=True)
     fp = fingerprint(args.work, tuple(args.parts))
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)

@@ -40,7 +40,7 @@ SIM_RENDER_CACHE_MB = 160.0
 """Default bound of the simulator renderer's per-view point cache (MiB; ``PerfConfig.cache_mb``,
 1024 elsewhere). A robot's camera needs a few nearby views per frame; an evicted view is prepared
 again in ~9 ms (640x480), so a small bound keeps a 100-frame VGA capture's simulator near 400 MB
-(benchmarks/bench_memory.py, docs/simulator.md "Memory") at little cost. The images do not depend
+(benchmarks/bench_sim.py memory, docs/simulator.md "Memory") at little cost. The images do not depend
 on it."""
 
 

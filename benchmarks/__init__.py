@@ -1,0 +1,1 @@
+"""Benchmark scripts (not part of the installed package); shared pieces in :mod:`benchmarks.common`."""
