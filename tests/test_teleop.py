@@ -149,7 +149,14 @@ class _Tab:
 
 
 def _ws_url(server) -> str:
-    return server.url.replace("http://", "ws://") + "ws"
+    return f"ws://127.0.0.1:{server.port}/ws?token={server.token}"
+
+
+def _connect(server, **kw):
+    """A WebSocket as the server's own page opens it: its token, its Origin."""
+    import websockets
+
+    return websockets.connect(_ws_url(server), origin=f"http://127.0.0.1:{server.port}", **kw)
 
 
 def test_two_tabs_one_drives_both_see_closed_tab_freed(toy_server):
@@ -158,7 +165,7 @@ def test_two_tabs_one_drives_both_see_closed_tab_freed(toy_server):
     server, sim = toy_server, toy_server.session.sim
 
     async def main():
-        async with websockets.connect(_ws_url(server)) as a, websockets.connect(_ws_url(server)) as b:
+        async with _connect(server) as a, _connect(server) as b:
             ta, tb = _Tab(a), _Tab(b)
             await asyncio.gather(ta.pump(1.0), tb.pump(1.0))
             assert ta.init["client_id"] != tb.init["client_id"] and ta.images > 0 and tb.images > 0
@@ -204,7 +211,7 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
     server, sim = toy_server, toy_server.session.sim
 
     async def main():
-        async with websockets.connect(_ws_url(server)) as ws:
+        async with _connect(server) as ws:
             t = _Tab(ws)
             await t.pump(0.5)
             for raw in ('{"type":"cmd_vel","vx":NaN,"vy":0,"wz":0}', "garbage", b"\x00\xff",
@@ -232,7 +239,7 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
             await t.send(type="snapshot")
             await t.send(type="record", on=False)
             await t.pump(3.0, until=lambda t: any("recording saved" in m for _, m in t.messages))
-            async with websockets.connect(_ws_url(server), max_size=None) as big:   # 100 kB: this tab is closed
+            async with _connect(server, max_size=None) as big:   # 100 kB: this tab is closed
                 await big.send("x" * 100_000)
                 with pytest.raises(websockets.ConnectionClosed):
                     for _ in range(100):
@@ -248,7 +255,7 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
     assert (rec / "recording.mcap").stat().st_size > 0 and (rec / "capture").is_dir()
     assert list((tmp_path / "teleop" / "snapshots").glob("snap_000_depth.png"))
     assert abs(sim.joint_positions[sim.robot.joint_index("head_tilt_joint")] - 0.5) < 1e-6
-    with urllib.request.urlopen(server.url + "health", timeout=5) as f:   # still serving
+    with urllib.request.urlopen(f"{server.base_url}health?token={server.token}", timeout=5) as f:   # still serving
         assert json.loads(f.read())["error"] is None
 
 
@@ -281,6 +288,7 @@ def test_free_rig_session_map_from_points_and_teleport_keeps_height(tmp_path):
 @pytest.mark.slow
 def test_cli_teleop_serves_page_on_loopback_and_stops_on_sigterm(tmp_path):
     import signal
+    import urllib.error
     import urllib.request
 
     import psutil
@@ -302,15 +310,19 @@ def test_cli_teleop_serves_page_on_loopback_and_stops_on_sigterm(tmp_path):
             if "open http://" in line:
                 url = line.split("open ")[1].split()[0]
         assert url and url.startswith("http://127.0.0.1:"), p.stderr.read() if p.poll() is not None else url
-        port = int(url.rstrip("/").rsplit(":", 1)[1])
+        base, _, query = url.partition("?")
+        assert query.startswith("token=") and len(query) > 20           # a per-run token in the URL
+        port = int(base.rstrip("/").rsplit(":", 1)[1])
         listen = {c.laddr.ip for c in psutil.Process(p.pid).net_connections(kind="inet")
                   if c.status == psutil.CONN_LISTEN}
         assert listen == {"127.0.0.1"}
         with urllib.request.urlopen(url, timeout=10) as f:
             page = f.read().decode()
         assert "/static/app.js" in page and "http" not in page.replace("http-equiv", "")  # no CDN
-        with urllib.request.urlopen(url + "static/app.js", timeout=10) as f:
+        with urllib.request.urlopen(base + "static/app.js", timeout=10) as f:
             assert b"WebSocket" in f.read()
+        with pytest.raises(urllib.error.HTTPError, match="403"):      # the page without the token
+            urllib.request.urlopen(base, timeout=10)
         assert port > 0
         p.send_signal(signal.SIGTERM)
         assert p.wait(30) == 0
