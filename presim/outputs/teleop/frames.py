@@ -114,9 +114,10 @@ def top_down_map(points_xyz: np.ndarray, points_rgb: np.ndarray, *, occupied: np
     img = img.reshape(h, w, 3)
     if footprint and occupied is None:
         # closed over 5x5 cells first, so the outline follows the cloud, not its sampling gaps
-        has = cv2.morphologyEx((count.reshape(h, w) > 0).astype(np.uint8), cv2.MORPH_CLOSE,
-                               np.ones((5, 5), np.uint8))
-        inner = cv2.erode(has, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        k5, k3, edge = np.ones((5, 5), np.uint8), np.ones((3, 3), np.uint8), dict(borderType=cv2.BORDER_CONSTANT,
+                                                                                 borderValue=0)
+        has = cv2.erode(cv2.dilate((count.reshape(h, w) > 0).astype(np.uint8), k5, **edge), k5, **edge)
+        inner = cv2.erode(has, k3, **edge)
         has, inner = has.astype(bool), inner.astype(bool)
         img[~has] = 35.0
         img[has & ~inner] = (0.0, 210.0, 230.0)

@@ -30,9 +30,24 @@ __all__ = ["TeleopServer", "STATIC_DIR"]
 STATIC_DIR = Path(str(resources.files("presim.outputs.teleop") / "static"))
 KIND_COLOR, KIND_DEPTH, KIND_MAP = 1, 2, 3
 ACK_TIMEOUT_S = 1.0
+MAX_CLIENTS = 32
+"""Tabs served at once; one more is told so and closed (code 1013). Each tab costs up to one frame
+plus the socket's write buffer (about 0.1 MB at 640x480), so the bound keeps the server's memory
+bounded whatever connects."""
 OUTBOX_MAX = 64
 """Text messages queued for one tab at most (older ones are dropped): a tab that floods the server
 with bad input, or stops reading, costs a bounded amount of memory."""
+
+
+def release_free_memory() -> None:
+    """Hand freed heap pages back to the system (glibc ``malloc_trim``; a no-op elsewhere): the
+    buffers of closed tabs are freed by Python, but glibc keeps the pages mapped until trimmed."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _binary(kind: int, seq: int, payload: bytes) -> bytes:
@@ -56,7 +71,7 @@ class TeleopServer:
     are served."""
 
     def __init__(self, session: TeleopSession, host: str = "127.0.0.1", port: int = 0,
-                 allow_origins: tuple[str, ...] = (), token: str | None = None):
+                 allow_origins: tuple[str, ...] = (), token: str | None = None, max_clients: int = MAX_CLIENTS):
         self.session, self.host = session, host
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -77,6 +92,7 @@ class TeleopServer:
         self.refused = 0
         """Requests answered 403 so far."""
         self.clients: dict[int, _Client] = {}
+        self.max_clients = max_clients
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._map_png = encode_png(session.map.rgb)
@@ -135,6 +151,14 @@ class TeleopServer:
 
         await ws.accept()
         self._loop = asyncio.get_running_loop()
+        if len(self.clients) >= self.max_clients:
+            try:
+                await ws.send_json({"type": "error", "message": f"{len(self.clients)} tabs are open, the most "
+                                    "this server serves: close one and reload"})
+                await ws.close(code=1013, reason="too many tabs")
+            except (WebSocketDisconnect, RuntimeError, ConnectionError):
+                pass
+            return
         c = _Client(next(self._ids), ws)
         self.clients[c.id] = c
         self.session.add_client(c.id)
@@ -169,6 +193,9 @@ class TeleopServer:
                 pass
             self.clients.pop(c.id, None)
             self.session.remove_client(c.id)
+            c.outbox.clear()
+            if not self.clients:
+                release_free_memory()
 
     async def _sender(self, c: _Client) -> None:
         ws = c.ws

@@ -217,6 +217,7 @@ class TeleopSession:
     def remove_client(self, client_id: int) -> None:
         with self._lock:
             self.clients.discard(client_id)
+            self._warned = {w for w in self._warned if w[0] != client_id}
             if self.driver == client_id:
                 self.driver = None
                 self._commands.append(_Command(-1, CmdVel(0.0, 0.0, 0.0)))  # the robot stops
