@@ -795,3 +795,32 @@ def test_tab_beyond_the_limit_is_told_and_closed(toy_server):
             assert len(server.clients) == 2
 
     asyncio.run(main())
+
+
+def test_map_of_a_capture_without_floor_looks_along_its_gravity(tmp_path):
+    """A capture whose gravity is +y (a camera's y-down world, as KinectFusion keeps it): the map is
+    the plane perpendicular to gravity, teleport moves in that plane and keeps the height."""
+    import dataclasses
+
+    from presim.outputs.teleop.protocol import Teleport
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession, _Command
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
+
+    scene = dataclasses.replace(build_toy_room(ToyRoomConfig(width=40, height=30)), floor=None,
+                                gravity_world=np.array([0.0, 1.0, 0.0]))
+    sim = Simulator(scene, None, SimConfig(cameras=(CameraSpec(width=40, height=30),)))
+    session = TeleopSession(sim, TeleopConfig(out_dir=tmp_path))
+    R = session.R_map_world
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R @ np.array([0.0, 1.0, 0.0]), [0.0, 0.0, -1.0], atol=1e-12)   # up = map z
+    caps = np.array(session.init_message(1)["captures"])
+    np.testing.assert_allclose(caps[:, :2], session.to_map(np.asarray(scene.T_world_cam)[:, :3, 3])[:, :2],
+                               atol=1e-3)
+    sim.reset(0)
+    h0 = session.to_map(sim.T_world_base[:3, 3])[2]
+    u, v = (np.asarray(session.spec.map_min_xy) + np.asarray(session.spec.map_max_xy)) / 2
+    session._apply(_Command(1, Teleport(float(u), float(v))))
+    np.testing.assert_allclose(session.to_map(sim.T_world_base[:3, 3]), [u, v, h0], atol=1e-9)
+    sim.close()

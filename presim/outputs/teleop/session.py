@@ -110,6 +110,7 @@ class TeleopSession:
         self.on_frame: Callable[[], None] = lambda: None
         robot = sim.robot
         self.dofs = dofs_of(robot.drive)
+        self.R_map_world = self._map_rotation()
         self.map = self._build_map()
         self.spec = ProtocolSpec(
             map_min_xy=self.map.origin_xy, map_max_xy=self.map.max_xy,
@@ -163,6 +164,30 @@ class TeleopSession:
             return None
         return depth_range_m(d)
 
+    def _map_rotation(self) -> np.ndarray:
+        """(3, 3) rotation from world to the map frame, whose z is up (against ``gravity_world``):
+        identity for a scene with a floor (gravity -z after import); for a capture without a floor
+        the map looks along its gravity, x = the first camera's view direction made level."""
+        g = np.asarray(getattr(self.sim.scene, "gravity_world", (0.0, 0.0, -1.0)), dtype=np.float64)
+        up = -g / max(np.linalg.norm(g), 1e-12)
+        if self.sim.occupancy is not None or up[2] > 1.0 - 1e-9:
+            return np.eye(3)
+        T = np.asarray(self.sim.scene.T_world_cam)
+        x = T[0, :3, 2] if len(T) else np.array([1.0, 0.0, 0.0])
+        x = x - (x @ up) * up
+        if np.linalg.norm(x) < 1e-6:  # the first camera looks straight down: any level axis
+            x = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        x /= np.linalg.norm(x)
+        return np.stack([x, np.cross(up, x), up])
+
+    def to_map(self, p_world: np.ndarray) -> np.ndarray:
+        """(..., 3) world points -> (..., 3) map frame (x, y on the map, z = height)."""
+        return np.asarray(p_world, dtype=np.float64) @ self.R_map_world.T
+
+    def _map_yaw(self, d_world: np.ndarray) -> float:
+        d = self.R_map_world @ d_world
+        return float(np.arctan2(d[1], d[0]))
+
     def _build_map(self) -> MapImage:
         sim = self.sim
         pts = sim.points
@@ -171,12 +196,15 @@ class TeleopSession:
             return top_down_map(pts.xyz, pts.rgb, occupied=occ.occupied, known=occ.known,
                                 origin_xy=tuple(occ.origin_xy), resolution_m=occ.resolution_m,
                                 z_max_m=float(sim.robot.height_m) + 0.3)
+        xyz = self.to_map(np.asarray(pts.xyz))
         res = self.config.map_resolution_m
         if res is None:
-            xy = np.asarray(pts.xyz)[:, :2]
+            xy = xyz[:, :2]
             extent = float((xy.max(0) - xy.min(0)).max()) if len(xy) else 1.0
             res = float(np.clip(extent / 400.0, 0.01, 0.05))
-        return top_down_map(pts.xyz, pts.rgb, resolution_m=res, footprint=True)
+        else:
+            extent = 5.0
+        return top_down_map(xyz, pts.rgb, resolution_m=res, footprint=True, pad_m=min(0.5, max(0.1, 0.1 * extent)))
 
     def _captures_xy_yaw(self, max_n: int = 2000) -> list[list[float]]:
         """Captured camera positions and viewing yaw (world x, y, rad), at most ``max_n`` (evenly
@@ -184,10 +212,10 @@ class TeleopSession:
         T = np.asarray(self.sim.scene.T_world_cam)
         if len(T) > max_n:
             T = T[np.linspace(0, len(T) - 1, max_n).astype(int)]
-        fwd = T[:, :3, 2]
+        xy = self.to_map(T[:, :3, 3])[:, :2]
+        fwd = self.to_map(T[:, :3, 2])
         yaw = np.arctan2(fwd[:, 1], fwd[:, 0])
-        return [[round(float(x), 3), round(float(y), 3), round(float(a), 3)]
-                for x, y, a in zip(T[:, 0, 3], T[:, 1, 3], yaw)]
+        return [[round(float(x), 3), round(float(y), 3), round(float(a), 3)] for (x, y), a in zip(xy, yaw)]
 
     def init_message(self, client_id: int) -> dict:
         """What a page needs once: its id, the map's geometry, joints, drive, depth range, the trajectory."""
@@ -206,6 +234,10 @@ class TeleopSession:
             "trajectory": [[round(x, 3), round(y, 3)] for x, y in traj],
             "out_dir": str(self.config.out_dir), "dofs": list(self.dofs),
             "captures": self._captures_xy_yaw(), "free": bool(self.sim.is_free),
+            # drawing sizes on the map: the base's footprint, the camera frustum's length
+            "robot_radius_m": 0.03 if self.sim.is_free else float(robot.footprint_radius_m),
+            "frustum_m": 1.5 if not self.sim.is_free else float(
+                max(0.1, 0.2 * min(np.subtract(self.map.max_xy, self.map.origin_xy)))),
         }
 
     # ---- clients (any thread) --------------------------------------------------------------------
@@ -375,9 +407,11 @@ class TeleopSession:
                 if sim.occupancy.is_blocked(m.x, m.y):
                     raise ValueError(f"teleport: ({m.x:.2f}, {m.y:.2f}) is inside an obstacle")
                 start = np.array([m.x, m.y, yaw])
-            else:
+            else:  # the free rig: move on the map plane, keep height and orientation
                 T = sim.T_world_base
-                T[0, 3], T[1, 3] = m.x, m.y
+                p = self.to_map(T[:3, 3])
+                p[0], p[1] = m.x, m.y
+                T[:3, 3] = self.R_map_world.T @ p
                 start = T
             self._restart(start)
             self.notify(c.client_id, {"type": "info", "message": f"teleported to ({m.x:.2f}, {m.y:.2f})"})
@@ -399,6 +433,7 @@ class TeleopSession:
                                       "pose_arg": " ".join(f"{v:.6f}" for v in pose_to_tum(T))})
         elif isinstance(m, PathCommand):
             self._path(c.client_id, m.action)
+            self._refresh_state()
         elif isinstance(m, Record):
             if m.on:
                 self._start_recording(c.client_id)
@@ -435,6 +470,21 @@ class TeleopSession:
         with self._lock:
             stamps.append(float(stamp))
             poses.append(np.array(T, dtype=np.float64))
+
+    def _refresh_state(self) -> None:
+        """Republish the newest state with the path and recording status of now (a command applied
+        at rest changes them without a step)."""
+        f = self.latest
+        if f is None:
+            return
+        with self._lock:
+            rec = str(self.recording_dir) if self.recording_dir is not None else None
+        self._seq += 1
+        self.latest = Frame(self._seq, dict(f.state, seq=self._seq, recording=rec, wall_time_s=time.time(),
+                                            path={"recording": self.path_recording,
+                                                  "poses": len(self._path_poses)}),
+                            f.image_seq, f.color_jpeg, f.depth_jpeg)
+        self.on_frame()
 
     def _path(self, client_id: int, action: str) -> None:
         if action == "start":
@@ -525,9 +575,9 @@ class TeleopSession:
         self._last = r
         self._step_times.append(now)
         self._contacts += int(r.contact)
-        T = r.T_world_base
+        p = self.to_map(r.T_world_base[:3, 3])
         with self._lock:
-            self.trajectory.append((float(T[0, 3]), float(T[1, 3])))
+            self.trajectory.append((float(p[0]), float(p[1])))
         color_jpeg = depth_jpeg = None
         if r.cameras:
             cam = r.cameras[0]
@@ -550,10 +600,13 @@ class TeleopSession:
         self.on_frame()
 
     def _state(self, r: StepResult) -> dict:
+        """``pose`` (base) and ``camera`` are in the map frame (:meth:`to_map`: world x, y for a scene
+        with a floor), ``z`` the height, camera ``pitch`` positive looking down."""
         T = r.T_world_base
-        yaw = float(np.arctan2(T[1, 0], T[0, 0]))
+        pos = self.to_map(T[:3, 3])
+        yaw = self._map_yaw(T[:3, 0])
         cam_T = self._last_cam.T_world_cam if self._last_cam is not None else self.sim.T_world_base @ self.sim.T_base_cam()
-        fwd = cam_T[:3, 2]
+        cam_p, fwd = self.to_map(cam_T[:3, 3]), self.R_map_world @ cam_T[:3, 2]
         times = self._step_times
         rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
         with self._lock:
@@ -562,8 +615,8 @@ class TeleopSession:
         return {
             "type": "state", "seq": self._seq, "image_seq": self._image_seq, "step": r.step_idx,
             "sim_time_s": round(r.sim_time_s, 3),
-            "pose": {"x": float(T[0, 3]), "y": float(T[1, 3]), "z": float(T[2, 3]), "yaw": yaw},
-            "camera": {"x": float(cam_T[0, 3]), "y": float(cam_T[1, 3]), "z": float(cam_T[2, 3]),
+            "pose": {"x": float(pos[0]), "y": float(pos[1]), "z": float(pos[2]), "yaw": yaw},
+            "camera": {"x": float(cam_p[0]), "y": float(cam_p[1]), "z": float(cam_p[2]),
                        "yaw": float(np.arctan2(fwd[1], fwd[0])),
                        "pitch": float(np.arcsin(np.clip(-fwd[2], -1.0, 1.0))), "hfov_deg": self.hfov_deg},
             "path": {"recording": self.path_recording, "poses": len(self._path_poses)},

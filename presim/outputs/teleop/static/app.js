@@ -200,9 +200,9 @@
       g.drawImage(mapImg, x0, y0, x1 - x0, y1 - y0);
     }
     const caps = T.init && T.init.captures;
-    if (caps && caps.length) {   // captured camera positions: white dots with a short viewing direction
+    if (caps && caps.length) {   // captured camera positions: magenta dots with a short viewing direction
       const [, , ppm0] = worldToCanvas(0, 0), len = Math.max(5, 0.12 * ppm0);
-      g.strokeStyle = "rgba(255,255,255,0.85)"; g.fillStyle = "#fff"; g.lineWidth = 1;
+      g.strokeStyle = "rgba(255,80,255,0.9)"; g.fillStyle = "#ff50ff"; g.lineWidth = 1;
       for (const [x, y, yaw] of caps) {
         const [cx, cy] = worldToCanvas(x, y);
         g.beginPath(); g.arc(cx, cy, 2, 0, 2 * Math.PI); g.fill();
@@ -217,12 +217,13 @@
     const s = T.lastState;
     if (!s) return;
     const cam = s.camera, [cx, cy, ppm] = worldToCanvas(cam.x, cam.y);
-    const half = (cam.hfov_deg * Math.PI) / 360, len = 1.5 * ppm;
+    const half = (cam.hfov_deg * Math.PI) / 360, len = ((T.init && T.init.frustum_m) || 1.5) * ppm;
     g.fillStyle = "rgba(255,210,0,0.35)"; g.beginPath(); g.moveTo(cx, cy);
     g.lineTo(cx + len * Math.cos(cam.yaw + half), cy - len * Math.sin(cam.yaw + half));
     g.lineTo(cx + len * Math.cos(cam.yaw - half), cy - len * Math.sin(cam.yaw - half));
     g.closePath(); g.fill();
-    const p = s.pose, [bx, by] = worldToCanvas(p.x, p.y), r = Math.max(4, 0.25 * ppm);
+    const p = s.pose, [bx, by] = worldToCanvas(p.x, p.y);
+    const r = Math.max(4, ((T.init && T.init.robot_radius_m) || 0.25) * ppm);
     g.fillStyle = s.contact ? "#ff3030" : "#30a0ff"; g.beginPath(); g.arc(bx, by, r, 0, 2 * Math.PI); g.fill();
     g.strokeStyle = "#fff"; g.lineWidth = 2; g.beginPath(); g.moveTo(bx, by);
     g.lineTo(bx + 2 * r * Math.cos(p.yaw), by - 2 * r * Math.sin(p.yaw)); g.stroke();
