@@ -824,3 +824,14 @@ def test_map_of_a_capture_without_floor_looks_along_its_gravity(tmp_path):
     session._apply(_Command(1, Teleport(float(u), float(v))))
     np.testing.assert_allclose(session.to_map(sim.T_world_base[:3, 3]), [u, v, h0], atol=1e-9)
     sim.close()
+
+
+def test_cli_teleop_allow_origin_is_checked(tmp_path, capsys):
+    from presim.cli import build_parser, main
+
+    args = build_parser().parse_args(["teleop", str(tmp_path), "--allow-origin", "http://dev.example:9000",
+                                      "--allow-origin", "*"])
+    assert args.allow_origin == ["http://dev.example:9000", "*"] and args.tilt_deg is None and args.drive is None
+    assert main(["teleop", str(tmp_path), "--allow-origin", "evil.example/page"]) == 1
+    err = capsys.readouterr().err
+    assert "--allow-origin 'evil.example/page'" in err and len(err.strip().splitlines()) == 1
