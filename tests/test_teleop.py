@@ -149,7 +149,14 @@ class _Tab:
 
 
 def _ws_url(server) -> str:
-    return server.url.replace("http://", "ws://") + "ws"
+    return f"ws://127.0.0.1:{server.port}/ws?token={server.token}"
+
+
+def _connect(server, **kw):
+    """A WebSocket as the server's own page opens it: its token, its Origin."""
+    import websockets
+
+    return websockets.connect(_ws_url(server), origin=f"http://127.0.0.1:{server.port}", **kw)
 
 
 def test_two_tabs_one_drives_both_see_closed_tab_freed(toy_server):
@@ -158,7 +165,7 @@ def test_two_tabs_one_drives_both_see_closed_tab_freed(toy_server):
     server, sim = toy_server, toy_server.session.sim
 
     async def main():
-        async with websockets.connect(_ws_url(server)) as a, websockets.connect(_ws_url(server)) as b:
+        async with _connect(server) as a, _connect(server) as b:
             ta, tb = _Tab(a), _Tab(b)
             await asyncio.gather(ta.pump(1.0), tb.pump(1.0))
             assert ta.init["client_id"] != tb.init["client_id"] and ta.images > 0 and tb.images > 0
@@ -204,7 +211,7 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
     server, sim = toy_server, toy_server.session.sim
 
     async def main():
-        async with websockets.connect(_ws_url(server)) as ws:
+        async with _connect(server) as ws:
             t = _Tab(ws)
             await t.pump(0.5)
             for raw in ('{"type":"cmd_vel","vx":NaN,"vy":0,"wz":0}', "garbage", b"\x00\xff",
@@ -232,7 +239,7 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
             await t.send(type="snapshot")
             await t.send(type="record", on=False)
             await t.pump(3.0, until=lambda t: any("recording saved" in m for _, m in t.messages))
-            async with websockets.connect(_ws_url(server), max_size=None) as big:   # 100 kB: this tab is closed
+            async with _connect(server, max_size=None) as big:   # 100 kB: this tab is closed
                 await big.send("x" * 100_000)
                 with pytest.raises(websockets.ConnectionClosed):
                     for _ in range(100):
@@ -248,7 +255,7 @@ def test_bad_input_refused_server_survives_recording_and_snapshot(toy_server, tm
     assert (rec / "recording.mcap").stat().st_size > 0 and (rec / "capture").is_dir()
     assert list((tmp_path / "teleop" / "snapshots").glob("snap_000_depth.png"))
     assert abs(sim.joint_positions[sim.robot.joint_index("head_tilt_joint")] - 0.5) < 1e-6
-    with urllib.request.urlopen(server.url + "health", timeout=5) as f:   # still serving
+    with urllib.request.urlopen(f"{server.base_url}health?token={server.token}", timeout=5) as f:   # still serving
         assert json.loads(f.read())["error"] is None
 
 
@@ -281,6 +288,7 @@ def test_free_rig_session_map_from_points_and_teleport_keeps_height(tmp_path):
 @pytest.mark.slow
 def test_cli_teleop_serves_page_on_loopback_and_stops_on_sigterm(tmp_path):
     import signal
+    import urllib.error
     import urllib.request
 
     import psutil
@@ -302,15 +310,19 @@ def test_cli_teleop_serves_page_on_loopback_and_stops_on_sigterm(tmp_path):
             if "open http://" in line:
                 url = line.split("open ")[1].split()[0]
         assert url and url.startswith("http://127.0.0.1:"), p.stderr.read() if p.poll() is not None else url
-        port = int(url.rstrip("/").rsplit(":", 1)[1])
+        base, _, query = url.partition("?")
+        assert query.startswith("token=") and len(query) > 20           # a per-run token in the URL
+        port = int(base.rstrip("/").rsplit(":", 1)[1])
         listen = {c.laddr.ip for c in psutil.Process(p.pid).net_connections(kind="inet")
                   if c.status == psutil.CONN_LISTEN}
         assert listen == {"127.0.0.1"}
         with urllib.request.urlopen(url, timeout=10) as f:
             page = f.read().decode()
         assert "/static/app.js" in page and "http" not in page.replace("http-equiv", "")  # no CDN
-        with urllib.request.urlopen(url + "static/app.js", timeout=10) as f:
+        with urllib.request.urlopen(base + "static/app.js", timeout=10) as f:
             assert b"WebSocket" in f.read()
+        with pytest.raises(urllib.error.HTTPError, match="403"):      # the page without the token
+            urllib.request.urlopen(base, timeout=10)
         assert port > 0
         p.send_signal(signal.SIGTERM)
         assert p.wait(30) == 0
@@ -411,3 +423,415 @@ def test_browser_keys_drive_robot_and_page_image_changes(toy_server, tmp_path):
         while len(server.clients) != 1 and time.monotonic() < deadline:
             time.sleep(0.1)
         assert len(server.clients) == 1 and len(server.session.clients) == 1
+
+
+# ---- access: Host, Origin, token (issue 44 item 1) ------------------------------------------------
+def _http_status(port: int, path: str, headers: dict[str, str], method: str = "GET") -> int:
+    """Status of one raw HTTP/1.1 request to 127.0.0.1:port (the curl reproduction, without curl)."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall((f"{method} {path} HTTP/1.1\r\n" + "".join(f"{k}: {v}\r\n" for k, v in headers.items())
+                   + "Content-Length: 0\r\n\r\n").encode())
+        return int(s.recv(4096).split()[1])
+
+
+def _upgrade(host: str, origin: str | None) -> dict[str, str]:
+    h = {"Host": host, "Connection": "Upgrade", "Upgrade": "websocket", "Sec-WebSocket-Version": "13",
+         "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ=="}
+    if origin is not None:
+        h["Origin"] = origin
+    return h
+
+
+def test_access_policy_refusals_are_pure():
+    from presim.outputs.teleop.access import AccessPolicy, refusal
+
+    pol = AccessPolicy(8000, "tok")
+    good = {"host": "127.0.0.1:8000", "origin": "http://127.0.0.1:8000"}
+
+    def why(headers, query="token=tok", websocket=True, method="GET", path="/ws"):
+        return refusal(pol, method=method, path=path, query=query, headers=headers, websocket=websocket)
+
+    assert why(good) is None
+    assert why({"host": "localhost:8000", "origin": "http://localhost:8000"}) is None
+    assert why({"host": "[::1]:8000", "origin": "http://[::1]:8000"}) is None
+    assert "Host" in why({"host": "evil.example", "origin": "http://evil.example"})
+    assert "Host" in why({"host": "127.0.0.1:8001", "origin": "http://127.0.0.1:8000"})   # another port
+    assert "Host" in why({"origin": "http://127.0.0.1:8000"})
+    assert "Origin" in why({"host": "127.0.0.1:8000", "origin": "http://evil.example"})
+    assert "Origin" in why({"host": "127.0.0.1:8000"})
+    assert "token" in why(good, query="")
+    assert "token" in why(good, query="token=tok2")
+    assert why({"host": "127.0.0.1:8000"}, query="", websocket=False, path="/static/app.js") is None
+    assert "token" in why({"host": "127.0.0.1:8000"}, query="", websocket=False, path="/")
+    assert "method" in why(good, websocket=False, method="POST", path="/")
+    wide = AccessPolicy(8000, "tok", allow_origins=("http://dev.example:9000",))
+    assert refusal(wide, method="GET", path="/ws", query="token=tok", websocket=True,
+                   headers={"host": "dev.example:9000", "origin": "http://dev.example:9000"}) is None
+    anyone = AccessPolicy(8000, "tok", allow_origins=("*",))
+    assert refusal(anyone, method="GET", path="/ws", query="token=tok", websocket=True,
+                   headers={"host": "evil.example", "origin": "http://evil.example"}) is None
+    assert "token" in refusal(anyone, method="GET", path="/ws", query="", websocket=True,
+                              headers={"host": "evil.example", "origin": "http://evil.example"})
+
+
+@pytest.mark.fuzz
+def test_cross_site_and_rebinding_requests_get_403(toy_server):
+    """Issue 44's reproduction: an upgrade with a foreign Origin / Host, or without the token, is 403;
+    the page's own request is 101; nothing refused reaches the simulator."""
+    server = toy_server
+    port, tok = server.port, server.token
+    own, local = f"127.0.0.1:{port}", f"http://127.0.0.1:{port}"
+    cases = [
+        ("/ws", _upgrade("evil.example", "http://evil.example"), 403),              # the issue's curl
+        (f"/ws?token={tok}", _upgrade("evil.example", "http://evil.example"), 403),  # DNS rebinding
+        (f"/ws?token={tok}", _upgrade(own, "http://evil.example"), 403),            # cross-site page
+        (f"/ws?token={tok}", _upgrade(own, None), 403),                             # no Origin
+        ("/ws", _upgrade(own, local), 403),                                         # no token
+        ("/ws?token=guess", _upgrade(own, local), 403),                             # wrong token
+        (f"/ws?token={tok}", _upgrade(f"localhost:{port}", f"http://localhost:{port}"), 101),
+        (f"/ws?token={tok}", _upgrade(own, local), 101),
+    ]
+    for path, headers, want in cases:
+        assert _http_status(port, path, headers) == want, (path, headers)
+    assert _http_status(port, "/", {"Host": own}) == 403
+    assert _http_status(port, "/health", {"Host": own}) == 403
+    assert _http_status(port, f"/?token={tok}", {"Host": own}) == 200
+    assert _http_status(port, f"/?token={tok}", {"Host": "evil.example"}) == 403
+    assert _http_status(port, f"/?token={tok}", {"Host": own, "Origin": local}, method="POST") == 403
+    assert _http_status(port, "/static/app.js", {"Host": own}) == 200                # assets: no secret
+    assert server.refused == 10
+    assert server.session.driver is None
+
+
+# ---- capture users: every degree of freedom, camera path as TUM (issue 45 item 5) -----------------
+@pytest.fixture
+def free_server(tmp_path):
+    import dataclasses
+
+    from presim.outputs.teleop.server import TeleopServer
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
+
+    scene = dataclasses.replace(build_toy_room(ToyRoomConfig(width=80, height=60)), floor=None)
+    sim = Simulator(scene, None, SimConfig(cameras=(CameraSpec(width=80, height=60),)))
+    server = TeleopServer(TeleopSession(sim, TeleopConfig(out_dir=tmp_path / "teleop")))
+    server.start()
+    yield server
+    server.stop()
+
+
+class _CaptureTab(_Tab):
+    """A _Tab that also keeps ``pose`` and ``path_saved`` answers."""
+
+    async def pump(self, seconds: float, until=None):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not (until and until(self)):
+            try:
+                m = await asyncio.wait_for(self.ws.recv(), timeout=max(0.01, end - time.monotonic()))
+            except asyncio.TimeoutError:
+                break
+            if isinstance(m, bytes):
+                if m[0] == 2:
+                    await self.ws.send(json.dumps({"type": "ack", "seq": self.state["seq"]}))
+                continue
+            d = json.loads(m)
+            if d["type"] == "state":
+                self.state = d
+                if not d["has_images"]:
+                    await self.ws.send(json.dumps({"type": "ack", "seq": d["seq"]}))
+            elif d["type"] == "init":
+                self.init = d
+            elif d["type"] in ("info", "error"):
+                self.messages.append((d["type"], d["message"]))
+            else:
+                self.messages.append((d["type"], d))
+
+
+def test_free_rig_buttons_move_every_axis_and_camera_path_exports_tum(free_server, tmp_path):
+    from presim.formats.tum import read_tum
+    from presim.geometry import pose_from_tum
+
+    server, session = free_server, free_server.session
+
+    def answers(t, kind):
+        return [m for k, m in t.messages if k == kind]
+
+    async def main():
+        async with _connect(server) as ws:
+            t = _CaptureTab(ws)
+            await t.pump(1.0, until=lambda t: t.init and t.state)
+            assert t.init["free"] and t.init["dofs"] == ["vx", "vy", "vz", "wx", "wy", "wz"]
+            assert len(t.init["captures"]) == len(session.sim.scene)                 # captured cameras
+            z0, pitch0 = t.state["camera"]["z"], t.state["camera"]["pitch"]
+            await t.send(type="path", action="start")
+            for k in range(6):                                                     # R (up) + I (tilt down)
+                await t.send(type="cmd_vel", vx=0, vy=0, wz=0, vz=0.3, wy=0.5, seq=k)
+                await t.pump(0.1)
+            await t.send(type="cmd_vel", vx=0, vy=0, wz=0, seq=99)
+            await t.pump(10.0, until=lambda t: t.state["step"] > 2 and t.state["at_rest"])
+            assert t.state["camera"]["z"] > z0 + 0.02 and t.state["camera"]["pitch"] > pitch0 + 0.05
+            step = t.state["step"]
+            await t.send(type="cmd_vel", vx=0, vy=0, wz=0, wx=0.5, seq=100)        # U (roll) moves too
+            await t.pump(0.3)
+            await t.send(type="cmd_vel", vx=0, vy=0, wz=0, seq=101)
+            await t.pump(10.0, until=lambda t: t.state["step"] > step and t.state["at_rest"])
+            await t.send(type="path", action="stop")
+            await t.send(type="path", action="add")
+            await t.send(type="pose")
+            await t.pump(2.0, until=lambda t: answers(t, "pose"))
+            await t.send(type="path", action="save")
+            await t.pump(3.0, until=lambda t: answers(t, "path_saved"))
+            await t.send(type="path", action="bogus")
+            await t.pump(1.0, until=lambda t: any("'action' must be" in m for k, m in t.messages if k == "error"))
+            return t
+
+    t = asyncio.run(main())
+    pose = answers(t, "pose")[0]
+    T_now = session.T_world_cam()
+    np.testing.assert_allclose(np.array(pose["T_world_cam"]), T_now, atol=1e-9)
+    vals = [float(v) for v in pose["tum"].split()]
+    np.testing.assert_allclose(pose_from_tum(vals[1:]), T_now, atol=1e-6)
+    assert len(pose["pose_arg"].split()) == 7                                      # presim render --pose
+    saved = answers(t, "path_saved")[0]
+    path = tmp_path / "teleop" / "paths" / "path_000.tum"
+    assert saved["path"] == str(path) and saved["tum"] == path.read_text()       # the download = the file
+    stamps, poses = read_tum(path)                                                 # presim's one TUM reader
+    assert len(poses) == saved["poses"] >= 8 and np.all(np.diff(stamps) > 0)
+    np.testing.assert_allclose(poses[-1], T_now, atol=1e-6)                        # 'add' = the pose now
+    assert np.ptp(poses[:, 2, 3]) > 0.02                                           # the path went up
+    assert "'action' must be" in t.messages[-1][1]
+
+
+def test_axes_a_robot_lacks_warn_once_per_tab(toy_server):
+    server = toy_server
+
+    async def main():
+        async with _connect(server) as ws:
+            t = _Tab(ws)
+            await t.pump(0.5)
+            assert t.init["dofs"] == ["vx", "wz"] and not t.init["free"]
+            for k in range(3):
+                await t.send(type="cmd_vel", vx=0.1, vy=0.3, wz=0, vz=0.2, seq=k)
+                await t.pump(0.2)
+            return t
+
+    t = asyncio.run(main())
+    infos = [m for k, m in t.messages if k == "info"]
+    assert sum("'vy' is ignored" in m for m in infos) == 1 and sum("'vz' is ignored" in m for m in infos) == 1
+
+
+def test_free_rig_tilt_applies_to_the_start_view(tmp_path):
+    """``--tilt-deg`` on the free rig: 40 deg pitches the captured start view down by 40 deg, and the
+    image differs from 0 deg (it used to be byte-identical)."""
+    import dataclasses
+
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
+
+    scene = dataclasses.replace(build_toy_room(ToyRoomConfig(width=40, height=30)), floor=None)
+    views = {}
+    for deg in (0.0, 40.0):
+        sim = Simulator(scene, None, SimConfig(cameras=(CameraSpec(width=40, height=30),)))
+        session = TeleopSession(sim, TeleopConfig(out_dir=tmp_path, start_pitch_rad=np.radians(deg)))
+        r = session._reset_start()
+        views[deg] = (session.T_world_cam(), r.cameras[0].color)
+        sim.close()
+    (T0, c0), (T40, c40) = views[0.0], views[40.0]
+    np.testing.assert_allclose(T40[:3, 3], T0[:3, 3], atol=1e-9)                   # same place ...
+    angle = np.degrees(np.arccos(np.clip(T0[:3, 2] @ T40[:3, 2], -1, 1)))
+    assert abs(angle - 40.0) < 1e-6                                                 # ... view 40 deg apart
+    assert T40[:3, 2] @ T0[:3, 1] > 0                                               # towards camera +y: down
+    assert not np.array_equal(c0, c40)
+
+
+def test_cli_options_that_cannot_act_warn(tmp_path):
+    import argparse
+
+    from presim.cli.teleop_cmd import inactive_option_warnings
+    from presim.sim.robot import default_robot, free_camera_rig
+
+    ns = argparse.Namespace
+    assert inactive_option_warnings(ns(drive=None, camera_link=None, tilt_deg=30.0), free_camera_rig()) == []
+    w = inactive_option_warnings(ns(drive="holonomic", camera_link="x", tilt_deg=None), free_camera_rig())
+    assert len(w) == 2 and "--drive holonomic" in w[0] and "--camera-link" in w[1]
+    assert inactive_option_warnings(ns(drive="diff", camera_link=None, tilt_deg=20.0), default_robot()) == []
+
+
+def test_free_rig_map_outlines_the_point_footprint():
+    # a 1 x 1 m square of red points: its border cells are cyan, inside stays red, outside is dark
+    g = np.stack(np.meshgrid(np.arange(0, 1.0, 0.01), np.arange(0, 1.0, 0.01)), -1).reshape(-1, 2)
+    xyz = np.c_[g, np.zeros(len(g))]
+    m = top_down_map(xyz, np.tile([255, 0, 0], (len(g), 1)), resolution_m=0.1, pad_m=0.3, footprint=True)
+    h, w = m.rgb.shape[:2]
+    assert (h, w) == (16, 16)
+    assert tuple(m.rgb[h // 2, w // 2]) == (255, 0, 0)
+    row = [tuple(int(v) for v in px) for px in m.rgb[h // 2]]
+    inside = [j for j, px in enumerate(row) if px != (35, 35, 35)]
+    assert len(inside) in (10, 11) and inside == list(range(inside[0], inside[-1] + 1))   # 1 m of 0.1 m cells
+    assert row[inside[0]] == row[inside[-1]] == (0, 210, 230)
+    assert all(px == (255, 0, 0) for px in row[inside[0] + 1:inside[-1]])
+    assert tuple(m.rgb[0, 0]) == (35, 35, 35)
+
+
+# ---- snapshot depth follows formats.depth_png (issue 41 item 6) ------------------------------------
+def test_snapshot_depth_out_of_range_is_invalid_not_clipped(tmp_path):
+    import types
+
+    import cv2
+
+    from presim.geometry import Intrinsics
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession
+
+    session = TeleopSession.__new__(TeleopSession)      # only what _snapshot reads
+    session.config = TeleopConfig(out_dir=tmp_path)
+    depth = np.array([[0.0, 1.2344, 70.0, np.inf]], np.float32)
+    session._last_cam = types.SimpleNamespace(
+        depth_m=depth, color=np.zeros((1, 4, 3), np.uint8), K=Intrinsics(2.0, 2.0, 2.0, 0.5, 4, 1),
+        T_world_cam=np.eye(4), stamp_s=0.5)
+    path, n_far = session._snapshot()
+    png = cv2.imread(str(tmp_path / "snapshots" / "snap_000_depth.png"), cv2.IMREAD_UNCHANGED)
+    assert png.dtype == np.uint16 and png.tolist() == [[0, 1234, 0, 0]] and n_far == 2
+    meta = json.loads((tmp_path / "snapshots" / "snap_000.json").read_text())
+    assert meta["n_depth_beyond_range"] == 2 and meta["depth_scale_m"] == 0.001
+
+
+# ---- memory after a flood and 200 clients (issue 44 item 9) ----------------------------------------
+_SERVER_CHILD = """
+import sys
+from presim.outputs.teleop.server import TeleopServer
+from presim.outputs.teleop.session import TeleopConfig, TeleopSession
+from presim.sensors.camera import CameraSpec
+from presim.sim.simulator import SimConfig, Simulator
+from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
+sim = Simulator(build_toy_room(ToyRoomConfig(width=80, height=60)), None,
+                SimConfig(cameras=(CameraSpec(width=160, height=120),)))
+s = TeleopServer(TeleopSession(sim, TeleopConfig(out_dir=sys.argv[1])))
+s.start()
+print(s.port, s.token, flush=True)
+sys.stdin.read()
+s.stop()
+"""
+
+
+@pytest.mark.fuzz
+@pytest.mark.slow
+def test_server_memory_stays_bounded_after_flood_and_200_clients(tmp_path):
+    """The server (its own process) after a 5 000-message flood of bad input and 200 tabs that never
+    read, while one tab turns the robot: at most 32 tabs are served, the rest told so; when they are
+    gone the server's RSS is within 25 MB of where it started (measured 12 MB at 160x120 here)."""
+    import psutil
+    import websockets
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(__import__("pathlib").Path(__file__).parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    p = subprocess.Popen([sys.executable, "-c", _SERVER_CHILD, str(tmp_path)], stdin=subprocess.PIPE,
+                         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+    try:
+        port, tok = p.stdout.readline().split()
+        url, origin = f"ws://127.0.0.1:{port}/ws?token={tok}", f"http://127.0.0.1:{port}"
+        proc = psutil.Process(p.pid)
+
+        async def turn(ws, steps):
+            for k in range(steps):
+                await ws.send(json.dumps({"type": "cmd_vel", "vx": 0, "vy": 0, "wz": 0.6, "seq": k}))
+                try:
+                    while True:
+                        m = await asyncio.wait_for(ws.recv(), 0.05)
+                        if isinstance(m, str) and json.loads(m)["type"] == "state":
+                            await ws.send(json.dumps({"type": "ack", "seq": json.loads(m)["seq"]}))
+                except asyncio.TimeoutError:
+                    pass
+
+        async def warm():
+            async with websockets.connect(url, origin=origin) as ws:
+                await turn(ws, 10)
+
+        async def storm():
+            async with websockets.connect(url, origin=origin, max_queue=4, close_timeout=0.5) as ws:
+                for _ in range(5000):
+                    await ws.send('{"type":"cmd_vel","vx":NaN,"vy":0,"wz":0}')
+            tabs = await asyncio.gather(*[websockets.connect(url, origin=origin, max_queue=1, close_timeout=0.5)
+                                         for _ in range(200)])
+            await turn(tabs[0], 15)
+            await asyncio.gather(*[t.close() for t in tabs])
+
+        asyncio.run(warm())
+        time.sleep(0.5)
+        rss0 = proc.memory_info().rss
+        asyncio.run(storm())
+        time.sleep(1.0)
+        grown_mb = (proc.memory_info().rss - rss0) / 2**20
+        assert grown_mb < 25, f"server RSS grew {grown_mb:.1f} MB"
+    finally:
+        p.stdin.close()
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def test_tab_beyond_the_limit_is_told_and_closed(toy_server):
+    import websockets
+
+    server = toy_server
+    server.max_clients = 2
+
+    async def main():
+        async with _connect(server) as a, _connect(server) as b:
+            await asyncio.gather(_Tab(a).pump(0.5), _Tab(b).pump(0.5))
+            async with _connect(server) as c:
+                first = json.loads(await asyncio.wait_for(c.recv(), 5))
+                assert first["type"] == "error" and "tabs are open" in first["message"]
+                with pytest.raises(websockets.ConnectionClosed) as e:
+                    await asyncio.wait_for(c.recv(), 5)
+                assert e.value.rcvd.code == 1013
+            assert len(server.clients) == 2
+
+    asyncio.run(main())
+
+
+def test_map_of_a_capture_without_floor_looks_along_its_gravity(tmp_path):
+    """A capture whose gravity is +y (a camera's y-down world, as KinectFusion keeps it): the map is
+    the plane perpendicular to gravity, teleport moves in that plane and keeps the height."""
+    import dataclasses
+
+    from presim.outputs.teleop.protocol import Teleport
+    from presim.outputs.teleop.session import TeleopConfig, TeleopSession, _Command
+    from presim.sensors.camera import CameraSpec
+    from presim.sim.simulator import SimConfig, Simulator
+    from presim.testing.toy_scene import ToyRoomConfig, build_toy_room
+
+    scene = dataclasses.replace(build_toy_room(ToyRoomConfig(width=40, height=30)), floor=None,
+                                gravity_world=np.array([0.0, 1.0, 0.0]))
+    sim = Simulator(scene, None, SimConfig(cameras=(CameraSpec(width=40, height=30),)))
+    session = TeleopSession(sim, TeleopConfig(out_dir=tmp_path))
+    R = session.R_map_world
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R @ np.array([0.0, 1.0, 0.0]), [0.0, 0.0, -1.0], atol=1e-12)   # up = map z
+    caps = np.array(session.init_message(1)["captures"])
+    np.testing.assert_allclose(caps[:, :2], session.to_map(np.asarray(scene.T_world_cam)[:, :3, 3])[:, :2],
+                               atol=1e-3)
+    sim.reset(0)
+    h0 = session.to_map(sim.T_world_base[:3, 3])[2]
+    u, v = (np.asarray(session.spec.map_min_xy) + np.asarray(session.spec.map_max_xy)) / 2
+    session._apply(_Command(1, Teleport(float(u), float(v))))
+    np.testing.assert_allclose(session.to_map(sim.T_world_base[:3, 3]), [u, v, h0], atol=1e-9)
+    sim.close()
+
+
+def test_cli_teleop_allow_origin_is_checked(tmp_path, capsys):
+    from presim.cli import build_parser, main
+
+    args = build_parser().parse_args(["teleop", str(tmp_path), "--allow-origin", "http://dev.example:9000",
+                                      "--allow-origin", "*"])
+    assert args.allow_origin == ["http://dev.example:9000", "*"] and args.tilt_deg is None and args.drive is None
+    assert main(["teleop", str(tmp_path), "--allow-origin", "evil.example/page"]) == 1
+    err = capsys.readouterr().err
+    assert "--allow-origin 'evil.example/page'" in err and len(err.strip().splitlines()) == 1

@@ -67,6 +67,7 @@ def _run_launch(args) -> int:
     import shutil
 
     from presim.outputs.ros import master_alive, start_roscore, stop_process_group
+    from presim.procs import die_with_parent
 
     exe = shutil.which("roslaunch")
     if exe is None:
@@ -85,7 +86,8 @@ def _run_launch(args) -> int:
     if not master_alive(env["ROS_MASTER_URI"]):
         core = start_roscore(int(port), env)
     print("presim ros: " + " ".join(cmd), file=sys.stderr)
-    p = subprocess.Popen(cmd, env=env)
+    # SIGINT is roslaunch's own "shut the nodes down": sent by the kernel too if presim dies
+    p = subprocess.Popen(cmd, env=env, preexec_fn=die_with_parent(signal.SIGINT))
     try:
         return p.wait()
     except KeyboardInterrupt:
@@ -145,6 +147,7 @@ def run_ros(args: argparse.Namespace) -> int:
 
 
 def run_view(args: argparse.Namespace) -> int:
+    from presim.procs import die_with_parent, stop_group
     from presim.outputs.viewer import (ViewerError, check_rrd_file, free_port, has_display, rerun_executable,
                                        wait_for_port, web_viewer_url)
 
@@ -164,13 +167,16 @@ def run_view(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             return 130
     web, grpc = args.port or free_port(), free_port()
+    # Its own session: the terminal's Ctrl-C reaches presim only, which stops the viewer at once (no
+    # second Ctrl-C); the kernel stops it too if presim is killed.
     p = subprocess.Popen(rerun_executable() + ["--serve-web", "--bind", "127.0.0.1", "--port", str(grpc),
-                                               "--web-viewer-port", str(web), str(args.rrd)])
+                                               "--web-viewer-port", str(web), str(args.rrd)],
+                         start_new_session=True, preexec_fn=die_with_parent())
     try:
-        wait_for_port("127.0.0.1", web)
+        wait_for_port("127.0.0.1", web, process=p)
         print(f"presim view: {web_viewer_url('127.0.0.1', web, grpc)}  (Ctrl-C to stop)", file=sys.stderr)
         return p.wait()
     except KeyboardInterrupt:
-        p.terminate()
-        p.wait()
         return 130  # like every long-running command (Ctrl-C, SIGTERM)
+    finally:
+        stop_group(p, signal.SIGTERM, timeout_s=2.0)

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from presim.outputs.frames import BASE_FRAME, build_frame_tree
+from presim.procs import die_with_parent
 from presim.sim.types import SimInfo, StepResult
 
 __all__ = ["ViewerConfig", "RerunViewer", "LinkVisual", "robot_visuals", "viewer_blueprint", "web_viewer_url",
@@ -270,9 +271,12 @@ class RerunViewer:
             cmd += ["--serve-web", "--web-viewer-port", str(web_port)]
             self.url = web_viewer_url(cfg.host, web_port, grpc_port)
         cmd += list(cfg.extra_viewer_args)
+        # The web viewer ends with this process even when it is killed (the native window outlives
+        # the run on purpose, like rr.spawn).
         self.process = subprocess.Popen(
             cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            env=_viewer_env(), start_new_session=True)
+            env=_viewer_env(), start_new_session=True,
+            preexec_fn=die_with_parent() if self.mode == "web" else None)
         try:
             wait_for_port(cfg.host, grpc_port, process=self.process)
             if self.mode == "web":

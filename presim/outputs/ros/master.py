@@ -21,6 +21,8 @@ import time
 import uuid
 from pathlib import Path
 
+from presim.procs import die_with_parent
+
 __all__ = ["master_alive", "start_roscore", "stop_process_group", "RosCore"]
 
 
@@ -90,6 +92,8 @@ def _which(name: str) -> str:
 def start_roscore(port: int, env: dict[str, str], timeout_s: float = 30.0, log=None) -> RosCore:
     """Start a ROS master on ``port`` plus the loopback ``/rosout`` node (see the module docstring),
     each in a new process group; returns once both answer. Stop it with :func:`stop_process_group`.
+    Both get SIGKILL from the kernel if this process dies first (:func:`presim.procs.die_with_parent`):
+    a killed ``presim ros`` leaves no master behind.
 
     ``env`` should carry ``ROS_IP``/``ROS_HOSTNAME`` (:func:`~presim.outputs.ros.env.ros_env`):
     everything then binds to that address (127.0.0.1 by default)."""
@@ -98,7 +102,7 @@ def start_roscore(port: int, env: dict[str, str], timeout_s: float = 30.0, log=N
     out = log or subprocess.DEVNULL
     master = subprocess.Popen([_which("rosmaster"), "--core", "-p", str(port), "-w", "3"], env=env,
                               stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                              start_new_session=True)
+                              start_new_session=True, preexec_fn=die_with_parent())
     core = RosCore(master)
     host = env.get("ROS_HOSTNAME") or env.get("ROS_IP") or "127.0.0.1"
     uri = f"http://{host}:{port}"
@@ -117,7 +121,7 @@ def start_roscore(port: int, env: dict[str, str], timeout_s: float = 30.0, log=N
         child_env["PYTHONPATH"] = os.pathsep.join(p for p in (pkg_root, env.get("PYTHONPATH", "")) if p)
         core.rosout = subprocess.Popen([sys.executable, "-m", "presim.outputs.ros.rosout"], env=child_env,
                                        stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                                       start_new_session=True)
+                                       start_new_session=True, preexec_fn=die_with_parent())
         while not _node_registered(uri, "/rosout"):
             if core.rosout.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"/rosout node did not come up (exit code {core.rosout.poll()})")

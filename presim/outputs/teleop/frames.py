@@ -80,11 +80,14 @@ class MapImage:
 
 def top_down_map(points_xyz: np.ndarray, points_rgb: np.ndarray, *, occupied: np.ndarray | None = None,
                  known: np.ndarray | None = None, origin_xy: tuple[float, float] | None = None,
-                 resolution_m: float = 0.05, z_max_m: float | None = None, pad_m: float = 0.5) -> MapImage:
+                 resolution_m: float = 0.05, z_max_m: float | None = None, pad_m: float = 0.5,
+                 footprint: bool = False) -> MapImage:
     """Map from the scene points (mean colour per cell of the points below ``z_max_m``), with the
     occupancy grid (``occupied`` / ``known``, rows = +y, its ``origin_xy``) drawn over it when given:
     occupied cells tinted red, unknown cells grey. Without a grid the map covers the points plus
-    ``pad_m``."""
+    ``pad_m``; ``footprint`` then outlines the points' footprint (cells with points, closed over 5x5
+    cells; its border cells) in cyan and darkens the empty cells, so a capture without a floor still shows
+    where its data lies."""
     xyz = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
     rgb = np.asarray(points_rgb, dtype=np.float64).reshape(-1, 3)
     if z_max_m is not None:
@@ -109,6 +112,15 @@ def top_down_map(points_xyz: np.ndarray, points_rgb: np.ndarray, *, occupied: np
         s = np.bincount(flat, weights=rgb[ok, c], minlength=h * w)
         img[:, c] = np.where(count > 0, s / np.maximum(count, 1), 70.0)
     img = img.reshape(h, w, 3)
+    if footprint and occupied is None:
+        # closed over 5x5 cells first, so the outline follows the cloud, not its sampling gaps
+        k5, k3, edge = np.ones((5, 5), np.uint8), np.ones((3, 3), np.uint8), dict(borderType=cv2.BORDER_CONSTANT,
+                                                                                 borderValue=0)
+        has = cv2.erode(cv2.dilate((count.reshape(h, w) > 0).astype(np.uint8), k5, **edge), k5, **edge)
+        inner = cv2.erode(has, k3, **edge)
+        has, inner = has.astype(bool), inner.astype(bool)
+        img[~has] = 35.0
+        img[has & ~inner] = (0.0, 210.0, 230.0)
     if occupied is not None:
         if known is not None:
             img[~known & (count.reshape(h, w) == 0)] = 70.0

@@ -7,14 +7,19 @@ can reach the simulator without passing through it.
 =============  ====================================================================================
 type           fields
 =============  ====================================================================================
-cmd_vel        ``vx``, ``vy``, ``wz`` (m/s, m/s, rad/s, base frame), optional ``vz`` (free rig),
-               optional ``seq`` (int, echoed in the state so the page can time key-to-motion)
+cmd_vel        ``vx``, ``vy``, ``wz`` (m/s, m/s, rad/s, base frame), optional ``vz`` (up), ``wy`` (tilt:
+               positive looks down) and ``wx`` (roll) for the free rig, optional ``seq`` (int,
+               echoed in the state so the page can time key-to-motion)
 joint          ``name`` (a movable joint), ``value`` (rad or m, inside the joint's limits)
 teleport       ``x``, ``y`` (world metres, inside the map), optional ``yaw`` (rad)
 reset          --
 record         ``on`` (bool)
 snapshot       --
 take_control   -- (this tab becomes the one that drives)
+pose           -- (the server answers ``pose``: the camera pose as a TUM line and a 4x4 matrix)
+path           ``action``: ``start`` / ``stop`` (record the camera pose of every rendered frame),
+               ``add`` (append the current camera pose), ``save`` (write the path as a TUM file and
+               answer ``path_saved`` with its text), ``clear``
 ack            ``seq`` (int: the page drew this frame; the next one may be sent)
 =============  ====================================================================================
 """
@@ -26,9 +31,10 @@ import math
 from dataclasses import dataclass, field
 
 __all__ = ["ProtocolError", "ProtocolSpec", "CmdVel", "JointTarget", "Teleport", "Simple", "Record", "Ack",
-           "parse_message", "MAX_MESSAGE_BYTES"]
+           "PathCommand", "PATH_ACTIONS", "parse_message", "MAX_MESSAGE_BYTES"]
 
 MAX_MESSAGE_BYTES = 4096
+PATH_ACTIONS = ("start", "stop", "add", "save", "clear")
 
 
 class ProtocolError(ValueError):
@@ -57,6 +63,10 @@ class CmdVel:
     wz: float
     vz: float = 0.0
     seq: int | None = None
+    wy: float = 0.0
+    """Pitch rate, rad/s (free rig; positive tilts the view down)."""
+    wx: float = 0.0
+    """Roll rate, rad/s (free rig)."""
 
 
 @dataclass(frozen=True)
@@ -73,8 +83,15 @@ class Teleport:
 
 
 @dataclass(frozen=True)
+class PathCommand:
+    """``path``: one of :data:`PATH_ACTIONS`."""
+
+    action: str
+
+
+@dataclass(frozen=True)
 class Simple:
-    """``reset``, ``snapshot`` or ``take_control``."""
+    """``reset``, ``snapshot``, ``take_control`` or ``pose``."""
 
     type: str
 
@@ -89,7 +106,7 @@ class Ack:
     seq: int
 
 
-Message = CmdVel | JointTarget | Teleport | Simple | Record | Ack
+Message = CmdVel | JointTarget | Teleport | Simple | Record | Ack | PathCommand
 
 
 def _number(msg: dict, key: str, required: bool = True, default: float | None = None) -> float | None:
@@ -140,11 +157,11 @@ def parse_message(raw: str | bytes, spec: ProtocolSpec) -> Message:
     kind = msg.get("type")
     if kind == "cmd_vel":
         v = [_number(msg, k) for k in ("vx", "vy", "wz")]
-        vz = _number(msg, "vz", required=False, default=0.0)
-        for k, x in zip(("vx", "vy", "wz", "vz"), v + [vz]):
+        vz, wy, wx = (_number(msg, k, required=False, default=0.0) for k in ("vz", "wy", "wx"))
+        for k, x in zip(("vx", "vy", "wz", "vz", "wy", "wx"), v + [vz, wy, wx]):
             if abs(x) > spec.max_speed:
                 raise ProtocolError(f"'cmd_vel': |{k}| = {abs(x):g} is above {spec.max_speed:g}")
-        return CmdVel(v[0], v[1], v[2], vz, _int(msg, "seq", required=False))
+        return CmdVel(v[0], v[1], v[2], vz, _int(msg, "seq", required=False), wy, wx)
     if kind == "joint":
         name = msg.get("name")
         if not isinstance(name, str) or name not in spec.joint_limits:
@@ -163,8 +180,14 @@ def parse_message(raw: str | bytes, spec: ProtocolSpec) -> Message:
             raise ProtocolError(f"'teleport': ({x:.2f}, {y:.2f}) is outside the map "
                                 f"[{x0:.2f}, {x1:.2f}] x [{y0:.2f}, {y1:.2f}]")
         return Teleport(x, y, yaw)
-    if kind in ("reset", "snapshot", "take_control"):
+    if kind in ("reset", "snapshot", "take_control", "pose"):
         return Simple(kind)
+    if kind == "path":
+        action = msg.get("action")
+        if action not in PATH_ACTIONS:
+            raise ProtocolError(f"'path': 'action' must be one of {', '.join(PATH_ACTIONS)}, "
+                                f"got {json.dumps(action)[:40]}")
+        return PathCommand(action)
     if kind == "record":
         on = msg.get("on")
         if not isinstance(on, bool):

@@ -1,5 +1,6 @@
 """The teleop web server: starlette (ASGI) + uvicorn, one page and one WebSocket, bound to 127.0.0.1
-by default. Every asset ships in ``static/`` inside the package (nothing from the internet).
+by default. Every asset ships in ``static/`` inside the package (nothing from the internet). Every
+request passes :func:`presim.outputs.teleop.access.refusal` first (Host, Origin, per-run token; 403).
 
 WebSocket ``/ws``: the server sends text JSON (``init``, ``state``, ``info``, ``error``, ``reset``)
 and binary messages ``kind (1 byte) | seq (uint32 big-endian) | payload`` with kind 1 = colour JPEG,
@@ -19,6 +20,7 @@ from collections import deque
 from importlib import resources
 from pathlib import Path
 
+from presim.outputs.teleop.access import AccessPolicy, new_token, refusal
 from presim.outputs.teleop.frames import encode_png
 from presim.outputs.teleop.protocol import Ack, ProtocolError, parse_message
 from presim.outputs.teleop.session import TeleopSession
@@ -28,6 +30,24 @@ __all__ = ["TeleopServer", "STATIC_DIR"]
 STATIC_DIR = Path(str(resources.files("presim.outputs.teleop") / "static"))
 KIND_COLOR, KIND_DEPTH, KIND_MAP = 1, 2, 3
 ACK_TIMEOUT_S = 1.0
+MAX_CLIENTS = 32
+"""Tabs served at once; one more is told so and closed (code 1013). Each tab costs up to one frame
+plus the socket's write buffer (about 0.1 MB at 640x480), so the bound keeps the server's memory
+bounded whatever connects."""
+OUTBOX_MAX = 64
+"""Text messages queued for one tab at most (older ones are dropped): a tab that floods the server
+with bad input, or stops reading, costs a bounded amount of memory."""
+
+
+def release_free_memory() -> None:
+    """Hand freed heap pages back to the system (glibc ``malloc_trim``; a no-op elsewhere): the
+    buffers of closed tabs are freed by Python, but glibc keeps the pages mapped until trimmed."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _binary(kind: int, seq: int, payload: bytes) -> bytes:
@@ -38,7 +58,7 @@ class _Client:
     def __init__(self, client_id: int, ws):
         self.id, self.ws = client_id, ws
         self.wake = asyncio.Event()
-        self.outbox: deque[dict] = deque(maxlen=64)
+        self.outbox: deque[dict] = deque(maxlen=OUTBOX_MAX)
         self.sent_seq = self.acked_seq = 0
         self.image_seq = 0
         self.sent_at = 0.0
@@ -46,9 +66,12 @@ class _Client:
 
 class TeleopServer:
     """Serve ``session`` on ``host:port`` (0 = a free port). ``start()`` runs it in a thread (tests);
-    ``serve()`` blocks until Ctrl-C / SIGTERM (CLI)."""
+    ``serve()`` blocks until Ctrl-C / SIGTERM (CLI). ``url`` carries the per-run token; only requests
+    that pass :mod:`~presim.outputs.teleop.access` (token, Host, Origin; ``allow_origins`` opens it)
+    are served."""
 
-    def __init__(self, session: TeleopSession, host: str = "127.0.0.1", port: int = 0):
+    def __init__(self, session: TeleopSession, host: str = "127.0.0.1", port: int = 0,
+                 allow_origins: tuple[str, ...] = (), token: str | None = None, max_clients: int = MAX_CLIENTS):
         self.session, self.host = session, host
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -59,8 +82,17 @@ class TeleopServer:
             self.sock.close()
             raise OSError(f"--port {port}: cannot listen on {host}:{port} ({e.strerror or e})") from None
         self.port = self.sock.getsockname()[1]
-        self.url = f"http://{host}:{self.port}/"
+        self.token = token or new_token()
+        self.policy = AccessPolicy(self.port, self.token, host, tuple(allow_origins))
+        url_host = "127.0.0.1" if host in ("0.0.0.0", "") else "[::1]" if host == "::" else \
+            f"[{host}]" if ":" in host else host
+        self.base_url = f"http://{url_host}:{self.port}/"
+        """The server's root without the token (``url`` is what a user opens)."""
+        self.url = f"{self.base_url}?token={self.token}"
+        self.refused = 0
+        """Requests answered 403 so far."""
         self.clients: dict[int, _Client] = {}
+        self.max_clients = max_clients
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._map_png = encode_png(session.map.rgb)
@@ -84,18 +116,49 @@ class TeleopServer:
             return JSONResponse({"clients": len(self.clients), "step": s.latest.state["step"] if s.latest else 0,
                                  "error": repr(s.error) if s.error else None})
 
-        return Starlette(routes=[
+        app = Starlette(routes=[
             Route("/", index),
             Route("/health", health),
             WebSocketRoute("/ws", self._ws),
             Mount("/static", StaticFiles(directory=STATIC_DIR), name="static"),
         ])
+        return self._guard(app)
+
+    def _guard(self, app):
+        """ASGI wrapper: a request that :func:`refusal` refuses gets 403 (a WebSocket upgrade too,
+        before it is accepted) and never reaches ``app``."""
+        from starlette.responses import PlainTextResponse
+
+        async def guarded(scope, receive, send):
+            if scope["type"] in ("http", "websocket"):
+                headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+                why = refusal(self.policy, method=scope.get("method", "GET"), path=scope["path"],
+                              query=scope.get("query_string", b"").decode("latin-1"), headers=headers,
+                              websocket=scope["type"] == "websocket")
+                if why is not None:
+                    self.refused += 1
+                    if scope["type"] == "websocket":
+                        await send({"type": "websocket.close", "code": 1008})  # uvicorn answers HTTP 403
+                    else:
+                        await PlainTextResponse(f"403 Forbidden: {why}\n", status_code=403)(scope, receive, send)
+                    return
+            await app(scope, receive, send)
+
+        return guarded
 
     async def _ws(self, ws) -> None:
         from starlette.websockets import WebSocketDisconnect
 
         await ws.accept()
         self._loop = asyncio.get_running_loop()
+        if len(self.clients) >= self.max_clients:
+            try:
+                await ws.send_json({"type": "error", "message": f"{len(self.clients)} tabs are open, the most "
+                                    "this server serves: close one and reload"})
+                await ws.close(code=1013, reason="too many tabs")
+            except (WebSocketDisconnect, RuntimeError, ConnectionError):
+                pass
+            return
         c = _Client(next(self._ids), ws)
         self.clients[c.id] = c
         self.session.add_client(c.id)
@@ -130,6 +193,9 @@ class TeleopServer:
                 pass
             self.clients.pop(c.id, None)
             self.session.remove_client(c.id)
+            c.outbox.clear()
+            if not self.clients:
+                release_free_memory()
 
     async def _sender(self, c: _Client) -> None:
         ws = c.ws

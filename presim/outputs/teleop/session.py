@@ -3,7 +3,8 @@ commands from the page applied between steps, the newest frame published (older 
 
 The page's messages arrive already validated (:mod:`presim.outputs.teleop.protocol`); what needs the
 simulator (teleport into a wall, recording twice) is checked here and refused with a message to the
-client that sent it. One client drives at a time (the first to send a command, or the one that pressed
+client that sent it. Messages that only read (``pose``) or collect poses (``path``) are served to every
+client, like snapshots. One client drives at a time (the first to send a command, or the one that pressed
 "take control"); every client sees the frames. With no client connected the loop pauses (no CPU
 spent on frames nobody sees) unless a recording runs.
 """
@@ -19,15 +20,29 @@ from typing import Callable
 
 import numpy as np
 
+from presim.formats.depth_png import encode_depth_png
+from presim.formats.tum import tum_line, write_tum
+from presim.geometry import make_pose, pose_to_tum
 from presim.io_utils import atomic_write_bytes, atomic_write_json
 from presim.outputs.teleop.frames import (MapImage, colorize_depth, depth_range_m, encode_jpeg, encode_png,
                                           hole_fraction, top_down_map)
-from presim.outputs.teleop.protocol import (CmdVel, JointTarget, ProtocolSpec, Record, Simple, Teleport)
+from presim.outputs.teleop.protocol import (CmdVel, JointTarget, PathCommand, ProtocolSpec, Record, Simple,
+                                            Teleport)
 from presim.sim.controllers import Action
 from presim.sim.simulator import Simulator
 from presim.sim.types import Sink, StepResult
 
-__all__ = ["TeleopConfig", "Frame", "TeleopSession"]
+__all__ = ["TeleopConfig", "Frame", "TeleopSession", "dofs_of"]
+
+_AXIS_NAMES = {"vx": "forward/backward", "vy": "strafe (Q/E)", "wz": "turn", "vz": "up/down (R/F)",
+               "wy": "tilt (I/K)", "wx": "roll (U/O)"}
+
+
+def dofs_of(drive: str) -> tuple[str, ...]:
+    """The ``cmd_vel`` fields a robot with this drive acts on (the others are ignored)."""
+    if drive == "free":
+        return ("vx", "vy", "vz", "wx", "wy", "wz")
+    return ("vx", "vy", "wz") if drive == "holonomic" else ("vx", "wz")
 
 
 @dataclass(frozen=True)
@@ -44,14 +59,21 @@ class TeleopConfig:
     """A velocity command older than this is dropped (the robot stops if the page goes quiet)."""
     jpeg_quality: int = 80
     """JPEG quality of the colour and depth images sent to the page."""
-    map_resolution_m: float = 0.05
-    """Top-down map cell size for scenes without an occupancy map (free camera rig), metres."""
+    map_resolution_m: float | None = None
+    """Top-down map cell size for scenes without an occupancy map (free camera rig), metres; None:
+    the points' extent / 400, between 1 cm and 5 cm (a 1.5 m tabletop capture gets ~4 mm cells
+    clamped to 1 cm, a 10 m room 2.5 cm)."""
     depth_max_m: float | None = None
     """Far end of the depth colour bar, metres (None: from the first frame, rounded up to 0.5 m)."""
     trajectory_max_points: int = 20000
     """Trajectory points kept for pages that join later."""
     pause_without_clients: bool = True
     """Stop stepping while no page is connected (and nothing records)."""
+    start_pitch_rad: float = 0.0
+    """Free camera rig only: pitch added to the captured view it starts at (and resets to), radians,
+    positive looks down (``--tilt-deg``; a mobile robot tilts its ``head_tilt_joint`` instead)."""
+    path_max_poses: int = 100_000
+    """Camera poses a recorded path keeps at most (recording stops there with a message)."""
     pause_at_rest: bool = True
     """Stop stepping while the robot is at rest (no command, base and joints still, nothing records):
     the image would not change. A command wakes the loop at once (so key-to-motion is one step, not
@@ -87,6 +109,8 @@ class TeleopSession:
         self.notify: Callable[[int | None, dict], None] = lambda cid, msg: None
         self.on_frame: Callable[[], None] = lambda: None
         robot = sim.robot
+        self.dofs = dofs_of(robot.drive)
+        self.R_map_world = self._map_rotation()
         self.map = self._build_map()
         self.spec = ProtocolSpec(
             map_min_xy=self.map.origin_xy, map_max_xy=self.map.max_xy,
@@ -118,6 +142,13 @@ class TeleopSession:
         self._render_ms = 0.0
         self._holes = 0.0
         self._depth_max = config.depth_max_m if config.depth_max_m is not None else self._scene_depth_range()
+        self._warned: set[tuple[int, str]] = set()
+        # camera path (sim thread; the lock guards what other threads read)
+        self._path_stamps: list[float] = []
+        self._path_poses: list[np.ndarray] = []
+        self.path_recording = False
+        self._clock_s = 0.0  # sim time of the session, continued across resets and teleports
+        self._n_paths = 0
 
     # ---- set-up ----------------------------------------------------------------------------------
     def _scene_depth_range(self) -> float | None:
@@ -133,6 +164,30 @@ class TeleopSession:
             return None
         return depth_range_m(d)
 
+    def _map_rotation(self) -> np.ndarray:
+        """(3, 3) rotation from world to the map frame, whose z is up (against ``gravity_world``):
+        identity for a scene with a floor (gravity -z after import); for a capture without a floor
+        the map looks along its gravity, x = the first camera's view direction made level."""
+        g = np.asarray(getattr(self.sim.scene, "gravity_world", (0.0, 0.0, -1.0)), dtype=np.float64)
+        up = -g / max(np.linalg.norm(g), 1e-12)
+        if self.sim.occupancy is not None or up[2] > 1.0 - 1e-9:
+            return np.eye(3)
+        T = np.asarray(self.sim.scene.T_world_cam)
+        x = T[0, :3, 2] if len(T) else np.array([1.0, 0.0, 0.0])
+        x = x - (x @ up) * up
+        if np.linalg.norm(x) < 1e-6:  # the first camera looks straight down: any level axis
+            x = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        x /= np.linalg.norm(x)
+        return np.stack([x, np.cross(up, x), up])
+
+    def to_map(self, p_world: np.ndarray) -> np.ndarray:
+        """(..., 3) world points -> (..., 3) map frame (x, y on the map, z = height)."""
+        return np.asarray(p_world, dtype=np.float64) @ self.R_map_world.T
+
+    def _map_yaw(self, d_world: np.ndarray) -> float:
+        d = self.R_map_world @ d_world
+        return float(np.arctan2(d[1], d[0]))
+
     def _build_map(self) -> MapImage:
         sim = self.sim
         pts = sim.points
@@ -141,7 +196,26 @@ class TeleopSession:
             return top_down_map(pts.xyz, pts.rgb, occupied=occ.occupied, known=occ.known,
                                 origin_xy=tuple(occ.origin_xy), resolution_m=occ.resolution_m,
                                 z_max_m=float(sim.robot.height_m) + 0.3)
-        return top_down_map(pts.xyz, pts.rgb, resolution_m=self.config.map_resolution_m)
+        xyz = self.to_map(np.asarray(pts.xyz))
+        res = self.config.map_resolution_m
+        if res is None:
+            xy = xyz[:, :2]
+            extent = float((xy.max(0) - xy.min(0)).max()) if len(xy) else 1.0
+            res = float(np.clip(extent / 400.0, 0.01, 0.05))
+        else:
+            extent = 5.0
+        return top_down_map(xyz, pts.rgb, resolution_m=res, footprint=True, pad_m=min(0.5, max(0.1, 0.1 * extent)))
+
+    def _captures_xy_yaw(self, max_n: int = 2000) -> list[list[float]]:
+        """Captured camera positions and viewing yaw (world x, y, rad), at most ``max_n`` (evenly
+        sub-sampled) -- drawn on the page's map."""
+        T = np.asarray(self.sim.scene.T_world_cam)
+        if len(T) > max_n:
+            T = T[np.linspace(0, len(T) - 1, max_n).astype(int)]
+        xy = self.to_map(T[:, :3, 3])[:, :2]
+        fwd = self.to_map(T[:, :3, 2])
+        yaw = np.arctan2(fwd[:, 1], fwd[:, 0])
+        return [[round(float(x), 3), round(float(y), 3), round(float(a), 3)] for (x, y), a in zip(xy, yaw)]
 
     def init_message(self, client_id: int) -> dict:
         """What a page needs once: its id, the map's geometry, joints, drive, depth range, the trajectory."""
@@ -158,7 +232,12 @@ class TeleopSession:
                        for n, lo, hi in zip(robot.joint_names, robot.lower, robot.upper)],
             "hfov_deg": self.hfov_deg, "depth_max_m": self._depth_max,
             "trajectory": [[round(x, 3), round(y, 3)] for x, y in traj],
-            "out_dir": str(self.config.out_dir),
+            "out_dir": str(self.config.out_dir), "dofs": list(self.dofs),
+            "captures": self._captures_xy_yaw(), "free": bool(self.sim.is_free),
+            # drawing sizes on the map: the base's footprint, the camera frustum's length
+            "robot_radius_m": 0.03 if self.sim.is_free else float(robot.footprint_radius_m),
+            "frustum_m": 1.5 if not self.sim.is_free else float(
+                max(0.1, 0.2 * min(np.subtract(self.map.max_xy, self.map.origin_xy)))),
         }
 
     # ---- clients (any thread) --------------------------------------------------------------------
@@ -170,9 +249,19 @@ class TeleopSession:
     def remove_client(self, client_id: int) -> None:
         with self._lock:
             self.clients.discard(client_id)
+            self._warned = {w for w in self._warned if w[0] != client_id}
             if self.driver == client_id:
                 self.driver = None
                 self._commands.append(_Command(-1, CmdVel(0.0, 0.0, 0.0)))  # the robot stops
+
+    def _warn_inactive(self, client_id: int, cmd: CmdVel) -> None:
+        """Once per tab and axis: say that this robot ignores a velocity component it was sent."""
+        for axis in ("vy", "vz", "wy", "wx"):
+            if getattr(cmd, axis) and axis not in self.dofs and (client_id, axis) not in self._warned:
+                self._warned.add((client_id, axis))
+                self.notify(client_id, {"type": "info", "message": (
+                    f"{_AXIS_NAMES[axis]} does nothing on this robot ({self.sim.robot.urdf_path.name}, "
+                    f"drive {self.sim.robot.drive}): '{axis}' is ignored")})
 
     def submit(self, client_id: int, msg) -> None:
         """Queue a validated message from ``client_id`` (applied before the next step); refusals go back
@@ -182,7 +271,9 @@ class TeleopSession:
                 self.driver = client_id
                 self.notify(None, {"type": "info", "message": f"tab {client_id} drives now"})
                 return
-            if not (isinstance(msg, Simple) and msg.type == "snapshot"):
+            if isinstance(msg, CmdVel):
+                self._warn_inactive(client_id, msg)
+            if not (isinstance(msg, Simple) and msg.type in ("snapshot", "pose") or isinstance(msg, PathCommand)):
                 if self.driver is None:
                     self.driver = client_id
                 elif self.driver != client_id:
@@ -194,9 +285,7 @@ class TeleopSession:
 
     # ---- thread ----------------------------------------------------------------------------------
     def start(self) -> None:
-        sim = self.sim
-        result = sim.reset(self.config.seed)
-        self._after_step(result, time.perf_counter())
+        self._after_step(self._reset_start(), time.perf_counter())
         self._thread = threading.Thread(target=self._run, name="presim-teleop-sim", daemon=True)
         self._thread.start()
 
@@ -209,6 +298,18 @@ class TeleopSession:
             self._stop_recording(None)
         finally:
             self.sim.close()
+
+    def _reset_start(self, joints: dict[str, float] | None = None) -> StepResult:
+        """``sim.reset`` at the seeded start; the free rig then pitches by ``start_pitch_rad``."""
+        result = self.sim.reset(self.config.seed, joint_positions=joints)
+        pitch = self.config.start_pitch_rad
+        if self.sim.is_free and pitch:
+            c, s = np.cos(pitch), np.sin(pitch)
+            # base frame x forward, y left, z up: +pitch about +y turns x (the view) down
+            R_y = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+            T = self.sim.T_world_base @ make_pose(R_y, np.zeros(3))
+            result = self.sim.reset(self.config.seed, start=T, joint_positions=joints)
+        return result
 
     def _idle(self) -> bool:
         with self._lock:
@@ -234,10 +335,11 @@ class TeleopSession:
                     next_t = time.perf_counter()
                     continue
                 if self.sim.is_free:
-                    twist = np.array([cmd.vx, cmd.vy, cmd.vz, 0.0, 0.0, cmd.wz])
+                    twist = np.array([cmd.vx, cmd.vy, cmd.vz, cmd.wx, cmd.wy, cmd.wz])
                 else:
                     twist = np.array([cmd.vx, cmd.vy, cmd.wz])
                 result = self.sim.step(Action(twist=twist, joint_targets=dict(self._joint_targets) or None))
+                self._clock_s += dt
                 self._applied_seq = cmd.seq
                 self._after_step(result, time.perf_counter())
                 if self.config.realtime:
@@ -255,7 +357,7 @@ class TeleopSession:
         r = self._last
         if not self.config.pause_at_rest or r is None or self._recorder:
             return False
-        if cmd.vx or cmd.vy or cmd.wz or cmd.vz:
+        if cmd.vx or cmd.vy or cmd.wz or cmd.vz or cmd.wy or cmd.wx:
             return False
         with self._lock:
             if self._commands:
@@ -305,9 +407,11 @@ class TeleopSession:
                 if sim.occupancy.is_blocked(m.x, m.y):
                     raise ValueError(f"teleport: ({m.x:.2f}, {m.y:.2f}) is inside an obstacle")
                 start = np.array([m.x, m.y, yaw])
-            else:
+            else:  # the free rig: move on the map plane, keep height and orientation
                 T = sim.T_world_base
-                T[0, 3], T[1, 3] = m.x, m.y
+                p = self.to_map(T[:3, 3])
+                p[0], p[1] = m.x, m.y
+                T[:3, 3] = self.R_map_world.T @ p
                 start = T
             self._restart(start)
             self.notify(c.client_id, {"type": "info", "message": f"teleported to ({m.x:.2f}, {m.y:.2f})"})
@@ -319,8 +423,17 @@ class TeleopSession:
                 self.trajectory.clear()
             self.notify(None, {"type": "reset"})
         elif isinstance(m, Simple) and m.type == "snapshot":
-            path = self._snapshot()
-            self.notify(c.client_id, {"type": "info", "message": f"snapshot saved: {path}"})
+            path, n_far = self._snapshot()
+            far = f" ({n_far} pixels beyond 65.535 m stored as 0 = invalid)" if n_far else ""
+            self.notify(c.client_id, {"type": "info", "message": f"snapshot saved: {path}{far}"})
+        elif isinstance(m, Simple) and m.type == "pose":
+            T = self.T_world_cam()
+            self.notify(c.client_id, {"type": "pose", "T_world_cam": T.tolist(),
+                                      "tum": tum_line(self._clock_s, T),
+                                      "pose_arg": " ".join(f"{v:.6f}" for v in pose_to_tum(T))})
+        elif isinstance(m, PathCommand):
+            self._path(c.client_id, m.action)
+            self._refresh_state()
         elif isinstance(m, Record):
             if m.on:
                 self._start_recording(c.client_id)
@@ -330,8 +443,77 @@ class TeleopSession:
     def _restart(self, start) -> None:
         joints = dict(zip(self.sim.robot.joint_names, self.sim.joint_positions))
         self._cmd = CmdVel(0.0, 0.0, 0.0)
-        result = self.sim.reset(self.config.seed, start=start, joint_positions=joints)
+        self._clock_s += self.sim.config.dt_s  # path stamps keep increasing across restarts
+        if start is None:
+            result = self._reset_start(joints)
+        else:
+            result = self.sim.reset(self.config.seed, start=start, joint_positions=joints)
         self._after_step(result, time.perf_counter())
+
+    # ---- camera path (sim thread) ----------------------------------------------------------------
+    def T_world_cam(self) -> np.ndarray:
+        """The robot camera's pose now (4x4, OpenCV optical frame)."""
+        return self.sim.T_world_base @ self.sim.T_base_cam()
+
+    def _path_append(self, T: np.ndarray, force: bool) -> None:
+        poses, stamps = self._path_poses, self._path_stamps
+        if poses and not force and np.allclose(poses[-1], T, atol=1e-9):
+            return  # the camera did not move: no duplicate pose
+        if len(poses) >= self.config.path_max_poses:
+            if self.path_recording:
+                self.path_recording = False
+                self.notify(None, {"type": "info", "message": f"camera path full ({len(poses)} poses): "
+                                   "recording stopped; save it"})
+            return
+        # TUM stamps must increase: the session clock, nudged by 1 ms for poses added at one instant
+        stamp = self._clock_s if not stamps or self._clock_s > stamps[-1] else stamps[-1] + 1e-3
+        with self._lock:
+            stamps.append(float(stamp))
+            poses.append(np.array(T, dtype=np.float64))
+
+    def _refresh_state(self) -> None:
+        """Republish the newest state with the path and recording status of now (a command applied
+        at rest changes them without a step)."""
+        f = self.latest
+        if f is None:
+            return
+        with self._lock:
+            rec = str(self.recording_dir) if self.recording_dir is not None else None
+        self._seq += 1
+        self.latest = Frame(self._seq, dict(f.state, seq=self._seq, recording=rec, wall_time_s=time.time(),
+                                            path={"recording": self.path_recording,
+                                                  "poses": len(self._path_poses)}),
+                            f.image_seq, f.color_jpeg, f.depth_jpeg)
+        self.on_frame()
+
+    def _path(self, client_id: int, action: str) -> None:
+        if action == "start":
+            self.path_recording = True
+            self._path_append(self.T_world_cam(), force=False)
+            self.notify(None, {"type": "info", "message": "recording the camera path (every rendered frame)"})
+        elif action == "stop":
+            self.path_recording = False
+            self.notify(None, {"type": "info", "message": f"camera path: {len(self._path_poses)} poses"})
+        elif action == "add":
+            self._path_append(self.T_world_cam(), force=True)
+            self.notify(client_id, {"type": "info", "message": f"pose added: the path has {len(self._path_poses)}"})
+        elif action == "clear":
+            with self._lock:
+                self._path_poses, self._path_stamps = [], []
+            self.notify(None, {"type": "info", "message": "camera path cleared"})
+        elif action == "save":
+            if not self._path_poses:
+                raise ValueError("camera path is empty: press 'Add pose' or 'Record path' first")
+            root = Path(self.config.out_dir) / "paths"
+            root.mkdir(parents=True, exist_ok=True)
+            k = self._n_paths
+            while (root / f"path_{k:03d}.tum").exists():
+                k += 1
+            self._n_paths = k + 1
+            path = root / f"path_{k:03d}.tum"
+            write_tum(path, np.array(self._path_stamps), np.stack(self._path_poses))  # atomic (temp + rename)
+            self.notify(client_id, {"type": "path_saved", "path": str(path), "poses": len(self._path_poses),
+                                    "name": path.name, "tum": path.read_text()})
 
     def _next_dir(self, prefix: str) -> Path:
         root = Path(self.config.out_dir)
@@ -372,29 +554,30 @@ class TeleopSession:
             raise ValueError(f"recording {d} closed with an error: {errors[0]}")
         self.notify(None, {"type": "info", "message": f"recording saved: {d}"})
 
-    def _snapshot(self) -> Path:
+    def _snapshot(self) -> tuple[Path, int]:
         cam = self._last_cam
         if cam is None:
             raise ValueError("snapshot: no camera image yet")
         base = self._next_dir("snapshots/snap_")
         base.parent.mkdir(parents=True, exist_ok=True)
-        depth_mm = np.clip(np.round(cam.depth_m * 1000.0), 0, 65535).astype(np.uint16)
+        depth_png, n_far = encode_depth_png(cam.depth_m, 1.0)  # out of range -> 0 (invalid), never clipped
         atomic_write_bytes(f"{base}_color.png", encode_png(cam.color))
-        atomic_write_bytes(f"{base}_depth.png", encode_png(depth_mm))
+        atomic_write_bytes(f"{base}_depth.png", depth_png)
         K = cam.K
         atomic_write_json(f"{base}.json", {
             "sim_time_s": cam.stamp_s, "depth_scale_m": 0.001, "T_world_cam": np.asarray(cam.T_world_cam).tolist(),
-            "K": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": K.width, "height": K.height}})
-        return Path(f"{base}_color.png")
+            "K": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": K.width, "height": K.height},
+            "n_depth_beyond_range": n_far})
+        return Path(f"{base}_color.png"), n_far
 
     # ---- publishing (sim thread) -----------------------------------------------------------------
     def _after_step(self, r: StepResult, now: float) -> None:
         self._last = r
         self._step_times.append(now)
         self._contacts += int(r.contact)
-        T = r.T_world_base
+        p = self.to_map(r.T_world_base[:3, 3])
         with self._lock:
-            self.trajectory.append((float(T[0, 3]), float(T[1, 3])))
+            self.trajectory.append((float(p[0]), float(p[1])))
         color_jpeg = depth_jpeg = None
         if r.cameras:
             cam = r.cameras[0]
@@ -406,6 +589,8 @@ class TeleopSession:
             color_jpeg = encode_jpeg(cam.color, self.config.jpeg_quality)
             depth_jpeg = encode_jpeg(colorize_depth(cam.depth_m, self._depth_max), self.config.jpeg_quality)
             self._image_seq += 1
+            if self.path_recording:
+                self._path_append(cam.T_world_cam, force=False)
         self._seq += 1
         prev = self.latest
         if color_jpeg is None and prev is not None:
@@ -415,10 +600,13 @@ class TeleopSession:
         self.on_frame()
 
     def _state(self, r: StepResult) -> dict:
+        """``pose`` (base) and ``camera`` are in the map frame (:meth:`to_map`: world x, y for a scene
+        with a floor), ``z`` the height, camera ``pitch`` positive looking down."""
         T = r.T_world_base
-        yaw = float(np.arctan2(T[1, 0], T[0, 0]))
+        pos = self.to_map(T[:3, 3])
+        yaw = self._map_yaw(T[:3, 0])
         cam_T = self._last_cam.T_world_cam if self._last_cam is not None else self.sim.T_world_base @ self.sim.T_base_cam()
-        fwd = cam_T[:3, 2]
+        cam_p, fwd = self.to_map(cam_T[:3, 3]), self.R_map_world @ cam_T[:3, 2]
         times = self._step_times
         rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
         with self._lock:
@@ -427,9 +615,11 @@ class TeleopSession:
         return {
             "type": "state", "seq": self._seq, "image_seq": self._image_seq, "step": r.step_idx,
             "sim_time_s": round(r.sim_time_s, 3),
-            "pose": {"x": float(T[0, 3]), "y": float(T[1, 3]), "z": float(T[2, 3]), "yaw": yaw},
-            "camera": {"x": float(cam_T[0, 3]), "y": float(cam_T[1, 3]),
-                       "yaw": float(np.arctan2(fwd[1], fwd[0])), "hfov_deg": self.hfov_deg},
+            "pose": {"x": float(pos[0]), "y": float(pos[1]), "z": float(pos[2]), "yaw": yaw},
+            "camera": {"x": float(cam_p[0]), "y": float(cam_p[1]), "z": float(cam_p[2]),
+                       "yaw": float(np.arctan2(fwd[1], fwd[0])),
+                       "pitch": float(np.arcsin(np.clip(-fwd[2], -1.0, 1.0))), "hfov_deg": self.hfov_deg},
+            "path": {"recording": self.path_recording, "poses": len(self._path_poses)},
             "joints": {n: float(q) for n, q in zip(r.joint_states.names, r.joint_states.position)},
             "applied": [float(v) for v in r.applied_command],
             "cmd_seq": getattr(self, "_applied_seq", None),

@@ -8,6 +8,8 @@
     connected: false, clientId: null,
   };
   window.teleop = T;
+  // The per-run token of the printed URL (?token=...): every request to the server carries it.
+  const TOKEN = new URLSearchParams(location.search).get("token") || "";
   let ws = null, map = null, mapImg = null, traj = [], pending = null, teleportMode = false;
   const held = new Set();
   let cmdSeq = 0, lastSentZero = true, pressStart = null;   // pressStart: first command of a press from rest
@@ -29,16 +31,34 @@
 
   // ---- velocity commands ----------------------------------------------------------------------
   const KEYMAP = { w: "w", arrowup: "w", s: "s", arrowdown: "s", a: "a", arrowleft: "a", d: "d",
-                   arrowright: "d", q: "q", e: "e", r: "r", f: "f" };
+                   arrowright: "d", q: "q", e: "e", r: "r", f: "f", i: "i", k: "k", u: "u", o: "o",
+                   j: "j", l: "l" };
+  const JOINT_KEYS = { i: ["head_tilt_joint", 1], k: ["head_tilt_joint", -1],     // i: tilt down
+                       j: ["head_pan_joint", 1], l: ["head_pan_joint", -1] };     // j: pan left
+  let dofs = ["vx", "wz"], free = false;
   function command() {
     const k = (c) => (held.has(c) ? 1 : 0);
     const v = parseFloat($("speed").value);
-    return { vx: v * (k("w") - k("s")), vy: 0.6 * v * (k("q") - k("e")), wz: 1.6 * v * (k("a") - k("d")),
-             vz: 0.5 * v * (k("r") - k("f")) };
+    const c = { vx: v * (k("w") - k("s")), vy: 0.6 * v * (k("q") - k("e")), wz: 1.6 * v * (k("a") - k("d")) };
+    if (free) {   // the free rig's other axes (a mobile base has none: the server would ignore them)
+      c.vz = 0.5 * v * (k("r") - k("f")); c.wy = 0.8 * v * (k("i") - k("k")); c.wx = 0.8 * v * (k("u") - k("o"));
+    }
+    return c;
+  }
+  // I/K tilt and J/L pan a mobile robot's head joints: each press moves the joint target one step
+  function jointStep(key) {
+    const [name, sign] = JOINT_KEYS[key] || [];
+    const inp = name && document.querySelector(`#joints input[data-joint="${name}"]`);
+    if (!inp) return false;
+    const v = Math.min(+inp.max, Math.max(+inp.min, +inp.value + sign * 0.1));
+    inp.value = v;
+    inp.parentElement.querySelector("span").textContent = v.toFixed(2);
+    send({ type: "joint", name, value: v });
+    return true;
   }
   function sendCmd() {
     const c = command();
-    const zero = !c.vx && !c.vy && !c.wz && !c.vz;
+    const zero = !c.vx && !c.vy && !c.wz && !c.vz && !c.wy && !c.wx;
     if (zero && lastSentZero) return;
     cmdSeq += 1;
     send(Object.assign({ type: "cmd_vel", seq: cmdSeq }, c));
@@ -47,6 +67,7 @@
   setInterval(sendCmd, 100);   // held keys keep the command alive (the server stops the robot after 0.5 s)
   function press(k) {
     if (held.has(k)) return;
+    if (!free && JOINT_KEYS[k]) { jointStep(k); return; }
     if (!held.size) pressStart = { seq: cmdSeq + 1, t: performance.now() };   // key-to-motion starts here
     held.add(k);
     sendCmd();
@@ -77,6 +98,46 @@
 
   // ---- buttons --------------------------------------------------------------------------------
   $("reset").addEventListener("click", () => send({ type: "reset" }));
+  $("copypose").addEventListener("click", () => send({ type: "pose" }));
+  $("addpose").addEventListener("click", () => send({ type: "path", action: "add" }));
+  $("recpath").addEventListener("click", () => {
+    const on = !(T.lastState && T.lastState.path && T.lastState.path.recording);
+    send({ type: "path", action: on ? "start" : "stop" });
+  });
+  $("savepath").addEventListener("click", () => send({ type: "path", action: "save" }));
+  $("clearpath").addEventListener("click", () => send({ type: "path", action: "clear" }));
+  function copyText(text) {   // clipboard where the browser allows it; the text box always shows it
+    $("posebox").value = text;
+    if (navigator.clipboard && window.isSecureContext) return navigator.clipboard.writeText(text).then(() => true, () => false);
+    $("posebox").select();
+    try { return Promise.resolve(document.execCommand("copy")); } catch (e) { return Promise.resolve(false); }
+  }
+  function download(name, text) {
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(new Blob([text], { type: "text/plain" }));
+    a.download = name;
+    document.body.appendChild(a); a.click(); a.remove();
+    setTimeout(() => URL.revokeObjectURL(a.href), 1000);
+  }
+  // the pad and the key hint show the robot's own degrees of freedom only
+  function setupDofs(m) {
+    dofs = m.dofs || dofs; free = !!m.free;
+    const names = new Set((m.joints || []).map((j) => j.name));
+    const has = { q: dofs.includes("vy"), e: dofs.includes("vy"), r: dofs.includes("vz"), f: dofs.includes("vz"),
+                  i: free || names.has("head_tilt_joint"), k: free || names.has("head_tilt_joint"),
+                  u: dofs.includes("wx"), o: dofs.includes("wx"),
+                  j: !free && names.has("head_pan_joint"), l: !free && names.has("head_pan_joint") };
+    document.querySelectorAll(".pad button[data-k]").forEach((b) => {
+      if (b.dataset.k in has) b.style.visibility = has[b.dataset.k] ? "" : "hidden";   // keeps the grid
+    });
+    const parts = ["W/S or ↑/↓ drive", "A/D or ←/→ turn"];
+    if (has.q) parts.push("Q/E strafe");
+    if (has.r) parts.push("R/F up/down");
+    if (has.i) parts.push(free ? "I/K tilt down/up" : "I/K head tilt");
+    if (has.j) parts.push("J/L head pan");
+    if (has.u) parts.push("U/O roll");
+    $("hint").textContent = "Keys: " + parts.join(", ") + ", space stops.";
+  }
   $("snapshot").addEventListener("click", () => send({ type: "snapshot" }));
   $("take").addEventListener("click", () => send({ type: "take_control" }));
   $("record").addEventListener("click", () => {
@@ -138,6 +199,16 @@
       g.imageSmoothingEnabled = false;
       g.drawImage(mapImg, x0, y0, x1 - x0, y1 - y0);
     }
+    const caps = T.init && T.init.captures;
+    if (caps && caps.length) {   // captured camera positions: magenta dots with a short viewing direction
+      const [, , ppm0] = worldToCanvas(0, 0), len = Math.max(5, 0.12 * ppm0);
+      g.strokeStyle = "rgba(255,80,255,0.9)"; g.fillStyle = "#ff50ff"; g.lineWidth = 1;
+      for (const [x, y, yaw] of caps) {
+        const [cx, cy] = worldToCanvas(x, y);
+        g.beginPath(); g.arc(cx, cy, 2, 0, 2 * Math.PI); g.fill();
+        g.beginPath(); g.moveTo(cx, cy); g.lineTo(cx + len * Math.cos(yaw), cy - len * Math.sin(yaw)); g.stroke();
+      }
+    }
     if (traj.length > 1) {
       g.strokeStyle = "#ff5050"; g.lineWidth = 2; g.beginPath();
       traj.forEach((p, i) => { const q = worldToCanvas(p[0], p[1]); i ? g.lineTo(q[0], q[1]) : g.moveTo(q[0], q[1]); });
@@ -146,12 +217,13 @@
     const s = T.lastState;
     if (!s) return;
     const cam = s.camera, [cx, cy, ppm] = worldToCanvas(cam.x, cam.y);
-    const half = (cam.hfov_deg * Math.PI) / 360, len = 1.5 * ppm;
+    const half = (cam.hfov_deg * Math.PI) / 360, len = ((T.init && T.init.frustum_m) || 1.5) * ppm;
     g.fillStyle = "rgba(255,210,0,0.35)"; g.beginPath(); g.moveTo(cx, cy);
     g.lineTo(cx + len * Math.cos(cam.yaw + half), cy - len * Math.sin(cam.yaw + half));
     g.lineTo(cx + len * Math.cos(cam.yaw - half), cy - len * Math.sin(cam.yaw - half));
     g.closePath(); g.fill();
-    const p = s.pose, [bx, by] = worldToCanvas(p.x, p.y), r = Math.max(4, 0.25 * ppm);
+    const p = s.pose, [bx, by] = worldToCanvas(p.x, p.y);
+    const r = Math.max(4, ((T.init && T.init.robot_radius_m) || 0.25) * ppm);
     g.fillStyle = s.contact ? "#ff3030" : "#30a0ff"; g.beginPath(); g.arc(bx, by, r, 0, 2 * Math.PI); g.fill();
     g.strokeStyle = "#fff"; g.lineWidth = 2; g.beginPath(); g.moveTo(bx, by);
     g.lineTo(bx + 2 * r * Math.cos(p.yaw), by - 2 * r * Math.sin(p.yaw)); g.stroke();
@@ -182,6 +254,8 @@
       ["collisions", s.collisions + (s.contact ? " (now)" : "")], ["outside capture", s.outside ? "yes" : "no"],
       ["page frames/s", fps().toFixed(1)], ["frame lag ms", T.lags.length ? T.lags[T.lags.length - 1].toFixed(0) : "–"], ["key→motion ms", T.latencies.length ? T.latencies[T.latencies.length - 1].toFixed(0) : "–"],
       ["pose", `x ${s.pose.x.toFixed(2)} y ${s.pose.y.toFixed(2)} yaw ${(s.pose.yaw * 57.2958).toFixed(0)}°`],
+      ["camera", `z ${s.camera.z.toFixed(2)} m, tilt ${(s.camera.pitch * 57.2958).toFixed(0)}° (down +)`],
+      ["camera path", `${s.path.poses} poses` + (s.path.recording ? " (recording)" : "")],
       ["sim time", s.sim_time_s.toFixed(1) + " s"], ["recording", s.recording || "off"], ["tabs", s.clients],
     ];
     $("status").innerHTML = rows.map((r) => `<tr><td>${r[0]}</td><td>${r[1]}</td></tr>`).join("");
@@ -194,6 +268,8 @@
     });
     $("record").textContent = s.recording ? "Stop recording" : "Start recording";
     $("record").classList.toggle("on", !!s.recording);
+    $("recpath").textContent = s.path.recording ? "Stop path" : "Record path";
+    $("recpath").classList.toggle("on", !!s.path.recording);
     const me = s.driver === T.clientId;
     $("role").textContent = s.driver == null ? "nobody drives" : me ? "you drive" : `tab ${s.driver} drives`;
     $("role").className = "badge" + (me ? " ok" : "");
@@ -245,7 +321,7 @@
 
   // ---- connection -----------------------------------------------------------------------------
   function connect() {
-    ws = new WebSocket(`ws://${location.host}/ws`);
+    ws = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(TOKEN)}`);
     ws.binaryType = "arraybuffer";
     ws.onopen = () => { T.connected = true; $("conn").textContent = "connected"; $("conn").className = "badge ok"; };
     ws.onclose = () => {
@@ -261,8 +337,17 @@
           T.init = m; T.clientId = m.client_id; map = m.map; traj = m.trajectory.slice();
           $("scene").textContent = `${m.scene} · ${m.robot} (${m.drive})`;
           buildJoints(m.joints);
+          setupDofs(m);
           if (m.depth_max_m) drawTicks(m.depth_max_m);
           drawMap();
+        } else if (m.type === "pose") {
+          T.pose = m;
+          copyText(m.tum).then((ok) => show("info", (ok ? "copied: " : "pose (copy from the box): ") + m.tum));
+        } else if (m.type === "path_saved") {
+          T.pathSaved = m;
+          download(m.name, m.tum);
+          show("info", `camera path saved: ${m.path} (${m.poses} poses; downloaded as ${m.name}) — ` +
+               `presim render SCENE --poses ${m.name}`);
         } else if (m.type === "error") show("error", m.message);
         else if (m.type === "info") show("info", m.message);
         else if (m.type === "reset") traj = [];
