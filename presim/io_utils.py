@@ -152,12 +152,18 @@ def progress(iterable=None, *, total: int | None = None, desc: str = "", unit: s
 
 # ---- disk space ---------------------------------------------------------------------------------
 
+def format_size(n: float) -> str:
+    """``n`` bytes as "1.5 GiB", "300.0 KiB", "12 B"."""
+    for unit, div in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if abs(n) >= div:
+            return f"{n / div:.1f} {unit}"
+    return f"{int(n)} B"
+
+
 class DiskFullError(OSError):
     """Not enough free space for an output; the message names the path and the bytes needed."""
 
     def __init__(self, path: str | os.PathLike, needed_bytes: int, free_bytes: int | None = None):
-        from presim.limits import format_size
-
         self.path, self.needed_bytes = Path(path), int(needed_bytes)
         free = "" if free_bytes is None else f", {format_size(free_bytes)} free"
         super().__init__(errno.ENOSPC, f"{path}: no space left on device: needs {self.needed_bytes} bytes "

@@ -25,6 +25,8 @@ import math
 import os
 import re
 
+from presim.io_utils import format_size, free_disk_bytes
+
 __all__ = ["InputError", "MemoryLimitError", "DEFAULT_MEMORY_FRACTION", "parse_size", "format_size",
            "available_memory_bytes", "memory_budget_bytes", "check_memory", "check_positive",
            "check_positive_int", "check_intrinsics", "render_memory_bytes", "sample_scene_memory_bytes",
@@ -71,13 +73,6 @@ def parse_size(text: str | int | float, flag: str = "--max-memory") -> int:
     if not math.isfinite(value) or value <= 0:
         raise InputError(flag, f"must be a positive size, got {text!r}")
     return int(value * _UNITS[unit])
-
-
-def format_size(n: float) -> str:
-    for unit, div in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
-        if abs(n) >= div:
-            return f"{n / div:.1f} {unit}"
-    return f"{int(n)} B"
 
 
 def available_memory_bytes() -> int:
@@ -214,8 +209,6 @@ def gen_bop_output_bytes(width: int, height: int, frames: int) -> float:
 def check_disk(estimate_bytes: float, path, flag: str, what: str) -> None:
     """Refuse (``InputError`` naming ``flag``) when ``estimate_bytes`` is more than the free space of
     the file system that will hold ``path`` (or its nearest existing parent)."""
-    from presim.io_utils import free_disk_bytes
-
     free = free_disk_bytes(path)
     if not math.isfinite(estimate_bytes) or estimate_bytes > free:
         raise InputError(flag, f"{what} needs an estimated {format_size(estimate_bytes)} of disk, more than the "
