@@ -77,14 +77,15 @@ METHODS: dict[str, tuple[dict, str]] = {
     "full": (BEST, "refined"),
     "thesis": ({}, "refined"),
     "default": ({}, "refined"),
-    # the default without backward colour sampling (the forward warp's colours)
-    "default_forward": ({"backward_color": False}, "refined"),
+    # the default with backward colour sampling (colours read in the source images)
+    "default_backward": ({"backward_color": True}, "refined"),
     # the default on the capture calibrated by `presim photometric` (predicted exposure)
     "default_photo": ({"use_photometric": True}, "refined"),
     # candidates for the default (the default's loop): blending of 6 views, with sharpness weighting
-    "default_blend6": ({"blend": True, "blend_views": 6}, "refined"),
+    "default_blend6": ({"blend": True, "blend_views": 6, "backward_color": True}, "refined"),
     "default_fill_bg": ({"fill_background_px": 4}, "refined"),
-    "default_blend6_photo": ({"blend": True, "blend_views": 6, "use_photometric": True}, "refined"),
+    "default_blend6_photo": ({"blend": True, "blend_views": 6, "backward_color": True, "use_photometric": True},
+                             "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),
     "DIBR_DR": ({"num_layers": 1}, "refined"),
     "LDIBR": ({}, "raw"),
