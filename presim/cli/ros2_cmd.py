@@ -52,7 +52,7 @@ def run_ros2(args: argparse.Namespace) -> int:
     from presim.outputs.ros2 import Ros2Bridge, Ros2BridgeConfig, import_rclpy
 
     import_rclpy()  # a missing [ros2] group or tf2_msgs: the install line, before the scene loads
-    from presim.capture.store import open_scene
+    from presim.capture.open import open_scene
     from presim.outputs.sinks import build_sinks
     from presim.sensors.camera import CameraSpec
     from presim.sim.robot import robot_for_scene

@@ -120,6 +120,7 @@ def refine_frames_to_file(scene: Scene, out_path: str | Path, indices: Sequence[
         except (ValueError, OSError, json.JSONDecodeError):
             fresh = True
     if fresh:
+        out.parent.mkdir(parents=True, exist_ok=True)
         shutil.rmtree(done, ignore_errors=True)
         if partial.exists():
             partial.unlink()
