@@ -78,6 +78,9 @@ class ObjectReconConfig:
     """Planes extracted one after another (their inliers removed)."""
     min_plane_frac: float = 0.01
     """A support plane holds at least this fraction of the fused cloud's upward-facing points."""
+    merge_dist_m: float = 0.02
+    """Planes whose inliers lie (median) within this of a larger plane are one surface (a noisy or
+    voxel-quantised table top splits into layers 1 cm apart) and are merged."""
     min_height_m: float = 0.012
     """Points lower than this above their plane belong to the plane."""
     max_object_size_m: float = 0.45
@@ -285,7 +288,19 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
                                f"within {config.max_tilt_deg:.0f} deg of up holding >= "
                                f"{100 * config.min_plane_frac:.0f}% of the points); pass --boxes FILE")
 
+    planes, plane_masks = _merge_split_planes(planes, plane_masks, pts, up, config)
     work = None if config.all_planes else _working_plane(scene, planes, plane_masks, pts, config)
+    if work is not None:
+        # The working plane refit on its own footprint region: a RANSAC plane that also spans
+        # other furniture at about the same height is tilted by it (1 deg = 1.7 cm over a metre).
+        k, (B, lo, grid) = work
+        m = plane_masks[k]
+        ij = np.floor((pts[m] @ B.T - lo) / (2 * config.seg_voxel_m)).astype(np.int64)
+        inside = np.all((ij >= 0) & (ij < np.array(grid.shape)), axis=1)
+        on = np.zeros(len(m), bool)
+        on[inside] = grid[ij[inside, 0], ij[inside, 1]] > 0
+        if np.count_nonzero(on) >= 3:
+            planes[k] = _fit_plane(pts[m[on]], up, pl_points=planes[k].num_points)
     # Each non-plane point belongs to the highest plane below it whose footprint it stands over.
     in_plane = np.zeros(len(pts), bool)
     for m in plane_masks:
@@ -337,6 +352,43 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
     return boxes, planes
 
 
+def _fit_plane(p: np.ndarray, up: np.ndarray, pl_points: int) -> SupportPlane:
+    """Least-squares plane through points (normal towards ``up``)."""
+    c = p.mean(0)
+    n = np.linalg.svd(p - c, full_matrices=False)[2][2]
+    if n @ up < 0:
+        n = -n
+    return SupportPlane(n, float(-n @ c), int(pl_points))
+
+
+def _merge_split_planes(planes: list[SupportPlane], masks: list[np.ndarray], pts: np.ndarray, up: np.ndarray,
+                        config: ObjectReconConfig) -> tuple[list[SupportPlane], list[np.ndarray]]:
+    """Merge planes that are one surface split by the sequential RANSAC, and refit them.
+
+    A flat surface lying on a voxel border of the fused cloud comes out as two layers one voxel
+    apart; RANSAC takes one layer (often tilted to reach other furniture at that height) and then
+    the rest as a second plane. Left split, the upper layer owns every point standing on the
+    surface and the objects on it are lost with it. A plane whose inliers lie (median) within
+    ``merge_dist_m`` of a larger plane, normals within ``max_tilt_deg / 4``, joins it; the union
+    is refit by least squares.
+    """
+    order = np.argsort([-pl.num_points for pl in planes], kind="stable")
+    out_planes: list[SupportPlane] = []
+    out_masks: list[np.ndarray] = []
+    cos_max = np.cos(np.radians(config.max_tilt_deg / 4))
+    for k in order:
+        pl, m = planes[k], masks[k]
+        for g, big in enumerate(out_planes):
+            if pl.normal @ big.normal >= cos_max and np.median(np.abs(big.height_of(pts[m]))) <= config.merge_dist_m:
+                out_masks[g] = np.concatenate([out_masks[g], m])
+                out_planes[g] = _fit_plane(pts[out_masks[g]], up, len(out_masks[g]))
+                break
+        else:
+            out_planes.append(pl)
+            out_masks.append(m)
+    return out_planes, out_masks
+
+
 def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence[np.ndarray], pts: np.ndarray,
                    config: ObjectReconConfig) -> tuple[int, tuple]:
     """Index and footprint region ``(basis, grid origin, grid)`` of the plane most frames aim at: the median depth of each frame's central 20 % window,
@@ -348,7 +400,7 @@ def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence
         lo, grid = _footprint(pts[m] @ B.T, cell)
         grids.append((B, lo, grid))
     votes = np.zeros(len(planes))
-    hits: list[list[tuple[int, int]]] = [[] for _ in planes]
+    hits: list[list[tuple[tuple[int, int], float]]] = [[] for _ in planes]
     for i in _frame_indices(scene, config):
         K = scene.intrinsics[i]
         d = _depth(scene, i, config)
@@ -368,8 +420,11 @@ def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence
             if -config.plane_dist_m <= hk <= config.max_object_size_m and hk < best_h:
                 best, best_h, best_ij = k, hk, (int(ij[0]), int(ij[1]))
         if best >= 0:
-            votes[best] += 1
-            hits[best].append(best_ij)
+            # A vote weighs 1/z^2: the image area a surface patch covers falls with the square of
+            # its distance. An object capture moves in close to its objects; the room around them
+            # (walls, the floor by the walls) is passed at a distance.
+            votes[best] += 1.0 / z ** 2
+            hits[best].append((best_ij, 1.0 / z ** 2))
     k = int(np.argmax(votes)) if votes.max() > 0 else int(np.argmax([pl.num_points for pl in planes]))
     # Of that plane, only the connected footprint region most aims land on (the table, not a
     # sideboard at the same height).
@@ -378,7 +433,7 @@ def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence
     B, lo, grid = grids[k]
     n, lab = cv2.connectedComponents(grid.astype(np.uint8), connectivity=8)
     if hits[k]:
-        c = np.bincount([lab[i, j] for i, j in hits[k]], minlength=n)
+        c = np.bincount([lab[i, j] for (i, j), _ in hits[k]], [w for _, w in hits[k]], minlength=n)
         c[0] = 0
         comp = int(np.argmax(c)) if c.max() > 0 else 0
         if comp > 0:
