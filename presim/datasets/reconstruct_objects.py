@@ -293,7 +293,7 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
     if work is not None:
         # The working plane refit on its own footprint region: a RANSAC plane that also spans
         # other furniture at about the same height is tilted by it (1 deg = 1.7 cm over a metre).
-        k, (B, lo, grid) = work
+        k, (B, lo, grid), _ = work
         m = plane_masks[k]
         ij = np.floor((pts[m] @ B.T - lo) / (2 * config.seg_voxel_m)).astype(np.int64)
         inside = np.all((ij >= 0) & (ij < np.array(grid.shape)), axis=1)
@@ -343,9 +343,16 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
                 continue
             boxes_found.append((float(np.linalg.norm(box.T_world_box[:3, 3] - target)), _with_support(box, k)))
     if not boxes_found:
-        raise ObjectReconError(f"{scene.path}: no object found on the {len(planes)} support plane(s) (clusters "
-                               f"of {100 * config.min_object_size_m:.0f}-{100 * config.max_object_size_m:.0f} cm "
-                               f"standing on a plane); pass --boxes FILE")
+        sizes = f"clusters of {100 * config.min_object_size_m:.0f}-{100 * config.max_object_size_m:.0f} cm standing on"
+        if work is None:
+            raise ObjectReconError(f"{scene.path}: no object found on the {len(planes)} support plane(s) ({sizes} "
+                                   "a plane); pass --boxes FILE")
+        pl = planes[work[0]]
+        raise ObjectReconError(
+            f"{scene.path}: no object found on the working plane, the support plane at height "
+            f"{float(-pl.offset / (pl.normal @ up)):.2f} m that {work[2]} of {len(_frame_indices(scene, config))} "
+            f"frames aim at ({sizes} it; {len(planes)} support plane(s) in all); --all-planes searches every "
+            "plane, or pass --boxes FILE")
     boxes_found.sort(key=lambda t: t[0])
     boxes = [ObjectBox(f"object_{j + 1:02d}", b.T_world_box, b.size_m, obj_id=j + 1, support_idx=b.support_idx)
              for j, (_, b) in enumerate(boxes_found)]
@@ -390,9 +397,11 @@ def _merge_split_planes(planes: list[SupportPlane], masks: list[np.ndarray], pts
 
 
 def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence[np.ndarray], pts: np.ndarray,
-                   config: ObjectReconConfig) -> tuple[int, tuple]:
-    """Index and footprint region ``(basis, grid origin, grid)`` of the plane most frames aim at: the median depth of each frame's central 20 % window,
-    unprojected, lies over the plane's footprint, at most ``max_object_size_m`` above it."""
+                   config: ObjectReconConfig) -> tuple[int, tuple, int]:
+    """Index, footprint region ``(basis, grid origin, grid)`` and number of aiming frames of the plane
+    the capture aims at: each frame's aim (the median depth of its central 20 % window, unprojected)
+    that lies over a plane's footprint, at most ``max_object_size_m`` above it, votes for the plane
+    with the weight 1/z^2; the plane with the largest sum wins."""
     cell = 2 * config.seg_voxel_m
     grids = []
     for pl, m in zip(planes, masks):
@@ -438,7 +447,7 @@ def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence
         comp = int(np.argmax(c)) if c.max() > 0 else 0
         if comp > 0:
             grid = (lab == comp).astype(np.uint8)
-    return k, (B, lo, grid)
+    return k, (B, lo, grid), len(hits[k])
 
 
 def _with_support(box: ObjectBox, k: int) -> ObjectBox:
