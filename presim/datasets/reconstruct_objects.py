@@ -4,7 +4,7 @@ Two steps, each one pure function with its config:
 
 1. :func:`find_object_boxes` -- where the objects are. The scene's depth is fused into a 1 cm cloud;
    horizontal support planes (floor, table top, shelf/bin bottom) are found by sequential RANSAC
-   (Open3D ``segment_plane``); the points standing on a plane's footprint are clustered (Open3D
+   (seeded, so every run finds the same planes); the points standing on a plane's footprint are clustered (Open3D
    DBSCAN) and every cluster of object size that touches its plane becomes an oriented box
    (z = the plane's up normal, x/y = principal axes of the footprint). Or the user gives the boxes
    (:func:`read_boxes_json`).
@@ -76,6 +76,8 @@ class ObjectReconConfig:
     """A support plane's normal is within this angle of up (against gravity)."""
     max_planes: int = 8
     """Planes extracted one after another (their inliers removed)."""
+    ransac_iterations: int = 500
+    """Random point triples tried per plane."""
     min_plane_frac: float = 0.01
     """A support plane holds at least this fraction of the fused cloud's upward-facing points."""
     merge_dist_m: float = 0.02
@@ -263,19 +265,13 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
     n_horizontal = len(remaining)
     planes: list[SupportPlane] = []
     plane_masks = []
-    o3d.utility.random.seed(0)
+    rng = np.random.default_rng(0)
     for _ in range(config.max_planes):
         if len(remaining) < max(100, config.min_plane_frac * n_horizontal):
             break
-        sub = pc.select_by_index(remaining)
-        model, inl = sub.segment_plane(config.plane_dist_m, 3, 500)
-        inl = np.asarray(inl)
+        n, d, inl = _ransac_plane(pts[remaining], config.plane_dist_m, config.ransac_iterations, rng)
         if len(inl) < config.min_plane_frac * n_horizontal:
             break
-        n = np.asarray(model[:3], dtype=np.float64)
-        d = float(model[3])
-        s = np.linalg.norm(n)
-        n, d = n / s, d / s
         if n @ up < 0:
             n, d = -n, -d
         idx = remaining[inl]
@@ -357,6 +353,26 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
     boxes = [ObjectBox(f"object_{j + 1:02d}", b.T_world_box, b.size_m, obj_id=j + 1, support_idx=b.support_idx)
              for j, (_, b) in enumerate(boxes_found)]
     return boxes, planes
+
+
+def _ransac_plane(p: np.ndarray, dist_m: float, iterations: int, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Plane with the most points within ``dist_m`` among ``iterations`` planes through random point
+    triples: ``(unit normal, offset, inlier indices)``. Seeded and single-threaded, so a scene gives
+    the same planes on every run (Open3D's multi-threaded ``segment_plane`` does not)."""
+    tri = p[rng.integers(0, len(p), (iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12
+    n, tri = n[ok] / norm[ok, None], tri[ok]
+    d = -np.einsum("ij,ij->i", n, tri[:, 0])
+    counts = np.zeros(len(n), np.int64)
+    for a in range(0, len(n), 64):  # (points, 64) distance blocks bound the memory
+        counts[a:a + 64] = np.count_nonzero(np.abs(p @ n[a:a + 64].T + d[a:a + 64]) <= dist_m, axis=0)
+    if not len(counts):
+        return np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(0, np.int64)
+    k = int(np.argmax(counts))
+    return n[k], float(d[k]), np.flatnonzero(np.abs(p @ n[k] + d[k]) <= dist_m)
 
 
 def _fit_plane(p: np.ndarray, up: np.ndarray, pl_points: int) -> SupportPlane:
