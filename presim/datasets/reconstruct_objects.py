@@ -4,10 +4,11 @@ Two steps, each one pure function with its config:
 
 1. :func:`find_object_boxes` -- where the objects are. The scene's depth is fused into a 1 cm cloud;
    horizontal support planes (floor, table top, shelf/bin bottom) are found by sequential RANSAC
-   (seeded, so every run finds the same planes); the points standing on a plane's footprint are clustered (Open3D
-   DBSCAN) and every cluster of object size that touches its plane becomes an oriented box
-   (z = the plane's up normal, x/y = principal axes of the footprint). Or the user gives the boxes
-   (:func:`read_boxes_json`).
+   (seeded, so every run finds the same planes) and planes split from one surface are merged; the
+   *working plane* is the one the frames aim at, each aim weighed 1/z^2 (close views count most);
+   the points standing on its footprint are clustered (Open3D DBSCAN) and every cluster of object
+   size that touches the plane becomes an oriented box (z = the plane's up normal, x/y = principal
+   axes of the footprint). Or the user gives the boxes (:func:`read_boxes_json`).
 2. :func:`reconstruct_objects` -- per box, the thesis' Algorithm 3: every pixel of every frame
    (``stride``) whose depth falls in the box is a candidate; candidates are merged per
    ``voxel_m`` voxel (mean position and colour: "no similar point is added twice"); a merged point
