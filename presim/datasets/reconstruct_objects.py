@@ -81,6 +81,9 @@ class ObjectReconConfig:
     """Random point triples tried per plane."""
     min_plane_frac: float = 0.01
     """A support plane holds at least this fraction of the fused cloud's upward-facing points."""
+    min_plane_area_m2: float = 0.01
+    """... and covers at least this area (in ``seg_voxel_m`` voxels): smaller flat patches (a box
+    top, a book, a few noisy voxels that a tilted triple happens to fit) are not supports."""
     merge_dist_m: float = 0.02
     """Planes whose inliers lie (median) within this of a larger plane are one surface (a noisy or
     voxel-quantised table top splits into layers 1 cm apart) and are merged."""
@@ -271,7 +274,7 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
         if len(remaining) < max(100, config.min_plane_frac * n_horizontal):
             break
         n, d, inl = _ransac_plane(pts[remaining], config.plane_dist_m, config.ransac_iterations, rng)
-        if len(inl) < config.min_plane_frac * n_horizontal:
+        if len(inl) < max(config.min_plane_frac * n_horizontal, config.min_plane_area_m2 / config.seg_voxel_m ** 2):
             break
         if n @ up < 0:
             n, d = -n, -d
