@@ -128,3 +128,90 @@ def test_real_captures(name, tmp_path):
     out = json.loads(_presim("objects", tmp_path / "s").stdout.strip().splitlines()[-1])
     assert len(out["objects"]) >= 1
     _presim("gen-bop-real", tmp_path / "s", "--out", tmp_path / "bop")
+
+
+# ---- finding objects on scenes the defaults were not tuned on (issue 44, item 10) ----------------
+
+def _box_scene(boxes, poses, width: int = 240):
+    """In-memory scene of axis-aligned boxes ``(lo, hi)`` ray cast exactly (Open3D) from ``poses``."""
+    import open3d as o3d
+
+    from presim.capture.scene import ArrayFrameSource, Scene, SceneMeta
+    from presim.geometry import Intrinsics
+    from presim.testing.boxes import box_mesh
+
+    rc = o3d.t.geometry.RaycastingScene()
+    for lo, hi in boxes:
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        v, f = box_mesh(hi - lo)
+        rc.add_triangles(o3d.core.Tensor((v + (lo + hi) / 2).astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    K = Intrinsics.from_fov(width, width * 3 // 4, 60.0)
+    u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
+    d_cam = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], -1).reshape(-1, 3)
+    rays = [np.concatenate([np.broadcast_to(T[:3, 3], d_cam.shape), d_cam @ T[:3, :3].T], 1) for T in poses]
+    # Rays with camera z = 1: the hit distance along them is the z-depth.
+    t_hit = rc.cast_rays(o3d.core.Tensor(np.concatenate(rays).astype(np.float32)))["t_hit"].numpy()
+    depth = np.where(np.isfinite(t_hit), t_hit, 0).astype(np.float32).reshape(len(poses), K.height, K.width)
+    n = len(poses)
+    return Scene([f"f{i:03d}" for i in range(n)], np.arange(n, dtype=float), np.stack(poses), [K] * n,
+                 ArrayFrameSource(np.full(depth.shape + (3,), 128, np.uint8), depth), SceneMeta("boxes", "test"))
+
+
+@pytest.mark.fuzz
+def test_objects_found_on_the_table_the_close_views_aim_at_not_on_the_floor_most_views_pass():
+    """The failure of sample-scene seed 9: most frames pan the room at 2 m, aiming at clutter on
+    the floor by the walls; fewer frames come close to the table. Counting each frame's aim once
+    made the floor the working plane (no object found, or floor clutter kept as objects); a vote
+    weighed by 1/z^2 picks the table."""
+    from presim.datasets.reconstruct_objects import find_object_boxes
+    from presim.geometry import look_at
+
+    top = 0.75
+    geo = [((-2, -1.5, -0.05), (2, 1.5, 0)), ((-2.05, -1.5, 0), (-2, 1.5, 2.5)), ((2, -1.5, 0), (2.05, 1.5, 2.5)),
+           ((-2, -1.55, 0), (2, -1.5, 2.5)), ((-2, 1.5, 0), (2, 1.55, 2.5)), ((-0.4, -0.3, top - 0.04), (0.4, 0.3, top))]
+    objs = [((-0.25, -0.12, top), (-0.15, -0.05, top + 0.15)), ((0.1, 0.05, top), (0.17, 0.12, top + 0.10))]
+    n_far, n_near = 12, 8
+    poses = []
+    for k in range(n_far):
+        a = 2 * np.pi * (k + 0.5) / n_far
+        c = np.array([1.7 * np.cos(a), 1.25 * np.sin(a)])
+        geo.append(((c[0] - 0.06, c[1] - 0.05, 0), (c[0] + 0.06, c[1] + 0.05, 0.15 + 0.2 * ((5 * k) % n_far) / n_far)))
+        poses.append(look_at([0.3 * np.cos(a), 0.3 * np.sin(a), 1.4], [c[0], c[1], 0.15]))
+    for k in range(n_near):
+        a = 2 * np.pi * k / n_near
+        poses.append(look_at([0.6 * np.cos(a), 0.6 * np.sin(a), top + 0.5], [0, 0, top + 0.05]))
+    scene = _box_scene(geo + objs, poses)
+    boxes, _ = find_object_boxes(scene)
+    assert len(boxes) == len(objs)
+    for lo, hi in objs:
+        c = 0.5 * (np.asarray(lo) + np.asarray(hi))
+        assert sum(bool(b.contains(c[None])[0]) for b in boxes) == 1
+
+
+@pytest.mark.fuzz
+@pytest.mark.parametrize("seed", range(5))
+def test_support_surface_split_into_voxel_layers_is_merged_into_one_plane(seed):
+    """The other failure of seed 9: a table top on a 1 cm voxel border of the fused cloud is two
+    layers 1 cm apart; RANSAC fits one layer tilted towards a sideboard at about the same height,
+    then the other layer as a second plane, 1 cm higher, that owns every point standing on the table
+    (and is not the working plane). Such planes are one surface; a shelf 5 cm up stays separate."""
+    from presim.datasets.reconstruct_objects import ObjectReconConfig, SupportPlane, _merge_split_planes
+
+    rng = np.random.default_rng(seed)
+    up = np.array([0.0, 0.0, 1.0])
+    g = np.stack(np.meshgrid(np.arange(-0.4, 0.4, 0.01), np.arange(-0.3, 0.3, 0.01)), -1).reshape(-1, 2)
+    layer = rng.random(len(g)) < 0.5
+    table = np.c_[g, np.where(layer, 0.755, 0.745)]
+    side = np.c_[g * [1.2, 0.6] + [2.0, rng.uniform(-1, 1)], np.full(len(g), 0.765)]
+    shelf = np.c_[g * 0.5 + [0.0, 0.8], np.full(len(g), 0.80)]
+    pts = np.concatenate([table, side, shelf])
+    lower = np.flatnonzero(np.r_[~layer, np.ones(len(side), bool), np.zeros(len(shelf), bool)])
+    upper = np.flatnonzero(np.r_[layer, np.zeros(len(side) + len(shelf), bool)])
+    shelf_idx = np.arange(len(table) + len(side), len(pts))
+    n = np.array([-0.01, 0.0, 1.0]) / np.linalg.norm([-0.01, 0.0, 1.0])  # tilted: 0.745 at the table, 0.765 at 2 m
+    planes = [SupportPlane(n, -float(n @ [0, 0, 0.745]), len(lower)), SupportPlane(up, -0.755, len(upper)),
+              SupportPlane(up, -0.80, len(shelf_idx))]
+    merged, masks = _merge_split_planes(planes, [lower, upper, shelf_idx], pts, up, ObjectReconConfig())
+    assert len(merged) == 2 and sorted(len(m) for m in masks) == [len(shelf_idx), len(lower) + len(upper)]
+    table_plane = merged[int(np.argmax([len(m) for m in masks]))]
+    assert np.all(np.abs(table_plane.height_of(table)) <= 0.012)  # every table point is on the plane

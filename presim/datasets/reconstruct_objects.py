@@ -4,10 +4,11 @@ Two steps, each one pure function with its config:
 
 1. :func:`find_object_boxes` -- where the objects are. The scene's depth is fused into a 1 cm cloud;
    horizontal support planes (floor, table top, shelf/bin bottom) are found by sequential RANSAC
-   (Open3D ``segment_plane``); the points standing on a plane's footprint are clustered (Open3D
-   DBSCAN) and every cluster of object size that touches its plane becomes an oriented box
-   (z = the plane's up normal, x/y = principal axes of the footprint). Or the user gives the boxes
-   (:func:`read_boxes_json`).
+   (seeded, so every run finds the same planes) and planes split from one surface are merged; the
+   *working plane* is the one the frames aim at, each aim weighed 1/z^2 (close views count most);
+   the points standing on its footprint are clustered (Open3D DBSCAN) and every cluster of object
+   size that touches the plane becomes an oriented box (z = the plane's up normal, x/y = principal
+   axes of the footprint). Or the user gives the boxes (:func:`read_boxes_json`).
 2. :func:`reconstruct_objects` -- per box, the thesis' Algorithm 3: every pixel of every frame
    (``stride``) whose depth falls in the box is a candidate; candidates are merged per
    ``voxel_m`` voxel (mean position and colour: "no similar point is added twice"); a merged point
@@ -78,8 +79,16 @@ class ObjectReconConfig:
     """A support plane's normal is within this angle of up (against gravity)."""
     max_planes: int = 8
     """Planes extracted one after another (their inliers removed)."""
+    ransac_iterations: int = 500
+    """Random point triples tried per plane."""
     min_plane_frac: float = 0.01
     """A support plane holds at least this fraction of the fused cloud's upward-facing points."""
+    min_plane_area_m2: float = 0.01
+    """... and covers at least this area (in ``seg_voxel_m`` voxels): smaller flat patches (a box
+    top, a book, a few noisy voxels that a tilted triple happens to fit) are not supports."""
+    merge_dist_m: float = 0.02
+    """Planes whose inliers lie (median) within this of a larger plane are one surface (a noisy or
+    voxel-quantised table top splits into layers 1 cm apart) and are merged."""
     min_height_m: float = 0.012
     """Points lower than this above their plane belong to the plane."""
     max_object_size_m: float = 0.45
@@ -262,19 +271,13 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
     n_horizontal = len(remaining)
     planes: list[SupportPlane] = []
     plane_masks = []
-    o3d.utility.random.seed(0)
+    rng = np.random.default_rng(0)
     for _ in range(config.max_planes):
         if len(remaining) < max(100, config.min_plane_frac * n_horizontal):
             break
-        sub = pc.select_by_index(remaining)
-        model, inl = sub.segment_plane(config.plane_dist_m, 3, 500)
-        inl = np.asarray(inl)
-        if len(inl) < config.min_plane_frac * n_horizontal:
+        n, d, inl = _ransac_plane(pts[remaining], config.plane_dist_m, config.ransac_iterations, rng)
+        if len(inl) < max(config.min_plane_frac * n_horizontal, config.min_plane_area_m2 / config.seg_voxel_m ** 2):
             break
-        n = np.asarray(model[:3], dtype=np.float64)
-        d = float(model[3])
-        s = np.linalg.norm(n)
-        n, d = n / s, d / s
         if n @ up < 0:
             n, d = -n, -d
         idx = remaining[inl]
@@ -287,7 +290,19 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
                                f"within {config.max_tilt_deg:.0f} deg of up holding >= "
                                f"{100 * config.min_plane_frac:.0f}% of the points); pass --boxes FILE")
 
+    planes, plane_masks = _merge_split_planes(planes, plane_masks, pts, up, config)
     work = None if config.all_planes else _working_plane(scene, planes, plane_masks, pts, config)
+    if work is not None:
+        # The working plane refit on its own footprint region: a RANSAC plane that also spans
+        # other furniture at about the same height is tilted by it (1 deg = 1.7 cm over a metre).
+        k, (B, lo, grid), _ = work
+        m = plane_masks[k]
+        ij = np.floor((pts[m] @ B.T - lo) / (2 * config.seg_voxel_m)).astype(np.int64)
+        inside = np.all((ij >= 0) & (ij < np.array(grid.shape)), axis=1)
+        on = np.zeros(len(m), bool)
+        on[inside] = grid[ij[inside, 0], ij[inside, 1]] > 0
+        if np.count_nonzero(on) >= 3:
+            planes[k] = _fit_plane(pts[m[on]], up, pl_points=planes[k].num_points)
     # Each non-plane point belongs to the highest plane below it whose footprint it stands over.
     in_plane = np.zeros(len(pts), bool)
     for m in plane_masks:
@@ -330,19 +345,85 @@ def find_object_boxes(scene: Scene, config: ObjectReconConfig = ObjectReconConfi
                 continue
             boxes_found.append((float(np.linalg.norm(box.T_world_box[:3, 3] - target)), _with_support(box, k)))
     if not boxes_found:
-        raise ObjectReconError(f"{scene.path}: no object found on the {len(planes)} support plane(s) (clusters "
-                               f"of {100 * config.min_object_size_m:.0f}-{100 * config.max_object_size_m:.0f} cm "
-                               f"standing on a plane); pass --boxes FILE")
+        sizes = f"clusters of {100 * config.min_object_size_m:.0f}-{100 * config.max_object_size_m:.0f} cm standing on"
+        if work is None:
+            raise ObjectReconError(f"{scene.path}: no object found on the {len(planes)} support plane(s) ({sizes} "
+                                   "a plane); pass --boxes FILE")
+        pl = planes[work[0]]
+        raise ObjectReconError(
+            f"{scene.path}: no object found on the working plane, the support plane at height "
+            f"{float(-pl.offset / (pl.normal @ up)):.2f} m that {work[2]} of {len(_frame_indices(scene, config))} "
+            f"frames aim at ({sizes} it; {len(planes)} support plane(s) in all); --all-planes searches every "
+            "plane, or pass --boxes FILE")
     boxes_found.sort(key=lambda t: t[0])
     boxes = [ObjectBox(f"object_{j + 1:02d}", b.T_world_box, b.size_m, obj_id=j + 1, support_idx=b.support_idx)
              for j, (_, b) in enumerate(boxes_found)]
     return boxes, planes
 
 
+def _ransac_plane(p: np.ndarray, dist_m: float, iterations: int, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Plane with the most points within ``dist_m`` among ``iterations`` planes through random point
+    triples: ``(unit normal, offset, inlier indices)``. Seeded and single-threaded, so a scene gives
+    the same planes on every run (Open3D's multi-threaded ``segment_plane`` does not)."""
+    tri = p[rng.integers(0, len(p), (iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12
+    n, tri = n[ok] / norm[ok, None], tri[ok]
+    d = -np.einsum("ij,ij->i", n, tri[:, 0])
+    counts = np.zeros(len(n), np.int64)
+    for a in range(0, len(n), 64):  # (points, 64) distance blocks bound the memory
+        counts[a:a + 64] = np.count_nonzero(np.abs(p @ n[a:a + 64].T + d[a:a + 64]) <= dist_m, axis=0)
+    if not len(counts):
+        return np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(0, np.int64)
+    k = int(np.argmax(counts))
+    return n[k], float(d[k]), np.flatnonzero(np.abs(p @ n[k] + d[k]) <= dist_m)
+
+
+def _fit_plane(p: np.ndarray, up: np.ndarray, pl_points: int) -> SupportPlane:
+    """Least-squares plane through points (normal towards ``up``)."""
+    c = p.mean(0)
+    n = np.linalg.svd(p - c, full_matrices=False)[2][2]
+    if n @ up < 0:
+        n = -n
+    return SupportPlane(n, float(-n @ c), int(pl_points))
+
+
+def _merge_split_planes(planes: list[SupportPlane], masks: list[np.ndarray], pts: np.ndarray, up: np.ndarray,
+                        config: ObjectReconConfig) -> tuple[list[SupportPlane], list[np.ndarray]]:
+    """Merge planes that are one surface split by the sequential RANSAC, and refit them.
+
+    A flat surface lying on a voxel border of the fused cloud comes out as two layers one voxel
+    apart; RANSAC takes one layer (often tilted to reach other furniture at that height) and then
+    the rest as a second plane. Left split, the upper layer owns every point standing on the
+    surface and the objects on it are lost with it. A plane whose inliers lie (median) within
+    ``merge_dist_m`` of a larger plane, normals within ``max_tilt_deg / 4``, joins it; the union
+    is refit by least squares.
+    """
+    order = np.argsort([-pl.num_points for pl in planes], kind="stable")
+    out_planes: list[SupportPlane] = []
+    out_masks: list[np.ndarray] = []
+    cos_max = np.cos(np.radians(config.max_tilt_deg / 4))
+    for k in order:
+        pl, m = planes[k], masks[k]
+        for g, big in enumerate(out_planes):
+            if pl.normal @ big.normal >= cos_max and np.median(np.abs(big.height_of(pts[m]))) <= config.merge_dist_m:
+                out_masks[g] = np.concatenate([out_masks[g], m])
+                out_planes[g] = _fit_plane(pts[out_masks[g]], up, len(out_masks[g]))
+                break
+        else:
+            out_planes.append(pl)
+            out_masks.append(m)
+    return out_planes, out_masks
+
+
 def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence[np.ndarray], pts: np.ndarray,
-                   config: ObjectReconConfig) -> tuple[int, tuple]:
-    """Index and footprint region ``(basis, grid origin, grid)`` of the plane most frames aim at: the median depth of each frame's central 20 % window,
-    unprojected, lies over the plane's footprint, at most ``max_object_size_m`` above it."""
+                   config: ObjectReconConfig) -> tuple[int, tuple, int]:
+    """Index, footprint region ``(basis, grid origin, grid)`` and number of aiming frames of the plane
+    the capture aims at: each frame's aim (the median depth of its central 20 % window, unprojected)
+    that lies over a plane's footprint, at most ``max_object_size_m`` above it, votes for the plane
+    with the weight 1/z^2; the plane with the largest sum wins."""
     cell = 2 * config.seg_voxel_m
     grids = []
     for pl, m in zip(planes, masks):
@@ -350,7 +431,7 @@ def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence
         lo, grid = _footprint(pts[m] @ B.T, cell)
         grids.append((B, lo, grid))
     votes = np.zeros(len(planes))
-    hits: list[list[tuple[int, int]]] = [[] for _ in planes]
+    hits: list[list[tuple[tuple[int, int], float]]] = [[] for _ in planes]
     for i in _frame_indices(scene, config):
         K = scene.intrinsics[i]
         d = _depth(scene, i, config)
@@ -370,8 +451,11 @@ def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence
             if -config.plane_dist_m <= hk <= config.max_object_size_m and hk < best_h:
                 best, best_h, best_ij = k, hk, (int(ij[0]), int(ij[1]))
         if best >= 0:
-            votes[best] += 1
-            hits[best].append(best_ij)
+            # A vote weighs 1/z^2: the image area a surface patch covers falls with the square of
+            # its distance. An object capture moves in close to its objects; the room around them
+            # (walls, the floor by the walls) is passed at a distance.
+            votes[best] += 1.0 / z ** 2
+            hits[best].append((best_ij, 1.0 / z ** 2))
     k = int(np.argmax(votes)) if votes.max() > 0 else int(np.argmax([pl.num_points for pl in planes]))
     # Of that plane, only the connected footprint region most aims land on (the table, not a
     # sideboard at the same height).
@@ -380,12 +464,12 @@ def _working_plane(scene: Scene, planes: Sequence[SupportPlane], masks: Sequence
     B, lo, grid = grids[k]
     n, lab = cv2.connectedComponents(grid.astype(np.uint8), connectivity=8)
     if hits[k]:
-        c = np.bincount([lab[i, j] for i, j in hits[k]], minlength=n)
+        c = np.bincount([lab[i, j] for (i, j), _ in hits[k]], [w for _, w in hits[k]], minlength=n)
         c[0] = 0
         comp = int(np.argmax(c)) if c.max() > 0 else 0
         if comp > 0:
             grid = (lab == comp).astype(np.uint8)
-    return k, (B, lo, grid)
+    return k, (B, lo, grid), len(hits[k])
 
 
 def _with_support(box: ObjectBox, k: int) -> ObjectBox:
