@@ -338,7 +338,7 @@ def test_masked_warp_renders_identical_frames(monkeypatch):
     assert K_SMALL.width * K_SMALL.height < cracks.TILED_MIN_PIXELS
     poses = [make_pose(scene.T_world_cam[i][:3, :3], (scene.T_world_cam[i][:3, 3] + scene.T_world_cam[i + 1][:3, 3]) / 2)
              for i in range(4)]
-    perf = PerfConfig(warp_ahead=False, prefetch=False)  # the loop warps every view itself
+    perf = PerfConfig(warp_ahead=False)  # the loop warps every view itself
     full = Renderer(scene, RenderConfig(), perf)
     want = [full.render(T, K_SMALL) for T in poses]
     tiled = Renderer(scene, RenderConfig(), perf)

@@ -175,7 +175,7 @@ def test_a_first_view_taken_from_the_thread_is_copied(monkeypatch):
     K = Intrinsics.from_fov(40, 30, 60.0)
     cfg = RenderConfig()
     want = view_image_numba(view, T_cw, K, cfg, None, Workspace())
-    ex = EX.Executor(PerfConfig(prefetch=False), cfg)
+    ex = EX.Executor(PerfConfig(), cfg)
     assert ex.ahead_possible(K)
     try:
         with ex.frame(K):

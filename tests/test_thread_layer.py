@@ -44,32 +44,6 @@ def test_user_settings_win():
     assert _run("torch", NUMBA_THREADING_LAYER="omp")[0] == "omp"
 
 
-PREFETCH_SCRIPT = """
-import torch
-import presim.runtime, numba, numpy as np
-presim.runtime.configure()
-from presim.geometry import Intrinsics, look_at
-from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.testing import rect_scene as S
-K = Intrinsics.from_fov(160, 120, 60.0)
-r = Renderer(S.make_scene(S.room_rects(), S.orbit_poses(8), K), RenderConfig(max_views=6, min_view_gain=0.0))
-for x in np.linspace(-0.3, 0.3, 7):  # parallel kernels in this thread, views built in the other
-    r.render(look_at((x, -1.0, 1.25), (0.2 * x, 0.5, 0.4)), K.scaled(40, 30))
-r.view_cache.wait()
-print(numba.threading_layer(), r.view_cache.built_ahead)
-"""
-
-
-def test_views_built_ahead_under_the_work_queue_layer():
-    # numba's work queue aborts on parallel kernels launched from two threads at once: the view
-    # cache's background thread must only run serial kernels.
-    e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
-    out = subprocess.run([sys.executable, "-c", PREFETCH_SCRIPT], env=e, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
-    layer, built = out.stdout.split()
-    assert layer == "workqueue" and int(built) > 0
-
-
 BATCH_SCRIPT = """
 import torch
 import presim.runtime, numba, numpy as np
@@ -85,7 +59,7 @@ r = Renderer(S.make_scene(S.room_rects(), S.orbit_poses(6), K.scaled(128, 100)),
 poses = np.stack([look_at((x, -1.0, 1.25), (0.2 * x, 0.5, 0.4)) for x in np.linspace(-0.3, 0.3, 4)])
 for step in range(3):
     poses[:, 0, 3] += 0.03
-    big = r.render_batch(poses, K)  # parallel kernels here, views built on the background thread
+    big = r.render_batch(poses, K)  # parallel kernels here
     outs = r.render_batch(poses, small)  # serial twins here, later views warped on the helper thread
 ahead = r.executor._ahead
 print(numba.threading_layer(), sum(int(o.valid.sum()) > 0 for o in big + outs), 0 if ahead is None else ahead.taken)
@@ -94,7 +68,7 @@ print(numba.threading_layer(), sum(int(o.valid.sum()) > 0 for o in big + outs), 
 
 def test_frames_and_helper_threads_under_the_work_queue_layer():
     # numba's work queue aborts the process when two threads launch parallel kernels at once: the
-    # view cache's background thread and the warp-ahead helper must run only serial kernels while
+    # warp-ahead helper must run only serial kernels while
     # frames run parallel kernels (large) or their serial twins (small).
     e = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
     out = subprocess.run([sys.executable, "-c", BATCH_SCRIPT], env=e, capture_output=True, text=True, timeout=300)

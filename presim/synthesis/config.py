@@ -178,9 +178,6 @@ class PerfConfig:
     """numba, frames on one thread (auto threads): a helper thread warps and crack-filters the later
     candidates that the stream's previous frame drew while the loop works on the first view
     (:mod:`presim.synthesis.warp_ahead`; 1.16-1.26x faster at 128x128 on the apc capture)."""
-    prefetch: bool = True
-    """numba: a background thread prepares the frame's later candidates that are not cached yet
-    (:mod:`presim.synthesis.view_cache`), so that a moving camera finds them ready."""
     cache_mb: float = 1024.0
     """Bound of the per-view point cache (LRU), MiB."""
 

@@ -10,10 +10,7 @@ prepared views. Everything about *when* and *on which thread* that work runs liv
 - **views warped ahead** (:mod:`presim.synthesis.warp_ahead`): a frame on one thread leaves a core
   idle, so a helper thread warps and crack-filters the later candidates that the stream's previous
   frame drew, while the loop works on the first view; the loop then takes them finished;
-- **views prepared in the background** (:mod:`presim.synthesis.view_cache`): the per-view point
-  cache (LRU) builds the frame's later candidates that are not cached yet on a second thread;
-- **work beside** (:meth:`Executor.beside`): a stage with two independent halves (the fill: Telea on
-  the colour, pull-push on the depth) runs one of them on a side thread.
+- **the view cache** (:mod:`presim.synthesis.view_cache`): prepared views, LRU, bounded in bytes.
 
 Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and each was kept
 because it measured >= 10 % faster on a case of ``benchmarks/bench_ab.py`` (docs/synthesis.md).
@@ -23,35 +20,19 @@ from __future__ import annotations
 
 import contextlib
 import os
-import weakref
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace as dc_replace
 from typing import Any, Callable, Hashable, Iterator
 
-import numba
 import numpy as np
 
 from presim.geometry import Intrinsics
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.cracks import TILED_MIN_PIXELS
 from presim.synthesis.pipeline import ViewImage, Workspace, banded_applies, view_image
-from presim.synthesis.threads import frame_threads, numba_threads, serial_kernels, serial_now
+from presim.synthesis.threads import frame_threads, numba_threads
 from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp_ahead import WARP_AHEAD_MIN_POINTS, WarpAhead
 
 __all__ = ["Executor"]
-
-_EXECUTORS: "weakref.WeakSet[Executor]" = weakref.WeakSet()
-
-
-def _after_fork_in_child() -> None:
-    # A forked child has no copy of the side thread: its executors start their own when needed.
-    for ex in list(_EXECUTORS):
-        ex._side = None
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 class Executor:
@@ -60,7 +41,7 @@ class Executor:
     def __init__(self, perf: PerfConfig, config: RenderConfig):
         self.perf = perf
         self.backend = perf.backend
-        self.cache = ViewCache(perf.cache_mb * 2**20, background=perf.prefetch and perf.backend == "numba")
+        self.cache = ViewCache(perf.cache_mb * 2**20)
         self.workspace = Workspace()
         # Warping ahead needs the numba backend's banded crack pass, no blending (which keeps the
         # loop's own warps) and a second core.
@@ -69,27 +50,12 @@ class Executor:
                            and (os.cpu_count() or 1) >= 2)
         self._ahead: WarpAhead | None = None
         self._ahead_on = False
-        self._side: ThreadPoolExecutor | None = None
-        _EXECUTORS.add(self)
         self.max_later = config.fixed_views if config.fixed_views > 0 else config.max_views
 
     # ---- views ---------------------------------------------------------------------------------
     def view(self, key: Hashable, build: Callable[[], Any]) -> Any:
         """The prepared view under ``key`` from the cache, built now when missing."""
         return self.cache.get(key, build)
-
-    def prefetch(self, job: Callable[[Callable[[Hashable, Callable[[], Any]], None]], None]) -> None:
-        """Run ``job(build_ahead)`` on the background thread, with serial GIL-free kernels; it calls
-        ``build_ahead(key, build)`` for each view to prepare (skipped when cached meanwhile). No-op
-        without the background thread."""
-        if not self.cache.background:
-            return
-
-        def run(build_ahead: Callable[[Hashable, Callable[[], Any]], None]) -> None:
-            with serial_kernels():
-                job(build_ahead)
-
-        self.cache.ahead(run)
 
     # ---- one frame -----------------------------------------------------------------------------
     def frame_threads(self, K: Intrinsics) -> int:
@@ -149,33 +115,8 @@ class Executor:
 
         return ctx()
 
-    def beside(self, job: Callable[[], Any]) -> Callable[[], Any]:
-        """Start ``job`` on the side thread (serial GIL-free kernels) and return a function waiting for
-        its result; runs it right away when the frame runs on one thread (the other core belongs to
-        the warp-ahead helper) or numba has one thread. Telea fills the colour meanwhile: the fill
-        stage 1.2-1.3x faster on 640x480 frames that use Telea (TUM, sample scene)."""
-        if serial_now() or numba.get_num_threads() < 2:
-            result = job()
-            return lambda: result
-        if self._side is None:
-            self._side = ThreadPoolExecutor(max_workers=1, thread_name_prefix="presim-side")
-
-        def run() -> Any:
-            with serial_kernels():
-                return job()
-
-        return self._side.submit(run).result
-
     def close(self) -> None:
         """Stop the helper threads."""
-        if self._side is not None:
-            self._side.shutdown(wait=False)
-            self._side = None
         self.cache.close()
         if self._ahead is not None:
             self._ahead.close()
-
-
-def timed(img: ViewImage, load_ms: float) -> ViewImage:
-    """``img`` with its view's preparation time."""
-    return dc_replace(img, load_ms=load_ms)

@@ -10,8 +10,6 @@ filled by pull-push: a plausible surface, never ground truth.
 
 from __future__ import annotations
 
-from typing import Callable
-
 import cv2
 import numba as nb
 import numpy as np
@@ -215,18 +213,14 @@ def foreground_rim(depth_m: np.ndarray, valid: np.ndarray, rim_px: int = 4, dept
 
 
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
-               telea_max_hole_frac: float = 0.02, background_rim_px: int = 0,
-               beside: Callable[[Callable[[], np.ndarray]], Callable[[], np.ndarray]] | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+               telea_max_hole_frac: float = 0.02, background_rim_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Fill color and depth where ``valid`` is False.
 
     color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W); method: one of :data:`FILL_METHODS`;
     telea_max_hole_frac: hole fraction above which ``"auto"`` uses pull-push; background_rim_px > 0: the
     colour is filled from the background side (:func:`foreground_rim` pixels do not feed the fill and
-    keep their colour); beside: ``beside(job)`` starts ``job`` (the depth's pull-push) and returns a
-    function that waits for its result (the executor runs it on another core while Telea, which is
-    sequential, fills the colour; None: run here). Returns new ``(color, depth_m)`` (unchanged copies
-    when nothing is missing or nothing is known).
+    keep their colour). Returns new ``(color, depth_m)`` (unchanged copies when nothing is missing or
+    nothing is known).
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")
@@ -246,13 +240,5 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
         out_c[rim] = color[rim]
         return out_c, pushpull_rgbd(None, depth_m, valid)[1]
     if method == "telea":
-        def depth_job() -> np.ndarray:
-            return pushpull_rgbd(None, depth_m, valid)[1]
-
-        wait = beside(depth_job) if beside is not None else None
-        try:
-            out_c = telea_inpaint(color, holes, 3)
-        finally:
-            depth_f = wait() if wait is not None else depth_job()
-        return out_c, depth_f
+        return telea_inpaint(color, holes, 3), pushpull_rgbd(None, depth_m, valid)[1]
     return pushpull_rgbd(color, depth_m, valid)

@@ -4,7 +4,7 @@
 
 ``views`` (:class:`FrameViews`) is the frame's ordered candidate list and what the loop asks of
 it: one view's image in the target camera, and the next view to warp. The Renderer builds it;
-how its work is scheduled (threads, views warped ahead, views prepared in the background) is the
+how its work is scheduled (threads, views warped ahead) is the
 executor's business (:mod:`presim.synthesis.execution`) and invisible here.
 
 Stages, in order:
@@ -49,7 +49,7 @@ STAGES = ("select", "load", "warp", "crack", "composite", "holes", "resample", "
 """Keys of the per-stage milliseconds (``FrameResult.ms``, ``RenderStats.ms``)."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class ViewImage:
     """One view warped, crack-filled and composited in the target camera."""
 
@@ -181,10 +181,6 @@ class FrameViews(Protocol):
     def sources(self, warped: list[int]) -> SourceStack:
         """The source images of the views ``warped`` (backward colour sampling)."""
 
-    beside: Callable | None
-    """Optional ``beside(job) -> wait``: runs ``job`` on another thread (the executor's), for stages
-    with two independent halves (the fill); None: everything runs in the calling thread."""
-
     def exposure(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """The output exposure ``(A, b)`` predicted for an image whose pixels come from the views in
         ``source`` (int32 (H, W), -1 = none); None = keep the working exposure."""
@@ -291,8 +287,7 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         ms["blend"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     if cfg.fill_holes and hole_frac > 0:
-        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px,
-                                  beside=getattr(views, "beside", None))
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px)
     ms["fill"] = (time.perf_counter() - t) * 1e3
     if cfg.use_photometric and cfg.predict_exposure and cfg.exposure_frame is None and warped:
         t = time.perf_counter()

@@ -26,7 +26,7 @@ from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
 from presim.synthesis.config import PerfConfig, RenderConfig
-from presim.synthesis.execution import Executor, timed
+from presim.synthesis.execution import Executor
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, predict_exposure
@@ -99,7 +99,6 @@ class _FrameViews:
         self.r, self.T_world_cam, self.T_cam_world, self.K, self.grids = r, T_world_cam, T_cam_world, K, grids
         self.candidates = [int(v) for v in sel.view_idx]
         self.backend = r.perf.backend
-        self.beside = r.executor.beside
         self.levels: dict[int, int] = {}
         self.fronts: list[int] = []  # views whose front surface the loop wrote into the blend stacks
 
@@ -119,11 +118,14 @@ class _FrameViews:
             d, c, _ = blend_stacks(r.blend_buffers, r.blend_config.max_views, self.K.height, self.K.width,
                                    r.blend_config.feather_px)
             front = (d[len(self.fronts)], c[len(self.fronts)])
-        with r.executor.with_front(front):
+        if front is None:
             img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
-        if front is not None:
+        else:
+            with r.executor.with_front(front):
+                img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
             self.fronts.append(view_id)
-        return timed(img, load_ms)
+        img.load_ms = load_ms
+        return img
 
     def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
         r = self.r
@@ -391,23 +393,9 @@ class Renderer:
         return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac), stats
 
     def _schedule(self, frame: _FrameViews, stream: _Stream) -> None:
-        """Tell the executor what this frame will likely need: the later candidates not cached yet
-        (prepared in the background) and the later candidates the previous frame drew (warped ahead)."""
+        """Tell the executor what this frame will likely need: the later candidates the previous frame
+        drew (warped ahead on the helper thread)."""
         ex, later = self.executor, frame.candidates[1:self.executor.max_later]
-        if ex.cache.background:
-            levels = range(1, self._lod.levels + 1)
-            todo = [v for v in frame.candidates[1:self.config.max_views]
-                    if v not in ex.cache and not any((v, k) in ex.cache for k in levels)]
-            if todo:
-                T_cam_world, K = frame.T_cam_world, frame.K
-
-                def job(build_ahead) -> None:  # on the background thread: levels picked there
-                    grids = FrameGrids(T_cam_world, K, self.grid_points)
-                    for v in todo:
-                        lv = self.lod_level_in(v, grids)
-                        build_ahead(v if lv == 0 else (v, lv), lambda v=v, lv=lv: self._upload(self._prepare(v, lv)))
-
-                ex.prefetch(job)
         if stream.views_drawn and ex.ahead_possible(frame.K):
             drawn = set(stream.views_drawn)
             views = [ex.cache.peek(v if frame.level(v) == 0 else (v, frame.level(v))) for v in later if v in drawn]
