@@ -174,8 +174,16 @@ def tiny_run(tmp_path_factory):
 @pytest.mark.slow  # ~10 s each unloaded; the first one pays torch/numba/matplotlib start-up
 def test_three_arms_end_to_end_give_finite_metrics_and_all_outputs(tiny_run):
     _, _, out, summary = tiny_run
-    assert set(summary) == {"arms", "bins", "config"}
+    assert set(summary) == {"arms", "bins", "config", "distance_curve"}
     assert set(summary["arms"]) == set(ARMS)
+    # 6 test frames -> 3 fine bins = the terciles (same ranking): pooling the stored per-frame
+    # errors must give the terciles' RMS of every arm and seed
+    curve = summary["distance_curve"]
+    assert [b["n_frames"] for b in curve["bins"]] == [2, 2, 2]
+    for arm in ARMS:
+        got = curve["arms"][arm]["seeds"]["0"]
+        want = [summary["arms"][arm]["seeds"]["0"]["bins"][b]["rms"] for b in ("near", "mid", "far")]
+        assert got == pytest.approx(want, rel=1e-9), arm
     for arm in ARMS:
         s = summary["arms"][arm]
         for k in ("rms", "absrel", "delta1"):
@@ -183,10 +191,13 @@ def test_three_arms_end_to_end_give_finite_metrics_and_all_outputs(tiny_run):
             for b in ("near", "mid", "far"):
                 assert np.isfinite(s["bins"][b][k])
     assert sum(summary["bins"][b]["n_frames"] for b in ("near", "mid", "far")) == summary["config"]["n_test"] == 6
-    for f in ("summary.json", "report.md", "learning_curves.png", "examples.png", "timing.json"):
+    for f in ("summary.json", "report.md", "learning_curves.png", "examples.png", "timing.json",
+              "rms_vs_distance.png"):
         assert (out / f).stat().st_size > 0
     assert json.loads((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
-    assert "| capture+synth |" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "| capture+synth |" in report and "capture+synth vs capture, overall RMS" in report
+    assert summary["config"]["recipe"] == "custom"
 
 
 @pytest.mark.slow  # ~10 s each unloaded; the first one pays torch/numba/matplotlib start-up
