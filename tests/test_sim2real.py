@@ -174,8 +174,16 @@ def tiny_run(tmp_path_factory):
 @pytest.mark.slow  # ~10 s each unloaded; the first one pays torch/numba/matplotlib start-up
 def test_three_arms_end_to_end_give_finite_metrics_and_all_outputs(tiny_run):
     _, _, out, summary = tiny_run
-    assert set(summary) == {"arms", "bins", "config"}
+    assert set(summary) == {"arms", "bins", "config", "distance_curve"}
     assert set(summary["arms"]) == set(ARMS)
+    # 6 test frames -> 3 fine bins = the terciles (same ranking): pooling the stored per-frame
+    # errors must give the terciles' RMS of every arm and seed
+    curve = summary["distance_curve"]
+    assert [b["n_frames"] for b in curve["bins"]] == [2, 2, 2]
+    for arm in ARMS:
+        got = curve["arms"][arm]["seeds"]["0"]
+        want = [summary["arms"][arm]["seeds"]["0"]["bins"][b]["rms"] for b in ("near", "mid", "far")]
+        assert got == pytest.approx(want, rel=1e-9), arm
     for arm in ARMS:
         s = summary["arms"][arm]
         for k in ("rms", "absrel", "delta1"):
@@ -183,10 +191,13 @@ def test_three_arms_end_to_end_give_finite_metrics_and_all_outputs(tiny_run):
             for b in ("near", "mid", "far"):
                 assert np.isfinite(s["bins"][b][k])
     assert sum(summary["bins"][b]["n_frames"] for b in ("near", "mid", "far")) == summary["config"]["n_test"] == 6
-    for f in ("summary.json", "report.md", "learning_curves.png", "examples.png", "timing.json"):
+    for f in ("summary.json", "report.md", "learning_curves.png", "examples.png", "timing.json",
+              "rms_vs_distance.png"):
         assert (out / f).stat().st_size > 0
     assert json.loads((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
-    assert "| capture+synth |" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "| capture+synth |" in report and "capture+synth vs capture, overall RMS" in report
+    assert summary["config"]["recipe"] == "custom"
 
 
 @pytest.mark.slow  # ~10 s each unloaded; the first one pays torch/numba/matplotlib start-up
@@ -337,3 +348,106 @@ def test_cli_scene_poses_default_given(saved_toy, tmp_path, capsys):
                "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert rc == 1 and "no refined poses" in err and "\n" not in err
+
+
+# ---- recipes, finer binning, capture-density sweep, streamed frames (issue 46) -------------------
+def test_recipes_default_and_quick():
+    from presim.evaluation.sim2real.experiment import RECIPES, recipe_config, recipe_name
+
+    d, q = recipe_config("default", 9), recipe_config("quick", 9)
+    assert (d.size_wh, d.steps, d.synth, d.width) == ((160, 120), 1200, 1000, 16)
+    assert (q.size_wh, q.steps, q.synth, q.width, q.batch_real, q.batch_synth) == ((64, 48), 1000, 400, 16, 8, 8)
+    assert d == DepthExperimentConfig(capture_every=9, synth=1000)  # field defaults = the default recipe
+    assert recipe_name(d) == "default" and recipe_name(q) == "quick"
+    assert recipe_name(dataclasses.replace(q, seeds=(4,), threads=2)) == "quick"  # not part of a recipe
+    assert recipe_name(dataclasses.replace(q, steps=3)) == "custom"
+    assert recipe_config("quick", 9, steps=None, synth=7).synth == 7  # None = the recipe's value
+    assert set(RECIPES) == {"default", "quick"}
+    with pytest.raises(ValueError, match="recipe must be one of"):
+        recipe_config("huge", 9)
+
+
+def test_distance_curve_pools_per_frame_errors_by_distance():
+    from presim.evaluation.sim2real.report import distance_curve, fine_bin_count
+
+    dist = np.array([0.5, 0.1, 0.3, 0.2, 0.4, 0.6])
+    sq = [[4.0, 1.0, 0.0, 9.0, 1.0, 16.0], [0.0] * 6]
+    n = [[1, 1, 1, 1, 1, 4], [1] * 6]
+    runs = {"capture": [{"seed": s, "per_frame": {"sq_sum": sq[s], "n_pixels": n[s]}} for s in (0, 1)]}
+    c = distance_curve(runs, dist, n_bins=3)
+    # ranks by distance: (0.1, 0.2) (0.3, 0.4) (0.5, 0.6) -> frames (1, 3) (2, 4) (0, 5)
+    assert [b["n_frames"] for b in c["bins"]] == [2, 2, 2]
+    assert [b["d_median"] for b in c["bins"]] == pytest.approx([0.15, 0.35, 0.55])
+    assert c["arms"]["capture"]["seeds"]["0"] == pytest.approx([np.sqrt(10 / 2), np.sqrt(1 / 2), np.sqrt(20 / 5)])
+    assert c["arms"]["capture"]["rms"][0] == pytest.approx(np.sqrt(5) / 2)  # mean over the two seeds
+    assert c["arms"]["capture"]["rms_std"][0] == pytest.approx(np.std([np.sqrt(5), 0.0], ddof=1))
+    assert fine_bin_count(6) == 3 and fine_bin_count(160) == 10 and fine_bin_count(40) == 8
+    with pytest.raises(ValueError, match="n_bins"):
+        distance_curve(runs, dist, n_bins=7)
+
+
+def test_crossover_known_answers():
+    from presim.evaluation.sim2real.sweep import crossover, parse_capture_every_list
+
+    c = crossover([50, 10, 25], [0.15, -0.09, 0.05])  # any order: sorted by density
+    assert c["kind"] == "between" and c["between"] == [10, 25]
+    assert c["capture_every"] == pytest.approx(10 + 15 * 0.09 / 0.14)
+    assert crossover([10, 25], [0.1, 0.2])["kind"] == "helps_everywhere"
+    assert crossover([10, 25], [-0.1, 0.0])["kind"] == "hurts_everywhere"
+    assert crossover([10, 25, 50], [0.1, -0.05, 0.2])["kind"] == "mixed"
+    assert crossover([10, 25], [0.1, -0.1])["capture_every"] == pytest.approx(17.5)
+    assert parse_capture_every_list("50, 10,25") == (10, 25, 50)
+    for bad in ("10", "1,5", "a,b"):
+        with pytest.raises(ValueError, match="--sweep-capture-every"):
+            parse_capture_every_list(bad)
+
+
+def test_release_frames_keeps_memmapped_frames_readable(tmp_path):
+    from presim.capture.scene import release_frames
+
+    c = np.lib.format.open_memmap(tmp_path / "c.npy", mode="w+", dtype=np.uint8, shape=(3, 4, 5, 3))
+    d = np.lib.format.open_memmap(tmp_path / "d.npy", mode="w+", dtype=np.float32, shape=(3, 4, 5))
+    c[:] = np.arange(c.size, dtype=np.uint64).reshape(c.shape) % 251
+    d[:] = np.arange(d.size, dtype=np.float32).reshape(d.shape)
+    c.flush(), d.flush()
+    src = ArrayFrameSource(np.load(tmp_path / "c.npy", mmap_mode="r"), np.load(tmp_path / "d.npy", mmap_mode="r"))
+    before = [np.array(a) for a in src.load(2)]
+    release_frames(src)
+    assert all(np.array_equal(x, y) for x, y in zip(before, src.load(2)))  # mapped in again
+    mem = ArrayFrameSource(np.array(c), np.array(d))
+    release_frames(mem)  # in-memory arrays: nothing to drop
+    release_frames(object())  # a source without release(): a no-op
+    assert np.array_equal(mem.load(1)[1], d[1])
+
+
+@pytest.mark.slow  # two tiny experiments (~10 s unloaded)
+def test_capture_sweep_writes_gain_table_plot_and_crossover(tmp_path):
+    from presim.evaluation.sim2real.sweep import run_capture_sweep
+
+    scene = _toy()
+    res = run_capture_sweep(scene, DepthExperimentConfig(**TINY), (2, 3), tmp_path / "sw")
+    assert [r["capture_every"] for r in res["rows"]] == [2, 3]
+    assert [r["n_capture"] for r in res["rows"]] == [6, 4]
+    for r in res["rows"]:
+        s = json.loads((tmp_path / "sw" / f"every{r['capture_every']}" / "summary.json").read_text())
+        assert r["gain"] == pytest.approx(1 - s["arms"]["capture+synth"]["rms"] / s["arms"]["capture"]["rms"])
+    assert res["crossover"]["kind"] in ("between", "helps_everywhere", "hurts_everywhere", "mixed")
+    for f in ("sweep.md", "sweep.png", "sweep.json"):
+        assert (tmp_path / "sw" / f).stat().st_size > 0
+    assert res["crossover_text"] in (tmp_path / "sw" / "sweep.md").read_text().lower()
+
+
+@pytest.mark.slow  # one tiny experiment through the CLI (~5 s unloaded)
+def test_cli_quick_recipe_and_sweep_errors(saved_toy, tmp_path, capsys):
+    good, _ = saved_toy
+    out = tmp_path / "q"
+    assert main(["sim2real", "depth", str(good), "--quick", "--capture-every", "2", "--synth", "4", "--steps", "2",
+                 "--seeds", "0", "--width", "8", "--out", str(out), "--quiet"]) == 0
+    cfg = json.loads((out / "summary.json").read_text())["config"]
+    assert cfg["size_wh"] == [64, 48] and cfg["batch_real"] == 8  # --quick's values where not overridden
+    assert (out / "rms_vs_distance.png").stat().st_size > 0
+    capsys.readouterr()
+    assert main(["sim2real", "depth", str(good), "--sweep-capture-every", "2,8", "--out", str(tmp_path / "s")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "leaves 1 capture frame" in err and "\n" not in err
+    assert not (tmp_path / "s" / "every2").exists()  # checked before anything ran

@@ -13,6 +13,7 @@ where a capture came from.
 from __future__ import annotations
 
 import datetime as _dt
+import mmap
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol, Sequence
@@ -37,6 +38,7 @@ __all__ = [
     "MAX_COORD_M",
     "MAX_EXTENT_M",
     "MIN_FOV_DEG",
+    "release_frames",
 ]
 
 MAX_COORD_M = 100_000.0
@@ -116,6 +118,14 @@ class FrameSource(Protocol):
         ...
 
 
+def release_frames(source: FrameSource) -> None:
+    """Let ``source`` drop the resident pages of frames it has read (``source.release()`` where it
+    has one; a no-op otherwise). Call it while streaming over many frames of a memory-mapped scene."""
+    rel = getattr(source, "release", None)
+    if rel is not None:
+        rel()
+
+
 class ArrayFrameSource:
     """Frames held in (possibly memory-mapped) arrays: color (N,H,W,3) uint8, depth (N,H,W) float32."""
 
@@ -133,6 +143,15 @@ class ArrayFrameSource:
     def load(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(self.color[idx]), np.asarray(self.depth_m[idx])
 
+    def release(self) -> None:
+        """Drop this process's resident pages of memory-mapped arrays (they stay in the OS page
+        cache and map in again on the next read), so a pass over every frame does not keep all of
+        them resident. Arrays in memory are left alone."""
+        for a in (self.color, self.depth_m):
+            m = getattr(a, "_mmap", None)  # np.memmap's mapping (None for in-memory arrays)
+            if m is not None and hasattr(mmap, "MADV_DONTNEED"):
+                m.madvise(mmap.MADV_DONTNEED)
+
 
 class _SubsetFrameSource:
     def __init__(self, base: FrameSource, indices: Sequence[int]):
@@ -144,6 +163,9 @@ class _SubsetFrameSource:
 
     def load(self, idx: int) -> tuple[np.ndarray, np.ndarray]:
         return self.base.load(self.indices[idx])
+
+    def release(self) -> None:
+        release_frames(self.base)
 
 
 @dataclass(frozen=True)

@@ -31,17 +31,26 @@ def register(sub) -> None:
                     "batches plus synthesized views; synthesized views only) and test each on the scene's "
                     "other real frames, binned by distance to the capture. Resumes per arm and seed.")
     d.add_argument("scene", type=Path, help="saved scene folder (presim import / presim sample-scene)")
-    d.add_argument("--capture-every", type=int, required=True, metavar="N",
-                   help="capture = frames 0, N, 2N, ...; all other frames are real test frames")
-    d.add_argument("--synth", type=int, required=True, metavar="M", help="number of synthesized training views")
+    density = d.add_mutually_exclusive_group(required=True)
+    density.add_argument("--capture-every", type=int, metavar="N",
+                         help="capture = frames 0, N, 2N, ...; all other frames are real test frames")
+    density.add_argument("--sweep-capture-every", metavar="N1,N2,...",
+                         help="run the experiment at each capture density (DIR/every<N>/) and plot the gain of "
+                              "capture+synth over capture against the density (DIR/sweep.md, sweep.png)")
     d.add_argument("--out", type=Path, required=True, help="output folder (created; rerun to resume)")
-    d.add_argument("--steps", type=int, default=1000, help="optimiser steps per arm and seed")
+    d.add_argument("--quick", action="store_true",
+                   help="the small recipe for tests and demos: 64x48, 1000 steps, --synth 400 (about a quarter "
+                        "of the CPU time per step; smaller gain); flags below override either recipe")
+    d.add_argument("--synth", type=int, metavar="M",
+                   help="number of synthesized training views (default: 1000; --quick: 400)")
+    d.add_argument("--steps", type=int, help="optimiser steps per arm and seed (default: 1200; --quick: 1000)")
     d.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds")
-    d.add_argument("--size", type=_size, default=(64, 48), metavar="WxH", help="model input size (default 64x48)")
-    d.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device")
-    d.add_argument("--width", type=int, default=16, help="encoder channel width (64 = ResNet-18's)")
-    d.add_argument("--batch-real", type=int, default=8, help="real capture frames per step")
-    d.add_argument("--batch-synth", type=int, default=8, help="synthesized views per step")
+    d.add_argument("--size", type=_size, metavar="WxH", help="model input size (default: 160x120; --quick: 64x48)")
+    d.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                   help="torch device of the training (rendering stays on the CPU); cpu is the tested path")
+    d.add_argument("--width", type=int, help="encoder channel width (default: 16; 64 = ResNet-18's)")
+    d.add_argument("--batch-real", type=int, help="real capture frames per step (default: 8)")
+    d.add_argument("--batch-synth", type=int, help="synthesized views per step (default: 8)")
     d.add_argument("--lr", type=float, default=1e-3, help="Adam peak learning rate")
     d.add_argument("--schedule", default="cosine", choices=("cosine", "constant"),
                    help="learning-rate schedule: cosine = 5%% linear warm-up, then cosine decay to 1%% of --lr")
@@ -64,7 +73,9 @@ def register(sub) -> None:
 
 def _depth(args: argparse.Namespace) -> int:
     from presim.capture.store import is_scene_dir, load_scene
-    from presim.evaluation.sim2real.experiment import DepthExperimentConfig, far_gap, run_depth_experiment
+    from presim.evaluation.sim2real.experiment import recipe_config, run_depth_experiment
+    from presim.evaluation.sim2real.report import far_gap, overall_change
+    from presim.evaluation.sim2real.sweep import parse_capture_every_list, run_capture_sweep
 
     if not args.scene.exists():
         raise FileNotFoundError(f"{args.scene}: scene folder not found")
@@ -72,28 +83,41 @@ def _depth(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.scene}: not a saved scene (no scene.json); import it with `presim import`")
     from presim.limits import check_memory, check_positive, check_positive_int
 
-    for flag in ("steps", "width", "batch_real", "batch_synth", "threads", "capture_every"):
-        check_positive_int(getattr(args, flag), "--" + flag.replace("_", "-"), allow_none=False)
+    for flag in ("steps", "width", "batch_real", "batch_synth", "capture_every"):
+        check_positive_int(getattr(args, flag), "--" + flag.replace("_", "-"), allow_none=True)
+    check_positive_int(args.threads, "--threads", allow_none=False)
     check_positive(args.lr, "--lr", allow_none=False)
-    w, h = args.size
+    sweep = parse_capture_every_list(args.sweep_capture_every) if args.sweep_capture_every else None
+    cfg = recipe_config("quick" if args.quick else "default",
+                        capture_every=args.capture_every if sweep is None else sweep[0],
+                        synth=args.synth, steps=args.steps, size_wh=None if args.size is None else tuple(args.size),
+                        width=args.width, batch_real=args.batch_real, batch_synth=args.batch_synth,
+                        seeds=tuple(dict.fromkeys(args.seeds)), lr=args.lr, device=args.device,
+                        threads=args.threads, pose_seed=args.pose_seed, refine=args.refine,
+                        schedule=args.schedule, real_labels=args.real_labels)
+    w, h = cfg.size_wh
     if w > 1280 or h > 960:
         raise ValueError(f"--size {w}x{h}: at most 1280x960 (the model runs at a reduced size)")
-    cfg = DepthExperimentConfig(capture_every=args.capture_every, synth=args.synth, steps=args.steps,
-                                seeds=tuple(dict.fromkeys(args.seeds)), size_wh=tuple(args.size),
-                                batch_real=args.batch_real, batch_synth=args.batch_synth, width=args.width,
-                                lr=args.lr, device=args.device, threads=args.threads, pose_seed=args.pose_seed,
-                                refine=args.refine, schedule=args.schedule, real_labels=args.real_labels)
     scene = load_scene(args.scene, poses=args.scene_poses)
-    # Frames and views at the model size (uint8 RGB + float32 depth, ~2x for copies) plus training
-    # activations (~40 floats per pixel per channel of width, forward + backward).
-    frames = len(scene) + max(args.synth, 0)
-    est = 2 * frames * w * h * 7 + (args.batch_real + args.batch_synth) * w * h * args.width * 160
-    check_memory(est, "--size/--synth", f"sim2real depth at {w}x{h} with {args.synth} views", args.max_memory)
+    # Model-size frames and views (uint8 RGB + float32 depth, with left-right flips in the training
+    # pool: ~2x) plus training activations (~40 floats per pixel per channel of width, forward +
+    # backward). Full-size frames are streamed, not held.
+    frames = len(scene) + cfg.synth
+    est = 2 * frames * w * h * 7 + (cfg.batch_real + cfg.batch_synth) * w * h * cfg.width * 160
+    check_memory(est, "--size/--synth", f"sim2real depth at {w}x{h} with {cfg.synth} views", args.max_memory)
+    if sweep is not None:
+        res = run_capture_sweep(scene, cfg, sweep, args.out, scene_label=str(args.scene), restart=args.restart)
+        for r in res["rows"]:
+            print(f"every {r['capture_every']:3d}: capture {r['rms']['capture']:.3f}  capture+synth "
+                  f"{r['rms']['capture+synth']:.3f}  synth {r['rms']['synth']:.3f} m  gain {r['gain'] * 100:+.1f} %")
+        print(res["crossover_text"])
+        print(f"wrote {args.out}/sweep.md, sweep.png, sweep.json and every<N>/")
+        return 0
     summary = run_depth_experiment(scene, cfg, args.out, scene_label=str(args.scene), restart=args.restart)
     for arm, s in summary["arms"].items():
         sd = "" if s["rms_std"] is None else f" ± {s['rms_std']:.3f}"
         print(f"{arm:14s} RMS {s['rms']:.3f}{sd} m  AbsRel {s['absrel']:.3f}  "
               f"δ1 {s['delta1']:.3f}  far RMS {s['bins']['far']['rms']:.3f} m")
-    print(json.dumps({"far_bin": far_gap(summary)}))
-    print(f"wrote {args.out}/summary.json, report.md, learning_curves.png, examples.png")
+    print(json.dumps({"overall": overall_change(summary), "far_bin": far_gap(summary)}))
+    print(f"wrote {args.out}/summary.json, report.md, rms_vs_distance.png, learning_curves.png, examples.png")
     return 0

@@ -1,6 +1,6 @@
 """The sim2real depth experiment (thesis §4.5, Table 4.3) as one pure-ish entry function:
 
-    run_depth_experiment(scene, DepthExperimentConfig(capture_every=12, synth=200), out_dir)
+    run_depth_experiment(scene, recipe_config("default", capture_every=9), out_dir)
 
 1. Split (:func:`split.split_capture`): capture = every N-th frame, test = all others, binned by pose
    distance to the nearest capture frame.
@@ -39,38 +39,42 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from presim.capture.scene import Scene
+from presim.capture.scene import Scene, release_frames
 from presim.depth.scene_refine import refine_frames_to_file
 from presim.evaluation.sim2real.metrics import DepthErrorSums
+from presim.evaluation.sim2real.report import distance_curve, far_gap, report_markdown, write_figures
 from presim.evaluation.sim2real.split import BINS, CaptureSplit, SynthPoseConfig, split_capture, synth_poses
 from presim.io_utils import atomic_write_bytes, atomic_write_json, atomic_write_text, progress
 from presim.synthesis.renderer import RenderConfig, Renderer
 
-__all__ = ["ARMS", "DepthExperimentConfig", "ExperimentMismatch", "code_version", "lr_factor", "TestSet", "TrainingSet", "build_training_set", "capture_subscene",
+__all__ = ["ARMS", "RECIPES", "DepthExperimentConfig", "recipe_config", "recipe_name", "ExperimentMismatch", "code_version", "lr_factor", "TestSet", "TrainingSet", "build_training_set", "capture_subscene",
            "far_gap", "load_test_set", "refine_capture", "run_depth_experiment", "train_arm"]
 
 ARMS = ("capture", "capture+synth", "synth")
 SCHEDULES = ("cosine", "constant")
 REAL_LABELS = ("rendered", "sensor")
-EXPERIMENT_VERSION = 2
-"""Bumped when the protocol changes (2: cosine schedule, rendered capture labels, pre-built batches)."""
+EXPERIMENT_VERSION = 3
+"""Bumped when the protocol changes (2: cosine schedule, rendered capture labels, pre-built batches;
+3: per-test-frame errors in the run files)."""
 _ARM_FILE = {"capture": "capture", "capture+synth": "capture_synth", "synth": "synth"}
 
 
 @dataclass(frozen=True)
 class DepthExperimentConfig:
-    """Everything that decides the numbers of one experiment (the quick setting is the default)."""
+    """Everything that decides the numbers of one experiment (field defaults = the ``default``
+    recipe of :data:`RECIPES`; ``recipe_config("quick", ...)`` gives the small one)."""
 
     capture_every: int
     """Capture = scene frames 0, N, 2N, ...; all others are real test frames."""
     synth: int
     """M: number of synthesized training views."""
-    steps: int = 1000
-    """Optimiser steps per arm and seed (the quick setting; docs/sim2real.md)."""
+    steps: int = 1200
+    """Optimiser steps per arm and seed (docs/sim2real.md: why 1200)."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Training seeds (weights init, batch order, flips); the synthesized poses use ``pose_seed``."""
-    size_wh: tuple[int, int] = (64, 48)
-    """Model input/output size (images are resized; intrinsics scaled)."""
+    size_wh: tuple[int, int] = (160, 120)
+    """Model input/output size (images are resized; intrinsics scaled). At 64x48 the network is too
+    coarse to use new viewpoints (docs/sim2real.md)."""
     batch_real: int = 8
     """Real capture frames per step (arms capture and capture+synth)."""
     batch_synth: int = 8
@@ -142,6 +146,35 @@ class DepthExperimentConfig:
                       hashlib.sha1(T.tobytes()).hexdigest()[:16]]
         d["code"] = code_version()
         return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+RECIPES: dict[str, dict] = {
+    "default": dict(synth=1000, steps=1200, size_wh=(160, 120), width=16, batch_real=8, batch_synth=8),
+    "quick": dict(synth=400, steps=1000, size_wh=(64, 48), width=16, batch_real=8, batch_synth=8),
+}
+"""Named recipes (docs/sim2real.md, "Measured"): ``default`` shows the effect of synthesized views
+on sparse captures; ``quick`` (``--quick``) is the small recipe for tests and demos (about a quarter
+of the CPU time per step; its gain is smaller)."""
+
+
+def recipe_config(name: str, capture_every: int, **overrides) -> DepthExperimentConfig:
+    """The :class:`DepthExperimentConfig` of recipe ``name`` with ``overrides`` (None values ignored)."""
+    if name not in RECIPES:
+        raise ValueError(f"recipe must be one of {', '.join(RECIPES)}, got {name!r}")
+    kw = dict(RECIPES[name])
+    kw.update({k: v for k, v in overrides.items() if v is not None})
+    return DepthExperimentConfig(capture_every=capture_every, **kw)
+
+
+def recipe_name(cfg: DepthExperimentConfig) -> str:
+    """The name of the recipe whose settings ``cfg`` has (any ``capture_every``), else ``custom``."""
+    d = asdict(cfg)
+    for name, kw in RECIPES.items():
+        ref = asdict(DepthExperimentConfig(capture_every=cfg.capture_every, seeds=cfg.seeds, threads=cfg.threads,
+                                           device=cfg.device, **kw))
+        if ref == d:
+            return name
+    return "custom"
 
 
 def code_version() -> str:
@@ -269,11 +302,14 @@ def build_training_set(capture_scene: Scene, cfg: DepthExperimentConfig, cache: 
     K = capture_scene.intrinsics[0].scaled(W, H)
     renderer = Renderer(capture_scene, render_config)
     t0, c0 = time.perf_counter(), time.process_time()
-    s_rgb, s_dep = _render_views(renderer, poses, K, W, H, "synthesize")
-    real = sensor
-    if rendered_labels:
-        _, real = _render_views(renderer, np.asarray(capture_scene.T_world_cam, np.float64), K, W, H,
-                                "capture labels")
+    try:
+        s_rgb, s_dep = _render_views(renderer, poses, K, W, H, "synthesize")
+        real = sensor
+        if rendered_labels:
+            _, real = _render_views(renderer, np.asarray(capture_scene.T_world_cam, np.float64), K, W, H,
+                                    "capture labels")
+    finally:
+        renderer.close()
     secs, cpu = time.perf_counter() - t0, time.process_time() - c0
     if cache is not None:
         buf = io.BytesIO()
@@ -292,36 +328,57 @@ class TestSet:
     bin_of: np.ndarray
     example_rows: np.ndarray
     """Rows shown in the example figure: the median-distance frame of each bin."""
+    dist: np.ndarray | None = None
+    """(T,) combined pose distance of each test frame to the capture (``CaptureSplit.dist``)."""
+
+
+RELEASE_EVERY = 16
+"""Frames read between two :func:`release_frames` calls while streaming the test frames."""
 
 
 def load_test_set(scene: Scene, split: CaptureSplit, size_wh: tuple[int, int]) -> TestSet:
-    """The test frames' images and sensor depth. Used only to measure the trained models."""
-    rgb, dep = [], []
-    for i in split.test_idx:
+    """The test frames' images and sensor depth. Used only to measure the trained models.
+
+    Streams: each frame is read, resized into the preallocated model-size arrays, and the source's
+    resident pages are dropped every :data:`RELEASE_EVERY` frames, so memory holds the model-size
+    test set, not the full-size frames (a memory-mapped scene of 1000 VGA frames is ~2 GB)."""
+    W, H = size_wh
+    n = len(split.test_idx)
+    rgb = np.empty((n, H, W, 3), np.uint8)
+    depth = np.empty((n, H, W), np.float32)
+    for k, i in enumerate(split.test_idx):
         c, d = scene.frames.load(int(i))
-        c, d = _resize(c, d, size_wh)
-        rgb.append(c)
-        dep.append(d)
-    depth = np.stack(dep)
+        rgb[k], depth[k] = _resize(c, d, size_wh)
+        if k % RELEASE_EVERY == RELEASE_EVERY - 1:
+            release_frames(scene.frames)
+    release_frames(scene.frames)
     if not (depth > 0).any():
         raise ValueError("the scene's test frames have no valid sensor depth: nothing to test against")
     ex = []
     for b in range(len(BINS)):
         rows = np.flatnonzero(split.bin_of == b)
         ex.append(rows[np.argsort(split.dist[rows], kind="stable")[len(rows) // 2]])
-    return TestSet(np.stack(rgb), depth, split.bin_of, np.array(ex))
+    return TestSet(rgb, depth, split.bin_of, np.array(ex), split.dist)
 
 
 def _pool(rgb: np.ndarray, depth: np.ndarray, device):
-    """Images (2N, 3, H, W) float in [0, 1], channels-last, and labels (2N, 1, H, W) on ``device``:
-    rows 0..N-1 as given, rows N..2N-1 flipped left-right (a flipped sample is row i + N)."""
+    """Images (2N, H, W, 3) uint8 and labels (2N, 1, H, W) float32 on ``device``: rows 0..N-1 as
+    given, rows N..2N-1 flipped left-right (a flipped sample is row i + N). Images stay uint8 (a
+    quarter of the memory of floats); :func:`_as_input` converts each batch."""
     import torch
 
     rgb2 = np.concatenate([rgb, rgb[:, :, ::-1]])
     dep2 = np.concatenate([depth, depth[:, :, ::-1]])
-    x = torch.from_numpy(np.ascontiguousarray(rgb2)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+    x = torch.from_numpy(np.ascontiguousarray(rgb2)).to(device)
     y = torch.from_numpy(np.ascontiguousarray(dep2, dtype=np.float32)).to(device)[:, None]
-    return x.contiguous(memory_format=torch.channels_last), y
+    return x, y
+
+
+def _as_input(rgb_u8):
+    """uint8 (B, H, W, 3) tensor -> float (B, 3, H, W) in [0, 1], channels-last memory."""
+    import torch
+
+    return rgb_u8.permute(0, 3, 1, 2).float().div_(255.0).contiguous(memory_format=torch.channels_last)
 
 
 def batch_rows(arm: str, seed: int, n_real: int, n_synth: int, cfg: DepthExperimentConfig) -> np.ndarray:
@@ -345,20 +402,26 @@ def _predict(net, rgb: np.ndarray, device, batch: int = 32) -> np.ndarray:
     out = []
     with torch.no_grad():
         for a in range(0, len(rgb), batch):
-            x = torch.from_numpy(rgb[a:a + batch]).to(device).permute(0, 3, 1, 2).float() / 255.0
-            x = x.contiguous(memory_format=torch.channels_last)
-            out.append(net(x)[:, 0].cpu().numpy())
+            out.append(net(_as_input(torch.from_numpy(rgb[a:a + batch]).to(device)))[:, 0].cpu().numpy())
     net.train()
     return np.concatenate(out)
 
 
 def _evaluate(pred: np.ndarray, test: TestSet, max_depth_m: float) -> dict:
+    """Pooled metrics overall and per bin, plus each test frame's squared-error sum and pixel count
+    (``per_frame``: any other binning of the test frames pools these)."""
     overall = DepthErrorSums()
     per = {b: DepthErrorSums() for b in BINS}
+    sq, n = [], []
     for k in range(len(pred)):
-        overall.add(pred[k], test.depth[k], max_depth_m=max_depth_m)
-        per[BINS[test.bin_of[k]]].add(pred[k], test.depth[k], max_depth_m=max_depth_m)
-    return {"overall": overall.result(), "bins": {b: s.result() for b, s in per.items()}}
+        f = DepthErrorSums()
+        f.add(pred[k], test.depth[k], max_depth_m=max_depth_m)
+        overall.merge(f)
+        per[BINS[test.bin_of[k]]].merge(f)
+        sq.append(f.sq)
+        n.append(f.n)
+    return {"overall": overall.result(), "bins": {b: s.result() for b, s in per.items()},
+            "per_frame": {"sq_sum": sq, "n_pixels": n}}
 
 
 def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet,
@@ -385,7 +448,8 @@ def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet,
     # index tensor per step (no per-step numpy work or host copies).
     rx, ry = _pool(data.real_rgb, data.real_depth, device)
     sx, sy = _pool(data.synth_rgb, data.synth_depth, device)
-    pool_x, pool_y = torch.cat([rx, sx]).contiguous(memory_format=torch.channels_last), torch.cat([ry, sy])
+    pool_x, pool_y = torch.cat([rx, sx]), torch.cat([ry, sy])
+    del rx, sx, ry, sy
     rows = torch.from_numpy(batch_rows(arm, seed, len(data.real_rgb), len(data.synth_rgb), cfg)).to(device)
     checkpoints = sorted({int(round(s)) for s in np.linspace(0, cfg.steps, cfg.eval_points + 1)[1:]})
     losses = torch.zeros(cfg.steps, dtype=torch.float64)
@@ -393,19 +457,22 @@ def train_arm(arm: str, seed: int, data: TrainingSet, test: TestSet,
     t0, c0 = time.perf_counter(), time.process_time()
     for step in progress(range(1, cfg.steps + 1), desc=f"{arm} seed {seed}", unit="step"):
         r = rows[step - 1]
-        loss = depth_loss(net(pool_x.index_select(0, r)), pool_y.index_select(0, r))
+        loss = depth_loss(net(_as_input(pool_x.index_select(0, r))), pool_y.index_select(0, r))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         sched.step()
         losses[step - 1] = loss.detach().to("cpu", torch.float64)
-        if step in checkpoints:
+        if step in checkpoints and step != cfg.steps:  # the last model is measured below
             m = _evaluate(_predict(net, test.rgb, device), test, cfg.max_depth_m)
             curve.append({"step": step, "rms": m["overall"]["rms"], "lr": opt.param_groups[0]["lr"],
                           **{f"rms_{b}": m["bins"][b]["rms"] for b in BINS}})
     train_s, train_cpu = time.perf_counter() - t0, time.process_time() - c0
     pred = _predict(net, test.rgb, device)
     metrics = _evaluate(pred, test, cfg.max_depth_m)
+    if cfg.steps in checkpoints:
+        curve.append({"step": cfg.steps, "rms": metrics["overall"]["rms"], "lr": opt.param_groups[0]["lr"],
+                      **{f"rms_{b}": metrics["bins"][b]["rms"] for b in BINS}})
     result = {"arm": arm, "seed": seed, **metrics, "train_loss": losses.tolist(), "test_curve": curve,
               "train_seconds": train_s, "train_cpu_seconds": train_cpu, "steps": cfg.steps}
     return result, pred[test.example_rows]
@@ -436,7 +503,8 @@ class ExperimentMismatch(ValueError):
     """DIR holds results of another configuration, scene or code version."""
 
 
-_RESULT_FILES = ("summary.json", "report.md", "learning_curves.png", "examples.png", "timing.json")
+_RESULT_FILES = ("summary.json", "report.md", "learning_curves.png", "examples.png", "timing.json",
+                 "rms_vs_distance.png")
 
 
 def _claim_dir(out: Path, cfg: DepthExperimentConfig, fp: str, restart: bool) -> None:
@@ -509,7 +577,7 @@ def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str 
     bins["edges"] = {"near_mid": split.bin_edges[0], "mid_far": split.bin_edges[1],
                      "distance": "t / 0.10 m + r / 10 deg to the nearest capture frame; bins = terciles"}
     config = asdict(cfg)
-    config.update({"scene": scene_label or str(scene.path or scene.meta.source), "n_frames": len(scene),
+    config.update({"recipe": recipe_name(cfg), "scene": scene_label or str(scene.path or scene.meta.source), "n_frames": len(scene),
                    "n_capture": int(len(split.capture_idx)), "n_test": int(len(split.test_idx)),
                    "synth_valid_frac": float((data.synth_depth > 0).mean()),
                    "real_valid_frac": float((data.real_depth > 0).mean()),
@@ -522,7 +590,8 @@ def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str 
                               "depth; synth: rendered depth where synthesized (filled pixels unlabelled) from "
                               "the same depth; test: sensor depth"),
                    "metrics": "pooled over valid test pixels (0 < gt <= max_depth_m) at the model size"})
-    summary = {"arms": {a: _aggregate(runs[a]) for a in ARMS}, "bins": bins, "config": config}
+    summary = {"arms": {a: _aggregate(runs[a]) for a in ARMS}, "bins": bins, "config": config,
+               "distance_curve": distance_curve(runs, test.dist)}
     timing = {"synthesize_s": data.synth_seconds, "synthesize_cpu_s": data.synth_cpu_seconds,
               "synth_views": cfg.synth,
               "train_s": {a: [r["train_seconds"] for r in runs[a]] for a in ARMS},
@@ -530,100 +599,8 @@ def run_depth_experiment(scene: Scene, cfg: DepthExperimentConfig, out_dir: str 
               "this_invocation_s": time.perf_counter() - t_all,
               "this_invocation_cpu_s": time.process_time() - c_all,
               "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg())}
-    _write_figures(out, runs, examples, test, cfg)
+    write_figures(out, summary, runs, examples, test, cfg.steps, cfg.seeds, cfg.max_depth_m)
     atomic_write_json(out / "timing.json", timing)
-    atomic_write_text(out / "report.md", _report(summary, timing))
+    atomic_write_text(out / "report.md", report_markdown(summary, timing))
     atomic_write_json(out / "summary.json", summary)
     return summary
-
-
-def far_gap(summary: dict) -> dict:
-    """Far-bin RMS of capture+synth vs capture: relative change (negative = better) and seed spreads."""
-    a, b = summary["arms"]["capture"]["bins"]["far"], summary["arms"]["capture+synth"]["bins"]["far"]
-    return {"rms_capture": a["rms"], "rms_capture_synth": b["rms"], "rel_change": b["rms"] / a["rms"] - 1.0,
-            "gap_m": a["rms"] - b["rms"], "std_capture": a["rms_std"], "std_capture_synth": b["rms_std"]}
-
-
-def _pm(mean: float, std: float | None) -> str:
-    return f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}"
-
-
-def _report(summary: dict, timing: dict) -> str:
-    c = summary["config"]
-    lines = [f"# sim2real depth: {c['scene']}", "",
-             f"capture every {c['capture_every']} -> {c['n_capture']} capture / {c['n_test']} test frames; "
-             f"M = {c['synth']} synthesized views; {c['steps']} steps; seeds {list(c['seeds'])}; "
-             f"size {c['size_wh'][0]}x{c['size_wh'][1]}; batch {c['batch_real']} real + {c['batch_synth']} synth.",
-             "", "| arm | RMS (m) | AbsRel | δ<1.25 | RMS near | RMS mid | RMS far |", "|---|---|---|---|---|---|---|"]
-    for a, s in summary["arms"].items():
-        cells = [_pm(s[k], s[f"{k}_std"]) for k in ("rms", "absrel", "delta1")]
-        cells += [_pm(s["bins"][b]["rms"], s["bins"][b]["rms_std"]) for b in BINS]
-        lines.append(f"| {a} | " + " | ".join(cells) + " |")
-    lines += ["", "| bin | frames | distance | median t (m) | median r (deg) |", "|---|---|---|---|---|"]
-    for b in BINS:
-        d = summary["bins"][b]
-        lines.append(f"| {b} | {d['n_frames']} | {d['dist_min']:.2f}-{d['dist_max']:.2f} | "
-                     f"{d['trans_m_median']:.3f} | {d['rot_deg_median']:.1f} |")
-    g = far_gap(summary)
-    spread = ("one seed: no spread measured" if g["std_capture"] is None else
-              f"seed std {g['std_capture_synth']:.3f} / {g['std_capture']:.3f} m")
-    lines += ["", ("Values: mean ± sample std over seeds." if len(c["seeds"]) > 1 else "Values: one seed."),
-              f"Far bin: capture+synth vs capture RMS {g['rel_change'] * 100:+.1f} % "
-              f"({g['rms_capture_synth']:.3f} vs {g['rms_capture']:.3f} m; {spread}).",
-              f"Synthesizing {timing['synth_views']} views (+ capture-pose labels when rendered): "
-              f"{timing['synthesize_s']:.1f} s wall, {timing['synthesize_cpu_s']:.1f} s CPU; training per arm "
-              f"and seed (s wall): " + ", ".join(f"{a} {np.mean(v):.0f}" for a, v in timing["train_s"].items())
-              + f"; this invocation {timing['this_invocation_s']:.0f} s wall, "
-              f"{timing['this_invocation_cpu_s']:.0f} s CPU (load average at start "
-              f"{timing['loadavg_start'][0]:.1f}, end {timing['loadavg_end'][0]:.1f}).",
-              ""]
-    return "\n".join(lines)
-
-
-def _save_fig(fig, path: Path) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def _write_figures(out: Path, runs: dict, examples: dict, test: TestSet, cfg: DepthExperimentConfig) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    win = max(1, cfg.steps // 30)
-    for arm, rs in runs.items():
-        L = np.mean([r["train_loss"] for r in rs], axis=0)
-        sm = np.convolve(L, np.ones(win) / win, mode="valid")
-        ax[0].plot(np.arange(len(sm)) + win, sm, label=arm)
-        steps = [p["step"] for p in rs[0]["test_curve"]]
-        rms = np.mean([[p["rms"] for p in r["test_curve"]] for r in rs], axis=0)
-        ax[1].plot(steps, rms, "o-", label=arm)
-    ax[0].set(xlabel="step", ylabel="training loss (mean over seeds, smoothed)", yscale="log")
-    ax[1].set(xlabel="step", ylabel="test RMS (m), all bins")
-    for a in ax:
-        a.legend()
-        a.grid(alpha=0.3)
-    fig.tight_layout()
-    _save_fig(fig, out / "learning_curves.png")
-    plt.close(fig)
-
-    cols = ["image", "real depth"] + list(ARMS)
-    fig, ax = plt.subplots(len(BINS), len(cols), figsize=(2.6 * len(cols), 2.2 * len(BINS)), squeeze=False)
-    for r, row in enumerate(test.example_rows):
-        gt = test.depth[row]
-        vmax = float(gt[gt > 0].max()) if (gt > 0).any() else cfg.max_depth_m
-        imgs = [test.rgb[row], np.ma.masked_where(gt <= 0, gt)] + [examples[a][r] for a in ARMS]
-        for c, img in enumerate(imgs):
-            a = ax[r, c]
-            a.imshow(img) if c == 0 else a.imshow(img, cmap="turbo", vmin=0, vmax=vmax)
-            a.set_xticks([])
-            a.set_yticks([])
-            if r == 0:
-                a.set_title(cols[c] + ("" if c < 2 else f" (seed {cfg.seeds[0]})"), fontsize=9)
-        ax[r, 0].set_ylabel(BINS[r])
-    fig.tight_layout()
-    _save_fig(fig, out / "examples.png")
-    plt.close(fig)

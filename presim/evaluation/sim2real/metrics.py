@@ -38,6 +38,13 @@ class DepthErrorSums:
         self.rel += float((np.abs(p - g) / g).sum())
         self.d1 += int((np.maximum(p / g, g / p) < 1.25).sum())
 
+    def merge(self, other: "DepthErrorSums") -> None:
+        """Add another group's sums (pooling: the result is as if its pixels had been added here)."""
+        self.n += other.n
+        self.sq += other.sq
+        self.rel += other.rel
+        self.d1 += other.d1
+
     def result(self) -> dict:
         if self.n == 0:
             return {"rms": float("nan"), "absrel": float("nan"), "delta1": float("nan"), "n_pixels": 0}
