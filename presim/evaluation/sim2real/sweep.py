@@ -62,11 +62,11 @@ def crossover(capture_every: list[int], gain: list[float]) -> dict:
 
 def _crossover_text(c: dict) -> str:
     if c["kind"] == "helps_everywhere":
-        return (f"synthesized views help at every density measured; the crossover is denser than every "
-                f"{c['densest']}th frame")
+        return (f"synthesized views help at every density measured; the crossover is at a denser capture "
+                f"than every {c['densest']} frames")
     if c["kind"] == "hurts_everywhere":
-        return f"synthesized views help at no density measured (sparsest: every {c['sparsest']}th frame)"
-    s = (f"crossover at a capture of about every {c['capture_every']:.1f}th frame (gain crosses zero between "
+        return f"synthesized views help at no density measured (sparsest: every {c['sparsest']} frames)"
+    s = (f"crossover at a capture of about every {c['capture_every']:.1f} frames (the gain crosses zero between "
          f"every {c['between'][0]} and every {c['between'][1]}; linear interpolation)")
     return s if c["kind"] == "between" else s + "; the gain changes sign more than once"
 
