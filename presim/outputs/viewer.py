@@ -24,7 +24,6 @@ Modes (all bind 127.0.0.1 only; we start the ``rerun`` binary ourselves because 
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -37,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from presim.outputs.frames import BASE_FRAME, build_frame_tree
-from presim.procs import die_with_parent
+from presim.procs import die_with_parent, stop_group
 from presim.sim.types import SimInfo, StepResult
 
 __all__ = ["ViewerConfig", "RerunViewer", "LinkVisual", "robot_visuals", "viewer_blueprint", "web_viewer_url",
@@ -297,17 +296,7 @@ class RerunViewer:
         p, self.process = self.process, None
         if p is None or (self.mode == "native" and not force):  # the window outlives the run, like rr.spawn
             return
-        # Own process group (start_new_session): stop the server and anything it started.
-        for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            try:
-                os.killpg(p.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                p.wait(wait_s)
-                break
-            except subprocess.TimeoutExpired:
-                continue
+        stop_group(p)  # own process group (start_new_session): the server and anything it started
 
     # -- Sink ----------------------------------------------------------------------------------
     def open(self, info: SimInfo) -> None:
