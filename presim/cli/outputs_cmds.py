@@ -12,14 +12,8 @@ from pathlib import Path
 LAUNCH_DIR = Path(__file__).resolve().parents[1] / "outputs" / "launch"
 
 
-def register(sub) -> None:
-    p = sub.add_parser(
-        "ros", help="run the simulator as a ROS 1 node (images, tf, odom, /clock; /cmd_vel in)",
-        description="Run SCENE with a robot as a ROS 1 node: publishes color/depth/camera_info, tf, odom, "
-                    "path, joint_states and /clock (sim time), latches the scene cloud on /map_cloud, "
-                    "takes /cmd_vel and /joint_command, serves /presim/reset and /presim/teleport. "
-                    "Starts a roscore on ROS_MASTER_URI (default http://127.0.0.1:11311) when none runs. "
-                    "Topics and frames: docs/ros.md.")
+def add_node_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments every ROS node command shares (``presim ros``, ``presim ros2``)."""
     p.add_argument("scene", type=Path, help="saved scene folder")
     p.add_argument("--robot", default=None,
                    help="URDF file, 'default' (presim_bot) or 'free' (camera rig); default: by scene")
@@ -30,6 +24,17 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the start pose (and of /presim/reset)")
     p.add_argument("--real-time-factor", type=float, default=1.0,
                    help="sim seconds per wall second (0 = as fast as possible)")
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "ros", help="run the simulator as a ROS 1 node (images, tf, odom, /clock; /cmd_vel in)",
+        description="Run SCENE with a robot as a ROS 1 node: publishes color/depth/camera_info, tf, odom, "
+                    "path, joint_states and /clock (sim time), latches the scene cloud on /map_cloud, "
+                    "takes /cmd_vel and /joint_command, serves /presim/reset and /presim/teleport. "
+                    "Starts a roscore on ROS_MASTER_URI (default http://127.0.0.1:11311) when none runs. "
+                    "Topics and frames: docs/ros.md.")
+    add_node_arguments(p)
     p.add_argument("--host", default="127.0.0.1", help="ROS_IP / ROS_HOSTNAME of the node (default loopback)")
     p.add_argument("--master-port", type=int, default=None,
                    help="port of the ROS master when ROS_MASTER_URI is unset (default 11311)")

@@ -7,6 +7,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from presim.cli.outputs_cmds import add_node_arguments
 from presim.cli.sim_cmds import REALTIME_RENDER_BUDGET_MS
 
 
@@ -19,16 +20,7 @@ def register(sub) -> None:
                     "(transient local); takes /cmd_vel, /joint_command and /initialpose; serves /presim/reset "
                     "and /presim/teleport. Discovery stays on this host unless ROS_AUTOMATIC_DISCOVERY_RANGE "
                     "is set. Topics, QoS and frames: docs/ros2.md.")
-    p.add_argument("scene", type=Path, help="saved scene folder")
-    p.add_argument("--robot", default=None,
-                   help="URDF file, 'default' (presim_bot) or 'free' (camera rig); default: by scene")
-    p.add_argument("--rate-hz", type=float, default=10.0,
-                   help="step and camera rate: sim dt = 1/rate, one RGB-D frame per step (default 10)")
-    p.add_argument("--width", type=int, default=640, help="camera image width")
-    p.add_argument("--height", type=int, default=480, help="camera image height")
-    p.add_argument("--seed", type=int, default=0, help="seed of the start pose (and of /presim/reset)")
-    p.add_argument("--real-time-factor", type=float, default=1.0,
-                   help="sim seconds per wall second (0 = as fast as possible)")
+    add_node_arguments(p)
     p.add_argument("--render-budget-ms", type=float, default=REALTIME_RENDER_BUDGET_MS,
                    help="stop adding capture views to a camera frame after this many ms (0 = the full "
                         "adaptive loop)")
