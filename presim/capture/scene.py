@@ -301,6 +301,9 @@ class Scene:
     depth_fused: np.ndarray | None = None
     """(N, H, W) float32 sensor depth aligned to and fused with the refined depth (``presim fuse``,
     thesis §5.3.4), memory-mapped when loaded; None if absent."""
+    depth_completed: np.ndarray | None = None
+    """(N, H, W) float32 depth completed where the depth the renderer uses has none (``presim complete``,
+    :mod:`presim.depth.complete`; 0 elsewhere), memory-mapped when loaded; None if absent."""
     path: Path | None = None
     """Folder of the saved scene (None until saved/loaded)."""
     poses_source: str = "given"
@@ -412,6 +415,7 @@ class Scene:
             frames=_SubsetFrameSource(self.frames, idx),
             depth_refined=None if self.depth_refined is None else _LazyRows(self.depth_refined, idx),
             depth_fused=None if self.depth_fused is None else _LazyRows(self.depth_fused, idx),
+            depth_completed=None if self.depth_completed is None else _LazyRows(self.depth_completed, idx),
             path=None,
         )
 

@@ -8,6 +8,7 @@ Layout (format ``presim-scene``, version 1; see docs/scene-format.md)::
       depth.npy             float32 (N, H, W)     metres, 0 = invalid (raw, as imported)
       depth_refined.npy     float32 (N, H, W)     optional, written by ``presim refine``
       depth_fused.npy       float32 (N, H, W)     optional, written by ``presim fuse`` (needs depth_refined)
+      depth_completed.npy   float32 (N, H, W)     optional, written by ``presim complete`` (0 = not completed)
       photometric.json      per-frame colour transforms, optional, written by ``presim photometric``
       points_xyz.npy        float32 (M, 3)        world-frame colored point cloud
       points_rgb.npy        uint8   (M, 3)
@@ -138,7 +139,7 @@ def saved_scene_bytes(scene: Scene) -> int:
     """Bytes of the arrays :func:`save_scene` writes (color, depth, refined / fused depth, points)
     plus 1 MiB for scene.json and headers: checked against the free disk space before saving."""
     px = len(scene) * scene.height * scene.width
-    n_depth = 1 + (scene.depth_refined is not None) + (scene.depth_fused is not None)
+    n_depth = 1 + sum(a is not None for a in (scene.depth_refined, scene.depth_fused, scene.depth_completed))
     n_points = len(scene.points) if scene.points is not None else min(px // 16, 2_000_000)
     return int(px * (3 + 4 * n_depth) + 15 * n_points + 2**20)
 
@@ -164,12 +165,13 @@ def _save_scene(scene: Scene, dst: Path, overwrite: bool, voxel_m: float, n: int
                 ref[i] = scene.depth_refined[i]
             ref.flush()
             del ref
-        if scene.depth_fused is not None:
-            fus = open_npy_for_writing(tmp / "depth_fused.npy", np.float32, (n, h, w))
-            for i in range(n):
-                fus[i] = scene.depth_fused[i]
-            fus.flush()
-            del fus
+        for name, arr in (("depth_fused", scene.depth_fused), ("depth_completed", scene.depth_completed)):
+            if arr is not None:
+                out = open_npy_for_writing(tmp / f"{name}.npy", np.float32, (n, h, w))
+                for i in range(n):
+                    out[i] = arr[i]
+                out.flush()
+                del out
 
         if scene.photometric is not None:
             atomic_write_json(tmp / PHOTOMETRIC_FILE, scene.photometric.to_json(), indent=1)
@@ -434,6 +436,11 @@ def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarr
         fused = _load_array(path / "depth_fused.npy")
         if fused.shape != depth.shape:
             raise SceneError(f"{path / 'depth_fused.npy'}: shape {fused.shape} != depth {depth.shape}")
+    completed = None
+    if (path / "depth_completed.npy").is_file():
+        completed = _load_array(path / "depth_completed.npy")
+        if completed.shape != depth.shape:
+            raise SceneError(f"{path / 'depth_completed.npy'}: shape {completed.shape} != depth {depth.shape}")
     points = PointCloud(_load_array(path / "points_xyz.npy", mmap=False), _load_array(path / "points_rgb.npy", mmap=False))
     fl = hdr.get("floor")
     floor = None if fl is None else FloorPlane(tuple(fl["normal"]), fl["offset"], fl.get("inlier_frac", 0.0))
@@ -456,6 +463,7 @@ def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarr
         objects=objects,
         depth_refined=refined,
         depth_fused=fused,
+        depth_completed=completed,
         path=path,
         photometric=_load_photometric(path),
     )

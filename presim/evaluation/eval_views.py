@@ -42,6 +42,7 @@ from typing import Callable
 import numpy as np
 
 from presim.capture.scene import Scene
+from presim.depth.complete import CompleteConfig, complete_scene_depth
 from presim.depth.filters import guided_filter_depth, median_filter_depth
 from presim.depth.fuse import FuseConfig
 from presim.depth.refine import RefineConfig
@@ -49,7 +50,7 @@ from presim.depth.scene_fuse import fuse_frames
 from presim.depth.scene_refine import refine_frames_to_file, refine_one_frame
 from presim.evaluation.report import eval_strip, strip_name, write_report
 from presim.evaluation.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
-from presim.io_utils import progress, write_png
+from presim.io_utils import open_npy_for_writing, progress, write_png
 from presim.photometric import PhotometricConfig, calibrate_photometric
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.renderer import RenderConfig, Renderer
@@ -84,6 +85,8 @@ METHODS: dict[str, tuple[dict, str]] = {
     # candidates for the default (the default's loop): blending of 6 views, with sharpness weighting
     "default_blend6": ({"blend": True, "blend_views": 6, "backward_color": True}, "refined"),
     "default_fill_bg": ({"fill_background_px": 4}, "refined"),
+    # the default without the capture's completed depth (presim.depth.complete)
+    "default_nocomplete": ({"use_completed_depth": False}, "refined"),
     "default_blend6_photo": ({"blend": True, "blend_views": 6, "backward_color": True, "use_photometric": True},
                              "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),
@@ -154,6 +157,9 @@ class EvalConfig:
     """TSDF voxel size; None = 1/250 of the capture's median depth range, clamped to [4 mm, 2 cm]."""
     warmup: bool = True
     """Render each target once before the timed render (steady-state timing)."""
+    complete: CompleteConfig | None = field(default_factory=CompleteConfig)
+    """Depth completion of the capture (:mod:`presim.depth.complete`); None = none (methods then render
+    as on a scene without completed depth)."""
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     """Photometric calibration of the capture (methods with ``use_photometric``)."""
 
@@ -288,6 +294,31 @@ def _refined_capture_depth(scene: Scene, capture: list[int], cfg: EvalConfig,
     return arr
 
 
+def _completed_capture_depth(cap: Scene, refined: np.ndarray, pool: list[int], complete: CompleteConfig,
+                             cache_dir: Path | None, scene: Scene) -> np.ndarray:
+    """The capture's completed depth (:mod:`presim.depth.complete`) on its refined depth, cached beside
+    the refinement."""
+    sub = dataclasses.replace(cap, depth_refined=refined)
+    if cache_dir is None and scene.path is not None:
+        cache_dir = Path(scene.path) / "eval_cache"
+    if cache_dir is None:
+        return complete_scene_depth(sub, config=complete, pool=pool, desc="complete capture depth")
+    key = json.dumps({"complete": dataclasses.asdict(complete), "pool": pool, "frames": list(cap.frame_ids),
+                      "refined": hashlib.sha256(np.ascontiguousarray(refined[::7]).tobytes()).hexdigest()[:16],
+                      "poses": hashlib.sha256(np.ascontiguousarray(cap.T_world_cam).tobytes()).hexdigest()[:16]},
+                     sort_keys=True)
+    out = Path(cache_dir) / f"completed_{hashlib.sha256(key.encode()).hexdigest()[:16]}.npy"
+    if not out.is_file():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(out.name + ".partial")
+        arr = open_npy_for_writing(tmp, np.float32, (len(cap), cap.height, cap.width))
+        complete_scene_depth(sub, config=complete, pool=pool, out=arr, desc="complete capture depth")
+        arr.flush()
+        del arr
+        tmp.replace(out)
+    return np.load(out, mmap_mode="r")
+
+
 def _refine_key(refine: RefineConfig) -> dict:
     # As before the sharpness-reference fields existed while they are off (keeps existing caches).
     d = dataclasses.asdict(refine)
@@ -340,6 +371,15 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
         if log is not None:
             log(f"depth alignment + fusion of the capture: {(time.perf_counter() - t1) / len(cap) * 1e3:.0f} ms/frame")
     refine_s = time.perf_counter() - t0
+    completed = None
+    if depth_sets.get("refined") is not None and config.complete is not None:
+        t1 = time.perf_counter()
+        pool = [j for j in range(len(cap)) if j not in set(targets)]  # the check never reads a target
+        completed = _completed_capture_depth(cap, depth_sets["refined"], pool, config.complete,
+                                             None if cache_dir is None else Path(cache_dir), scene)
+        if log is not None:
+            log(f"depth completion of the capture: {(time.perf_counter() - t1) / len(cap) * 1e3:.0f} ms/frame, "
+                f"{100 * float(np.mean([(completed[i] > 0).mean() for i in range(len(cap))])):.2f} % of pixels")
     if "guided" in variants or "median" in variants:
         raws = [cap.frame(k) for k in range(len(cap))]
         if "guided" in variants:
@@ -398,6 +438,8 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
                     warnings.warn(f"eval-views: method {name} skipped: {why}", stacklevel=2)
                     continue
                 sub = cap if depth_sets.get(variant) is None else dataclasses.replace(cap, depth_refined=depth_sets[variant])
+                if variant == "refined":
+                    sub = dataclasses.replace(sub, depth_completed=completed)
                 # Only methods that ask for it see a photometric calibration (the scene's own
                 # photometric.json, if any, is not used: every method is defined by its overrides).
                 sub = dataclasses.replace(sub, photometric=photo_calib if overrides.get("use_photometric") else None)

@@ -84,6 +84,9 @@ class RenderConfig:
     """Use ``scene.depth_refined`` (``presim refine``) when present, else the raw depth."""
     use_fused_depth: bool = False
     """Use ``scene.depth_fused`` (``presim fuse``) when present; wins over ``use_refined_depth``."""
+    use_completed_depth: bool = True
+    """Pixels no measured depth covers take the warped views' completed depth (``scene.depth_completed``,
+    ``presim complete``) when the scene has it, before the fill."""
     max_zoom: float = 1.0
     """A target sampling the scene more densely than this factor x the capture is rendered at a
     lower internal resolution and upsampled (one-pixel splats cannot cover a surface magnified

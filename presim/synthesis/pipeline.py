@@ -14,11 +14,13 @@ Stages, in order:
 2. **merge + hole analysis** (:mod:`holes`): the view's image goes into the accumulated image on
    the pixels still missing (big holes dilated against ghost contours); the largest hole decides
    whether a further view is warped;
-3. **resample** (:mod:`resample`, ``backward_color``): each covered pixel's colour is sampled in its
+3. **completion** (scenes with completed depth): the pixels still empty take the warped views'
+   completed depth (:mod:`presim.depth.complete`), merged the same way, so measured depth always wins;
+4. **resample** (:mod:`resample`, ``backward_color``): each covered pixel's colour is sampled in its
    source view's image at the exact position it back-projects to;
-4. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
-5. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``;
-6. **exposure** (:mod:`photometric`, calibrated scenes): the image takes the exposure predicted from
+5. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
+6. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``;
+7. **exposure** (:mod:`photometric`, calibrated scenes): the image takes the exposure predicted from
    the capture frames it is made of.
 """
 
@@ -45,7 +47,7 @@ from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 __all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
            "synthesize_frame"]
 
-STAGES = ("select", "load", "warp", "crack", "composite", "holes", "resample", "fill", "blend", "exposure")
+STAGES = ("select", "load", "warp", "crack", "composite", "holes", "complete", "resample", "fill", "blend", "exposure")
 """Keys of the per-stage milliseconds (``FrameResult.ms``, ``RenderStats.ms``)."""
 
 
@@ -170,6 +172,9 @@ class FrameViews(Protocol):
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
         """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
 
+    def completion_image(self, view_id: int, replace: np.ndarray) -> ViewImage | None:
+        """The image of the view's completed depth (exact on ``replace``); None when the scene has none."""
+
     def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
         """Index in ``pending`` of the first view whose sub-sampled grid puts >= 1 point and >= ``frac``
         of the best count into the big holes ``big_flat`` (uint8 (H * W,)) and, with ``need_px``,
@@ -267,6 +272,17 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         ms["holes"] += (time.perf_counter() - t) * 1e3
         if last or (adaptive and hs.largest_hole_px <= stop_px):
             break
+    if holes is not None and n_hole > 0 and cfg.use_completed_depth:
+        t = time.perf_counter()
+        for vi in warped:  # the completed depth of the views warped, in their order
+            fill = holes != 0
+            img = views.completion_image(vi, fill)
+            if img is None:
+                break
+            n_hole -= merge_into_holes(acc_d, acc_c, acc_src, fill, img.depth_m, img.color, vi, holes)
+            if n_hole == 0:
+                break
+        ms["complete"] = (time.perf_counter() - t) * 1e3
     if holes is None:  # no view warped
         acc_d = np.zeros((H, W), np.float32)
         acc_c = np.zeros((H, W, 3), np.uint8)

@@ -127,6 +127,13 @@ class _FrameViews:
         img.load_ms = load_ms
         return img
 
+    def completion_image(self, view_id: int, replace: np.ndarray) -> ViewImage | None:
+        r = self.r
+        if not r.use_completed:
+            return None
+        view = r.view(view_id, self.level(view_id), completed=True)
+        return r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
+
     def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
         r = self.r
         return self.grids.next_view(pending, big_flat, r.grid_zsrc, lambda v: float(r.src_focal[v]), r.config.near_m,
@@ -188,6 +195,7 @@ class Renderer:
         self._T_cam_world_src = invert(T) if len(T) else T
         self._use_refined = bool(config.use_refined_depth and scene.depth_refined is not None)
         self._use_fused = bool(config.use_fused_depth and getattr(scene, "depth_fused", None) is not None)
+        self.use_completed = bool(config.use_completed_depth and getattr(scene, "depth_completed", None) is not None)
         self._grids: dict[int, np.ndarray] = {}
         self._grid_zsrc: dict[int, np.ndarray] = {}
         self._lod = LodConfig(config.lod_levels, config.lod_max_footprint, config.lod_depth_tol)
@@ -258,14 +266,20 @@ class Renderer:
             self._grid_zsrc[idx] = z = np.ascontiguousarray(z)
         return z
 
-    def _prepare(self, idx: int, level: int) -> ViewPoints:
+    def _prepare(self, idx: int, level: int, completed: bool = False) -> ViewPoints:
         color, depth = self._load_frame(idx)
-        if idx not in self._grids:
+        if completed:  # the points of the completed depth alone, one layer
+            depth = np.asarray(self.scene.depth_completed[idx], np.float32)
+        elif idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
         K = self.scene.intrinsics[idx]
         c, d = color, depth
         if level > 0:
             c, d, K = build_level(color, depth, K, level, self.config.lod_depth_tol)
+        if completed:
+            view = prepare_view(c, d, K, self.scene.T_world_cam[idx], 1)
+            unmap_pages(color)
+            return view
         image = None
         if self.config.backward_color:  # kept with the points (the map's pages are dropped below)
             image = SourceImage(np.array(c, np.uint8), np.array(d, np.float32), K, self._T_cam_world_src[idx])
@@ -274,9 +288,11 @@ class Renderer:
         unmap_pages(depth)
         return view
 
-    def view(self, idx: int, level: int = 0):
-        """View ``idx`` prepared at ``level`` in the backend's form (cached)."""
-        return self.executor.view(idx if level == 0 else (idx, level), lambda: self._upload(self._prepare(idx, level)))
+    def view(self, idx: int, level: int = 0, completed: bool = False):
+        """View ``idx`` prepared at ``level`` in the backend's form (cached); ``completed``: the points of
+        its completed depth."""
+        key = (idx, level, "completed") if completed else idx if level == 0 else (idx, level)
+        return self.executor.view(key, lambda: self._upload(self._prepare(idx, level, completed)))
 
     def view_points(self, idx: int) -> ViewPoints:
         """The prepared points of view ``idx`` at level 0 (numpy)."""
