@@ -14,8 +14,8 @@ Stages, in order:
 2. **merge + hole analysis** (:mod:`holes`): the view's image goes into the accumulated image on
    the pixels still missing (big holes dilated against ghost contours); the largest hole decides
    whether a further view is warped;
-3. **completion** (scenes with completed depth): the pixels still empty take the warped views'
-   completed depth (:mod:`presim.depth.complete`), merged the same way, so measured depth always wins;
+3. **completion** (:mod:`completion`, scenes with completed depth): the pixels still empty take the
+   warped views' completed depth (:mod:`presim.depth.complete`), so measured depth always wins;
 4. **resample** (:mod:`resample`, ``backward_color``): each covered pixel's colour is sampled in its
    source view's image at the exact position it back-projects to;
 5. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
@@ -33,8 +33,10 @@ from typing import Callable, Protocol
 import numpy as np
 
 from presim.geometry import Intrinsics, invert
+from presim.synthesis import completion
 from presim.synthesis import kernels_reference as ref
 from presim.synthesis.blend import front_of_layers
+from presim.synthesis.completion import CompletedPoints, Target
 from presim.synthesis.config import RenderConfig
 from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX,
                                      composite_layers, crack_filter, filtered_composite_banded, warp_tiles)
@@ -149,6 +151,18 @@ def view_image(backend: str, view, T_cam_world: np.ndarray, K: Intrinsics, confi
                                                      config.crack_kernel_px))
 
 
+def splat_into_holes(backend: str, points: list[CompletedPoints], T_cam_world: np.ndarray, K: Intrinsics,
+                     near_m: float, target: Target) -> int:
+    """The completion stage (:mod:`presim.synthesis.completion`) on ``backend``."""
+    if backend == "numba":
+        return completion.splat_into_holes(points, T_cam_world, K, near_m, target)
+    if backend == "reference":
+        return completion.splat_into_holes_ref(points, T_cam_world, K, near_m, target)
+    from presim.synthesis import torch_kernels  # torch is imported only when asked for
+
+    return torch_kernels.splat_into_holes_torch(points, T_cam_world, K, near_m, target)
+
+
 def resample(backend: str, color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
              T_world_cam: np.ndarray, sources: SourceStack, depth_tol: float) -> np.ndarray:
     """Backward colour sampling (:mod:`presim.synthesis.resample`) on ``backend``."""
@@ -172,8 +186,8 @@ class FrameViews(Protocol):
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
         """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
 
-    def completion_image(self, view_id: int, replace: np.ndarray) -> ViewImage | None:
-        """The image of the view's completed depth (exact on ``replace``); None when the scene has none."""
+    def completed_points(self, warped: list[int]) -> list[CompletedPoints]:
+        """The completed points of the views ``warped`` (empty when the scene has none)."""
 
     def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
         """Index in ``pending`` of the first view whose sub-sampled grid puts >= 1 point and >= ``frac``
@@ -274,14 +288,10 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
             break
     if holes is not None and n_hole > 0 and cfg.use_completed_depth:
         t = time.perf_counter()
-        for vi in warped:  # the completed depth of the views warped, in their order
-            fill = holes != 0
-            img = views.completion_image(vi, fill)
-            if img is None:
-                break
-            n_hole -= merge_into_holes(acc_d, acc_c, acc_src, fill, img.depth_m, img.color, vi, holes)
-            if n_hole == 0:
-                break
+        points = views.completed_points(warped)
+        if points:
+            n_hole -= splat_into_holes(views.backend, points, T_cam_world, K, cfg.near_m,
+                                       Target(acc_d, acc_c, acc_src, holes))
         ms["complete"] = (time.perf_counter() - t) * 1e3
     if holes is None:  # no view warped
         acc_d = np.zeros((H, W), np.float32)

@@ -25,6 +25,7 @@ import numpy as np
 from presim.capture.scene import Scene, SceneError
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
+from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.execution import Executor
 from presim.synthesis.grids import FrameGrids
@@ -127,12 +128,12 @@ class _FrameViews:
         img.load_ms = load_ms
         return img
 
-    def completion_image(self, view_id: int, replace: np.ndarray) -> ViewImage | None:
+    def completed_points(self, warped: list[int]) -> list[CompletedPoints]:
         r = self.r
         if not r.use_completed:
-            return None
-        view = r.view(view_id, self.level(view_id), completed=True)
-        return r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
+            return []
+        return [CompletedPoints(v, p.xyz_world, p.rgb) for v in warped
+                for p in [r.completed_view(v, self.level(v))] if len(p.xyz_world)]
 
     def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
         r = self.r
@@ -266,20 +267,14 @@ class Renderer:
             self._grid_zsrc[idx] = z = np.ascontiguousarray(z)
         return z
 
-    def _prepare(self, idx: int, level: int, completed: bool = False) -> ViewPoints:
+    def _prepare(self, idx: int, level: int) -> ViewPoints:
         color, depth = self._load_frame(idx)
-        if completed:  # the points of the completed depth alone, one layer
-            depth = np.asarray(self.scene.depth_completed[idx], np.float32)
-        elif idx not in self._grids:
+        if idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
         K = self.scene.intrinsics[idx]
         c, d = color, depth
         if level > 0:
             c, d, K = build_level(color, depth, K, level, self.config.lod_depth_tol)
-        if completed:
-            view = prepare_view(c, d, K, self.scene.T_world_cam[idx], 1)
-            unmap_pages(color)
-            return view
         image = None
         if self.config.backward_color:  # kept with the points (the map's pages are dropped below)
             image = SourceImage(np.array(c, np.uint8), np.array(d, np.float32), K, self._T_cam_world_src[idx])
@@ -288,11 +283,21 @@ class Renderer:
         unmap_pages(depth)
         return view
 
-    def view(self, idx: int, level: int = 0, completed: bool = False):
-        """View ``idx`` prepared at ``level`` in the backend's form (cached); ``completed``: the points of
-        its completed depth."""
-        key = (idx, level, "completed") if completed else idx if level == 0 else (idx, level)
-        return self.executor.view(key, lambda: self._upload(self._prepare(idx, level, completed)))
+    def view(self, idx: int, level: int = 0):
+        """View ``idx`` prepared at ``level`` in the backend's form (cached)."""
+        return self.executor.view(idx if level == 0 else (idx, level), lambda: self._upload(self._prepare(idx, level)))
+
+    def completed_view(self, idx: int, level: int = 0) -> ViewPoints:
+        """The points of view ``idx``'s completed depth at ``level`` (cached, numpy on every backend)."""
+        def build() -> ViewPoints:
+            color, _ = self._load_frame(idx)
+            K = self.scene.intrinsics[idx]
+            c, d = color, np.asarray(self.scene.depth_completed[idx], np.float32)
+            if level > 0:
+                c, d, K = build_level(c, d, K, level, self.config.lod_depth_tol)
+            return prepare_view(c, d, K, self.scene.T_world_cam[idx], 1)
+
+        return self.executor.view((idx, level, "completed"), build)
 
     def view_points(self, idx: int) -> ViewPoints:
         """The prepared points of view ``idx`` at level 0 (numpy)."""

@@ -218,3 +218,57 @@ def resample_colors_torch(color: np.ndarray, depth_m: np.ndarray, source: np.nda
         inv = 1.0 / wsum[use]
         out[idx[use]] = torch.floor(acc[use] * inv[:, None] + 0.5).clamp(0, 255).to(torch.uint8)
     return out.reshape(H, W, 3).cpu().numpy()
+
+
+_NB8 = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+
+
+def splat_into_holes_torch(points, T_cam_world: np.ndarray, K: Intrinsics, near_m: float, target,
+                           device: torch.device | str | None = None) -> int:
+    """Torch version of :func:`presim.synthesis.completion.splat_into_holes` (same pixels)."""
+    dev = torch.device(device) if device is not None else default_device()
+    H, W = K.height, K.width
+    holes = torch.from_numpy(np.ascontiguousarray(target.holes != 0)).to(dev).reshape(-1)
+    M = torch.as_tensor(np.asarray(T_cam_world, np.float64), device=dev)
+    pix_l, z_l, rgb_l, src_l = [], [], [], []
+    for cp in points:
+        P = torch.as_tensor(np.asarray(cp.xyz_world), device=dev).double()
+        x, y, z = (M[r, 0] * P[:, 0] + M[r, 1] * P[:, 1] + M[r, 2] * P[:, 2] + M[r, 3] for r in range(3))
+        u = torch.floor(K.fx * x / z + K.cx + 0.5)
+        v = torch.floor(K.fy * y / z + K.cy + 0.5)
+        ok = (z > near_m) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        pix = (v[ok] * W + u[ok]).long()
+        keep = holes[pix]
+        pix_l.append(pix[keep])
+        z_l.append(z[ok][keep])
+        rgb_l.append(torch.as_tensor(np.asarray(cp.rgb), device=dev)[ok][keep])
+        src_l.append(torch.full((int(keep.sum()),), int(cp.view_id), dtype=torch.int32, device=dev))
+    zbuf = torch.zeros(H * W, dtype=torch.float64, device=dev)
+    cbuf = torch.zeros((H * W, 3), dtype=torch.uint8, device=dev)
+    sbuf = torch.full((H * W,), -1, dtype=torch.int32, device=dev)
+    if pix_l and sum(len(p) for p in pix_l):
+        pix, z, rgb, src = torch.cat(pix_l), torch.cat(z_l), torch.cat(rgb_l), torch.cat(src_l)
+        zmin = torch.full((H * W,), float("inf"), dtype=torch.float64, device=dev).scatter_reduce(0, pix, z, "amin")
+        win = z == zmin[pix]
+        n = len(z)  # the first point (in view order) of the nearest ones wins, as in the kernel
+        first = torch.full((H * W,), n, dtype=torch.long, device=dev).scatter_reduce(
+            0, pix[win], torch.arange(n, device=dev)[win], "amin")
+        hit = first < n
+        zbuf[hit], cbuf[hit], sbuf[hit] = z[first[hit]], rgb[first[hit]], src[first[hit]]
+    zb, cb, sb = zbuf.reshape(H, W), cbuf.reshape(H, W, 3), sbuf.reshape(H, W)
+    pad = torch.nn.functional.pad(torch.where(zb > 0, zb, torch.full_like(zb, float("inf"))), (1, 1, 1, 1),
+                                  value=float("inf"))
+    shifted = torch.stack([pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W] for dy, dx in _NB8])
+    count = torch.isfinite(shifted).sum(0)
+    best = shifted.argmin(0)  # the first of equal minima: raster order, as the kernel
+    crack = holes.reshape(H, W) & (zb == 0) & (count >= 5)
+    ys, xs = torch.nonzero(crack, as_tuple=True)
+    off = torch.tensor(_NB8, device=dev)[best[ys, xs]]
+    yy, xx = ys + off[:, 0], xs + off[:, 1]
+    zb[ys, xs], cb[ys, xs], sb[ys, xs] = zb[yy, xx], cb[yy, xx], sb[yy, xx]
+    filled = (zb > 0).cpu().numpy()
+    target.depth_m[filled] = zb.cpu().numpy()[filled].astype(np.float32)
+    target.color[filled] = cb.cpu().numpy()[filled]
+    target.source[filled] = sb.cpu().numpy()[filled]
+    target.holes[filled] = 0
+    return int(filled.sum())
