@@ -18,7 +18,7 @@ _MODULES = [
     "presim.cli.sample_cmd",      # sample-scene
     "presim.cli.capture_cmds",    # import, info
     "presim.cli.align_cmds",      # align, eval-poses
-    "presim.cli.refine_eval_cmds",  # refine, eval-views
+    "presim.cli.refine_eval_cmds",  # refine, complete, eval-views
     "presim.cli.photometric_cmd",  # photometric
     "presim.cli.render_cmd",      # render
     "presim.cli.sim_cmds",        # drive
@@ -60,7 +60,7 @@ COMMON_OPTIONS_HELP = (
     "  --quiet            no progress bars (they are also off when stderr is not a terminal)")
 
 
-SCENE_WRITERS = ("refine", "fuse", "align", "photometric", "objects")
+SCENE_WRITERS = ("refine", "complete", "fuse", "align", "photometric", "objects")
 """Commands that write into the scene folder they are given (argument ``scene``): each holds the
 folder's lock (:func:`presim.io_utils.folder_lock`) while it runs."""
 

@@ -18,7 +18,21 @@ def register(sub) -> None:
     p.add_argument("--num-refs", type=int, default=10, help="reference views per frame (thesis: 10)")
     p.add_argument("--sharp-refs", action="store_true",
                    help="down-weight blurred reference frames in the photo-consistency cost (sharpness score)")
+    p.add_argument("--no-complete", action="store_true",
+                   help="do not complete the refined depth afterwards (presim complete)")
     p.set_defaults(func=_refine)
+
+    c = sub.add_parser("complete", help="complete each frame's depth where the sensor has none (borders, dark or "
+                                        "shiny surfaces)",
+                       description="Continues the neighbouring surfaces into the empty pixels (colour-aware plane "
+                                   "fits), keeps a completed pixel only where the nearest views agree "
+                                   "(free-space and photometric check), and writes SCENE/depth_completed.npy "
+                                   "atomically. The renderer uses it only for pixels no measured depth covers. "
+                                   "Works on the refined depth when the scene has it, else the raw depth; "
+                                   "`presim refine` runs it at its end.")
+    c.add_argument("scene", type=Path, help="saved scene folder")
+    c.add_argument("--overwrite", action="store_true", help="recompute an existing depth_completed.npy")
+    c.set_defaults(func=_complete)
 
     f = sub.add_parser("fuse", help="align the sensor depth to the refined depth and fuse them (thesis §5.3.4)",
                        description="Needs SCENE/depth_refined.npy (presim refine). Per frame, aligns the sensor "
@@ -80,6 +94,28 @@ def _refine(args) -> int:
     out = refine_scene(scene, workers=args.workers, overwrite=args.overwrite,
                        config=RefineConfig(num_refs=args.num_refs, sharp_refs=args.sharp_refs))
     print(f"wrote {out}")
+    if not args.no_complete:  # the completion of the new refined depth replaces any older one
+        from presim.depth.complete import complete_scene
+
+        print(f"wrote {complete_scene(load_scene(args.scene), overwrite=True)}")
+    return 0
+
+
+def _complete(args) -> int:
+    import time
+
+    import numpy as np
+
+    from presim.capture.store import load_scene
+    from presim.depth.complete import complete_scene
+
+    scene = load_scene(args.scene)
+    t0 = time.perf_counter()
+    out = complete_scene(scene, overwrite=args.overwrite)
+    done = np.load(out, mmap_mode="r")
+    frac = float(np.mean([(done[i] > 0).mean() for i in range(len(scene))]))
+    print(f"wrote {out}: {len(scene)} frames, {100 * frac:.2f} % of pixels completed, "
+          f"{(time.perf_counter() - t0) / len(scene) * 1e3:.0f} ms per frame")
     return 0
 
 

@@ -26,7 +26,9 @@ Units: depth in metres (float32, 0 = none); colours uint8 RGB; poses ``T_world_c
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import cv2
@@ -35,10 +37,10 @@ import numpy as np
 
 from presim.capture.scene import Scene
 from presim.geometry import Intrinsics, invert
-from presim.io_utils import progress
+from presim.io_utils import open_npy_for_writing, progress
 
 __all__ = ["CompleteConfig", "complete_frame", "complete_frame_ref", "check_completion", "check_completion_ref",
-           "completion_neighbours", "complete_scene_depth"]
+           "completion_neighbours", "complete_scene_depth", "complete_scene", "COMPLETED_FILE"]
 
 
 @dataclass(frozen=True)
@@ -448,3 +450,28 @@ def complete_scene_depth(scene: Scene, depth: np.ndarray | None = None, config: 
                                 [scene.intrinsics[j] for j in nb_ids], scene.T_world_cam[nb_ids], config)
         out[i] = np.where(conf >= config.min_confidence, comp, 0).astype(np.float32)
     return out
+
+
+COMPLETED_FILE = "depth_completed.npy"
+
+
+def complete_scene(scene: Scene, overwrite: bool = False, config: CompleteConfig = CompleteConfig()) -> Path:
+    """``presim complete``: :func:`complete_scene_depth` of a saved scene (on its refined depth when it has
+    one, else its raw depth) into ``SCENE/depth_completed.npy`` (atomic: ``.partial`` then rename)."""
+    if scene.path is None:
+        raise ValueError("complete_scene needs a saved scene (load it with presim.capture.store.load_scene)")
+    dst = Path(scene.path) / COMPLETED_FILE
+    if dst.exists() and not overwrite:
+        raise FileExistsError(f"{dst}: already exists (pass --overwrite to recompute)")
+    partial = dst.with_name(dst.name + ".partial")
+    arr = open_npy_for_writing(partial, np.float32, (len(scene), scene.height, scene.width))
+    try:
+        complete_scene_depth(scene, config=config, out=arr)
+        arr.flush()
+    except BaseException:
+        del arr
+        partial.unlink(missing_ok=True)
+        raise
+    del arr
+    os.replace(partial, dst)
+    return dst

@@ -9,6 +9,8 @@ intrinsics and compared with the real image. Every method gets the same final ho
 The refined depth of the capture frames is computed once, with only capture frames as references,
 and cached (``<cache_dir>/refined_<hash>.npy``; the target's color is thus one of the references
 when its neighbours' depth is refined; the depth of the target itself is never used to render it).
+The refined depth is then completed (:mod:`presim.depth.complete`, ``EvalConfig.complete``; its
+multi-view check reads no target) and cached beside it (``completed_<hash>.npy``).
 
 Metrics per method (means over targets):
 - ``psnr_db``: PSNR of the delivered (filled) color image vs the real image.
@@ -18,6 +20,9 @@ Metrics per method (means over targets):
   the fill made them); NaN for a target without holes, and the mean is over targets with holes.
 - ``ssim``: SSIM (scikit-image, RGB, data range 255) of the delivered image.
 - ``hole_frac``: fraction of pixels no view covered, before filling.
+- ``psnr_nodepth_db`` / ``nodepth_frac``: PSNR over, and fraction of, the pixels no *measured* depth
+  covered (those the completion stage covered plus the holes): the hole pixels of the same method
+  without completion, so its gain there is compared on the same pixels.
 - ``depth_absrel``: mean |d - d_real| / d_real over covered pixels where the real depth is valid.
 - ``ms_per_frame``: wall time of one steady-state render (after a warm-up render of the same pose),
   filling included; per-scene preparation (renderer construction, TSDF fusion) excluded.
@@ -133,8 +138,8 @@ METHODS: dict[str, tuple[dict, str]] = {
 }
 DEFAULT_METHODS = tuple(m for m in METHODS if not m.startswith("photo_affine") and m != "photo_vig")
 """Every method but the colour-model variants of ``photo`` (each needs its own calibration)."""
-METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "psnr_hole_db", "ssim", "hole_frac", "depth_absrel",
-           "ms_per_frame")
+METRICS = ("psnr_db", "psnr_black_db", "psnr_covered_db", "psnr_hole_db", "ssim", "hole_frac", "psnr_nodepth_db",
+           "nodepth_frac", "depth_absrel", "ms_per_frame")
 
 
 @dataclass(frozen=True)
@@ -204,12 +209,15 @@ _SSIM_PAD = 3
 
 
 def image_metrics(out: RGBD, real_color: np.ndarray, real_depth_m: np.ndarray,
-                  unfilled_color: np.ndarray | None = None, real_valid: np.ndarray | None = None) -> dict[str, float]:
+                  unfilled_color: np.ndarray | None = None, real_valid: np.ndarray | None = None,
+                  completed: np.ndarray | None = None) -> dict[str, float]:
     """Metrics of one rendered target (see module docstring); ``ms_per_frame`` is added by the caller.
 
     ``out.valid`` is the coverage: False = a hole (no view covered the pixel; filled in ``out.color``).
     ``real_valid`` (bool (H, W), None = all) marks the pixels where the real image has data; every
     metric ignores the others (SSIM: the mean of its map over them; ``hole_frac``: holes among them).
+    ``completed`` (bool (H, W)): pixels covered by completed depth; ``psnr_nodepth_db`` / ``nodepth_frac``
+    are then on the pixels no *measured* depth covered (the holes of the same render without completion).
     """
     from skimage.metrics import structural_similarity
 
@@ -232,6 +240,7 @@ def image_metrics(out: RGBD, real_color: np.ndarray, real_depth_m: np.ndarray,
         inner[_SSIM_PAD:-_SSIM_PAD, _SSIM_PAD:-_SSIM_PAD] = rv[_SSIM_PAD:-_SSIM_PAD, _SSIM_PAD:-_SSIM_PAD]
         ssim = float(smap.mean(axis=2)[inner].mean()) if inner.any() else float("nan")
         hole_frac = float(holes.sum() / rv.sum()) if rv.any() else float("nan")
+    nodepth = holes if completed is None else holes | (completed if rv is None else completed & rv)
     return {
         "psnr_db": _psnr(out.color, real_color, rv),
         "psnr_black_db": _psnr(black, real_color, rv),
@@ -239,6 +248,8 @@ def image_metrics(out: RGBD, real_color: np.ndarray, real_depth_m: np.ndarray,
         "psnr_hole_db": _psnr(out.color, real_color, holes),
         "ssim": ssim,
         "hole_frac": hole_frac,
+        "psnr_nodepth_db": _psnr(out.color, real_color, nodepth),
+        "nodepth_frac": float(nodepth.sum() / (nodepth.size if rv is None else max(rv.sum(), 1))),
         "depth_absrel": absrel,
     }
 
@@ -451,7 +462,8 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
                 out = r.render(f.T_world_cam, f.K)
                 ms = (time.perf_counter() - t1) * 1e3
                 unfilled = None
-            met = image_metrics(out, f.color, f.depth_m, unfilled)
+            met = image_metrics(out, f.color, f.depth_m, unfilled,
+                                completed=None if variant == "tsdf" else r.last.completed)
             met["ms_per_frame"] = ms
             per[name].append(met)
             if images_dir is not None:
@@ -480,14 +492,15 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
 
 def format_table(result: EvalResult) -> str:
     """Markdown table of the per-method means."""
-    lines = ["| method | PSNR dB | PSNR black dB | PSNR covered dB | PSNR holes dB | SSIM | hole % | depth AbsRel "
-             "| ms/frame |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | PSNR dB | PSNR black dB | PSNR covered dB | PSNR holes dB | SSIM | hole % "
+             "| PSNR no-depth dB | no-depth % | depth AbsRel | ms/frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    na = lambda x: "n/a" if not np.isfinite(x) else f"{x:.2f}"  # noqa: E731
     for name, m in result.methods.items():
-        hole = "n/a" if not np.isfinite(m["psnr_hole_db"]) else f"{m['psnr_hole_db']:.2f}"
         lines.append(f"| {name} | {m['psnr_db']:.2f} | {m['psnr_black_db']:.2f} | {m['psnr_covered_db']:.2f} | "
-                     f"{hole} | {m['ssim']:.4f} | {100 * m['hole_frac']:.3f} | {m['depth_absrel']:.4f} | "
+                     f"{na(m['psnr_hole_db'])} | {m['ssim']:.4f} | {100 * m['hole_frac']:.3f} | "
+                     f"{na(m['psnr_nodepth_db'])} | {100 * m['nodepth_frac']:.3f} | {m['depth_absrel']:.4f} | "
                      f"{m['ms_per_frame']:.1f} |")
     for name, why in result.skipped.items():
-        lines.append(f"| {name} | skipped: {why} | | | | | | | |")
+        lines.append(f"| {name} | skipped: {why} | | | | | | | | | |")
     return "\n".join(lines)

@@ -227,6 +227,8 @@ class FrameResult:
     """Candidates left when the loop stopped because none can fill a big hole."""
     ms: dict[str, float]
     """Milliseconds per stage (keys: :data:`STAGES`)."""
+    completed: np.ndarray | None = None
+    """bool (H, W): pixels the completion stage covered (None when it did not run)."""
 
 
 def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig
@@ -252,6 +254,7 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
     stop_px = cfg.stop_hole_frac * H * W
     need_px = cfg.min_view_gain * H * W if cfg.min_view_gain > 0 else None
     n_hole = 0
+    completed = None
     t_start = time.perf_counter()
     while pending and len(warped) < n_target:
         if warped and adaptive and cfg.time_budget_ms > 0 and (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
@@ -290,8 +293,10 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         t = time.perf_counter()
         points = views.completed_points(warped)
         if points:
+            completed = holes != 0
             n_hole -= splat_into_holes(views.backend, points, T_cam_world, K, cfg.near_m,
                                        Target(acc_d, acc_c, acc_src, holes))
+            completed &= holes == 0
         ms["complete"] = (time.perf_counter() - t) * 1e3
     if holes is None:  # no view warped
         acc_d = np.zeros((H, W), np.float32)
@@ -321,4 +326,4 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         if exposure is not None:
             acc_c = apply_exposure(acc_c, *exposure)
         ms["exposure"] = (time.perf_counter() - t) * 1e3
-    return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, warped, hole_fracs, skipped, ms)
+    return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, warped, hole_fracs, skipped, ms, completed)

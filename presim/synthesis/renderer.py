@@ -78,6 +78,8 @@ class RenderStats:
     """Pyramid level used for each warped view (0 = all points)."""
     reused_selection: bool = False
     """The selection was the previous frame's (temporal coherence)."""
+    completed: np.ndarray | None = None
+    """bool (H, W): pixels covered by completed depth (None: the completion stage did not run)."""
     batch_views: list[list[int]] = field(default_factory=list)
     """After :meth:`Renderer.render_batch`: the views of every frame of the batch."""
 
@@ -408,7 +410,7 @@ class Renderer:
         res.ms["select"] += select_ms
         stream.views_drawn = tuple(res.views)
         stats = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view, ms=res.ms,
-                            skipped=res.skipped, lod_levels=[frame.levels.get(v, 0) for v in res.views],
+                            skipped=res.skipped, completed=res.completed, lod_levels=[frame.levels.get(v, 0) for v in res.views],
                             reused_selection=reused)
         color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
         return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac), stats
