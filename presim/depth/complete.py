@@ -284,8 +284,9 @@ def _patch_diff(g0, v0, u0, g1, v1, u1, h):  # pragma: no cover
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _check_kernel(comp, grey, cam, T_world_cam, greys, depths, cams, T_cam_world, tol, h, color_tol, unseen,
-                  conf):  # pragma: no cover
+def _check_kernel(comp, grey, cam, T_world_cam, greys, depths, cams, T_cam_world, params, conf):  # pragma: no cover
+    # params = (depth_tol, patch_px, color_tol, unseen_confidence)
+    tol, h, color_tol, unseen = params[0], int(params[1]), params[2], params[3]
     H, W = comp.shape
     M = greys.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
@@ -390,8 +391,8 @@ def check_completion(comp: np.ndarray, grey: np.ndarray, K: Intrinsics, T_world_
     _check_kernel(np.ascontiguousarray(comp, np.float32), np.ascontiguousarray(grey, np.float32),
                   _cams([K])[0], np.ascontiguousarray(T_world_cam, np.float64),
                   np.ascontiguousarray(greys, np.float32), np.ascontiguousarray(depths, np.float32), _cams(Ks),
-                  T_cw, float(config.depth_tol), int(config.patch_px), float(config.color_tol),
-                  float(config.unseen_confidence), conf)
+                  T_cw, np.array([config.depth_tol, config.patch_px, config.color_tol, config.unseen_confidence],
+                                 np.float64), conf)
     return conf
 
 

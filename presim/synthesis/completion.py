@@ -85,7 +85,9 @@ def splat_into_holes_ref(points: list[CompletedPoints], T_cam_world: np.ndarray,
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _splat_kernel(xyz, rgb, view_id, M, fx, fy, cx, cy, near, holes, zbuf, cbuf, sbuf):  # pragma: no cover
+def _splat_kernel(xyz, rgb, view_id, M, cam, holes, zbuf, cbuf, sbuf):  # pragma: no cover
+    # cam = (fx, fy, cx, cy, near_m)
+    fx, fy, cx, cy, near = cam[0], cam[1], cam[2], cam[3], cam[4]
     H, W = holes.shape
     for i in range(xyz.shape[0]):
         X = float(xyz[i, 0])
@@ -172,7 +174,7 @@ def splat_into_holes(points: list[CompletedPoints], T_cam_world: np.ndarray, K: 
     cbuf = np.zeros((H, W, 3), np.uint8)
     sbuf = np.full((H, W), -1, np.int32)
     M = np.ascontiguousarray(T_cam_world, np.float64)
+    cam = np.array([K.fx, K.fy, K.cx, K.cy, near_m], np.float64)
     for cp in points:
-        _splat_kernel(cp.xyz_world, cp.rgb, np.int32(cp.view_id), M, float(K.fx), float(K.fy), float(K.cx),
-                      float(K.cy), float(near_m), target.holes, zbuf, cbuf, sbuf)
+        _splat_kernel(cp.xyz_world, cp.rgb, np.int32(cp.view_id), M, cam, target.holes, zbuf, cbuf, sbuf)
     return int(_close_kernel(target.holes, zbuf, cbuf, sbuf, target.depth_m, target.color, target.source))
