@@ -96,6 +96,18 @@ def test_lut_equals_the_float_reference():
     assert np.array_equal(gain_bias_lut(np.ones(3), np.zeros(3), np.ones(3), np.zeros(3))[0, :, 0], np.arange(256))
 
 
+def test_clipped_black_stays_black():
+    from presim.synthesis.photometric import apply_exposure, correct_colors
+
+    img = np.array([[[0, 0, 0], [0, 40, 200], [10, 10, 10]]], np.uint8)
+    lifted = apply_gain_bias(img, np.ones(3), np.full(3, -3.0), np.ones(3), np.zeros(3))  # bias +3 levels
+    assert lifted.tolist() == [[[0, 0, 0], [0, 43, 203], [13, 13, 13]]]
+    A = np.array([[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    out = correct_colors(img, np.eye(3), np.zeros(3), A, np.full(3, 3.0))
+    assert out[0, 0].tolist() == [0, 0, 0] and out[0, 1, 0] == 0 and out[0, 2].tolist() == [14, 13, 13]
+    assert apply_exposure(img, np.diag([1.1, 1.1, 1.1]), np.full(3, 2.0))[0, 0].tolist() == [0, 0, 0]
+
+
 def test_view_transform_maps_each_frame_to_the_output_exposure(room):
     base, gained = room
     cal = PhotometricCalib(tuple(gained.frame_ids), GAINS_RGB.copy(), np.zeros((8, 3)))

@@ -23,10 +23,11 @@ __all__ = ["apply_gain_bias", "gain_bias_lut", "ViewColorTransform", "output_exp
 
 def apply_gain_bias(color: np.ndarray, gain_v: np.ndarray, bias_v: np.ndarray, gain_o: np.ndarray,
                     bias_o: np.ndarray) -> np.ndarray:
-    """Reference: ``round(clip(gain_o * (color - bias_v) / gain_v + bias_o))`` per channel, uint8."""
+    """Reference: ``round(clip(gain_o * (color - bias_v) / gain_v + bias_o))`` per channel, uint8; a channel
+    at 0 stays 0 (clipped black carries no exposure: lifting it by a bias greys out black regions)."""
     x = np.asarray(color, np.float64)
     y = np.asarray(gain_o) * (x - np.asarray(bias_v)) / np.asarray(gain_v) + np.asarray(bias_o)
-    return np.clip(np.floor(y + 0.5), 0, 255).astype(np.uint8)
+    return np.where(x == 0, 0, np.clip(np.floor(y + 0.5), 0, 255)).astype(np.uint8)
 
 
 def gain_bias_lut(gain_v: np.ndarray, bias_v: np.ndarray, gain_o: np.ndarray, bias_o: np.ndarray) -> np.ndarray:
@@ -98,13 +99,15 @@ def vignetting_gain_map(K, vignetting: tuple[float, float] | None) -> np.ndarray
 
 def correct_colors(color: np.ndarray, A_v: np.ndarray, b_v: np.ndarray, A_o: np.ndarray, b_o: np.ndarray,
                    gain_map: np.ndarray | None = None) -> np.ndarray:
-    """Reference: ``round(clip(A_o (g A_v^-1 (color - b_v)) + b_o))``, ``g`` = ``gain_map`` (H, W) or 1; uint8."""
+    """Reference: ``round(clip(A_o (g A_v^-1 (color - b_v)) + b_o))``, ``g`` = ``gain_map`` (H, W) or 1; uint8;
+    a channel at 0 stays 0 (clipped black, as :func:`apply_gain_bias`)."""
+    black = np.asarray(color) == 0
     x = np.asarray(color, np.float64) - np.asarray(b_v, np.float64)
     rad = x @ np.linalg.inv(np.asarray(A_v, np.float64)).T
     if gain_map is not None:
         rad = rad * np.asarray(gain_map, np.float64)[..., None]
     y = rad @ np.asarray(A_o, np.float64).T + np.asarray(b_o, np.float64)
-    return np.clip(np.floor(y + 0.5), 0, 255).astype(np.uint8)
+    return np.where(black, 0, np.clip(np.floor(y + 0.5), 0, 255)).astype(np.uint8)
 
 
 class SourceColorCorrection:
