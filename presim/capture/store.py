@@ -439,8 +439,9 @@ def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarr
     completed = None
     if (path / "depth_completed.npy").is_file():
         completed = _load_array(path / "depth_completed.npy")
-        if completed.shape != depth.shape:
-            raise SceneError(f"{path / 'depth_completed.npy'}: shape {completed.shape} != depth {depth.shape}")
+        if completed.shape != depth.shape or completed.dtype != np.float32:
+            raise SceneError(f"{path / 'depth_completed.npy'}: {completed.dtype} {completed.shape}, expected float32 "
+                             f"{depth.shape} like depth.npy (recompute it: presim complete --overwrite)")
     points = PointCloud(_load_array(path / "points_xyz.npy", mmap=False), _load_array(path / "points_rgb.npy", mmap=False))
     fl = hdr.get("floor")
     floor = None if fl is None else FloorPlane(tuple(fl["normal"]), fl["offset"], fl.get("inlier_frac", 0.0))

@@ -294,10 +294,14 @@ class Renderer:
         def build() -> ViewPoints:
             color, _ = self._load_frame(idx)
             K = self.scene.intrinsics[idx]
-            c, d = color, np.asarray(self.scene.depth_completed[idx], np.float32)
+            depth = np.asarray(self.scene.depth_completed[idx])
+            c, d = color, depth
             if level > 0:
                 c, d, K = build_level(c, d, K, level, self.config.lod_depth_tol)
-            return prepare_view(c, d, K, self.scene.T_world_cam[idx], 1)
+            view = prepare_view(c, d, K, self.scene.T_world_cam[idx], 1)
+            unmap_pages(color)
+            unmap_pages(depth)
+            return view
 
         return self.executor.view((idx, level, "completed"), build)
 
