@@ -220,6 +220,9 @@ class _Views:
     def exposure(self, source):
         return None  # no photometric calibration: the working exposure
 
+    def completed_points(self, warped):
+        return []  # no completed depth
+
 
 def _grid_at(pixels: list[tuple[int, int]]) -> np.ndarray:
     """World points (identity target pose) that project onto the given (u, v) pixels of K8 at z = 1."""
