@@ -84,6 +84,11 @@ def test_cli_refine(tmp_path):
     save_scene(tiny_scene(3), tmp_path / "s")
     assert main(["refine", str(tmp_path / "s")]) == 0
     assert np.load(tmp_path / "s" / "depth_refined.npy").shape == (3, 36, 48)
+    # refine completes the new refined depth; `presim complete` alone refuses to overwrite unless asked
+    assert np.load(tmp_path / "s" / "depth_completed.npy").shape == (3, 36, 48)
+    assert load_scene(tmp_path / "s").depth_completed is not None
+    assert main(["complete", str(tmp_path / "s")]) == 1
+    assert main(["complete", str(tmp_path / "s"), "--overwrite"]) == 0
     assert main(["refine", str(tmp_path / "nope")]) == 1
 
 
