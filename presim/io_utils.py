@@ -219,6 +219,25 @@ def open_npy_for_writing(path: str | os.PathLike, dtype, shape: tuple[int, ...])
     return np.lib.format.open_memmap(path, mode="r+")
 
 
+def write_npy_atomic(dst: str | os.PathLike, dtype, shape: tuple[int, ...], fill) -> Path:
+    """Write ``dst`` (a ``.npy``) through ``dst.partial``: ``fill(array)`` writes into a memory map of
+    ``shape`` (:func:`open_npy_for_writing`), which is then renamed into place; on any error the
+    partial file is removed, so a ``dst`` that exists is complete. Returns ``dst``."""
+    dst = Path(dst)
+    partial = dst.with_name(dst.name + ".partial")
+    arr = open_npy_for_writing(partial, dtype, shape)
+    try:
+        fill(arr)
+        arr.flush()
+    except BaseException:
+        del arr
+        partial.unlink(missing_ok=True)
+        raise
+    del arr
+    os.replace(partial, dst)
+    return dst
+
+
 # ---- one writer per folder ----------------------------------------------------------------------
 
 LOCK_FILE = ".presim.lock"

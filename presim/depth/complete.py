@@ -26,7 +26,6 @@ Units: depth in metres (float32, 0 = none); colours uint8 RGB; poses ``T_world_c
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -37,7 +36,7 @@ import numpy as np
 
 from presim.capture.scene import Scene
 from presim.geometry import Intrinsics, invert
-from presim.io_utils import open_npy_for_writing, progress
+from presim.io_utils import progress, write_npy_atomic
 
 __all__ = ["CompleteConfig", "complete_frame", "complete_frame_ref", "check_completion", "check_completion_ref",
            "completion_neighbours", "complete_scene_depth", "complete_scene", "COMPLETED_FILE"]
@@ -464,15 +463,5 @@ def complete_scene(scene: Scene, overwrite: bool = False, config: CompleteConfig
     dst = Path(scene.path) / COMPLETED_FILE
     if dst.exists() and not overwrite:
         raise FileExistsError(f"{dst}: already exists (pass --overwrite to recompute)")
-    partial = dst.with_name(dst.name + ".partial")
-    arr = open_npy_for_writing(partial, np.float32, (len(scene), scene.height, scene.width))
-    try:
-        complete_scene_depth(scene, config=config, out=arr)
-        arr.flush()
-    except BaseException:
-        del arr
-        partial.unlink(missing_ok=True)
-        raise
-    del arr
-    os.replace(partial, dst)
-    return dst
+    return write_npy_atomic(dst, np.float32, (len(scene), scene.height, scene.width),
+                            lambda arr: complete_scene_depth(scene, config=config, out=arr))

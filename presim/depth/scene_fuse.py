@@ -10,7 +10,6 @@ looks complete (a new run starts over: the whole scene takes seconds to a minute
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Sequence
 
@@ -21,7 +20,7 @@ from presim.capture.store import set_has_fused_depth
 from presim.depth.align import AlignConfig, AlignedDepth, align_depth
 from presim.depth.fuse import FuseConfig, FusedDepth, fuse_depth
 from presim.geometry import Intrinsics
-from presim.io_utils import open_npy_for_writing, progress
+from presim.io_utils import progress, write_npy_atomic
 
 __all__ = ["FUSED_FILE", "fuse_one_frame", "fuse_frames", "fuse_scene"]
 
@@ -63,16 +62,7 @@ def fuse_scene(scene: Scene, overwrite: bool = False, align: AlignConfig = Align
     dst = Path(scene.path) / FUSED_FILE
     if dst.exists() and not overwrite:
         raise FileExistsError(f"{dst}: already exists (pass --overwrite to recompute)")
-    partial = dst.with_name(dst.name + ".partial")
-    arr = open_npy_for_writing(partial, np.float32, (len(scene), scene.height, scene.width))
-    try:
-        fuse_frames(scene, scene.depth_refined, align=align, fuse=fuse, out=arr)
-        arr.flush()
-    except BaseException:
-        del arr
-        partial.unlink(missing_ok=True)
-        raise
-    del arr
-    os.replace(partial, dst)
+    write_npy_atomic(dst, np.float32, (len(scene), scene.height, scene.width),
+                     lambda arr: fuse_frames(scene, scene.depth_refined, align=align, fuse=fuse, out=arr))
     set_has_fused_depth(scene.path)
     return dst

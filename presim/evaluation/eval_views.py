@@ -55,7 +55,7 @@ from presim.depth.scene_fuse import fuse_frames
 from presim.depth.scene_refine import refine_frames_to_file, refine_one_frame
 from presim.evaluation.report import eval_strip, strip_name, write_report
 from presim.evaluation.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
-from presim.io_utils import open_npy_for_writing, progress, write_png
+from presim.io_utils import progress, write_npy_atomic, write_png
 from presim.photometric import PhotometricConfig, calibrate_photometric
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.renderer import RenderConfig, Renderer
@@ -321,12 +321,9 @@ def _completed_capture_depth(cap: Scene, refined: np.ndarray, pool: list[int], c
     out = Path(cache_dir) / f"completed_{hashlib.sha256(key.encode()).hexdigest()[:16]}.npy"
     if not out.is_file():
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(out.name + ".partial")
-        arr = open_npy_for_writing(tmp, np.float32, (len(cap), cap.height, cap.width))
-        complete_scene_depth(sub, config=complete, pool=pool, out=arr, desc="complete capture depth")
-        arr.flush()
-        del arr
-        tmp.replace(out)
+        write_npy_atomic(out, np.float32, (len(cap), cap.height, cap.width),
+                         lambda arr: complete_scene_depth(sub, config=complete, pool=pool, out=arr,
+                                                          desc="complete capture depth"))
     return np.load(out, mmap_mode="r")
 
 
