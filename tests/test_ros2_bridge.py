@@ -150,7 +150,7 @@ def test_ros2_cmd_vel_soak_1khz_keeps_rate_and_memory(node):
     r = _probe(domain_id, "soak", "--hz", "1000", "--seconds", "10")
     rss1 = proc.memory_info().rss
     assert p.poll() is None
-    print(f"soak: {r['sent']} msgs in {r['seconds']:.1f} s ({r['send_hz']:.0f} Hz), images {r['color_rate_hz']:.1f} Hz, "
+    print(f"soak: {r['sent']} msgs in {r['seconds']:.1f} s ({r['send_hz']:.0f} Hz), images {r['color_rate_hz']:.1f} Hz (node {r['node_step_rate_hz']:.1f}), "
           f"RSS {rss0 / 2**20:.1f} -> {rss1 / 2**20:.1f} MiB")
     assert r["sent"] >= 6500, r  # the sender shares 2 cores with the node
     # Images keep flowing during the flood; the rate does not hold on 2 cores: the 1 kHz sender (a Python

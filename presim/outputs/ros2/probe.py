@@ -46,6 +46,7 @@ class _State:
         self.tf_edges: set[tuple[str, str]] = set()
         self.static_edges: set[tuple[str, str]] = set()
         self.diag: dict[str, str] = {}
+        self.diag_steps: list[tuple[float, int]] = []  # (receive time, the node's step count)
 
 
 def _setup(node, st: _State, cam: str, reliable: bool = False):
@@ -89,6 +90,8 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
             for s in m.status:
                 if s.name.endswith(": commands"):
                     st.diag = {kv.key: kv.value for kv in s.values}
+                    if st.diag.get("steps", "").isdigit():
+                        st.diag_steps.append((time.monotonic(), int(st.diag["steps"])))
 
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
     S = node.create_subscription
@@ -104,6 +107,13 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
 def _rate(ts: list[float], t0: float, t1: float) -> float:
     w = [t for t in ts if t0 <= t <= t1]
     return (len(w) - 1) / (w[-1] - w[0]) if len(w) >= 2 and w[-1] > w[0] else 0.0
+
+
+def _step_rate(samples: list[tuple[float, int]], t0: float, t1: float) -> float:
+    """The node's own step (= published frame) rate from its /diagnostics ``steps`` counts received in
+    [t0, t1]: what the node did, apart from what this process managed to receive."""
+    w = [s for s in samples if t0 <= s[0] <= t1]
+    return (w[-1][1] - w[0][1]) / (w[-1][0] - w[0][0]) if len(w) >= 2 and w[-1][0] > w[0][0] else 0.0
 
 
 def _twist(vals):
@@ -175,6 +185,7 @@ def run_e2e(node, st: _State, args) -> dict:
     t1 = time.monotonic()
     with st.lock:
         out.update(color_rate_hz=_rate(st.color_t, t0, t1), depth_rate_hz=_rate(st.depth_t, t0, t1),
+                   node_step_rate_hz=_step_rate(st.diag_steps, t0, t1),
                    color=st.color_fmt, depth=st.depth_fmt, camera_info=st.info, clock_n=st.clock_n,
                    odom_n=st.odom_n, tf_edges=sorted(st.tf_edges), static_edges=sorted(st.static_edges))
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
@@ -275,7 +286,7 @@ def run_soak(node, st: _State, args) -> dict:
     t1 = time.monotonic()
     with st.lock:
         return {"sent": sent, "seconds": t1 - t0, "send_hz": sent / (t1 - t0),
-                "color_rate_hz": _rate(st.color_t, t0, t1)}
+                "color_rate_hz": _rate(st.color_t, t0, t1), "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1)}
 
 
 def main(argv: list[str] | None = None) -> int:
