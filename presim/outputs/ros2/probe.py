@@ -99,8 +99,10 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
     return [S(Image, f"{ns}/color/image_raw", on_color, q),
             S(Image, f"{ns}/depth/image_raw", on_depth, q),
             S(CameraInfo, f"{ns}/color/camera_info", on_info, q),
-            S(Clock, "/clock", on_clock, 10), S(Odometry, "/odom", on_odom, 10),
-            S(TFMessage, "/tf", on_tf, 100), S(TFMessage, "/tf_static", lambda m: on_tf(m, True), latched),
+            # keep last 1: the probe reads the newest /clock and /odom; with deeper queues a probe whose
+            # executor falls behind works through seconds-old messages (stale positions and clocks)
+            S(Clock, "/clock", on_clock, 1), S(Odometry, "/odom", on_odom, 1),
+            S(TFMessage, "/tf", on_tf, 1), S(TFMessage, "/tf_static", lambda m: on_tf(m, True), latched),
             S(DiagnosticArray, "/diagnostics", on_diag, 10)]
 
 
@@ -230,8 +232,9 @@ def run_e2e(node, st: _State, args) -> dict:
     # drive forward
     with st.lock:
         p0, c0 = st.odom, st.clock_s
-    v, n = args.speed, int(round(args.drive_s * 20))
-    for _ in range(n):
+    v = args.speed
+    end = time.monotonic() + args.drive_s  # by the clock, not a count: a starved probe still drives drive_s
+    while time.monotonic() < end:
         cmd.publish(_twist([v, 0, 0, 0, 0, 0]))
         time.sleep(0.05)
     with st.lock:
