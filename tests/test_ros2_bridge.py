@@ -148,19 +148,21 @@ def test_ros2_cmd_vel_soak_1khz_keeps_rate_and_memory(node):
 
     p, domain_id = node
     proc = psutil.Process(p.pid)
-    _probe(domain_id, "soak", "--hz", "1000", "--seconds", "1")  # warm-up: the node has served a client
+    _probe(domain_id, "soak", "--hz", "1000", "--seconds", "1", "--before-s", "0")  # warm-up: the node has served a client
     rss0 = proc.memory_info().rss
     r = _probe(domain_id, "soak", "--hz", "1000", "--seconds", "10")
     rss1 = proc.memory_info().rss
     assert p.poll() is None
     print(f"soak: {r['sent']} msgs in {r['seconds']:.1f} s ({r['send_hz']:.0f} Hz), images {r['color_rate_hz']:.1f} Hz "
-          f"(node {r['node_step_rate_hz']:.1f} steps/s), "
+          f"(node {r['node_step_rate_hz']:.1f} steps/s; before: {r['before_color_rate_hz']:.1f}, "
+          f"{r['before_node_step_rate_hz']:.1f}), "
           f"RSS {rss0 / 2**20:.1f} -> {rss1 / 2**20:.1f} MiB")
     assert r["sent"] >= 6500, r  # the sender shares 2 cores with the node
     # The flood does not slow the node (its loop takes at most 20 waiting commands per step, docs/ros2.md):
-    # its step rate holds, and so do the images the probe receives (9.4-10.5 Hz measured, 7.9 once with
-    # other work on the 2 cores; 0.4-1.3 Hz when the executor ran a Python callback per command).
-    assert r["node_step_rate_hz"] >= 7.5 and r["color_rate_hz"] >= 7.5, r
+    # its step rate, and the images the probe receives, hold their rate of the 3 s before the flood (other
+    # work on the 2 cores moves both; 0.4-1.3 Hz in the flood when the executor ran a callback per command).
+    assert r["node_step_rate_hz"] >= max(6.0, 0.8 * r["before_node_step_rate_hz"]), r
+    assert r["color_rate_hz"] >= max(6.0, 0.8 * r["before_color_rate_hz"]), r
     assert rss1 - rss0 < 20 * 2**20
 
 

@@ -12,7 +12,8 @@
 5. calls ``/presim/reset`` and checks that ``/clock`` keeps increasing.
 
 ``python -m presim.outputs.ros2.probe soak --hz 1000 --seconds 10`` publishes ``/cmd_vel`` at the given
-rate (a zero twist) and reports the messages sent and the color image rate during the soak.
+rate (a zero twist) and reports the messages sent, and the color image rate and the node's step rate
+(from ``/diagnostics``) during the soak and in the ``--before-s`` seconds before it.
 
 Both print one JSON object on stdout.
 """
@@ -180,8 +181,8 @@ def run_e2e(node, st: _State, args) -> dict:
     from sensor_msgs.msg import JointState
 
     out: dict = {}
-    if not _wait(lambda: len(st.color_t) > 0, args.timeout_s):
-        return {"error": f"no image within {args.timeout_s} s"}
+    if not _wait(lambda: len(st.color_t) > 0 and len(st.diag_steps) > 0, args.timeout_s):
+        return {"error": f"no image or /diagnostics within {args.timeout_s} s"}
     t0 = time.monotonic()
     time.sleep(args.listen_s)
     t1 = time.monotonic()
@@ -265,11 +266,13 @@ def run_e2e(node, st: _State, args) -> dict:
 def run_soak(node, st: _State, args) -> dict:
     from geometry_msgs.msg import Twist
 
-    if not _wait(lambda: len(st.color_t) > 0, args.timeout_s):
-        return {"error": f"no image within {args.timeout_s} s"}
+    if not _wait(lambda: len(st.color_t) > 0 and len(st.diag_steps) > 0, args.timeout_s):
+        return {"error": f"no image or /diagnostics within {args.timeout_s} s"}
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
     _wait(lambda: cmd.get_subscription_count() > 0, 10.0)
     time.sleep(1.0)
+    tb = time.monotonic()
+    time.sleep(args.before_s)  # the rates without the flood, for comparison
     msg = _twist([0, 0, 0, 0, 0, 0])
     period = 1.0 / args.hz
     t0 = time.monotonic()
@@ -289,7 +292,9 @@ def run_soak(node, st: _State, args) -> dict:
     t1 = time.monotonic()
     with st.lock:
         return {"sent": sent, "seconds": t1 - t0, "send_hz": sent / (t1 - t0),
-                "color_rate_hz": _rate(st.color_t, t0, t1), "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1)}
+                "color_rate_hz": _rate(st.color_t, t0, t1), "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1),
+                "before_color_rate_hz": _rate(st.color_t, tb, t0),
+                "before_node_step_rate_hz": _step_rate(st.diag_steps, tb, t0)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -306,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drive-s", type=float, default=2.0)
     ap.add_argument("--hz", type=float, default=1000.0)
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--before-s", type=float, default=3.0, help="soak: measure the rates this long before the flood")
     args = ap.parse_args(argv)
 
     from presim.outputs.ros2.env import import_rclpy
