@@ -87,7 +87,8 @@ def test_ros2_end_to_end_images_tf_commands(node):
     p, domain_id = node
     r = _probe(domain_id, "e2e", "--start", *map(str, START), "--listen-s", "4")
     assert p.poll() is None, "node died"
-    print(f"e2e: color {r['color_rate_hz']:.2f} Hz, depth {r['depth_rate_hz']:.2f} Hz, drive {r['drive_distance_m']:.3f} m "
+    print(f"e2e: node {r['node_step_rate_hz']:.2f} steps/s, color {r['color_rate_hz']:.2f} Hz, "
+          f"depth {r['depth_rate_hz']:.2f} Hz, drive {r['drive_distance_m']:.3f} m "
           f"in {r['drive_sim_s']:.2f} s sim, diagnostics {r['diagnostics']}")
     # what a stock subscriber gets
     assert r["color"] == [640, 480, "rgb8", 640 * 480 * 3]
@@ -98,8 +99,10 @@ def test_ros2_end_to_end_images_tf_commands(node):
     edges = {tuple(e) for e in r["tf_edges"]}
     assert {("map", "odom"), ("odom", "base_link")} <= edges
     assert ("camera_link", "camera_optical_frame") in {tuple(e) for e in r["static_edges"]}
-    # 10.0 Hz measured for color and depth with the node alone on this 2-core machine (docs/ros2.md);
-    # 5.6 Hz inside the full suite, whose other work shares the cores: the bound checks a live stream.
+    # The node publishes a frame per step: its own step rate (from /diagnostics) must hold 10 Hz. What
+    # this process receives is checked loosely: a best-effort subscriber that shares the 2 cores with
+    # the node (and the suite) loses frames of its own (docs/ros2.md, "Measured").
+    assert r["node_step_rate_hz"] >= 9.0, r
     assert r["color_rate_hz"] >= 3.0 and r["depth_rate_hz"] >= 3.0, r
     # QoS: sensor data (best effort) + reliable variant; latched topics transient local
     q = r["qos"]
@@ -145,18 +148,21 @@ def test_ros2_cmd_vel_soak_1khz_keeps_rate_and_memory(node):
 
     p, domain_id = node
     proc = psutil.Process(p.pid)
-    _probe(domain_id, "soak", "--hz", "1000", "--seconds", "1")  # warm-up: the node has served a client
+    _probe(domain_id, "soak", "--hz", "1000", "--seconds", "1", "--before-s", "0")  # warm-up: the node has served a client
     rss0 = proc.memory_info().rss
     r = _probe(domain_id, "soak", "--hz", "1000", "--seconds", "10")
     rss1 = proc.memory_info().rss
     assert p.poll() is None
-    print(f"soak: {r['sent']} msgs in {r['seconds']:.1f} s ({r['send_hz']:.0f} Hz), images {r['color_rate_hz']:.1f} Hz, "
+    print(f"soak: {r['sent']} msgs in {r['seconds']:.1f} s ({r['send_hz']:.0f} Hz), images {r['color_rate_hz']:.1f} Hz "
+          f"(node {r['node_step_rate_hz']:.1f} steps/s; before: {r['before_color_rate_hz']:.1f}, "
+          f"{r['before_node_step_rate_hz']:.1f}), "
           f"RSS {rss0 / 2**20:.1f} -> {rss1 / 2**20:.1f} MiB")
     assert r["sent"] >= 6500, r  # the sender shares 2 cores with the node
-    # Images keep flowing during the flood; the rate does not hold on 2 cores: the 1 kHz sender (a Python
-    # process) and the probe's 640x480 subscriptions share them with the node (0.6-1.5 Hz measured,
-    # docs/ros2.md "Known gaps").
-    assert r["color_rate_hz"] > 0.2, r
+    # The flood does not slow the node (its loop takes at most 20 waiting commands per step, docs/ros2.md):
+    # its step rate, and the images the probe receives, hold their rate of the 3 s before the flood (other
+    # work on the 2 cores moves both; 0.4-1.3 Hz in the flood when the executor ran a callback per command).
+    assert r["node_step_rate_hz"] >= max(6.0, 0.8 * r["before_node_step_rate_hz"]), r
+    assert r["color_rate_hz"] >= max(6.0, 0.8 * r["before_color_rate_hz"]), r
     assert rss1 - rss0 < 20 * 2**20
 
 

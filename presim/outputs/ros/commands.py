@@ -148,13 +148,14 @@ class CommandInbox:
                 self.last_drop = f"/{topic}: {reason}"
         return reason
 
-    def set_twist(self, twist6) -> str | None:
-        """Store a /cmd_vel twist; returns None, or the reason it was dropped."""
+    def set_twist(self, twist6, received_s: float | None = None) -> str | None:
+        """Store a /cmd_vel twist; returns None, or the reason it was dropped. ``received_s``: when
+        it arrived (``time.monotonic()`` clock; None = now), the start of its ``cmd_timeout_s``."""
         tw, reason = check_twist(twist6, self.limits)
         if tw is not None:
             with self._lock:
                 self.twist = tw.copy()
-                self.twist_wall_s = time.monotonic()
+                self.twist_wall_s = time.monotonic() if received_s is None else float(received_s)
                 self.cmd_count += 1
         return self.count("cmd_vel", reason)
 

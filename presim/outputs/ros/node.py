@@ -133,6 +133,10 @@ class RosBridge:
         err = np.linalg.norm(r.T_world_base[:2, 3] - np.asarray(T)[:2, 3])
         return bool(err < 1e-3 and not r.contact)
 
+    def _take_inputs(self, rospy) -> None:
+        """Hook at the top of every step, before the loop reads the inbox. rospy's own threads run
+        the callbacks, so nothing to do here; the ROS 2 bridge takes its inputs here."""
+
     def _handle_requests(self, rospy) -> None:
         T = self.inbox.take_teleport()
         if T is not None:
@@ -190,6 +194,7 @@ class RosBridge:
             while not self._stop.is_set() and not rospy.is_shutdown():
                 if cfg.max_steps and self.steps >= cfg.max_steps:
                     break
+                self._take_inputs(rospy)
                 self._handle_requests(rospy)
                 twist6, joints = self.inbox.current(cfg.cmd_timeout_s)
                 twist = twist6 if sim.is_free else twist6[[0, 1, 5]]

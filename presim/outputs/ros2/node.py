@@ -5,10 +5,18 @@ paced step loop, the command validation (:mod:`presim.outputs.ros.commands`, the
 counters), the request hand-over to the loop, the step-error fallback and the throttled warnings are
 shared code, so the two bridges accept and drop exactly the same commands.
 
-Threads: an rclpy ``MultiThreadedExecutor`` (2 threads) runs in a daemon thread. Subscriptions
-(one mutually exclusive callback group) only validate and store the newest command; services (a
-second group) hand a request to the loop through the bounded inbox and wait for the answer. The
-step loop runs in the caller's thread and publishes. rclpy's own signal handlers are off: Ctrl-C
+Inputs are taken by the step loop, not by the executor: at the top of every step the loop takes
+the messages waiting on ``/cmd_vel``, ``/joint_command`` and ``/initialpose`` (the middleware keeps
+the newest ``command`` QoS depth, 10, of each) and runs the validating callbacks on them. Their
+callback group (``_polled_group``) tells the executor never to run them. So the Python work for
+inputs is at most ``MAX_TAKEN_PER_STEP`` messages per topic per step whatever the senders' rate, and a flood costs the
+node only the middleware's own (C++, GIL-free) receive work. Run by rclpy's Python executor instead,
+a 1 kHz ``/cmd_vel`` flood kept the executor thread holding the GIL and the step loop, which gives up
+the GIL at every numba kernel and publish, waiting for it: 0.4-5 steps/s of 10 (docs/ros2.md).
+
+Threads: an rclpy ``MultiThreadedExecutor`` (2 threads) runs the services in a daemon thread; they
+hand a request to the loop through the bounded inbox and wait for the answer. The step loop runs in
+the caller's thread, takes the inputs and publishes. rclpy's own signal handlers are off: Ctrl-C
 and SIGTERM reach Python (``presim.cli.main`` turns SIGTERM into KeyboardInterrupt), so the loop's
 ``finally`` closes every sink and the node.
 """
@@ -16,6 +24,7 @@ and SIGTERM reach Python (``presim.cli.main`` turns SIGTERM into KeyboardInterru
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 
 from presim.outputs.frames import MAP_FRAME
@@ -25,7 +34,11 @@ from presim.outputs.ros2.env import import_rclpy, use_node_transport_profile
 from presim.outputs.ros2.messages import diagnostics_msg, qos_profiles
 from presim.outputs.ros2.publisher import Ros2PublisherSink
 
-__all__ = ["Ros2BridgeConfig", "Ros2Bridge"]
+__all__ = ["Ros2BridgeConfig", "Ros2Bridge", "take_waiting"]
+
+MAX_TAKEN_PER_STEP = 20
+"""Messages taken per input topic per step at most: the ``command`` QoS depth (10), plus those
+arriving while the loop takes them; a bound, so that a flood cannot hold the loop."""
 
 
 @dataclass(frozen=True)
@@ -38,6 +51,46 @@ class Ros2BridgeConfig(RosBridgeConfig):
     """The node's own ``use_sim_time`` parameter (its clock follows the ``/clock`` it publishes)."""
     domain_id: int | None = None
     """ROS_DOMAIN_ID of the node; None = the environment's (default 0)."""
+
+
+def _polled_group():
+    """A callback group that no executor runs: the step loop takes its subscriptions' messages
+    (:func:`take_waiting`) and calls their callbacks itself. (Defined here, not at import: rclpy is
+    optional.)"""
+    from rclpy.callback_groups import CallbackGroup
+
+    class PolledGroup(CallbackGroup):
+        def can_execute(self, entity) -> bool:
+            return False  # the executor then leaves the entity out of its wait set
+
+        def beginning_execution(self, entity) -> bool:
+            return False
+
+    return PolledGroup()
+
+
+def take_waiting(sub, limit: int = MAX_TAKEN_PER_STEP) -> int:
+    """Take up to ``limit`` messages waiting on rclpy subscription ``sub`` (oldest first) and call
+    ``sub.callback(msg, received_s)`` on each, ``received_s`` being its arrival time on the
+    ``time.monotonic()`` clock. Returns the number taken."""
+    from rclpy.exceptions import InvalidHandle
+
+    n = 0
+    try:
+        with sub.handle:
+            while n < limit:
+                got = sub.handle.take_message(sub.msg_type, sub.raw)
+                if got is None:
+                    break
+                msg, info = got
+                # received_timestamp: the middleware's arrival time (system clock, ns; 0 = unknown)
+                age_s = (time.time_ns() - int(info.get("received_timestamp", 0))) * 1e-9
+                now_s = time.monotonic()
+                sub.callback(msg, now_s - age_s if 0.0 <= age_s < 60.0 else now_s)
+                n += 1
+    except InvalidHandle:  # destroyed under us: the node is shutting down
+        pass
+    return n
 
 
 def _pose_parts(pose):
@@ -100,17 +153,17 @@ class Ros2Bridge(RosBridge):
             Parameter("use_sim_time", Parameter.Type.BOOL, cfg.use_sim_time)])
         self.publisher.node = node
         inbox, limits, qos = self.inbox, cfg.limits, qos_profiles()
-        subs_group, srv_group = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
-        transport = None  # set below; the callbacks only run once the executor spins
+        polled, srv_group = _polled_group(), MutuallyExclusiveCallbackGroup()
+        transport = None  # set below; the callbacks only run once the loop / the executor runs
 
-        def on_twist(m):
+        def on_twist(m, received_s=None):
             self._warn(transport, "cmd_vel", inbox.set_twist(
-                [m.linear.x, m.linear.y, m.linear.z, m.angular.x, m.angular.y, m.angular.z]))
+                [m.linear.x, m.linear.y, m.linear.z, m.angular.x, m.angular.y, m.angular.z], received_s))
 
-        def on_joints(m):
+        def on_joints(m, _received_s=None):
             self._warn(transport, "joint_command", inbox.set_joint_command(m.name, m.position))
 
-        def on_initialpose(m):
+        def on_initialpose(m, _received_s=None):
             T, reason = check_pose(*_pose_parts(m.pose.pose), m.header.frame_id, MAP_FRAME, limits)
             self._warn(transport, "initialpose", inbox.count("initialpose", reason))
             if T is not None:
@@ -138,10 +191,11 @@ class Ros2Bridge(RosBridge):
             return resp
 
         c = qos["command"]
-        self._subs = [node.create_subscription(Twist, "/cmd_vel", on_twist, c, callback_group=subs_group),
-                      node.create_subscription(JointState, "/joint_command", on_joints, c, callback_group=subs_group),
+        self._subs = [node.create_subscription(Twist, "/cmd_vel", on_twist, c, callback_group=polled),
+                      node.create_subscription(JointState, "/joint_command", on_joints, c, callback_group=polled),
                       node.create_subscription(PoseWithCovarianceStamped, "/initialpose", on_initialpose, c,
-                                               callback_group=subs_group)]
+                                               callback_group=polled)]
+
         self._srvs = [node.create_service(Empty, "/presim/reset", on_reset, callback_group=srv_group),
                       node.create_service(SetMap, "/presim/teleport", on_teleport, callback_group=srv_group)]
         self._diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", qos["default"])
@@ -151,6 +205,10 @@ class Ros2Bridge(RosBridge):
         transport = _Transport(rclpy, context, node, executor, thread)
         thread.start()
         return transport
+
+    def _take_inputs(self, transport) -> None:
+        for sub in self._subs:
+            take_waiting(sub)
 
     @staticmethod
     def _spin(executor) -> None:

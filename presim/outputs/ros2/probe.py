@@ -12,7 +12,8 @@
 5. calls ``/presim/reset`` and checks that ``/clock`` keeps increasing.
 
 ``python -m presim.outputs.ros2.probe soak --hz 1000 --seconds 10`` publishes ``/cmd_vel`` at the given
-rate (a zero twist) and reports the messages sent and the color image rate during the soak.
+rate (a zero twist) and reports the messages sent, and the color image rate and the node's step rate
+(from ``/diagnostics``) during the soak and in the ``--before-s`` seconds before it.
 
 Both print one JSON object on stdout.
 """
@@ -46,6 +47,7 @@ class _State:
         self.tf_edges: set[tuple[str, str]] = set()
         self.static_edges: set[tuple[str, str]] = set()
         self.diag: dict[str, str] = {}
+        self.diag_steps: list[tuple[float, int]] = []  # (receive time, the node's step count)
 
 
 def _setup(node, st: _State, cam: str, reliable: bool = False):
@@ -89,6 +91,8 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
             for s in m.status:
                 if s.name.endswith(": commands"):
                     st.diag = {kv.key: kv.value for kv in s.values}
+                    if st.diag.get("steps", "").isdigit():
+                        st.diag_steps.append((time.monotonic(), int(st.diag["steps"])))
 
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
     S = node.create_subscription
@@ -96,14 +100,23 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
     return [S(Image, f"{ns}/color/image_raw", on_color, q),
             S(Image, f"{ns}/depth/image_raw", on_depth, q),
             S(CameraInfo, f"{ns}/color/camera_info", on_info, q),
-            S(Clock, "/clock", on_clock, 10), S(Odometry, "/odom", on_odom, 10),
-            S(TFMessage, "/tf", on_tf, 100), S(TFMessage, "/tf_static", lambda m: on_tf(m, True), latched),
+            # keep last 1: the probe reads the newest /clock and /odom; with deeper queues a probe whose
+            # executor falls behind works through seconds-old messages (stale positions and clocks)
+            S(Clock, "/clock", on_clock, 1), S(Odometry, "/odom", on_odom, 1),
+            S(TFMessage, "/tf", on_tf, 1), S(TFMessage, "/tf_static", lambda m: on_tf(m, True), latched),
             S(DiagnosticArray, "/diagnostics", on_diag, 10)]
 
 
 def _rate(ts: list[float], t0: float, t1: float) -> float:
     w = [t for t in ts if t0 <= t <= t1]
     return (len(w) - 1) / (w[-1] - w[0]) if len(w) >= 2 and w[-1] > w[0] else 0.0
+
+
+def _step_rate(samples: list[tuple[float, int]], t0: float, t1: float) -> float:
+    """The node's own step (= published frame) rate from its /diagnostics ``steps`` counts received in
+    [t0, t1]: what the node did, apart from what this process managed to receive."""
+    w = [s for s in samples if t0 <= s[0] <= t1]
+    return (w[-1][1] - w[0][1]) / (w[-1][0] - w[0][0]) if len(w) >= 2 and w[-1][0] > w[0][0] else 0.0
 
 
 def _twist(vals):
@@ -168,13 +181,14 @@ def run_e2e(node, st: _State, args) -> dict:
     from sensor_msgs.msg import JointState
 
     out: dict = {}
-    if not _wait(lambda: len(st.color_t) > 0, args.timeout_s):
-        return {"error": f"no image within {args.timeout_s} s"}
+    if not _wait(lambda: len(st.color_t) > 0 and len(st.diag_steps) > 0, args.timeout_s):
+        return {"error": f"no image or /diagnostics within {args.timeout_s} s"}
     t0 = time.monotonic()
     time.sleep(args.listen_s)
     t1 = time.monotonic()
     with st.lock:
         out.update(color_rate_hz=_rate(st.color_t, t0, t1), depth_rate_hz=_rate(st.depth_t, t0, t1),
+                   node_step_rate_hz=_step_rate(st.diag_steps, t0, t1),
                    color=st.color_fmt, depth=st.depth_fmt, camera_info=st.info, clock_n=st.clock_n,
                    odom_n=st.odom_n, tf_edges=sorted(st.tf_edges), static_edges=sorted(st.static_edges))
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
@@ -219,8 +233,9 @@ def run_e2e(node, st: _State, args) -> dict:
     # drive forward
     with st.lock:
         p0, c0 = st.odom, st.clock_s
-    v, n = args.speed, int(round(args.drive_s * 20))
-    for _ in range(n):
+    v = args.speed
+    end = time.monotonic() + args.drive_s  # by the clock, not a count: a starved probe still drives drive_s
+    while time.monotonic() < end:
         cmd.publish(_twist([v, 0, 0, 0, 0, 0]))
         time.sleep(0.05)
     with st.lock:
@@ -251,11 +266,13 @@ def run_e2e(node, st: _State, args) -> dict:
 def run_soak(node, st: _State, args) -> dict:
     from geometry_msgs.msg import Twist
 
-    if not _wait(lambda: len(st.color_t) > 0, args.timeout_s):
-        return {"error": f"no image within {args.timeout_s} s"}
+    if not _wait(lambda: len(st.color_t) > 0 and len(st.diag_steps) > 0, args.timeout_s):
+        return {"error": f"no image or /diagnostics within {args.timeout_s} s"}
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
     _wait(lambda: cmd.get_subscription_count() > 0, 10.0)
     time.sleep(1.0)
+    tb = time.monotonic()
+    time.sleep(args.before_s)  # the rates without the flood, for comparison
     msg = _twist([0, 0, 0, 0, 0, 0])
     period = 1.0 / args.hz
     t0 = time.monotonic()
@@ -275,7 +292,9 @@ def run_soak(node, st: _State, args) -> dict:
     t1 = time.monotonic()
     with st.lock:
         return {"sent": sent, "seconds": t1 - t0, "send_hz": sent / (t1 - t0),
-                "color_rate_hz": _rate(st.color_t, t0, t1)}
+                "color_rate_hz": _rate(st.color_t, t0, t1), "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1),
+                "before_color_rate_hz": _rate(st.color_t, tb, t0),
+                "before_node_step_rate_hz": _step_rate(st.diag_steps, tb, t0)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -292,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drive-s", type=float, default=2.0)
     ap.add_argument("--hz", type=float, default=1000.0)
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--before-s", type=float, default=3.0, help="soak: measure the rates this long before the flood")
     args = ap.parse_args(argv)
 
     from presim.outputs.ros2.env import import_rclpy
