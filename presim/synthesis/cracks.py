@@ -20,13 +20,13 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.synthesis.config import CRACK_FILTERS
 from presim.synthesis.holes import row_words
 from presim.synthesis.threads import parallel_kernel
 
-__all__ = ["CRACK_FILTERS", "BANDED_MAX_LAYERS", "TILED_MIN_PIXELS", "TILED_MAX_FRAC", "WARP_TILE_PX",
+__all__ = ["BANDED_MAX_LAYERS", "TILED_MIN_PIXELS", "TILED_MAX_FRAC", "WARP_TILE_PX",
            "crack_filter", "composite_layers", "filtered_composite_banded", "tile_any", "warp_tiles"]
 
-CRACK_FILTERS = ("switching_median", "median", "none")
 
 BANDED_MAX_LAYERS = 8
 """The banded pass packs a pixel's per-layer occupancy into one byte: at most 8 layers."""

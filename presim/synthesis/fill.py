@@ -14,12 +14,11 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.synthesis.config import FILL_METHODS
 from presim.synthesis.telea import telea_inpaint
 from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
-__all__ = ["FILL_METHODS", "pushpull_fill", "pushpull_rgbd", "foreground_rim", "fill_holes"]
-
-FILL_METHODS = ("auto", "telea", "pushpull")
+__all__ = ["pushpull_fill", "pushpull_rgbd", "foreground_rim", "fill_holes"]
 
 
 def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:

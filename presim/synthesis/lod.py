@@ -36,14 +36,6 @@ class LodConfig:
     depth_tol: float = 0.02
     """Relative depth band of the front surface in a 2x2 block (pooled together)."""
 
-    def __post_init__(self) -> None:
-        if self.levels < 0 or self.levels > 8:
-            raise ValueError(f"LodConfig: levels must be in [0, 8], got {self.levels}")
-        if not self.max_footprint > 0:
-            raise ValueError("LodConfig: max_footprint must be > 0")
-        if not self.depth_tol >= 0:
-            raise ValueError("LodConfig: depth_tol must be >= 0")
-
 
 def half_intrinsics(K: Intrinsics) -> Intrinsics:
     """Intrinsics of a 2x2-pooled image (``W // 2`` x ``H // 2``; block i = source pixels 2i..2i+1, centre 2i + 0.5)."""
@@ -140,31 +132,28 @@ def _pool_kernel(d, c, tol, dout, cout):  # pragma: no cover
         _pool_row(d, c, tol, dout, cout, i)
 
 
-def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02, parallel: bool = True
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """2x2 depth-aware pooling (numba): per block, average depth and colour of the valid pixels within
     ``depth_tol`` (relative) of the block's nearest depth; 0 where the block has no valid pixel.
 
-    depth_m: float32 (H, W), 0 or non-finite = invalid; color: uint8 (H, W, 3); parallel: False runs the serial
-    GIL-free twin (background threads, same output). Returns ``(depth (H//2, W//2) float32, color uint8)``.
+    depth_m: float32 (H, W), 0 or non-finite = invalid; color: uint8 (H, W, 3). Returns ``(depth (H//2, W//2) float32, color uint8)``.
     """
     # Non-finite depths count as invalid without a pass: NaN/-inf fail z > 0, +inf is never within the band.
     d = np.ascontiguousarray(depth_m, np.float32)
     H2, W2 = d.shape[0] // 2, d.shape[1] // 2
     dout = np.empty((H2, W2), np.float32)
     cout = np.empty((H2, W2, 3), np.uint8)
-    kernel = _pool_kernel if parallel else _pool_kernel.serial
-    kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
+    _pool_kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
     return dout, cout
 
 
-def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02,
-                parallel: bool = True) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
-    """Pyramid level ``level`` (0 = input) as ``(color, depth, intrinsics)``; ``parallel``: :func:`pool_depth_aware`."""
+def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02
+                ) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
+    """Pyramid level ``level`` (0 = input) as ``(color, depth, intrinsics)``."""
     for _ in range(level):
         if min(depth_m.shape) < 2:
             break
-        depth_m, color = pool_depth_aware(depth_m, color, depth_tol, parallel)
+        depth_m, color = pool_depth_aware(depth_m, color, depth_tol)
         K = half_intrinsics(K)
     return color, depth_m, K
 

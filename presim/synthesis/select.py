@@ -15,11 +15,9 @@ from typing import Callable
 import numpy as np
 
 from presim.geometry import Intrinsics, invert, project, transform_points
+from presim.synthesis.config import SELECTION_MODES, VIEW_ORDERS
 
-__all__ = ["SELECTION_MODES", "VIEW_ORDERS", "Selection", "view_overlap", "select_views"]
-
-SELECTION_MODES = ("adaptive", "distance", "angle")
-VIEW_ORDERS = ("overlap", "distance")
+__all__ = ["Selection", "view_overlap", "select_views"]
 
 
 @dataclass(frozen=True)
