@@ -1,10 +1,5 @@
-"""The two configurations of the renderer.
-
-- :class:`RenderConfig` holds everything that may change the image (the algorithm: layers, views,
-  crack filter, fill, blending, photometric correction, level of detail).
-- :class:`PerfConfig` holds what never changes it (backend, threads, caches, helpers that run work
-  early). Two renderers that differ only in their ``PerfConfig`` give the same pixels (tested).
-"""
+"""The two configurations of the renderer: :class:`RenderConfig`, everything that may change the image, and
+:class:`PerfConfig`, what never does (two renderers that differ only in it give the same pixels, tested)."""
 
 from __future__ import annotations
 

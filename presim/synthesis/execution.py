@@ -1,20 +1,10 @@
-"""The executor: how a frame's work is scheduled. It never changes a pixel.
+"""The executor: when and on which thread a frame's work runs; it never changes a pixel.
 
-The pipeline (:mod:`presim.synthesis.pipeline`) asks for view images; the Renderer asks for
-prepared views. Everything about *when* and *on which thread* that work runs lives here, behind
-:class:`Executor`:
-
-- **threads per frame** (:func:`presim.synthesis.threads.frame_threads`): frames of at most
-  ``threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (their parallel kernels run as
-  serial twins: waking a second thread costs more than it gives there); larger ones on all;
-- **views warped ahead** (:mod:`presim.synthesis.warp_ahead`): a frame on one thread leaves a core
-  idle, so a helper thread warps and crack-filters the later candidates that the stream's previous
-  frame drew, while the loop works on the first view; the loop then takes them finished;
-- **the view cache** (:mod:`presim.synthesis.view_cache`): prepared views, LRU, bounded in bytes.
-
-Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and each was kept
-because it measured >= 10 % faster on a case of ``benchmarks/bench_ab.py`` (docs/synthesis.md).
-"""
+Frames of at most ``threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (the serial twins); such a frame
+leaves a core idle, so a helper thread (:mod:`presim.synthesis.warp_ahead`) warps the later candidates the
+stream's previous frame drew while the loop works on the first view. Prepared views live in a :class:`ViewCache`.
+Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and earned >= 10 % on a case of
+``benchmarks/bench_ab.py`` (docs/synthesis.md)."""
 
 from __future__ import annotations
 

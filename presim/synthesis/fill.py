@@ -1,12 +1,8 @@
-"""Final filling of pixels no input view covered (a robot camera must deliver a complete image).
+"""Final fill of pixels no view covered; they stay ``valid=False``.
 
-Last stage of the frame (``RenderConfig(fill_holes=False)`` skips it); filled pixels stay ``valid=False``.
-Methods: ``"telea"`` inpaints the colour, radius 3 px (:func:`presim.synthesis.telea.telea_inpaint`, reference
-``cv2.inpaint``, 1.5-3.5x faster; best on small, thin holes); ``"pushpull"`` is pull-push pyramid interpolation
-(Gortler et al. 1996), a fixed cost per pixel (:func:`pushpull_rgbd`, reference :func:`pushpull_fill`);
-``"auto"`` (default) uses telea below ``telea_max_hole_frac`` of the image, else pushpull. Depth is always
-filled by pull-push: a plausible surface, never ground truth.
-"""
+``"telea"`` inpaints colour (:func:`presim.synthesis.telea.telea_inpaint`, reference ``cv2.inpaint``);
+``"pushpull"`` is pull-push interpolation (Gortler et al. 1996; :func:`pushpull_rgbd`, reference
+:func:`pushpull_fill`); ``"auto"`` uses telea below ``telea_max_hole_frac`` of the image. Depth is pull-pushed."""
 
 from __future__ import annotations
 

@@ -1,12 +1,8 @@
 """Merging a view into the target image, and the hole analysis that drives the adaptive loop (§3.4.4).
 
-:func:`merge_view_holes` / :func:`merge_into_holes` write a view's image into the accumulated target image only
-on replaceable pixels (holes, big ones dilated), never over earlier views elsewhere, and update the hole mask in
-the same pass. :func:`analyse_hole_mask` finds 8-connected hole components (row runs + union-find): the largest
-decides whether another view is warped, and components of >= ``big_hole_px`` are dilated by ``hole_dilation_px``
-so the next view also replaces their rim, where ghost contours live. Reference: scipy's 8-connected labelling
-plus ``cv2.dilate`` (tests/test_synthesis_core.py).
-"""
+A view writes only the replaceable pixels (holes, big ones dilated against ghost contours) and the hole mask is
+updated in the same pass. :func:`analyse_hole_mask` finds 8-connected holes (row runs + union-find); the largest
+decides whether another view is warped. Reference: scipy labelling plus ``cv2.dilate`` (tests)."""
 
 from __future__ import annotations
 

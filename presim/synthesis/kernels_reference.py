@@ -1,14 +1,9 @@
 """Slow, obviously correct numpy reference of the synthesis kernels, and the naive baseline.
 
-Every fast path (numba in :mod:`presim.synthesis.warp` / :mod:`presim.synthesis.cracks`, torch in
-:mod:`presim.synthesis.torch_kernels`) is tested against these (tests/test_synthesis_kernels.py). They *define*
-the conventions: a point lands on pixel ``floor(u + 0.5)``; camera z <= ``near_m`` is dropped; per layer the
-z-buffer keeps the smallest float32 z, exact ties to the lower point index
-(:func:`presim.capture.reprojection.zbuffer_splat`); empty pixels have depth 0 and colour 0; the switching median
-(thesis eq. 3.9) fills an empty pixel when more than half of its N x N window (out-of-image = empty) is non-empty,
-with the lower median of the non-empty values per channel; the plain median takes the whole zero-padded window;
-layers composite front to back (lowest layer index = nearest wins).
-"""
+They define the rules the fast paths are tested against: a point lands on pixel ``floor(u + 0.5)``; z <= ``near_m``
+is dropped; per layer the smallest float32 z wins, ties to the lower point index; empty = depth 0, colour 0; the
+switching median (eq. 3.9) fills an empty pixel whose N x N window (outside = empty) is more than half non-empty
+with the lower median per channel; the plain median takes the zero-padded window; layers composite front to back."""
 
 from __future__ import annotations
 

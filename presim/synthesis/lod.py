@@ -1,14 +1,8 @@
-"""Level of detail for the per-view point sets: a small pyramid per capture view, one level per frame.
+"""Level of detail: a pyramid of point sets per capture view, one level per frame.
 
-A splat costs one projection per source point, so a 128x128 frame from 640x480 captures would warp ~300 k
-points per view. Level 0 is the view's valid pixels (:func:`presim.synthesis.warp.prepare_view`); level k+1 is
-2x2 **depth-aware pooling** of level k (:func:`pool_depth_aware`, numpy reference :func:`pool_depth_aware_ref`):
-the pixels with ``d <= dmin * (1 + depth_tol)`` of a block's nearest valid depth are averaged (depth and
-colour), the rest ignored, so nothing mixes across a depth edge; the point sits at the block centre
-(:func:`half_intrinsics`). :func:`choose_level` takes the coarsest level whose median footprint
-``r_k = 2^k * (z_s / f_s) / (z_t / f_t)`` is <= ``max_footprint`` target pixels, so the crack median still
-closes the cracks: 640x480 targets stay at level 0, 256x256 take level 1, 128x128 level 2.
-"""
+Level k+1 is 2x2 depth-aware pooling of level k (:func:`pool_depth_aware`, reference :func:`pool_depth_aware_ref`:
+a block's pixels within ``depth_tol`` of its nearest depth are averaged, the rest ignored). :func:`choose_level`
+takes the coarsest level whose median footprint ``2^k (z_s / f_s) / (z_t / f_t)`` is <= ``max_footprint``."""
 
 from __future__ import annotations
 

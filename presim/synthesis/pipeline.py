@@ -2,25 +2,9 @@
 
     synthesize_frame(views, T_cam_world, K, config) -> FrameResult
 
-``views`` (:class:`FrameViews`) is the frame's ordered candidate list and what the loop asks of
-it: one view's image in the target camera, and the next view to warp. The Renderer builds it;
-how its work is scheduled (threads, views warped ahead) is the
-executor's business (:mod:`presim.synthesis.execution`) and invisible here.
-
-Stages, in order:
-1. **view image** (:func:`view_image`, per backend): warp the view's layers with a z-buffer per
-   layer (:mod:`warp`), fill cracks per layer with the switching median, composite the layers front
-   to back, one more crack pass over the layer seams (:mod:`cracks`);
-2. **merge + hole analysis** (:mod:`holes`): the view's image goes into the accumulated image on
-   the pixels still missing (big holes dilated against ghost contours); the largest hole decides
-   whether a further view is warped;
-3. **resample** (:mod:`resample`, ``backward_color``): each covered pixel's colour is sampled in its
-   source view's image at the exact position it back-projects to;
-4. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
-5. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``;
-6. **exposure** (:mod:`photometric`, calibrated scenes): the image takes the exposure predicted from
-   the capture frames it is made of.
-"""
+``views`` (:class:`FrameViews`) is the frame's candidate list and what the loop asks of it; how its work is
+scheduled is the executor's business (:mod:`presim.synthesis.execution`). Stages: view image (warp, crack
+filter, composite) -> merge + hole analysis (adaptive loop) -> resample -> blend -> fill -> exposure."""
 
 from __future__ import annotations
 

@@ -1,8 +1,5 @@
-"""``presim render``: a saved scene rendered at camera poses into a capture folder, and the poses it covers badly.
-
-Layout of :mod:`presim.formats.kinfu_folder` plus ``frame-XXXXXX.valid.png`` (255 = synthesized, 0 = filled)
-and ``render.json``, written last (without it the render is unfinished).
-"""
+"""``presim render``: a scene rendered at camera poses into a capture folder (:mod:`presim.formats.kinfu_folder`
+plus ``frame-XXXXXX.valid.png`` and ``render.json``, written last), and the poses the capture covers badly."""
 
 from __future__ import annotations
 

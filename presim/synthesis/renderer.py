@@ -2,14 +2,9 @@
 
     Renderer(scene, RenderConfig(), PerfConfig()).render(T_world_cam, K) -> RGBD
 
-Per frame: select the candidate views (:mod:`select`), then the pure pipeline
-(:func:`presim.synthesis.pipeline.synthesize_frame`) with this renderer's views of the frame
-(:class:`_FrameViews`); the :class:`~presim.synthesis.execution.Executor` schedules the work.
-
-State kept per scene (built once, never per frame): camera centres, optical axes and FOVs of all
-views; per view, lazily, the prepared points at each level of detail (an LRU cache bounded by
-``PerfConfig.cache_mb``) and a small sub-sampled grid of world points (overlap and hole tests).
-"""
+Per frame: select the candidates (:mod:`select`), then :func:`presim.synthesis.pipeline.synthesize_frame` with
+this renderer's :class:`_FrameViews`. Per scene: camera centres, axes and FOVs; per view, lazily, the prepared
+points per level of detail (in the executor's cache) and a sub-sampled grid of world points."""
 
 from __future__ import annotations
 

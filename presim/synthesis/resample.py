@@ -1,17 +1,9 @@
-"""Backward colour sampling: the colour of each rendered pixel read from its source view's image.
+"""Backward colour sampling: each rendered pixel's colour read from its source view's image.
 
-The forward warp decides, per target pixel, the surface (depth) and the view that sees it, but a
-one-pixel splat carries the colour of the *nearest* source pixel, up to half a pixel off, and a crack
-filled by the median carries a neighbour's colour. This stage replaces both: the target pixel is
-back-projected with its depth (target camera -> world -> source camera) and its colour is
-interpolated bilinearly in the source image at the exact sub-pixel position it projects to.
-Taps whose source depth disagrees with the projected depth by more than ``depth_tol`` (relative)
-are dropped and the rest renormalised, so colours never bleed across a depth edge; a pixel with no
-valid tap keeps its splatted colour.
-
-Reference: :func:`resample_colors_ref` (numpy, float64); fast paths: :func:`resample_colors`
-(numba) and :func:`presim.synthesis.torch_kernels.resample_colors_torch`, tested against it.
-"""
+A one-pixel splat carries the colour of the nearest source pixel (up to half a pixel off). Here the target pixel
+is back-projected with its depth into its source view and its colour interpolated bilinearly there; taps whose
+source depth disagrees by more than ``depth_tol`` (relative) are dropped, and a pixel with no valid tap keeps its
+colour. Reference :func:`resample_colors_ref`; numba :func:`resample_colors`; torch ``resample_colors_torch``."""
 
 from __future__ import annotations
 

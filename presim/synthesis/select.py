@@ -1,11 +1,6 @@
 """View selection (thesis §3.4.2): distance -> angle vs FOV -> zero-overlap removal -> order.
 
-Keep the ``max_candidates`` nearest views (eq. 3.5); drop those whose optical axis angle to the target's (eq. 3.6)
-exceeds their hfov, and those whose sub-sampled depth grid has no point inside the target image; if none is left,
-take the smallest-angle views that overlap, largest overlap first. Order by distance (default: nearest beat
-largest overlap in leave-one-out PSNR, docs/synthesis.md) or overlap. Ablations (thesis Table 3.4):
-``mode="distance"`` (nearest, distance order), ``mode="angle"`` (smallest angle, angle order).
-"""
+Ablations (thesis Table 3.4): ``mode="distance"`` (nearest first), ``mode="angle"`` (smallest angle first)."""
 
 from __future__ import annotations
 

@@ -1,11 +1,7 @@
-"""Torch path of the synthesis kernels (``PerfConfig(backend="torch")``): CUDA when available, else CPU.
+"""Torch path of the view image (``PerfConfig(backend="torch")``): CUDA when available, else CPU.
 
-Same definitions as :mod:`presim.synthesis.kernels_reference` (tested against it on CPU): the z-buffer is an
-``amin`` scatter of depths, then of point indices among the depth winners (lowest index wins a tie); the
-switching median gathers and sorts only the empty pixels with a non-empty majority; the composite takes the first
-non-empty layer by ``argmax``. :func:`view_image_torch` is this backend's
-:func:`presim.synthesis.pipeline.view_image`; per-view tensors (:func:`to_device`) are cached by the Renderer.
-"""
+Same rules as :mod:`presim.synthesis.kernels_reference` (tested on CPU): the z-buffer is an ``amin`` scatter of
+depths, then of point indices among the winners; the median gathers only the pixels it may change."""
 
 from __future__ import annotations
 

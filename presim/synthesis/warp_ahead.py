@@ -1,15 +1,10 @@
 """Later candidate views warped on a helper thread while the main thread runs the adaptive loop.
 
-Frames of at most :data:`presim.synthesis.threads.SERIAL_MAX_PIXELS` pixels render on one numba thread, leaving a
-core idle. :class:`WarpAhead` (driven by :meth:`presim.synthesis.execution.Executor.warp_ahead`) warps the later
-candidates the camera stream's previous frame drew too (cached, >= :data:`WARP_AHEAD_MIN_POINTS` points) in one
-GIL-free numba call (:func:`_warp_jobs_kernel`: chunk culling, the serial warp kernel and the banded crack pass;
-per-view calls from Python retook the GIL and cost the main thread half the gain). Jobs have int32 states shared
-by both threads (queued, running, done, claimed); :meth:`WarpAhead.take` uses a done job, waits for a running
-one, or claims a queued one and lets the loop warp it; ``done`` is stored with release order after the images.
-The layers equal the loop's own warp (same kernels and inputs), so images are identical with and without the
-thread (tested).
-"""
+:class:`WarpAhead` warps and crack-filters the views in one GIL-free numba call per frame
+(:func:`_warp_jobs_kernel`: culling, the serial warp kernel and the banded crack pass). Jobs have int32 states
+shared by both threads (queued, running, done, claimed; ``done`` stored with release order after the images):
+:meth:`WarpAhead.take` uses a done job, waits for a running one, or claims a queued one for the loop. The images
+equal the loop's own (same kernels and inputs, tested)."""
 
 from __future__ import annotations
 
@@ -26,7 +21,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from presim.geometry import Intrinsics
-from presim.synthesis.cracks import LOWEST_SET_BIT, banded_crack_kernel, rows_per_band
+from presim.synthesis.cracks import BAND_ROWS, LOWEST_SET_BIT, banded_crack_kernel
 from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, LayeredImage, chunk_keep_kernel, target_cam, tile_marks,
                                    warp_layers_kernel)
 
@@ -258,7 +253,7 @@ class WarpAhead:
         cancel = np.zeros(1, np.int32)
         jobs = Jobs(*zip(*fields), bufs.padded("zb", n), bufs.padded("cb", n), bufs.padded("d", n), bufs.padded("c", n))
         args = (state, cancel, n, jobs, target_cam(T_cam_world, K, near_m), target_cam(T_cam_world, K, near_m, np.float64),
-                tile_marks(None, K, 16, "warp ahead"), bool(crack), int(rows_per_band(H)))
+                tile_marks(None, K, 16, "warp ahead"), bool(crack), BAND_ROWS)
         frame = _Frame(views, state, cancel, bufs, bool(crack), args)
         with sh.cv:
             bufs.user = frame
