@@ -377,13 +377,11 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
                 front_image: Callable[[int, np.ndarray, np.ndarray], None],
                 centre_of: Callable[[int], np.ndarray], quality_of: Callable[[int], float] | None = None,
                 use_reference: bool = False, buffers: dict | None = None) -> tuple[np.ndarray, float]:
-    """Blend the first ``config.max_views`` of ``views`` into the loop's winner image.
+    """Blend the first ``config.max_views`` of ``views`` into the loop's result: ``(color, ms)``.
 
-    views: the warped views in order; color / depth_m / source: the merged result; T_world_cam, K: target camera;
-    front_image(id, depth_out, color_out): writes the view's front surface (float32 (H, W), uint8 (H, W, 3)),
-    via :func:`front_image_points` or :func:`front_of_layers`; centre_of(id) -> (3,) world camera centre;
-    quality_of: per-view factor (None = 1); use_reference: :func:`blend_reference` (tests); buffers: dict kept
-    across frames for the stacks. Returns ``(blended color uint8 (H, W, 3), milliseconds)``.
+    ``front_image(id, depth_out, color_out)`` writes a view's front surface (:func:`front_image_points` or
+    :func:`front_of_layers`); ``centre_of(id)``: its camera centre; ``quality_of``: its factor (None = 1);
+    ``buffers``: a dict kept across frames for the stacks.
     """
     t0 = time.perf_counter()
     use = [int(v) for v in list(views)[:config.max_views]]

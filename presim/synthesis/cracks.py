@@ -108,13 +108,8 @@ def _median_kernel(din, cin, dout, cout, r, switching):  # pragma: no cover
 
 def crack_filter(depth_m: np.ndarray, color: np.ndarray, mode: str = "switching_median",
                  kernel_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Fill cracks of warped images (numba, parallel over rows of all layers): new ``(depth_m, color)`` of the
-    input shapes (the inputs themselves for ``"none"``).
-
-    Args:
-        depth_m: float32 (L, H, W) or (H, W), 0 = empty; color: uint8 (L, H, W, 3) or (H, W, 3).
-        mode: ``"switching_median"`` (thesis), ``"median"`` (plain) or ``"none"``; kernel_px: odd window size N.
-    """
+    """Fill cracks of float32 (L, H, W) or (H, W) depth (0 = empty) and uint8 colour: new arrays (the inputs
+    for ``"none"``); ``mode`` in :data:`~presim.synthesis.config.CRACK_FILTERS`, odd window ``kernel_px``."""
     if mode not in CRACK_FILTERS:
         raise ValueError(f"crack filter must be one of {CRACK_FILTERS}, got {mode!r}")
     if kernel_px < 1 or kernel_px % 2 == 0:

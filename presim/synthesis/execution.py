@@ -123,19 +123,14 @@ class Executor:
                 return ViewImage(d, c)
         return view_image(self.backend, view, T_cam_world, K, config, replace, self.workspace)
 
-    def with_front(self, front: tuple[np.ndarray, np.ndarray] | None) -> contextlib.AbstractContextManager:
+    @contextlib.contextmanager
+    def with_front(self, front: tuple[np.ndarray, np.ndarray] | None) -> Iterator[None]:
         """Within the block, numba view images also write their front-most surface into ``front``."""
-        ws = self.workspace
-
-        @contextlib.contextmanager
-        def ctx() -> Iterator[None]:
-            ws.front = front
-            try:
-                yield
-            finally:
-                ws.front = None
-
-        return ctx()
+        self.workspace.front = front
+        try:
+            yield
+        finally:
+            self.workspace.front = None
 
     def close(self) -> None:
         """Stop the helper threads."""

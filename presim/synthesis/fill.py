@@ -139,13 +139,9 @@ def _blend_level_kernel(acc, w, up, out):  # pragma: no cover
 
 def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarray
                   ) -> tuple[np.ndarray | None, np.ndarray]:
-    """:func:`pushpull_fill` of colour (optional) and depth, with the full-size steps in numba.
-
-    Level 0 -> 1 pooling and the final push read uint8 colour and depth directly and write only unknown
-    pixels; coarser levels use OpenCV resizes. Equals :func:`pushpull_fill` up to float rounding for even H, W
-    (tested); odd sizes use it. color: uint8 (H, W, 3) or None; depth_m: float32 (H, W); valid: bool (H, W).
-    Returns new ``(color or None, depth_m)``, known pixels unchanged, colour rounded to nearest.
-    """
+    """Pull-push of colour (uint8 (H, W, 3) or None) and depth where ``valid`` is False: new ``(color,
+    depth_m)``, colour rounded. = :func:`pushpull_fill` up to float rounding for even H, W (numba full-size
+    steps, OpenCV coarser levels; tested); odd sizes use it."""
     H, W = valid.shape
     with_color = color is not None
     if H % 2 or W % 2 or min(H, W) < 2:
@@ -209,13 +205,10 @@ def foreground_rim(depth_m: np.ndarray, valid: np.ndarray, rim_px: int = 4, dept
 
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
                telea_max_hole_frac: float = 0.02, background_rim_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Fill color and depth where ``valid`` is False.
+    """Fill ``color`` (uint8 (H, W, 3)) and ``depth_m`` (float32) where ``valid`` is False: new arrays.
 
-    color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W); method: one of :data:`FILL_METHODS`;
-    telea_max_hole_frac: hole fraction above which ``"auto"`` uses pull-push; background_rim_px > 0: the
-    colour is filled from the background side (:func:`foreground_rim` pixels do not feed the fill and
-    keep their colour). Returns new ``(color, depth_m)`` (unchanged copies when nothing is missing or
-    nothing is known).
+    ``"auto"`` uses pull-push above ``telea_max_hole_frac``; ``background_rim_px`` > 0: :func:`foreground_rim`
+    pixels neither feed the colour fill nor change.
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")

@@ -40,11 +40,8 @@ def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> np.ndarray:
 def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, num_layers: int,
                     T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-warp world points into ``num_layers`` z-buffered images of the target camera.
-
-    xyz_world: (n, 3) world points, metres; rgb: (n, 3) uint8; layer: (n,) int; T_cam_world: 4x4; K: target.
-    Returns ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty.
-    """
+    """Forward-warp world points (n, 3) with ``rgb`` and ``layer`` into ``num_layers`` z-buffered images of
+    the target camera: ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty."""
     H, W = K.height, K.width
     depth = np.zeros((num_layers, H, W), np.float32)
     color = np.zeros((num_layers, H, W, 3), np.uint8)
@@ -127,12 +124,8 @@ def composite_layers_ref(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.nda
 
 def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.ndarray]],
                       T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """The naive baseline: vectorized numpy z-buffer splat of whole frames, no layers, no filters.
-
-    Unprojects every view again per call (nothing cached), as a straightforward numpy DIBR does.
-    views: ``(color (h,w,3) uint8, depth_m (h,w) float32, K_view, T_world_view)`` each.
-    Returns ``(color (H, W, 3) uint8, depth_m (H, W) float32)``.
-    """
+    """The naive baseline: a numpy z-buffer splat of whole frames ``(color, depth_m, K_view, T_world_view)``,
+    no layers, no filters, nothing cached. Returns ``(color (H, W, 3), depth_m (H, W))``."""
     from presim.geometry import compose, invert, unproject_depth
 
     H, W = K.height, K.width

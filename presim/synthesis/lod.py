@@ -127,11 +127,8 @@ def _pool_kernel(d, c, tol, dout, cout):  # pragma: no cover
 
 
 def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
-    """2x2 depth-aware pooling (numba): per block, average depth and colour of the valid pixels within
-    ``depth_tol`` (relative) of the block's nearest depth; 0 where the block has no valid pixel.
-
-    depth_m: float32 (H, W), 0 or non-finite = invalid; color: uint8 (H, W, 3). Returns ``(depth (H//2, W//2) float32, color uint8)``.
-    """
+    """2x2 depth-aware pooling: per block, the mean depth and colour of the valid pixels within ``depth_tol``
+    of its nearest depth, 0 without one. float32 depth (0 / non-finite = invalid), uint8 colour -> halved."""
     # Non-finite depths count as invalid without a pass: NaN/-inf fail z > 0, +inf is never within the band.
     d = np.ascontiguousarray(depth_m, np.float32)
     H2, W2 = d.shape[0] // 2, d.shape[1] // 2
@@ -155,12 +152,8 @@ def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: in
 def footprint_ratio(grid_xyz_world: np.ndarray, T_cam_world_src: np.ndarray, f_src_px: float,
                     T_cam_world_tgt: np.ndarray, f_tgt_px: float, near_m: float = 0.01,
                     K_tgt: Intrinsics | None = None) -> float:
-    """Median over a view's grid points of (source pixel footprint) / (target pixel footprint) at level 0:
-    ``(z_s / f_s) / (z_t / f_t)``; nan when no grid point counts.
-
-    A point counts when in front of both cameras and, with ``K_tgt``, inside the target image (pixel-centre
-    rule): off-image points (e.g. the floor beside a low robot camera) would pull the level down.
-    """
+    """Median over a view's grid points in front of both cameras (and inside ``K_tgt`` when given) of
+    ``(z_s / f_s) / (z_t / f_t)``; nan when none counts."""
     if len(grid_xyz_world) == 0:
         return float("nan")
     z_s = transform_points(T_cam_world_src, grid_xyz_world)[:, 2]

@@ -40,7 +40,6 @@ class ViewImage:
     depth_m: np.ndarray
     """float32 (H, W) z-depth, 0 = empty; exact at least on the ``replace`` pixels asked for."""
     color: np.ndarray
-    """uint8 (H, W, 3)."""
     warp_ms: float = 0.0
     crack_ms: float = 0.0
     composite_ms: float = 0.0
@@ -52,10 +51,9 @@ class Workspace:
     """Buffers a backend reuses across views and frames (one per rendering thread)."""
 
     layers: LayeredImage | None = None
-    """numba: the (L, H, W) warp buffers."""
     front: tuple[np.ndarray, np.ndarray] | None = None
-    """When set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with the
-    front-most surface of its warped layers (no crack filter; blending keeps it)."""
+    """When set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with the front-most
+    surface of its warped layers (blending)."""
 
 
 def banded_applies(config: RenderConfig, num_layers: int) -> bool:
@@ -70,9 +68,8 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     t0 = time.perf_counter()
     banded = banded_applies(config, view.num_layers)
     front = workspace.front
-    # A later view's banded crack pass reads its layers only near the replaceable pixels: warp (and
-    # clear) only the tiles there. The banded pass reads colour only where depth > 0, so the colour
-    # planes need no clearing (the front surface for blending reads them everywhere).
+    # A later view's banded pass reads its layers only near the replaceable pixels (warp only the tiles
+    # there), and colour only where depth > 0 (no clearing; the front surface for blending reads it all).
     tiles = None
     if banded and replace is not None and front is None and K.width * K.height >= TILED_MIN_PIXELS:
         tiles = warp_tiles(replace)
@@ -89,9 +86,7 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     mode, kpx = config.crack_filter, config.crack_kernel_px
     d, c = crack_filter(lay.depth_m, lay.color, mode, kpx)
     t2 = time.perf_counter()
-    d, c = composite_layers(d, c)
-    # Second pass on the composite: cracks along layer seams and at crossings of crack lines.
-    d, c = crack_filter(d, c, mode, kpx)
+    d, c = crack_filter(*composite_layers(d, c), mode, kpx)  # the seams
     return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
 
 
@@ -149,15 +144,15 @@ class FrameViews(Protocol):
     candidates: list[int]
     """Ordered candidate view ids (scene frame indices), best first."""
     backend: str
-    """The backend of the view images (and of the stages after the loop that have several)."""
+    """The backend of the view images and of the later stages that have several."""
 
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
         """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
 
     def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
-        """Index in ``pending`` of the first view whose sub-sampled grid puts >= 1 point and >= ``frac``
-        of the best count into the big holes ``big_flat`` (uint8 (H * W,)) and, with ``need_px``,
-        is predicted to fill at least that many pixels; -1 when none can."""
+        """Index in ``pending`` of the first view whose grid puts >= 1 point and >= ``frac`` of the best count
+        into the big holes ``big_flat`` (uint8 (H * W,)) and, with ``need_px``, is predicted to fill that many
+        pixels; -1 when none can."""
 
     def blend(self, warped: list[int], color: np.ndarray, depth_m: np.ndarray, source: np.ndarray) -> np.ndarray:
         """The merged colour blended over the views that agree with its front surface."""
@@ -166,8 +161,7 @@ class FrameViews(Protocol):
         """The source images of the views ``warped`` (backward colour sampling)."""
 
     def exposure(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The output exposure ``(A, b)`` predicted for an image whose pixels come from the views in
-        ``source`` (int32 (H, W), -1 = none); None = keep the working exposure."""
+        """The output exposure ``(A, b)`` of an image made of the views in ``source`` (None: keep it)."""
 
 
 @dataclass(frozen=True)
@@ -196,13 +190,7 @@ class FrameResult:
 
 def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig
                      ) -> FrameResult:
-    """The adaptive loop, blending and the final fill for one target camera.
-
-    Args:
-        views: the frame's candidates and view images (:class:`FrameViews`).
-        T_cam_world: 4x4 world -> target camera; K: target intrinsics.
-        config: the algorithm (:class:`~presim.synthesis.config.RenderConfig`).
-    """
+    """The adaptive loop and the stages after it for one target camera (4x4 ``T_cam_world``, ``K``)."""
     cfg = config
     H, W = K.height, K.width
     ms = {s: 0.0 for s in STAGES}

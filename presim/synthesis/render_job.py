@@ -38,12 +38,9 @@ def output_intrinsics(K: Intrinsics, width: int | None = None, height: int | Non
 
 def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarray, K: Intrinsics, out: Path,
                      config: RenderConfig, batch_size: int = 16, perf: PerfConfig = PerfConfig()) -> dict:
-    """Render poses ``T_world_cams`` (B, 4, 4) with ``K`` into folder ``out`` (created), each file atomically;
-    ``stamps_s`` (B,) go to the timestamps and TUM files. ``batch_size`` poses per :meth:`Renderer.render_batch`
-    (pose ``i`` continues the camera stream of pose ``i - batch_size``). Depth PNGs are uint16 mm (filled pixels
-    keep their depth; values that do not fit are 0, counted in ``depth_clipped_px``). Returns the
-    ``render.json`` summary (``ms_per_frame_median``: median of batch time / frames).
-    """
+    """Render poses ``T_world_cams`` (B, 4, 4) with ``K`` into folder ``out``, ``batch_size`` per
+    :meth:`Renderer.render_batch`; depth PNGs are uint16 mm (values that do not fit: 0, counted). Returns the
+    ``render.json`` summary."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     r = Renderer(scene, config, perf)

@@ -147,11 +147,9 @@ class _FrameViews:
             d, c, _ = blend_stacks(r.blend_buffers, r.blend_config.max_views, self.K.height, self.K.width,
                                    r.blend_config.feather_px)
             front = (d[len(self.fronts)], c[len(self.fronts)])
-        if front is None:
+        with r.executor.with_front(front):
             img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
-        else:
-            with r.executor.with_front(front):
-                img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
+        if front is not None:
             self.fronts.append(view_id)
         img.load_ms = load_ms
         return img

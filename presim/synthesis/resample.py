@@ -93,11 +93,9 @@ def source_projection(K: Intrinsics, T_world_cam: np.ndarray, sources: SourceSta
 
 def resample_colors_ref(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
                         T_world_cam: np.ndarray, sources: SourceStack, depth_tol: float = 0.05) -> np.ndarray:
-    """Reference (numpy, float64). Pixels with ``source`` < 0, depth 0, a source not in ``sources``,
-    a projection behind the source camera or outside ``[0, w - 1] x [0, h - 1]``, or no tap within
-    ``depth_tol`` keep ``color``; the others get ``floor(sum(w c) / sum(w) + 0.5)`` over the four
-    bilinear taps ``w`` of the valid ones (:func:`source_projection` maps the target point
-    ``((u - cx) / fx d, (v - cy) / fy d, d)`` into the source). Returns a new uint8 (H, W, 3)."""
+    """Reference (float64). A pixel keeps ``color`` unless its source is in ``sources``, its depth > 0 and
+    its projection lands in front of the source camera inside ``[0, w - 1] x [0, h - 1]`` with a tap within
+    ``depth_tol``; then ``floor(sum(w c) / sum(w) + 0.5)`` over the valid bilinear taps. New uint8 (H, W, 3)."""
     _check(color, depth_m, source, K)
     out = color.copy()
     s = source.astype(np.int64)

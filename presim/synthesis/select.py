@@ -63,18 +63,13 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
                  overlaps: Callable[[np.ndarray], np.ndarray] | None = None,
                  overlapping: Callable[[np.ndarray], np.ndarray] | None = None,
                  exact_overlaps: int = 0) -> Selection:
-    """Select and order the input views for a target camera.
+    """Select and order the input views for a target camera (4x4 ``T_world_cam``, ``K``).
 
-    T_world_cam: 4x4 target pose; K: target intrinsics; centres_world, directions_world: (N, 3) input camera
-    centres and unit optical axes; hfov_deg: (N,) input horizontal FOV; grid_points(i) -> (m, 3) float32 world
-    points of view i's sub-sampled grid (called only at the overlap test); mode: ``"adaptive"`` (thesis),
-    ``"distance"`` or ``"angle"``; max_candidates: size of the local group; order: ``"distance"`` or
-    ``"overlap"`` (adaptive mode only).
-    overlaps: fast path, ``overlaps(idx)`` -> (k,) :func:`view_overlap` per view (reference; the Renderer uses
-    :class:`presim.synthesis.grids.FrameGrids`). overlapping: with ``exact_overlaps`` > 0 and order
-    ``"distance"``, ``overlapping(idx)`` -> bool (k,) = ``overlaps(idx) > 0`` (stops at the first point
-    inside); only the first ``exact_overlaps`` selected views get an overlap, later ones nan; selection and
-    order are unchanged.
+    centres_world, directions_world: (N, 3) input camera centres and unit optical axes; hfov_deg: (N,);
+    grid_points(i) -> (m, 3) world points of view i's grid; order: adaptive mode only. ``overlaps(idx)`` ->
+    (k,) :func:`view_overlap` per view (fast path: :class:`presim.synthesis.grids.FrameGrids`); with
+    ``overlapping(idx)`` -> ``overlaps(idx) > 0`` and ``exact_overlaps`` > 0 (distance order) only the first
+    ``exact_overlaps`` views get an overlap, later ones nan (same selection).
     """
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")

@@ -316,12 +316,8 @@ def _dst_table(rng: int) -> np.ndarray:
 
 
 def telea_inpaint(color: np.ndarray, holes: np.ndarray, radius: int = 3) -> np.ndarray:
-    """``cv2.inpaint(color, holes, radius, cv2.INPAINT_TELEA)`` for uint8 (H, W, 3) colour.
-
-    color: uint8 (H, W, 3); holes: bool (H, W), True where to fill; radius: pixels (rounded, clamped to [1, 100]).
-    Returns a new uint8 (H, W, 3) image, pixels outside ``holes`` unchanged; one-row or one-column images go to
-    ``cv2.inpaint`` itself (its border rules read outside such an image).
-    """
+    """``cv2.inpaint(color, holes, radius, cv2.INPAINT_TELEA)`` of uint8 (H, W, 3) ``color`` where ``holes``;
+    one-row or one-column images go to ``cv2.inpaint`` itself."""
     if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
         raise ValueError(f"telea_inpaint: colour must be uint8 (H, W, 3), got {color.dtype} {color.shape}")
     if holes.shape != color.shape[:2]:

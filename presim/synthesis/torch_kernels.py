@@ -14,18 +14,13 @@ import torch
 from presim.geometry import Intrinsics
 from presim.synthesis.warp import ViewPoints
 
-__all__ = ["default_device", "resolve_device", "TorchView", "to_device", "warp_layers_torch",
+__all__ = ["resolve_device", "TorchView", "to_device", "warp_layers_torch",
            "crack_filter_torch", "composite_layers_torch", "view_image_torch"]
 
 
-def default_device() -> torch.device:
-    """CUDA when present, else CPU."""
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-
-
-def resolve_device(name: str | None) -> torch.device:
-    """``torch.device(name)``, or :func:`default_device` when ``name`` is None / empty."""
-    return torch.device(name) if name else default_device()
+def resolve_device(name: str | None = None) -> torch.device:
+    """``torch.device(name)``, or CUDA when present, else CPU when ``name`` is None / empty."""
+    return torch.device(name if name else "cuda" if torch.cuda.is_available() else "cpu")
 
 
 @dataclass(frozen=True)
@@ -49,7 +44,7 @@ class TorchView:
 
 
 def to_device(view: ViewPoints, device: torch.device | str | None = None) -> TorchView:
-    device = torch.device(device) if device is not None else default_device()
+    device = resolve_device(device)
     return TorchView(torch.from_numpy(view.xyz_world).to(device), torch.from_numpy(view.rgb).to(device),
                      torch.from_numpy(view.layer).to(device), view.num_layers, view.image)
 
@@ -175,7 +170,7 @@ def resample_colors_torch(color: np.ndarray, depth_m: np.ndarray, source: np.nda
     gather per source view. ``sources``: a :class:`~presim.synthesis.resample.SourceStack`."""
     from presim.synthesis.resample import source_projection
 
-    dev = torch.device(device) if device is not None else default_device()
+    dev = resolve_device(device)
     f64 = torch.float64
     H, W = depth_m.shape
     out = torch.from_numpy(np.ascontiguousarray(color)).to(dev).reshape(-1, 3).clone()

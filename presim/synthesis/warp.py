@@ -156,12 +156,9 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
 
 def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS, T_world_src: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of each run of ``chunk`` points: ``(lo, hi)``, float32 (3, ceil(n / chunk)), rounded outwards.
-
-    Without ``T_world_src``: world boxes. With it (the source camera's 4x4 pose): ranges of ``(x / z, y / z, z)``
-    in that camera, a frustum piece (2-8x smaller projected boxes on the apc capture); a chunk with a point not
-    in front of the source camera gets infinite bounds (never culled).
-    """
+    """Bounds of each run of ``chunk`` points: ``(lo, hi)``, float32 (3, ceil(n / chunk)), rounded outwards:
+    world boxes, or with ``T_world_src`` ranges of ``(x / z, y / z, z)`` in that camera (2-8x smaller projected
+    boxes on apc; a chunk with a point not in front of it is never culled)."""
     xyz = np.ascontiguousarray(xyz_world, np.float32)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"chunk_bounds: need (n, 3) points, got {xyz.shape}")

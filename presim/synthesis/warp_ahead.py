@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import threading
 import weakref
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -40,7 +39,6 @@ QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3
 _warp_serial = warp_layers_kernel.serial
 _crack_serial = banded_crack_kernel.serial
 _NO_MASK = np.zeros((1, 1), np.bool_)
-_FIELDS_KEPT = 2 * MAX_JOBS  # views whose kernel arguments are kept (the view object too: ids stay unique)
 
 
 @intrinsic
@@ -181,6 +179,14 @@ class _Shared:
         self.closed = False
 
 
+def _fields(view: Any) -> tuple:
+    """The kernel's per-view arguments (points, layer starts, chunk bounds), contiguous: one compilation."""
+    c = np.ascontiguousarray
+    return (c(view.xyz_world), c(view.rgb), c(view.layer_start), ChunkBounds(
+        c(view.chunk_lo), c(view.chunk_hi), bool(view.chunk_projective), c(view.chunk_to_world),
+        float(view.chunk_abs_max)))
+
+
 def _serve(sh: _Shared) -> None:
     """The thread: run each new frame's kernel call until the owner is gone."""
     while True:
@@ -216,7 +222,6 @@ class WarpAhead:
         # Two buffer sets used in turn: a new frame does not wait for the previous one's last (cancelled) warp.
         self._sets = (_Buffers(), _Buffers())
         self._turn = 0
-        self._views: OrderedDict[int, tuple[Any, tuple]] = OrderedDict()  # id -> (view, kernel fields)
         self.taken = 0
         """Views the loop took from the thread."""
         self._finalizer = weakref.finalize(self, _close, self._sh)
@@ -246,7 +251,7 @@ class WarpAhead:
         H, W = K.height, K.width
         bufs.fit(views, H, W)
         n = len(views)
-        fields = [self._fields(v) for v in views]
+        fields = [_fields(v) for v in views]
         fields += [fields[0]] * (MAX_JOBS - n)  # fixed-size tuples; jobs >= n are never run
         state = np.full(MAX_JOBS, CLAIMED, np.int32)
         state[:n] = QUEUED
@@ -262,22 +267,6 @@ class WarpAhead:
                 self._thread = threading.Thread(target=_serve, args=(sh,), name="presim-warp-ahead", daemon=True)
                 self._thread.start()
             sh.cv.notify_all()
-
-    def _fields(self, view: Any) -> tuple:
-        """The kernel's per-view arguments (points, layer starts, chunk bounds), kept per view object."""
-        got = self._views.get(id(view))
-        if got is not None and got[0] is view:
-            self._views.move_to_end(id(view))
-            return got[1]
-        f = (np.ascontiguousarray(view.xyz_world), np.ascontiguousarray(view.rgb),
-             np.ascontiguousarray(view.layer_start),
-             ChunkBounds(np.ascontiguousarray(view.chunk_lo), np.ascontiguousarray(view.chunk_hi),
-                         bool(view.chunk_projective), np.ascontiguousarray(view.chunk_to_world),
-                         float(view.chunk_abs_max)))
-        self._views[id(view)] = (view, f)
-        while len(self._views) > _FIELDS_KEPT:
-            self._views.popitem(last=False)
-        return f
 
     def take(self, view: Any) -> AheadImage | None:
         """``view`` warped by the thread (waited for while running), or None: the loop warps it itself (not
