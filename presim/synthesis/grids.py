@@ -99,7 +99,7 @@ def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: also run by the view cache's background thread
 def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), float32; nan if none.
-    # Exact order statistics (in-place quickselect); an even count halves the float32 sum of the middle two.
+    # Exact order statistics; an even count halves the float32 sum of the middle two.
     n = z_src.shape[0]
     r = np.empty(n, np.float32)
     m = 0
@@ -112,7 +112,7 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     if m == 0:
         return np.nan
     k = m // 2
-    _select_kth(r, m, k)  # in place: r[:k] <= r[k] <= r[k + 1:m] (no copy, unlike np.partition)
+    r = np.partition(r[:m], k)  # r[:k] <= r[k] <= r[k + 1:]
     hi = r[k]
     if m % 2:
         return np.float64(hi)
@@ -120,42 +120,6 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     for i in range(1, k):  # the largest of the lower part: the (k - 1)-th order statistic
         lo = max(lo, r[i])
     return np.float64(np.float32(lo + hi) / np.float32(2.0))
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _select_kth(a, m, k):  # pragma: no cover
-    # In-place quickselect (Hoare, median-of-3) on NaN-free a[:m]: a[:k] <= a[k] <= a[k + 1:m] afterwards.
-    lo = 0
-    hi = m
-    while hi - lo > 1:
-        x = a[lo]
-        y = a[(lo + hi - 1) // 2]
-        z = a[hi - 1]
-        if x > y:
-            x, y = y, x
-        if y > z:
-            y = z
-        if x > y:
-            y = x
-        i = lo
-        j = hi - 1
-        while i <= j:
-            while a[i] < y:
-                i += 1
-            while a[j] > y:
-                j -= 1
-            if i <= j:
-                t = a[i]
-                a[i] = a[j]
-                a[j] = t
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j + 1
-        elif k >= i:
-            lo = i
-        else:
-            return
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -210,9 +174,11 @@ def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums):  # pragma: no cover
-    # Per view k (points [starts[k], ends[k])): counts[k] = count_in_mask of its front pixels, sums[k] =
-    # _fill_area_kernel, same points in the same order (equal results).
+def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, counts, sums):  # pragma: no cover
+    # Per view k (points [starts[k], ends[k])): counts[k] = count_in_mask of its front pixels, sums[k] = the
+    # fill-area sum; a view counts when sums[k] * scale[k] >= need (with use_need); the first whose count
+    # reaches frac x the largest wins, -1 if none counts.
+    pix, z_t, z_src, starts, ends = points
     for k in range(starts.shape[0]):
         n = 0
         s = 0.0
@@ -225,14 +191,6 @@ def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, 
                     s += r * r
         counts[k] = n
         sums[k] = s
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, counts, sums):  # pragma: no cover
-    # _hole_scores_kernel, then the choice: a view counts when sums[k] * scale[k] >= need (with use_need);
-    # the first whose count reaches frac x the largest, -1 if none counts.
-    pix, z_t, z_src, starts, ends = points
-    _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums)
     cmax = 0
     for k in range(counts.shape[0]):
         if counts[k] > 0 and use_need and not sums[k] * scale[k] >= need:
@@ -248,13 +206,9 @@ def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, coun
 
 def _flat_f32(parts: list[np.ndarray], n: int) -> np.ndarray:
     """The arrays of ``parts`` end to end in one float32 (n,) array."""
-    out = np.empty(n, np.float32)
-    o = 0
-    for a in parts:
-        out[o:o + len(a)] = a
-        o += len(a)
-    if o != n:
-        raise ValueError(f"source depths: {o} values for {n} grid points")
+    out = np.concatenate(parts).astype(np.float32, copy=False) if parts else np.zeros(0, np.float32)
+    if len(out) != n:
+        raise ValueError(f"source depths: {len(out)} values for {n} grid points")
     return out
 
 

@@ -68,27 +68,6 @@ class ChunkBounds(NamedTuple):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
-    n = xyz.shape[0]
-    m = (n + chunk - 1) // chunk
-    lo = np.empty((3, m), np.float32)
-    hi = np.empty((3, m), np.float32)
-    for c in range(m):
-        a = c * chunk
-        b = min(n, a + chunk)
-        for k in range(3):
-            mn = xyz[a, k]
-            mx = mn
-            for i in range(a + 1, b):
-                x = xyz[i, k]
-                mn = min(mn, x)
-                mx = max(mx, x)
-            lo[k, c] = mn
-            hi[k, c] = mx
-    return lo, hi
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _down32(x):  # pragma: no cover
     # a float32 <= x (finite x), within 3 float32 steps: x - 2^-22 |x| (>= one step) rounded to nearest
     return np.float32(x - abs(x) * 2.384185791015625e-07 - 1e-37)
@@ -165,7 +144,11 @@ def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS, T_world_src: np.
     if chunk < 1:
         raise ValueError(f"chunk_bounds: chunk must be >= 1, got {chunk}")
     if T_world_src is None:
-        return _chunk_bounds_kernel(xyz, int(chunk))
+        starts = np.arange(0, len(xyz), int(chunk))
+        if not len(xyz):
+            return np.empty((3, 0), np.float32), np.empty((3, 0), np.float32)
+        return (np.ascontiguousarray(np.minimum.reduceat(xyz, starts).T),
+                np.ascontiguousarray(np.maximum.reduceat(xyz, starts).T))
     T = np.asarray(T_world_src, np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise ValueError(f"chunk_bounds: T_world_src must be a finite 4x4 pose, got shape {T.shape}")
