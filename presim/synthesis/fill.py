@@ -17,6 +17,33 @@ from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 __all__ = ["pushpull_fill", "pushpull_rgbd", "foreground_rim", "fill_holes"]
 
 
+def _halve(acc: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The next pull level: OpenCV area pooling of premultiplied values (h, w, C) and weights."""
+    h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
+    return (cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, acc.shape[2]),
+            cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA))
+
+
+def _coarse_levels(acc: np.ndarray, w: np.ndarray, fast: bool) -> np.ndarray:
+    """Pull-push from a level to the coarsest with no unknown pixel and back: that level's estimate. Each push
+    step is ``acc / max(w, 1e-12) * a + up * (1 - a)``, ``a = clip(w, 0, 1)`` (``fast``: in one numba pass)."""
+    levels = []
+    while not (w > 0).all() and min(w.shape) > 1:
+        levels.append((acc, w))
+        acc, w = _halve(acc, w)
+    est = acc / np.maximum(w, 1e-12)[..., None]
+    for acc_l, w_l in reversed(levels):
+        h, ww = w_l.shape
+        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, acc.shape[2])
+        if fast:
+            est = np.empty_like(up)
+            _blend_level_kernel(acc_l, w_l, up, est)
+        else:
+            alpha = np.clip(w_l, 0.0, 1.0)[..., None]
+            est = acc_l / np.maximum(w_l, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+    return est
+
+
 def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """Pull-push interpolation of ``values`` (H, W) or (H, W, C) where ``known`` (H, W bool) is False.
 
@@ -30,20 +57,11 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     # Level 0: weights are 0/1, so premultiplying is masking (cv2.copyTo is ~5x numpy indexing).
     acc = cv2.copyTo(v32, known_u8, np.zeros_like(v32)).reshape(H, W, C)
     w = known.astype(np.float32)
-    levels = []
-    while min(acc.shape[0], acc.shape[1]) > 1:
-        levels.append((acc, w))
-        h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
-        acc = cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, C)
-        w = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
-        if (w > 0).all():
-            break
-    est = acc / np.maximum(w, 1e-12)[..., None]
-    for acc_l, w_l in reversed(levels[1:]):
-        h, ww = w_l.shape
-        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
-        alpha = np.clip(w_l, 0.0, 1.0)[..., None]
-        est = acc_l / np.maximum(w_l, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+    if min(H, W) > 1:
+        acc, w = _halve(acc, w)
+        est = _coarse_levels(acc, w, False)
+    else:
+        est = acc / np.maximum(w, 1e-12)[..., None]
     up = cv2.resize(est, (W, H), interpolation=cv2.INTER_LINEAR).reshape(H, W, C)
     out = cv2.copyTo(v32, known_u8, np.ascontiguousarray(up)).reshape(H, W, C)
     return out[..., 0] if squeeze else out
@@ -157,20 +175,7 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     acc = np.empty((H // 2, W // 2, C), np.float32)
     w = np.empty(acc.shape[:2], np.float32)
     _pull0_kernel(col, depth_m, known, with_color, acc, w)
-    # Coarser levels exactly as pushpull_fill (OpenCV area pooling, bilinear push).
-    levels = []
-    while not (w > 0).all() and min(w.shape) > 1:
-        levels.append((acc, w))
-        h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
-        acc = cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, C)
-        w = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
-    est = acc / np.maximum(w, 1e-12)[..., None]
-    for acc_l, w_l in reversed(levels):
-        h, ww = w_l.shape
-        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
-        # pushpull_fill's numpy blend in one pass (same float32 operations and order).
-        est = np.empty_like(up)
-        _blend_level_kernel(acc_l, w_l, up, est)
+    est = _coarse_levels(acc, w, True)  # coarser levels as pushpull_fill
     out_c = col.copy() if with_color else None
     out_d = depth_m.copy()
     _push0_kernel(known, with_color, np.ascontiguousarray(est, np.float32), out_c if with_color else col, out_d)
