@@ -1,4 +1,4 @@
-"""The Renderer's view cache (presim/synthesis/view_cache.py): LRU bound, views built ahead in a
+"""The Renderer's view cache (presim/synthesis/execution.py, ViewCache): LRU bound, views built ahead in a
 background thread, and images that do not depend on who built a view."""
 
 from __future__ import annotations

@@ -108,7 +108,7 @@ class Executor:
             return
         if self._ahead is None:
             self._ahead = WarpAhead()
-        self._ahead.start(views, T_cam_world, K, near_m, crack=True)
+        self._ahead.start(views, T_cam_world, K, near_m)
         self._ahead_on = True
 
     def view_image(self, view: Any, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
@@ -116,8 +116,8 @@ class Executor:
         """The view's image: taken from the helper thread when it warped it, else computed here."""
         if self._ahead_on:
             got = self._ahead.take(view)
-            if got is not None and got.depth_m is not None:
-                d, c = got.depth_m, got.color
+            if got is not None:
+                d, c = got
                 if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
                     d, c = d.copy(), c.copy()
                 return ViewImage(d, c)

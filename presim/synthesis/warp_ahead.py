@@ -21,10 +21,10 @@ from numba.extending import intrinsic
 
 from presim.geometry import Intrinsics
 from presim.synthesis.cracks import BAND_ROWS, LOWEST_SET_BIT, banded_crack_kernel
-from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, LayeredImage, chunk_keep_kernel, target_cam, tile_marks,
+from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, chunk_keep_kernel, target_cam, tile_marks,
                                    warp_layers_kernel)
 
-__all__ = ["WarpAhead", "AheadImage", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
+__all__ = ["WarpAhead", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
 
 MAX_JOBS = 8
 """At most this many views per frame (the kernel takes fixed-size tuples: one compilation)."""
@@ -87,10 +87,9 @@ class Jobs(NamedTuple):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # pragma: no cover
-    # Jobs k < n in order: warp_layers(view k) without tiles into zb[k] / cb[k], with ``crack`` then
-    # filtered_composite_banded's crack pass (no replace mask) into d[k] / c[k]. Claimed jobs are skipped;
-    # cancel[0] set (the loop has ended) stops the kernel.
+def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, band):  # pragma: no cover
+    # Jobs k < n in order: warp_layers(view k) without tiles into zb[k] / cb[k], then filtered_composite_banded
+    # (no replace mask) into d[k] / c[k]. Claimed jobs are skipped; cancel[0] set (the loop has ended) stops it.
     for k in range(n):
         if _load_acquire(cancel, 0) != 0:
             return
@@ -101,24 +100,13 @@ def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # p
         vis = np.ones(b.lo.shape[1], np.uint8)
         if cam.near > 0 and b.abs_max < np.inf:
             chunk_keep_kernel(b, cam64, CULL_MARGIN, tm, vis)
-        # the crack pass reads colour only where depth > 0: no clearing needed with it
-        _warp_serial(jobs.xyz[k], jobs.rgb[k], jobs.layer_start[k], 1, cam, tm, vis, not crack, jobs.zb[k], jobs.cb[k])
-        if crack:
-            if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
-                _store_release(state, k, CLAIMED)
-                return
-            _crack_serial(jobs.zb[k], jobs.cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, jobs.d[k], jobs.c[k])
+        # the crack pass reads colour only where depth > 0: no clearing needed
+        _warp_serial(jobs.xyz[k], jobs.rgb[k], jobs.layer_start[k], 1, cam, tm, vis, False, jobs.zb[k], jobs.cb[k])
+        if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
+            _store_release(state, k, CLAIMED)
+            return
+        _crack_serial(jobs.zb[k], jobs.cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, jobs.d[k], jobs.c[k])
         _store_release(state, k, DONE)  # after the images: the loop reads them once it sees DONE
-
-
-@dataclass(frozen=True)
-class AheadImage:
-    """A view warped by the thread: its layers and, with ``crack``, its crack-filtered composite
-    (:func:`presim.synthesis.cracks.filtered_composite_banded` without replace mask). Valid until the next frame."""
-
-    layers: LayeredImage
-    depth_m: np.ndarray | None
-    color: np.ndarray | None
 
 
 class _Buffers:
@@ -162,7 +150,6 @@ class _Frame:
     state: np.ndarray
     cancel: np.ndarray
     bufs: _Buffers
-    crack: bool
     args: tuple
     begun: bool = False
     """The thread has taken the frame (its kernel call runs or has run)."""
@@ -230,10 +217,9 @@ class WarpAhead:
         """End the thread (after a running kernel call)."""
         self._finalizer()
 
-    def start(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
-              crack: bool = False) -> None:
+    def start(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> None:
         """Warp ``views`` (prepared :class:`~presim.synthesis.warp.ViewPoints`, likely loop order, at most
-        :data:`MAX_JOBS`) for this camera, with ``crack`` also the banded crack pass; unbegun older jobs are dropped."""
+        :data:`MAX_JOBS`) and crack-filter them for this camera; unbegun older jobs are dropped."""
         views = list(views)[:MAX_JOBS]
         if not views:
             return
@@ -258,8 +244,8 @@ class WarpAhead:
         cancel = np.zeros(1, np.int32)
         jobs = Jobs(*zip(*fields), bufs.padded("zb", n), bufs.padded("cb", n), bufs.padded("d", n), bufs.padded("c", n))
         args = (state, cancel, n, jobs, target_cam(T_cam_world, K, near_m), target_cam(T_cam_world, K, near_m, np.float64),
-                tile_marks(None, K, 16, "warp ahead"), bool(crack), BAND_ROWS)
-        frame = _Frame(views, state, cancel, bufs, bool(crack), args)
+                tile_marks(None, K, 16, "warp ahead"), BAND_ROWS)
+        frame = _Frame(views, state, cancel, bufs, args)
         with sh.cv:
             bufs.user = frame
             sh.frame = frame
@@ -268,9 +254,9 @@ class WarpAhead:
                 self._thread.start()
             sh.cv.notify_all()
 
-    def take(self, view: Any) -> AheadImage | None:
-        """``view`` warped by the thread (waited for while running), or None: the loop warps it itself (not
-        handed over, not reached, or the kernel failed; the loop's warp then raises)."""
+    def take(self, view: Any) -> tuple[np.ndarray, np.ndarray] | None:
+        """``view``'s ``(depth_m, color)`` from the thread (= ``filtered_composite_banded`` of its warp; waited for
+        while running; valid until the next frame), or None: the loop warps it itself."""
         frame = self._sh.frame
         if frame is None:
             return None
@@ -287,9 +273,7 @@ class WarpAhead:
             return None
         st[k] = CLAIMED
         self.taken += 1
-        b = frame.bufs
-        lay = LayeredImage(b.zb[k], b.cb[k])
-        return AheadImage(lay, b.d[k], b.c[k]) if frame.crack else AheadImage(lay, None, None)
+        return frame.bufs.d[k], frame.bufs.c[k]
 
     def wait(self) -> None:
         """Block until the thread is done with the current frame's views (tests, benchmarks)."""
