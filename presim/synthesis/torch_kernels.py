@@ -101,32 +101,24 @@ def crack_filter_torch(depth_m: torch.Tensor, color: torch.Tensor, mode: str = "
     Hp, Wp = H + 2 * r, W + 2 * r
     off = _neighbour_offsets(r, Wp, depth_m.device)
     dflat, cflat = dp.reshape(-1), cp.reshape(-1, 3)
-    if mode == "median":
-        ll, vv, uu = torch.meshgrid(torch.arange(L, device=depth_m.device), torch.arange(H, device=depth_m.device),
-                                    torch.arange(W, device=depth_m.device), indexing="ij")
-        centre = (ll * (Hp * Wp) + (vv + r) * Wp + (uu + r)).reshape(-1)
-        nb_idx = centre[:, None] + off[None, :]
-        mid = (n_win - 1) // 2
-        d_med = dflat[nb_idx].sort(dim=1).values[:, mid]
-        c_med = cflat[nb_idx].sort(dim=1).values[:, mid]  # (P, 3) per channel
-        c_med = torch.where((d_med > 0)[:, None], c_med, torch.zeros_like(c_med))
-        return d_med.view(L, H, W), c_med.view(L, H, W, 3)
-    empty = depth_m == 0
-    cand = torch.nonzero(empty.reshape(-1)).squeeze(1)
-    ll = cand // (H * W)
-    rem = cand % (H * W)
-    centre = ll * (Hp * Wp) + (rem // W + r) * Wp + (rem % W + r)
-    nb_idx = centre[:, None] + off[None, :]
+    switching = mode == "switching_median"
+    flat = depth_m.reshape(-1)
+    cand = torch.nonzero(flat == 0).squeeze(1) if switching else torch.arange(flat.numel(), device=flat.device)
+    ll, rem = cand // (H * W), cand % (H * W)
+    nb_idx = (ll * (Hp * Wp) + (rem // W + r) * Wp + (rem % W + r))[:, None] + off[None, :]
     nd = dflat[nb_idx]
-    nz = nd > 0
+    nz = nd > 0 if switching else torch.ones_like(nd, dtype=torch.bool)  # plain: zeros count
     cnt = nz.sum(1)
-    sel = 2 * cnt > n_win
-    nb_idx, nd, nz, cnt, cand = nb_idx[sel], nd[sel], nz[sel], cnt[sel], cand[sel]
+    if switching:
+        sel = 2 * cnt > n_win
+        nb_idx, nd, nz, cnt, cand = nb_idx[sel], nd[sel], nz[sel], cnt[sel], cand[sel]
     k = ((cnt - 1) // 2)[:, None]
     d_med = torch.where(nz, nd, torch.full_like(nd, float("inf"))).sort(dim=1).values.gather(1, k)[:, 0]
     nc = cflat[nb_idx].to(torch.int16)  # (P, n_win, 3); 256 marks empty so it sorts last
     nc = torch.where(nz[..., None], nc, torch.full_like(nc, 256))
     c_med = nc.sort(dim=1).values.gather(1, k[:, :, None].expand(-1, 1, 3))[:, 0].to(torch.uint8)
+    if not switching:
+        c_med = torch.where((d_med > 0)[:, None], c_med, torch.zeros_like(c_med))
     dout = depth_m.reshape(-1).clone()
     cout = color.reshape(-1, 3).clone()
     dout[cand] = d_med
