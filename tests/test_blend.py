@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -91,7 +89,7 @@ def test_numba_planar_and_interleaved_view_colours_agree():
     T = look_at((0.0, 0.0, 0.0), (0.1, 0.0, 2.0))
     planar = np.ascontiguousarray(inp.view_color.transpose(0, 3, 1, 2)).transpose(0, 2, 3, 1)
     a = blend_numba(inp, Kt, T, BlendConfig(feather_px=4.0))
-    b = blend_numba(dataclasses.replace(inp, view_color=planar), Kt, T, BlendConfig(feather_px=4.0))
+    b = blend_numba(inp._replace(view_color=planar), Kt, T, BlendConfig(feather_px=4.0))
     assert np.array_equal(a, b)
 
 

@@ -1,4 +1,4 @@
-"""Sharpness scores (presim/capture/sharpness.py) and sharpness-aware views (presim/synthesis/sharpness.py)."""
+"""Sharpness scores (presim/capture/sharpness.py) and sharpness-aware views (presim/synthesis/renderer.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from presim.capture.scene import ArrayFrameSource
 from presim.capture.sharpness import sharpness_score
 from presim.geometry import Intrinsics
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.sharpness import ViewSharpness
+from presim.synthesis.renderer import ViewSharpness
 from presim.testing import rect_scene as S
 
 

@@ -10,6 +10,7 @@ from presim.geometry import Intrinsics, invert, look_at, make_pose, project, tra
 from presim.synthesis.lod import (LodConfig, build_level, choose_level, footprint_ratio, half_intrinsics,
                                   pool_depth_aware, pool_depth_aware_ref)
 from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.threads import serial_kernels
 from presim.testing import rect_scene as S
 
 
@@ -44,8 +45,9 @@ def test_pool_numba_matches_reference_exactly():
     counts = set()
     for tol in (0.0, 0.02, 0.5):
         b_d, b_c = pool_depth_aware_ref(d, c, tol)
-        for parallel in (True, False):
-            a_d, a_c = pool_depth_aware(d, c, tol, parallel)
+        for serial in (False, True):
+            with serial_kernels(serial):
+                a_d, a_c = pool_depth_aware(d, c, tol)
             np.testing.assert_array_equal(a_d, b_d)
             np.testing.assert_array_equal(a_c, b_c)
         blocks = d[:36, :50].reshape(18, 2, 25, 2).transpose(0, 2, 1, 3).reshape(18, 25, 4)

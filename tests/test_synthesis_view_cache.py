@@ -1,4 +1,4 @@
-"""The Renderer's view cache (presim/synthesis/view_cache.py): LRU bound, views built ahead in a
+"""The Renderer's view cache (presim/synthesis/execution.py, ViewCache): LRU bound, views built ahead in a
 background thread, and images that do not depend on who built a view."""
 
 from __future__ import annotations
@@ -10,9 +10,10 @@ import pytest
 
 from presim.capture.scene import SceneError
 from presim.geometry import Intrinsics, look_at
+from presim.synthesis.execution import ViewCache
 from presim.synthesis.lod import pool_depth_aware
 from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
-from presim.synthesis.view_cache import ViewCache
+from presim.synthesis.threads import serial_kernels
 from presim.testing import rect_scene as S
 
 
@@ -46,6 +47,8 @@ def test_serial_pool_kernel_equals_the_parallel_one():
     d[rng.random(d.shape) < 0.3] = 0.0
     c = rng.integers(0, 256, (37, 52, 3), dtype=np.uint8)
     for tol in (0.0, 0.02, 0.5):
-        a, b = pool_depth_aware(d, c, tol), pool_depth_aware(d, c, tol, parallel=False)
+        a = pool_depth_aware(d, c, tol)
+        with serial_kernels():
+            b = pool_depth_aware(d, c, tol)
         np.testing.assert_array_equal(a[0], b[0])
         np.testing.assert_array_equal(a[1], b[1])

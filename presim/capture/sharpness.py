@@ -19,7 +19,7 @@ rotationally symmetric Laplacian averages away. It costs two box filters and fou
 the grey image (~2 ms at 640x480).
 
 Views of one capture look at similar content, so scores are compared among the candidate views
-of a target (:mod:`presim.synthesis.sharpness`).
+of a target (:class:`presim.synthesis.renderer.ViewSharpness`).
 """
 
 from __future__ import annotations

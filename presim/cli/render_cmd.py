@@ -54,7 +54,7 @@ def _main(args: argparse.Namespace) -> int:
     from presim.formats.tum import read_tum
     from presim.geometry import pose_from_tum
     from presim.limits import check_intrinsics, check_positive_int
-    from presim.synthesis.render_job import output_intrinsics, render_to_folder
+    from presim.synthesis.render_job import far_poses, output_intrinsics, render_to_folder
     from presim.synthesis.renderer import PerfConfig, RenderConfig
 
     check_intrinsics(args.width, args.height, args.fx, args.fy, args.cx, args.cy)
@@ -101,8 +101,6 @@ def _main(args: argparse.Namespace) -> int:
           f"{np.mean(s['hole_frac_before_fill']):.4f})")
     if s["depth_clipped_px"]:
         print(f"  {s['depth_clipped_px']} depth pixels beyond 65.535 m written as 0 (invalid)")
-    from presim.synthesis.coverage import far_poses
-
     for w in far_poses(scene, T, s["hole_frac_before_fill"]):
         print(f"warning: {w}", file=sys.stderr)
     return 0

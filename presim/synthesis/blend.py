@@ -1,22 +1,17 @@
 """Multi-view blending instead of winner-takes-all (beyond the thesis; unstructured-lumigraph weights).
 
-Optional stage after the adaptive loop (:func:`presim.synthesis.pipeline.synthesize_frame`), which gives each
-covered pixel a winning view and front depth ``d(p)``. Among the first ``max_views`` warped views, view ``k`` is
-a candidate at ``p`` when its front-most depth agrees with ``d(p)`` within ``depth_tol_rel * d(p)`` (the winner
-always is). Weights after Buehler et al.'s ULR: ``w_k = feather_k(p) * quality_k / (P_k + penalty_eps)`` with
-``P_k = a_k + resolution_weight * r_k``; ``a_k`` the angle at the surface point between target and view rays
-(as the chord ``sqrt(2 - 2 cos)``, within 0.1 % below 8 degrees), ``r_k = max(0, |X - C_k| / |X - C_t| - 1)``,
-``feather_k`` ramping 0 -> 1 over ``feather_px / 2`` inside the view's coverage (:func:`feather_map`; the winner
-keeps >= ``1 / feather_px``), ``quality_k`` a caller factor (sharpness). ``sum w_k c_k / sum w_k`` replaces
-the winner's colour where >= 2 views agree; depth, validity and source stay the winner's.
-:func:`blend_reference` is the numpy reference of the numba kernel :func:`blend_numba`.
-"""
+Among the first ``max_views`` warped views, view ``k`` counts at pixel ``p`` when its front-most depth agrees with
+the winner's ``d(p)`` within ``depth_tol_rel * d(p)`` (the winner always does), with weight
+``feather_k(p) * quality_k / (a_k + resolution_weight * r_k + penalty_eps)``: ``a_k`` the chord of the angle
+between target and view rays at the surface point, ``r_k = max(0, |X - C_k| / |X - C_t| - 1)``, ``feather_k``
+(:func:`feather_map`; the winner keeps >= ``1 / feather_px``). Where >= 2 views count, the weighted mean replaces
+the winner's colour. Reference :func:`blend_reference`; numba :func:`blend_numba`."""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import NamedTuple, Any, Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import cv2
 import numba as nb
@@ -55,8 +50,7 @@ class BlendConfig:
             raise ValueError("BlendConfig: penalty_eps > 0, feather_px >= 1, resolution_weight >= 0")
 
 
-@dataclass(frozen=True)
-class BlendInput:
+class BlendInput(NamedTuple):
     """The loop's result and the candidates' warped images, for one target camera."""
 
     color: np.ndarray
@@ -70,13 +64,13 @@ class BlendInput:
     view_depth_m: np.ndarray
     """float32 (n, H, W) each candidate's front-most warped depth, 0 = empty."""
     view_color: np.ndarray
-    """uint8 (n, H, W, 3) their colours (photometrically corrected; any strides, the renderer's are planar)."""
+    """uint8 (n, H, W, 3) their colours (any strides; the kernel reads planar ``(n, 3, H, W)``)."""
     centres: np.ndarray
     """float64 (n, 3) candidate camera centres, world."""
     quality: np.ndarray
     """float64 (n,) per-view factor (sharpness), > 0."""
     feather_count: np.ndarray | None = None
-    """Optional (n, H, W) :func:`coverage_counts` (fast path's feathering; None = computed; unused by the reference)."""
+    """Optional (n, H, W) :func:`coverage_counts` (None = computed; unused by the reference)."""
 
 
 def feather_map(depth_m: np.ndarray, feather_px: float) -> np.ndarray:
@@ -229,27 +223,12 @@ def blend_reference(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, con
     return out
 
 
-class _BlendArrays(NamedTuple):
-    color: np.ndarray
-    depth: np.ndarray
-    source: np.ndarray
-    ids: np.ndarray
-    vdepth: np.ndarray
-    vcp: np.ndarray
-    fcount: np.ndarray
-    centres: np.ndarray
-    quality: np.ndarray
-
-
 class _BlendCam(NamedTuple):
     M: np.ndarray
     fx: float
     fy: float
     cx: float
     cy: float
-
-
-class _BlendParams(NamedTuple):
     fscale: float
     tol: float
     res_w: float
@@ -258,13 +237,13 @@ class _BlendParams(NamedTuple):
 
 
 @parallel_kernel(fastmath=True, error_model="numpy", cache=True)
-def _blend_kernel(a, cam, p, out):  # pragma: no cover
+def _blend_kernel(a, cam, out):  # pragma: no cover
     # Row by row; branch-free float32 inner loops over contiguous rows (planar vcp (n, 3, H, W)) vectorise.
     # Same formulas and order as blend_reference; feathering from the box counts exactly as feather_map.
-    color, depth, source, ids, vdepth, vcp, fcount = a.color, a.depth, a.source, a.ids, a.vdepth, a.vcp, a.fcount
-    centres, quality = a.centres, a.quality
+    color, depth, source, ids, vdepth, vcp = a.color, a.depth_m, a.source, a.view_ids, a.view_depth_m, a.view_color
+    fcount, centres, quality = a.feather_count, a.centres, a.quality
     M, fx, fy, cx, cy = cam.M, cam.fx, cam.fy, cam.cx, cam.cy
-    fscale, tol, res_w, eps, min_f = p.fscale, p.tol, p.res_w, p.eps, p.min_f
+    fscale, tol, res_w, eps, min_f = cam.fscale, cam.tol, cam.res_w, cam.eps, cam.min_f
     H, W = depth.shape
     n = ids.shape[0]
     one = np.float32(1.0)
@@ -370,13 +349,13 @@ def blend_numba(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
         counts = np.stack([coverage_counts(d, config.feather_px) for d in inp.view_depth_m])
     k = feather_box(config.feather_px)
     fscale = 1.0 if config.feather_px <= 1 else 1.0 / (k * k)  # no feathering: any count >= 1 gives 1
-    arrays = _BlendArrays(inp.color, inp.depth_m, inp.source, inp.view_ids.astype(np.int32), inp.view_depth_m, vcp,
-                          counts, np.ascontiguousarray(inp.centres, np.float32),
-                          np.ascontiguousarray(inp.quality, np.float32))
-    cam = _BlendCam(np.ascontiguousarray(T_world_cam, np.float32), f32(K.fx), f32(K.fy), f32(K.cx), f32(K.cy))
-    params = _BlendParams(fscale, f32(config.depth_tol_rel), f32(config.resolution_weight), f32(config.penalty_eps),
-                          f32(1.0 / float(config.feather_px)))
-    _blend_kernel(arrays, cam, params, out)
+    arrays = inp._replace(view_ids=inp.view_ids.astype(np.int32), view_color=vcp, feather_count=counts,
+                          centres=np.ascontiguousarray(inp.centres, np.float32),
+                          quality=np.ascontiguousarray(inp.quality, np.float32))
+    cam = _BlendCam(np.ascontiguousarray(T_world_cam, np.float32), f32(K.fx), f32(K.fy), f32(K.cx), f32(K.cy),
+                    fscale, f32(config.depth_tol_rel), f32(config.resolution_weight), f32(config.penalty_eps),
+                    f32(1.0 / float(config.feather_px)))
+    _blend_kernel(arrays, cam, out)
     return out
 
 
@@ -398,13 +377,11 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
                 front_image: Callable[[int, np.ndarray, np.ndarray], None],
                 centre_of: Callable[[int], np.ndarray], quality_of: Callable[[int], float] | None = None,
                 use_reference: bool = False, buffers: dict | None = None) -> tuple[np.ndarray, float]:
-    """Blend the first ``config.max_views`` of ``views`` into the loop's winner image.
+    """Blend the first ``config.max_views`` of ``views`` into the loop's result: ``(color, ms)``.
 
-    views: the warped views in order; color / depth_m / source: the merged result; T_world_cam, K: target camera;
-    front_image(id, depth_out, color_out): writes the view's front surface (float32 (H, W), uint8 (H, W, 3)),
-    via :func:`front_image_points` or :func:`front_of_layers`; centre_of(id) -> (3,) world camera centre;
-    quality_of: per-view factor (None = 1); use_reference: :func:`blend_reference` (tests); buffers: dict kept
-    across frames for the stacks. Returns ``(blended color uint8 (H, W, 3), milliseconds)``.
+    ``front_image(id, depth_out, color_out)`` writes a view's front surface (:func:`front_image_points` or
+    :func:`front_of_layers`); ``centre_of(id)``: its camera centre; ``quality_of``: its factor (None = 1);
+    ``buffers``: a dict kept across frames for the stacks.
     """
     t0 = time.perf_counter()
     use = [int(v) for v in list(views)[:config.max_views]]

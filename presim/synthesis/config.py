@@ -1,10 +1,5 @@
-"""The two configurations of the renderer.
-
-- :class:`RenderConfig` holds everything that may change the image (the algorithm: layers, views,
-  crack filter, fill, blending, photometric correction, level of detail).
-- :class:`PerfConfig` holds what never changes it (backend, threads, caches, helpers that run work
-  early). Two renderers that differ only in their ``PerfConfig`` give the same pixels (tested).
-"""
+"""The two configurations of the renderer: :class:`RenderConfig`, everything that may change the image, and
+:class:`PerfConfig`, what never does (two renderers that differ only in it give the same pixels, tested)."""
 
 from __future__ import annotations
 
@@ -22,8 +17,8 @@ BACKENDS = ("numba", "reference", "torch")
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """What the renderer computes. Defaults are the thesis's pipeline (§3.4.2-3.4.4) plus the
-    speed-preserving approximations measured in docs/synthesis.md."""
+    """What the renderer computes: the thesis's pipeline (§3.4.2-3.4.4) plus the approximations measured in
+    docs/synthesis.md."""
 
     num_layers: int = 4
     """L of layered warping (thesis: 4 is the quality/speed trade-off); 1 = plain DIBR z-buffer."""
@@ -34,38 +29,30 @@ class RenderConfig:
     max_candidates: int = 10
     """Size of the local group (top-k by camera-centre distance, eq. 3.5)."""
     view_order: str = "distance"
-    """Warp order of the selected views: ``"distance"`` (nearest first; better on the real capture)
-    or ``"overlap"`` (largest first)."""
+    """Warp order: ``"distance"`` (nearest first; better on the real capture) or ``"overlap"`` (largest first)."""
     max_views: int = 6
-    """The adaptive loop draws from the first ``max_views`` selected views only (bounds the time of
-    a pose outside the capture, whose holes no view can fill)."""
+    """The adaptive loop draws from the first ``max_views`` selected views only."""
     stop_hole_frac: float = 0.0005
-    """The adaptive loop stops when the largest connected hole is at most this fraction of the
-    image (154 px at 640x480)."""
+    """The adaptive loop stops when the largest hole is at most this fraction of the image (154 px at 640x480)."""
     big_hole_px: int = 16
     """Holes of at least this many pixels are big: dilated, and the next view must land in them."""
     hole_dilation_px: int = 2
     """Big holes grow by this radius before the next view fills them (ghost contours)."""
     next_view_fill_frac: float = 0.0
-    """Next view = first candidate (selection order) whose grid puts >= 1 point and >= this fraction
-    of the best candidate's count into the big holes. 0 = selection order; 1 = greedy coverage
-    (both within 0.1 dB on the real capture)."""
+    """Next view = first candidate whose grid puts >= 1 point and >= this fraction of the best count into the
+    big holes. 0 = selection order; 1 = greedy coverage (within 0.1 dB of each other on the real capture)."""
     min_view_gain: float = 0.005
-    """A further view is warped only when its grid predicts that it fills at least this fraction of
-    the image; 0 = the thesis's loop. 0.005 warps 3.6 instead of 6.0 views per frame on the apc
-    capture at 640x480 with PSNR/SSIM within 0.04 dB / 0.0013 of 0."""
+    """A further view must be predicted to fill at least this fraction of the image; 0 = the thesis's loop.
+    0.005: 3.6 instead of 6.0 views per frame (apc, 640x480), within 0.04 dB / 0.0013 SSIM."""
     time_budget_ms: float = 0.0
     """> 0: no further view once the frame has taken this long (the fill still runs)."""
     overlap_stride_px: int = 8
-    """Sampling interval of each view's grid for the overlap and hole-fill tests (8 px: a 154 px
-    hole holds ~2 grid points)."""
+    """Sampling interval of each view's grid for the overlap and hole-fill tests."""
     near_m: float = 0.01
     """Points closer than this to the target camera are dropped."""
     backward_color: bool = False
-    """Colour of each rendered pixel sampled bilinearly in its source view's image at the exact
-    position it back-projects to (depth-aware taps), instead of the nearest splatted point's colour
-    (:mod:`presim.synthesis.resample`): +0.27 dB / +0.15 dB PSNR and +0.01 SSIM on the APC / TUM
-    captures (leave-one-out), at ~1.6x the CPU of a 640x480 frame, so not the default."""
+    """Colours sampled bilinearly in each pixel's source view (:mod:`presim.synthesis.resample`): +0.27 /
+    +0.15 dB on the APC / TUM captures, ~1.6x the CPU of a 640x480 frame."""
     backward_depth_tol: float = 0.05
     """A bilinear tap counts when its source depth is within this fraction of the projected depth."""
     crack_filter: str = "switching_median"
@@ -77,9 +64,8 @@ class RenderConfig:
     fill_method: str = "auto"
     """``"auto"``, ``"telea"`` or ``"pushpull"`` (:mod:`presim.synthesis.fill`)."""
     fill_background_px: int = 0
-    """> 0: holes are filled from their background side: known pixels within this many pixels of a
-    hole that lie in front of the surface behind them do not feed the colour fill
-    (:func:`presim.synthesis.fill.foreground_rim`). 0 = every known pixel feeds it."""
+    """> 0: known pixels this close to a hole and in front of its background do not feed the colour fill
+    (:func:`presim.synthesis.fill.foreground_rim`)."""
     use_refined_depth: bool = True
     """Use ``scene.depth_refined`` (``presim refine``) when present, else the raw depth."""
     use_fused_depth: bool = False
@@ -88,34 +74,28 @@ class RenderConfig:
     """Pixels no measured depth covers take the warped views' completed depth (``scene.depth_completed``,
     ``presim complete``) when the scene has it, before the fill."""
     max_zoom: float = 1.0
-    """A target sampling the scene more densely than this factor x the capture is rendered at a
-    lower internal resolution and upsampled (one-pixel splats cannot cover a surface magnified
-    more than ~1.5x). At 1280x720, 1.0 is within 0.2 dB of 1.3 at 1/2 to 1/5 of its time."""
+    """A target sampling the scene more densely than this x the capture is rendered smaller and upsampled
+    (one-pixel splats cannot cover a surface magnified ~1.5x); at 1280x720 within 0.2 dB of 1.3, 2-5x faster."""
     lod_levels: int = 3
-    """Coarsest pyramid level of a view's points (2x2 depth-aware pooling per level); 0 = always
-    warp every point. A view is warped at the coarsest level whose points cover at most
-    ``lod_max_footprint`` target pixels (a target sampled like the capture stays at level 0)."""
+    """Coarsest pyramid level of a view's points (2x2 depth-aware pooling per level); 0 = every point."""
     lod_max_footprint: float = 1.0
     """Target pixels one point of the chosen level may cover (median over the view's grid)."""
     lod_depth_tol: float = 0.02
     """Relative depth band of the front surface pooled together in a 2x2 block."""
     reuse_move_m: float = 0.01
-    """A frame whose camera moved at most this far (and turned at most ``reuse_turn_deg``) from the
-    previous frame of its stream, same intrinsics, reuses that frame's view selection; 0 disables."""
+    """A frame whose camera moved at most this far (and turned at most ``reuse_turn_deg``) since its stream's
+    previous frame reuses that selection; 0 disables."""
     reuse_turn_deg: float = 1.0
     """Rotation bound of the selection reuse, degrees."""
     use_photometric: bool = True
     """Map every capture frame to one output exposure with ``scene.photometric`` when present."""
     exposure_frame: str | None = None
-    """Output exposure of a calibrated scene: a frame id = that frame's; None = predicted
-    (``predict_exposure``) or the capture's mean."""
+    """Output exposure of a calibrated scene: that frame's; None = predicted or the capture's mean."""
     predict_exposure: bool = True
-    """Calibrated scene, no ``exposure_frame``: the image takes the exposure of the capture frames it
-    is made of (their transforms weighted by their share of its pixels), as a camera at that pose
-    would have seen it; False = the capture's mean exposure (4.6 dB worse on a held-out capture)."""
+    """The image takes the exposure of the capture frames it is made of, weighted by their share of its
+    pixels; False = the capture's mean (4.6 dB worse on a held-out capture)."""
     blend: bool = False
-    """Blend, per pixel, the views that agree with the front surface (ULR weights, feathered seams)
-    instead of keeping the winning view's colour (+10 to +17 % CPU per 640x480 frame)."""
+    """Blend the views that agree with the front surface per pixel (ULR weights; +10-17 % CPU at 640x480)."""
     blend_views: int = 4
     """Blend among this many views: those the loop warped, in order, then the other candidates."""
     blend_depth_tol: float = 0.05
@@ -170,17 +150,14 @@ class PerfConfig:
     """How the renderer runs. None of these fields changes a pixel."""
 
     backend: str = "numba"
-    """``"numba"`` (fast CPU), ``"reference"`` (slow numpy, for tests) or ``"torch"`` (CUDA when
-    present, else CPU)."""
+    """``"numba"``, ``"reference"`` (slow numpy, tests) or ``"torch"`` (CUDA when present)."""
     torch_device: str | None = None
     """Torch device (None: CUDA when available, else CPU)."""
     threads: int = 0
-    """numba threads per frame: 0 = auto (one thread up to ``threads.SERIAL_MAX_PIXELS`` pixels,
-    else numba's count); > 0 = that many."""
+    """numba threads per frame: 0 = one up to ``threads.SERIAL_MAX_PIXELS`` pixels, else all; > 0 that many."""
     warp_ahead: bool = True
-    """numba, frames on one thread (auto threads): a helper thread warps and crack-filters the later
-    candidates that the stream's previous frame drew while the loop works on the first view
-    (:mod:`presim.synthesis.warp_ahead`; 1.16-1.26x faster at 128x128 on the apc capture)."""
+    """Frames on one thread: a helper thread warps the later candidates the stream's previous frame drew
+    (:mod:`presim.synthesis.warp_ahead`; 1.13x at 128x128 on the apc capture)."""
     cache_mb: float = 1024.0
     """Bound of the per-view point cache (LRU), MiB."""
 

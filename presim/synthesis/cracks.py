@@ -1,15 +1,10 @@
 """Crack filling and compositing of one view's warped layers (thesis eq. 3.9, §3.4.3-3.4.4).
 
-A forward splat leaves cracks (empty pixels inside a surface) where the target samples more densely than the
-source. The *switching* median fills only empty pixels whose N x N window is more than half non-empty, with the
-lower median of the non-empty neighbours' depth and of each colour channel (an empty pixel on a straight edge,
-3 of 9 non-empty, stays empty); the *plain* median (``mode="median"``) filters every pixel over its whole window,
-zeros included. Each layer is filtered alone, the layers are composited front to back (a foreground crack gets
-foreground), then a last pass fills the cracks along layer seams. Exact definitions: :mod:`kernels_reference`.
-
-:func:`crack_filter` + :func:`composite_layers` take any mode and window. :func:`filtered_composite_banded`, the
-default 3 x 3 switching median on <= 8 layers, fuses the three passes per band of rows (with ``replace``: only
-tiles holding a ``replace`` pixel), bit-identical to the first path (tested).
+The switching median fills an empty pixel whose N x N window is more than half non-empty with the lower median of
+the non-empty depths and of each colour channel; the plain median (``"median"``) filters every pixel over its
+zero-padded window. Layers are filtered alone, composited front to back, then filtered once more for the seams.
+Rules: :mod:`kernels_reference`. :func:`crack_filter` + :func:`composite_layers` take any mode and window;
+:func:`filtered_composite_banded` fuses the default (3 x 3 switching, <= 8 layers) per band, bit-identical.
 """
 
 from __future__ import annotations
@@ -20,13 +15,14 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.synthesis.config import CRACK_FILTERS
 from presim.synthesis.holes import row_words
+from presim.synthesis.kernels_reference import tile_any_ref
 from presim.synthesis.threads import parallel_kernel
 
-__all__ = ["CRACK_FILTERS", "BANDED_MAX_LAYERS", "TILED_MIN_PIXELS", "TILED_MAX_FRAC", "WARP_TILE_PX",
+__all__ = ["BANDED_MAX_LAYERS", "TILED_MIN_PIXELS", "TILED_MAX_FRAC", "WARP_TILE_PX",
            "crack_filter", "composite_layers", "filtered_composite_banded", "tile_any", "warp_tiles"]
 
-CRACK_FILTERS = ("switching_median", "median", "none")
 
 BANDED_MAX_LAYERS = 8
 """The banded pass packs a pixel's per-layer occupancy into one byte: at most 8 layers."""
@@ -69,91 +65,51 @@ def sort_window(bd, b0, b1, b2, n):  # pragma: no cover
 
 
 @parallel_kernel(cache=True, error_model="numpy")
-def _switching_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
-    # dout / cout arrive as copies of din / cin; only filled cracks are written. Window counts from column
-    # sums + a running sum along the row (O(1) per pixel): only filled pixels gather a median.
+def _median_kernel(din, cin, dout, cout, r, switching):  # pragma: no cover
+    # dout / cout arrive as copies of din / cin. switching: empty pixels with a non-empty majority take the lower
+    # median of the non-empty values; else every pixel takes the median of its zero-padded window.
     L, H, W = din.shape
     n_win = (2 * r + 1) * (2 * r + 1)
     for row in nb.prange(L * H):
         l = row // H
         v = row - l * H
-        y0 = max(v - r, 0)
-        y1 = min(v + r + 1, H)
-        colcnt = np.zeros(W + 2 * r, np.int32)  # padded by r on both sides
-        for y in range(y0, y1):
-            for u in range(W):
-                colcnt[u + r] += np.int32(din[l, y, u] > 0)  # branchless: occupancy is random
         bd = np.empty(n_win, np.float32)
         b0 = np.empty(n_win, np.uint8)
         b1 = np.empty(n_win, np.uint8)
         b2 = np.empty(n_win, np.uint8)
-        cnt = 0
-        for k in range(2 * r + 1):
-            cnt += colcnt[k]
         for u in range(W):
-            if u > 0:
-                cnt += colcnt[u + 2 * r] - colcnt[u - 1]
-            if 2 * cnt <= n_win or din[l, v, u] > 0:
+            if switching and din[l, v, u] > 0:
                 continue
-            n = gather_window(din, cin, l, y0, y1, max(u - r, 0), min(u + r + 1, W), bd, b0, b1, b2)
-            k = sort_window(bd, b0, b1, b2, n)
-            dout[l, v, u] = bd[k]
-            cout[l, v, u, 0] = b0[k]
-            cout[l, v, u, 1] = b1[k]
-            cout[l, v, u, 2] = b2[k]
-
-
-@parallel_kernel(cache=True, error_model="numpy")
-def _plain_median_kernel(din, cin, dout, cout, r):  # pragma: no cover
-    L, H, W = din.shape
-    n_win = (2 * r + 1) * (2 * r + 1)
-    mid = (n_win - 1) // 2
-    for row in nb.prange(L * H):
-        l = row // H
-        v = row - l * H
-        bd = np.empty(n_win, np.float32)
-        b0 = np.empty(n_win, np.uint8)
-        b1 = np.empty(n_win, np.uint8)
-        b2 = np.empty(n_win, np.uint8)
-        for u in range(W):
             n = 0
             for y in range(v - r, v + r + 1):
                 for x in range(u - r, u + r + 1):
-                    if 0 <= y < H and 0 <= x < W:
+                    inside = 0 <= y < H and 0 <= x < W
+                    if inside and (not switching or din[l, y, x] > 0):
                         bd[n] = din[l, y, x]
                         b0[n] = cin[l, y, x, 0]
                         b1[n] = cin[l, y, x, 1]
                         b2[n] = cin[l, y, x, 2]
-                    else:  # zero padding
+                        n += 1
+                    elif not switching:  # zero padding
                         bd[n] = 0.0
                         b0[n] = 0
                         b1[n] = 0
                         b2[n] = 0
-                    n += 1
-            _insertion_sort(bd, n)
-            dout[l, v, u] = bd[mid]
-            if bd[mid] > 0:
-                _insertion_sort(b0, n)
-                _insertion_sort(b1, n)
-                _insertion_sort(b2, n)
-                cout[l, v, u, 0] = b0[mid]
-                cout[l, v, u, 1] = b1[mid]
-                cout[l, v, u, 2] = b2[mid]
-            else:
-                cout[l, v, u, 0] = 0
-                cout[l, v, u, 1] = 0
-                cout[l, v, u, 2] = 0
+                        n += 1
+            if switching and 2 * n <= n_win:
+                continue
+            k = sort_window(bd, b0, b1, b2, n)
+            z = np.uint8(bd[k] > 0)
+            dout[l, v, u] = bd[k]
+            cout[l, v, u, 0] = b0[k] * z
+            cout[l, v, u, 1] = b1[k] * z
+            cout[l, v, u, 2] = b2[k] * z
 
 
 def crack_filter(depth_m: np.ndarray, color: np.ndarray, mode: str = "switching_median",
                  kernel_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Fill cracks of warped images (numba, parallel over rows of all layers): new ``(depth_m, color)`` of the
-    input shapes (the inputs themselves for ``"none"``).
-
-    Args:
-        depth_m: float32 (L, H, W) or (H, W), 0 = empty; color: uint8 (L, H, W, 3) or (H, W, 3).
-        mode: ``"switching_median"`` (thesis), ``"median"`` (plain) or ``"none"``; kernel_px: odd window size N.
-    """
+    """Fill cracks of float32 (L, H, W) or (H, W) depth (0 = empty) and uint8 colour: new arrays (the inputs
+    for ``"none"``); ``mode`` in :data:`~presim.synthesis.config.CRACK_FILTERS`, odd window ``kernel_px``."""
     if mode not in CRACK_FILTERS:
         raise ValueError(f"crack filter must be one of {CRACK_FILTERS}, got {mode!r}")
     if kernel_px < 1 or kernel_px % 2 == 0:
@@ -168,12 +124,8 @@ def crack_filter(depth_m: np.ndarray, color: np.ndarray, mode: str = "switching_
                          f"{c.dtype} {c.shape}")
     d = np.ascontiguousarray(d)
     c = np.ascontiguousarray(c)
-    if mode == "switching_median":
-        dout, cout = d.copy(), c.copy()
-        _switching_median_kernel(d, c, dout, cout, kernel_px // 2)
-    else:
-        dout, cout = np.empty_like(d), np.empty_like(c)
-        _plain_median_kernel(d, c, dout, cout, kernel_px // 2)
+    dout, cout = d.copy(), c.copy()
+    _median_kernel(d, c, dout, cout, kernel_px // 2, mode == "switching_median")
     return (dout[0], cout[0]) if squeeze else (dout, cout)
 
 
@@ -218,55 +170,6 @@ _GE5 = np.uint32(0x33333333)  # + 3 per nibble: a count >= 5 sets the nibble's b
 _BIT3 = np.uint32(0x88888888)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _ce(a, i, j):  # pragma: no cover
-    x = a[i]
-    y = a[j]
-    a[i] = min(x, y)
-    a[j] = max(x, y)
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _sort8(a):  # pragma: no cover
-    # Batcher's odd-even merge sort of 8 values (19 branch-free compare-exchanges).
-    _ce(a, 0, 1)
-    _ce(a, 2, 3)
-    _ce(a, 4, 5)
-    _ce(a, 6, 7)
-    _ce(a, 0, 2)
-    _ce(a, 1, 3)
-    _ce(a, 4, 6)
-    _ce(a, 5, 7)
-    _ce(a, 1, 2)
-    _ce(a, 5, 6)
-    _ce(a, 0, 4)
-    _ce(a, 1, 5)
-    _ce(a, 2, 6)
-    _ce(a, 3, 7)
-    _ce(a, 2, 4)
-    _ce(a, 3, 5)
-    _ce(a, 1, 2)
-    _ce(a, 3, 4)
-    _ce(a, 5, 6)
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _median8(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2):  # pragma: no cover
-    """Lower median (depth, each colour channel) of the <= 8 non-empty pixels of layer ``l`` in a window with
-    empty centre; slots past the count padded with the largest value. Returns the median's index."""
-    n = gather_window(d, c, l, y0, y1, x0, x1, bd, b0, b1, b2)
-    for i in range(n, 8):
-        bd[i] = np.inf
-        b0[i] = 255
-        b1[i] = 255
-        b2[i] = 255
-    _sort8(bd)
-    _sort8(b0)
-    _sort8(b1)
-    _sort8(b2)
-    return (n - 1) // 2
-
-
 _ONES3 = np.ones((3, 3), np.uint8)
 
 # ---- the three passes fused per work item (band of rows, or run of tiles), one parallel region ----
@@ -275,31 +178,24 @@ _ONES3 = np.ones((3, 3), np.uint8)
 # seam pass in buffers that stay in cache. Halo rows are computed by both items touching them; the per-pixel
 # arithmetic is that of crack_filter + composite_layers + crack_filter, so the output is bit-identical.
 
+BAND_ROWS = 32
+"""Rows per band of the whole-width work items (6 % halo recomputation; 16 is slower at 128x128)."""
+
 TILE_COLS = 8
-"""Columns per tile of :func:`filtered_composite_banded` with ``replace`` (a run of active tiles is one work
-item). 8 x 8 tiles: a later view's crack pass at 640x480 takes 0.74x (apc) / 0.94x (sample) the time of 32 x 32."""
+"""Columns per tile with ``replace``: 8 x 8 tiles take 0.74x (apc) / 0.94x (sample) the time of 32 x 32 at 640x480."""
 
 TILE_ROWS = 8
-"""Rows per band of :func:`filtered_composite_banded` on tiles (whole-width bands: :func:`rows_per_band`).
-Small tiles follow a later view's scattered holes closely, but each work item recomputes a 2-pixel halo."""
+"""Rows per band on tiles: small tiles follow scattered holes, but each item recomputes a 2-pixel halo."""
 
 WARP_TILE_PX = 16
 """Side of the tiles :func:`warp_tiles` marks for a tiled warp (``warp_layers(tiles=)``)."""
 
 TILED_MIN_PIXELS = 150_000
-"""Frames of at least this many pixels run a later view's crack pass and warp on tiles, smaller ones on whole
-bands (apc, 2 threads: 1.25x less CPU at 640x480; slower at 128x128 and 256x256, uneven work items)."""
-
+"""Frames of at least this many pixels run a later view's crack pass and warp on tiles (apc 640x480: 1.21x
+faster, bench_ab; smaller frames lose to uneven work items)."""
 
 TILED_MAX_FRAC = 0.5
-"""A later view uses tiles (crack pass and warp) only while at most this fraction of them is active (speckled
-holes, raw apc depth with 81 % of warp tiles active: the bookkeeping costs more than it saves, 0.76x)."""
-
-
-def rows_per_band(H: int) -> int:
-    """Rows per band: 32 (6 % composite halo recomputation; 16 is slower at 128x128: twice the halo rows)."""
-    return 32
-
+"""Tiles are used only while at most this fraction is active (raw apc depth, 81 % active: 0.76x)."""
 
 LOWEST_SET_BIT = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256)], np.int64)
 """Index of the lowest set bit of a byte (0 for 0)."""
@@ -307,7 +203,7 @@ LOWEST_SET_BIT = np.array([0] + [(b & -b).bit_length() - 1 for b in range(1, 256
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _rank23_of8(x0, x1, x2, x3, x4, x5, x6, x7):  # pragma: no cover
-    # _sort8's compare-exchanges on scalars (registers); returns sorted[2], sorted[3] (other exchanges dropped)
+    # Batcher's odd-even merge sort of 8 values on scalars (registers); returns sorted[2], sorted[3]
     x0, x1 = min(x0, x1), max(x0, x1)
     x2, x3 = min(x2, x3), max(x2, x3)
     x4, x5 = min(x4, x5), max(x4, x5)
@@ -345,10 +241,9 @@ def _nb_value(df, cf, q):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _median8_interior(df, cf, p, w, out_c):  # pragma: no cover
-    """:func:`_median8` of the 3x3 window at an interior pixel with empty centre, in registers: ``df`` / ``cf``
-    flat depth / colour (3 bytes per pixel) of one layer or image, ``p`` the centre's flat index, ``w`` the row
-    length (uint64: no wraparound code). Empty neighbours read as +inf / 255; ranks 2 and 3 of a sorting network
-    give the lower median of the 5..8 non-empty ones. Returns the depth; colour into ``out_c``."""
+    """Lower median of the 3x3 window at an interior pixel with empty centre, in registers: ``df`` / ``cf`` flat
+    depth / colour of one layer or image, ``p`` the centre, ``w`` the row length (uint64: no wraparound code).
+    Empty neighbours read as +inf / 255. Returns the depth; colour into ``out_c``."""
     one = np.uint64(1)
     z0, r0, g0, b0, n0 = _nb_value(df, cf, p - w - one)
     z1, r1, g1, b1, n1 = _nb_value(df, cf, p - w)
@@ -492,7 +387,8 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
                 cr[k, 1] = px[1]
                 cr[k, 2] = px[2]
                 continue
-            j = _median8(d, c, med_l[i], y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+            n = gather_window(d, c, med_l[i], y0, y1, max(u - 1, 0), min(u + 2, W), bd, b0, b1, b2)
+            j = sort_window(bd, b0, b1, b2, n)
             zr[k] = bd[j]
             cr[k, 0] = b0[j]
             cr[k, 1] = b1[j]
@@ -538,7 +434,8 @@ def _crack_item(d, c, lowest, need, use_need, mask, a, e, x0, x1, dout, cout):  
                 cout[v, u, 1] = px[1]
                 cout[v, u, 2] = px[2]
                 continue
-            j = _median8(cd3, cc3, 0, y0 - r0, y1 - r0, max(u - 1, 0) - c0, min(u + 2, W) - c0, bd, b0, b1, b2)
+            n = gather_window(cd3, cc3, 0, y0 - r0, y1 - r0, max(u - 1, 0) - c0, min(u + 2, W) - c0, bd, b0, b1, b2)
+            j = sort_window(bd, b0, b1, b2, n)
             dout[v, u] = bd[j]
             cout[v, u, 0] = b0[j]
             cout[v, u, 1] = b1[j]
@@ -559,33 +456,6 @@ def tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout):  
     for it in nb.prange(items.shape[0]):
         _crack_item(d, c, lowest, need, use_need, mask, items[it, 0], items[it, 1], items[it, 2],
                     items[it, 3], dout, cout)
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _tile_any_kernel(mask, tile_h, tile_w, grow):  # pragma: no cover
-    # Per tile: its rectangle grown by ``grow`` (clipped), scanned up to the first nonzero pixel (big-endian path)
-    H, W = mask.shape
-    th = (H + tile_h - 1) // tile_h
-    tw = (W + tile_w - 1) // tile_w
-    out = np.zeros((th, tw), np.uint8)
-    for ty in range(th):
-        ya = max(ty * tile_h - grow, 0)
-        yb = min((ty + 1) * tile_h + grow, H)
-        for tx in range(tw):
-            xa = max(tx * tile_w - grow, 0)
-            xb = min((tx + 1) * tile_w + grow, W)
-            found = False
-            for v in range(ya, yb):
-                row = mask[v]
-                for u in range(xa, xb):
-                    if row[u]:
-                        found = True
-                        break
-                if found:
-                    break
-            if found:
-                out[ty, tx] = 1
-    return out
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -625,20 +495,15 @@ def _tile_any_words_kernel(words, H, W, tile_h, tile_w, grow):  # pragma: no cov
     return out
 
 
-_LITTLE = sys.byteorder == "little"
-
-
 def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
     """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (uint8 or bool, H x W)
-    lies within ``grow`` pixels (Chebyshev) of the tile (numba; reference
-    :func:`presim.synthesis.kernels_reference.tile_any_ref`). Little-endian: ORs of 8-pixel words
-    (:func:`row_words`), one pass whatever the density (13 against 102 us per 640x480 apc replace mask for a
-    per-tile scan); otherwise each tile scans its grown rectangle up to the first nonzero pixel."""
+    lies within ``grow`` pixels (Chebyshev) of the tile; ORs of 8-pixel words (:func:`row_words`), 13 against
+    102 us per 640x480 apc replace mask for a per-tile scan. Reference: :func:`kernels_reference.tile_any_ref`."""
     m = np.ascontiguousarray(mask).view(np.uint8)
     H, W = m.shape
-    if W and _LITTLE:
+    if W and sys.byteorder == "little":
         return _tile_any_words_kernel(row_words(m), H, W, int(tile_h), int(tile_w), int(grow))
-    return _tile_any_kernel(m, int(tile_h), int(tile_w), int(grow))
+    return tile_any_ref(m, tile_h, tile_w, grow)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -666,22 +531,13 @@ def _tile_items_kernel(active, tile_h, tile_w, H, W):  # pragma: no cover
 
 def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
                               band_rows: int | None = None, tile_cols: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """3 x 3 switching median per layer, front-to-back composite and seam pass, fused per band of rows:
-    ``(depth_m (H, W), color (H, W, 3))``, bit-identical to :func:`crack_filter` + :func:`composite_layers` +
-    :func:`crack_filter` and to the numpy reference chain (tested).
+    """3 x 3 switching median per layer, composite and seam pass fused per band of :data:`BANDED_MAX_LAYERS` <= 8
+    layers: ``(depth_m (H, W), color (H, W, 3))``, bit-identical to the :func:`crack_filter` chain (tested).
 
-    With ``replace`` only the ``replace`` pixels are defined (others UNDEFINED): bands are cut into tiles of
-    ``tile_cols`` columns and only runs of tiles holding a ``replace`` pixel are computed. The output there reads
-    the layers only within 2 pixels of the ``replace`` pixels (:func:`warp_tiles` marks a superset), so the
-    layers may be undefined elsewhere (:func:`presim.synthesis.warp.warp_layers` with ``tiles``).
-
-    Args:
-        depth_m: float32 (L, H, W) warped layers (L <= :data:`BANDED_MAX_LAYERS`); color: uint8 (L, H, W, 3).
-        replace: optional bool (H, W): the pixels whose values are wanted.
-        band_rows: rows per band (None: :func:`rows_per_band`; on tiles :data:`TILE_ROWS`).
-        tile_cols: columns per tile with ``replace`` (None: :data:`TILE_COLS` from :data:`TILED_MIN_PIXELS`
-            pixels on while at most :data:`TILED_MAX_FRAC` of the tiles are active, else whole rows).
-            Any ``band_rows`` / ``tile_cols`` >= 1 gives the same output.
+    With ``replace`` (bool (H, W)) only those pixels are defined: on large frames only runs of ``tile_cols`` x
+    ``band_rows`` tiles holding one are computed, reading the layers within 2 px of them (:func:`warp_tiles`).
+    ``band_rows`` / ``tile_cols`` (None: :data:`BAND_ROWS` / :data:`TILE_ROWS`, :data:`TILE_COLS`) never change
+    the output.
     """
     L, H, W = depth_m.shape
     if L > BANDED_MAX_LAYERS:
@@ -692,7 +548,7 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
     explicit_tiles = tile_cols is not None
     if tile_cols is None:
         tile_cols = TILE_COLS if H * W >= TILED_MIN_PIXELS else W
-    band = max(int(band_rows) if band_rows else rows_per_band(H), 1)
+    band = max(int(band_rows) if band_rows else BAND_ROWS, 1)
     tile_band = max(int(band_rows) if band_rows else TILE_ROWS, 1)
     if use:
         need = cv2.dilate(replace.view(np.uint8), _ONES3).view(bool)
@@ -713,7 +569,6 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
 
 
 def warp_tiles(replace: np.ndarray, tile_px: int = WARP_TILE_PX) -> np.ndarray:
-    """uint8 (ceil(H / tile_px), ceil(W / tile_px)): tiles within 2 pixels of a ``replace`` pixel, holding every
-    layer pixel :func:`filtered_composite_banded` reads for the ``replace`` pixels (3 x 3 windows of the seam
-    pass's 3 x 3 windows); :func:`presim.synthesis.warp.warp_layers` (``tiles=``) warps and clears only those."""
+    """uint8 tiles within 2 px of a ``replace`` pixel: every layer pixel :func:`filtered_composite_banded` reads
+    for them (3 x 3 windows of 3 x 3 windows); :func:`presim.synthesis.warp.warp_layers` ``tiles=``."""
     return tile_any(replace.view(np.uint8), tile_px, tile_px, 2)

@@ -1,25 +1,16 @@
-"""The executor: how a frame's work is scheduled. It never changes a pixel.
+"""The executor: when and on which thread a frame's work runs; it never changes a pixel.
 
-The pipeline (:mod:`presim.synthesis.pipeline`) asks for view images; the Renderer asks for
-prepared views. Everything about *when* and *on which thread* that work runs lives here, behind
-:class:`Executor`:
-
-- **threads per frame** (:func:`presim.synthesis.threads.frame_threads`): frames of at most
-  ``threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (their parallel kernels run as
-  serial twins: waking a second thread costs more than it gives there); larger ones on all;
-- **views warped ahead** (:mod:`presim.synthesis.warp_ahead`): a frame on one thread leaves a core
-  idle, so a helper thread warps and crack-filters the later candidates that the stream's previous
-  frame drew, while the loop works on the first view; the loop then takes them finished;
-- **the view cache** (:mod:`presim.synthesis.view_cache`): prepared views, LRU, bounded in bytes.
-
-Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and each was kept
-because it measured >= 10 % faster on a case of ``benchmarks/bench_ab.py`` (docs/synthesis.md).
-"""
+Frames of at most ``threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (the serial twins); such a frame
+leaves a core idle, so a helper thread (:mod:`presim.synthesis.warp_ahead`) warps the later candidates the
+stream's previous frame drew while the loop works on the first view. Prepared views live in a :class:`ViewCache`.
+Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and earned >= 10 % on a case of
+``benchmarks/bench_ab.py`` (docs/synthesis.md)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+from collections import OrderedDict
 from typing import Any, Callable, Hashable, Iterator
 
 import numpy as np
@@ -29,10 +20,41 @@ from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.cracks import TILED_MIN_PIXELS
 from presim.synthesis.pipeline import ViewImage, Workspace, banded_applies, view_image
 from presim.synthesis.threads import frame_threads, numba_threads
-from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp_ahead import WARP_AHEAD_MIN_POINTS, WarpAhead
 
-__all__ = ["Executor"]
+__all__ = ["Executor", "ViewCache"]
+
+
+class ViewCache:
+    """LRU cache of prepared views bounded in bytes (each value has ``.nbytes``); the newest always stays.
+    A prepared view costs 2-9 ms at 640x480 (read, pool the level, back-project, sort by layer)."""
+
+    def __init__(self, limit_bytes: float):
+        self.limit_bytes = float(limit_bytes)
+        self._items: OrderedDict[Hashable, Any] = OrderedDict()
+        self.nbytes = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._items
+
+    def peek(self, key: Hashable) -> Any | None:
+        """The cached value of ``key`` or None, without building it or changing the LRU order."""
+        return self._items.get(key)
+
+    def get(self, key: Hashable, build: Callable[[], Any]) -> Any:
+        """The value of ``key``, built with ``build()`` and cached when missing."""
+        value = self._items.get(key)
+        if value is not None:
+            self._items.move_to_end(key)
+            return value
+        value = self._items[key] = build()
+        self.nbytes += int(value.nbytes)
+        while self.nbytes > self.limit_bytes and len(self._items) > 1:
+            self.nbytes -= int(self._items.popitem(last=False)[1].nbytes)
+        return value
 
 
 class Executor:
@@ -86,7 +108,7 @@ class Executor:
             return
         if self._ahead is None:
             self._ahead = WarpAhead()
-        self._ahead.start(views, T_cam_world, K, near_m, crack=True)
+        self._ahead.start(views, T_cam_world, K, near_m)
         self._ahead_on = True
 
     def view_image(self, view: Any, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
@@ -94,29 +116,23 @@ class Executor:
         """The view's image: taken from the helper thread when it warped it, else computed here."""
         if self._ahead_on:
             got = self._ahead.take(view)
-            if got is not None and got.depth_m is not None:
-                d, c = got.depth_m, got.color
+            if got is not None:
+                d, c = got
                 if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
                     d, c = d.copy(), c.copy()
                 return ViewImage(d, c)
         return view_image(self.backend, view, T_cam_world, K, config, replace, self.workspace)
 
-    def with_front(self, front: tuple[np.ndarray, np.ndarray] | None) -> contextlib.AbstractContextManager:
+    @contextlib.contextmanager
+    def with_front(self, front: tuple[np.ndarray, np.ndarray] | None) -> Iterator[None]:
         """Within the block, numba view images also write their front-most surface into ``front``."""
-        ws = self.workspace
-
-        @contextlib.contextmanager
-        def ctx() -> Iterator[None]:
-            ws.front = front
-            try:
-                yield
-            finally:
-                ws.front = None
-
-        return ctx()
+        self.workspace.front = front
+        try:
+            yield
+        finally:
+            self.workspace.front = None
 
     def close(self) -> None:
         """Stop the helper threads."""
-        self.cache.close()
         if self._ahead is not None:
             self._ahead.close()

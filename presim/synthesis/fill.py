@@ -1,12 +1,8 @@
-"""Final filling of pixels no input view covered (a robot camera must deliver a complete image).
+"""Final fill of pixels no view covered; they stay ``valid=False``.
 
-Last stage of the frame (``RenderConfig(fill_holes=False)`` skips it); filled pixels stay ``valid=False``.
-Methods: ``"telea"`` inpaints the colour, radius 3 px (:func:`presim.synthesis.telea.telea_inpaint`, reference
-``cv2.inpaint``, 1.5-3.5x faster; best on small, thin holes); ``"pushpull"`` is pull-push pyramid interpolation
-(Gortler et al. 1996), a fixed cost per pixel (:func:`pushpull_rgbd`, reference :func:`pushpull_fill`);
-``"auto"`` (default) uses telea below ``telea_max_hole_frac`` of the image, else pushpull. Depth is always
-filled by pull-push: a plausible surface, never ground truth.
-"""
+``"telea"`` inpaints colour (:func:`presim.synthesis.telea.telea_inpaint`, reference ``cv2.inpaint``);
+``"pushpull"`` is pull-push interpolation (Gortler et al. 1996; :func:`pushpull_rgbd`, reference
+:func:`pushpull_fill`); ``"auto"`` uses telea below ``telea_max_hole_frac`` of the image. Depth is pull-pushed."""
 
 from __future__ import annotations
 
@@ -14,12 +10,38 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.synthesis.config import FILL_METHODS
 from presim.synthesis.telea import telea_inpaint
 from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
-__all__ = ["FILL_METHODS", "pushpull_fill", "pushpull_rgbd", "foreground_rim", "fill_holes"]
+__all__ = ["pushpull_fill", "pushpull_rgbd", "foreground_rim", "fill_holes"]
 
-FILL_METHODS = ("auto", "telea", "pushpull")
+
+def _halve(acc: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The next pull level: OpenCV area pooling of premultiplied values (h, w, C) and weights."""
+    h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
+    return (cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, acc.shape[2]),
+            cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA))
+
+
+def _coarse_levels(acc: np.ndarray, w: np.ndarray, fast: bool) -> np.ndarray:
+    """Pull-push from a level to the coarsest with no unknown pixel and back: that level's estimate. Each push
+    step is ``acc / max(w, 1e-12) * a + up * (1 - a)``, ``a = clip(w, 0, 1)`` (``fast``: in one numba pass)."""
+    levels = []
+    while not (w > 0).all() and min(w.shape) > 1:
+        levels.append((acc, w))
+        acc, w = _halve(acc, w)
+    est = acc / np.maximum(w, 1e-12)[..., None]
+    for acc_l, w_l in reversed(levels):
+        h, ww = w_l.shape
+        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, acc.shape[2])
+        if fast:
+            est = np.empty_like(up)
+            _blend_level_kernel(acc_l, w_l, up, est)
+        else:
+            alpha = np.clip(w_l, 0.0, 1.0)[..., None]
+            est = acc_l / np.maximum(w_l, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+    return est
 
 
 def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -35,20 +57,11 @@ def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     # Level 0: weights are 0/1, so premultiplying is masking (cv2.copyTo is ~5x numpy indexing).
     acc = cv2.copyTo(v32, known_u8, np.zeros_like(v32)).reshape(H, W, C)
     w = known.astype(np.float32)
-    levels = []
-    while min(acc.shape[0], acc.shape[1]) > 1:
-        levels.append((acc, w))
-        h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
-        acc = cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, C)
-        w = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
-        if (w > 0).all():
-            break
-    est = acc / np.maximum(w, 1e-12)[..., None]
-    for acc_l, w_l in reversed(levels[1:]):
-        h, ww = w_l.shape
-        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
-        alpha = np.clip(w_l, 0.0, 1.0)[..., None]
-        est = acc_l / np.maximum(w_l, 1e-12)[..., None] * alpha + up * (1.0 - alpha)
+    if min(H, W) > 1:
+        acc, w = _halve(acc, w)
+        est = _coarse_levels(acc, w, False)
+    else:
+        est = acc / np.maximum(w, 1e-12)[..., None]
     up = cv2.resize(est, (W, H), interpolation=cv2.INTER_LINEAR).reshape(H, W, C)
     out = cv2.copyTo(v32, known_u8, np.ascontiguousarray(up)).reshape(H, W, C)
     return out[..., 0] if squeeze else out
@@ -144,13 +157,9 @@ def _blend_level_kernel(acc, w, up, out):  # pragma: no cover
 
 def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarray
                   ) -> tuple[np.ndarray | None, np.ndarray]:
-    """:func:`pushpull_fill` of colour (optional) and depth, with the full-size steps in numba.
-
-    Level 0 -> 1 pooling and the final push read uint8 colour and depth directly and write only unknown
-    pixels; coarser levels use OpenCV resizes. Equals :func:`pushpull_fill` up to float rounding for even H, W
-    (tested); odd sizes use it. color: uint8 (H, W, 3) or None; depth_m: float32 (H, W); valid: bool (H, W).
-    Returns new ``(color or None, depth_m)``, known pixels unchanged, colour rounded to nearest.
-    """
+    """Pull-push of colour (uint8 (H, W, 3) or None) and depth where ``valid`` is False: new ``(color,
+    depth_m)``, colour rounded. = :func:`pushpull_fill` up to float rounding for even H, W (numba full-size
+    steps, OpenCV coarser levels; tested); odd sizes use it."""
     H, W = valid.shape
     with_color = color is not None
     if H % 2 or W % 2 or min(H, W) < 2:
@@ -166,20 +175,7 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
     acc = np.empty((H // 2, W // 2, C), np.float32)
     w = np.empty(acc.shape[:2], np.float32)
     _pull0_kernel(col, depth_m, known, with_color, acc, w)
-    # Coarser levels exactly as pushpull_fill (OpenCV area pooling, bilinear push).
-    levels = []
-    while not (w > 0).all() and min(w.shape) > 1:
-        levels.append((acc, w))
-        h2, w2 = (acc.shape[0] + 1) // 2, (acc.shape[1] + 1) // 2
-        acc = cv2.resize(acc, (w2, h2), interpolation=cv2.INTER_AREA).reshape(h2, w2, C)
-        w = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
-    est = acc / np.maximum(w, 1e-12)[..., None]
-    for acc_l, w_l in reversed(levels):
-        h, ww = w_l.shape
-        up = cv2.resize(est, (ww, h), interpolation=cv2.INTER_LINEAR).reshape(h, ww, C)
-        # pushpull_fill's numpy blend in one pass (same float32 operations and order).
-        est = np.empty_like(up)
-        _blend_level_kernel(acc_l, w_l, up, est)
+    est = _coarse_levels(acc, w, True)  # coarser levels as pushpull_fill
     out_c = col.copy() if with_color else None
     out_d = depth_m.copy()
     _push0_kernel(known, with_color, np.ascontiguousarray(est, np.float32), out_c if with_color else col, out_d)
@@ -214,13 +210,10 @@ def foreground_rim(depth_m: np.ndarray, valid: np.ndarray, rim_px: int = 4, dept
 
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
                telea_max_hole_frac: float = 0.02, background_rim_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Fill color and depth where ``valid`` is False.
+    """Fill ``color`` (uint8 (H, W, 3)) and ``depth_m`` (float32) where ``valid`` is False: new arrays.
 
-    color: uint8 (H, W, 3); depth_m: float32 (H, W); valid: bool (H, W); method: one of :data:`FILL_METHODS`;
-    telea_max_hole_frac: hole fraction above which ``"auto"`` uses pull-push; background_rim_px > 0: the
-    colour is filled from the background side (:func:`foreground_rim` pixels do not feed the fill and
-    keep their colour). Returns new ``(color, depth_m)`` (unchanged copies when nothing is missing or
-    nothing is known).
+    ``"auto"`` uses pull-push above ``telea_max_hole_frac``; ``background_rim_px`` > 0: :func:`foreground_rim`
+    pixels neither feed the colour fill nor change.
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")

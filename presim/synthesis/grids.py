@@ -1,14 +1,10 @@
-"""Per-frame projection of the views' sub-sampled grids into the target camera, done once per frame.
+"""Per-frame projection of the views' sub-sampled grids into the target camera, once per frame.
 
-Each candidate view's grid of valid depth points (``RenderConfig.overlap_stride_px``) answers three per-frame
-questions: the **overlap** with the target (selection; reference :func:`presim.synthesis.select.view_overlap`),
-the **target pixels** it lands on and the fill area (the adaptive loop's next view; references
-:func:`grid_pixels`, :func:`fill_area_ref`, :func:`count_in_mask`), and the **footprint ratio** that picks the
-level of detail (reference :func:`presim.synthesis.lod.footprint_ratio`). :class:`FrameGrids` projects every
-asked grid once per target camera in one single-threaded numba call (:func:`project_grid`, reference
-:func:`project_grid_ref`); points are read per coordinate (:func:`per_coordinate`) and the loop is branch-free,
-so it vectorizes: 3.6x faster than reading (n, 3) rows with an early exit, same results.
-"""
+Each candidate's grid (``RenderConfig.overlap_stride_px``) answers the overlap (selection; reference
+:func:`presim.synthesis.select.view_overlap`), the target pixels and fill area (next view; references
+:func:`grid_pixels`, :func:`fill_area_ref`, :func:`count_in_mask`) and the footprint ratio (level of detail;
+reference :func:`presim.synthesis.lod.footprint_ratio`). :class:`FrameGrids` projects each grid once per frame
+(:func:`project_grid`, reference :func:`project_grid_ref`), branch-free per coordinate so it vectorizes."""
 
 from __future__ import annotations
 
@@ -116,7 +112,7 @@ def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
     if m == 0:
         return np.nan
     k = m // 2
-    _select_kth(r, m, k)  # in place: r[:k] <= r[k] <= r[k + 1:m] (no copy, unlike np.partition)
+    _select_kth(r, m, k)  # in place: r[:k] <= r[k] <= r[k + 1:m] (no copy: half the time of np.partition)
     hi = r[k]
     if m % 2:
         return np.float64(hi)
@@ -214,9 +210,11 @@ def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums):  # pragma: no cover
-    # Per view k (points [starts[k], ends[k])): counts[k] = count_in_mask of its front pixels, sums[k] =
-    # _fill_area_kernel, same points in the same order (equal results).
+def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, counts, sums):  # pragma: no cover
+    # Per view k (points [starts[k], ends[k])): counts[k] = count_in_mask of its front pixels, sums[k] = the
+    # fill-area sum; a view counts when sums[k] * scale[k] >= need (with use_need); the first whose count
+    # reaches frac x the largest wins, -1 if none counts.
+    pix, z_t, z_src, starts, ends = points
     for k in range(starts.shape[0]):
         n = 0
         s = 0.0
@@ -229,14 +227,6 @@ def _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, 
                     s += r * r
         counts[k] = n
         sums[k] = s
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, counts, sums):  # pragma: no cover
-    # _hole_scores_kernel, then the choice: a view counts when sums[k] * scale[k] >= need (with use_need);
-    # the first whose count reaches frac x the largest, -1 if none counts.
-    pix, z_t, z_src, starts, ends = points
-    _hole_scores_kernel(mask_flat, pix, z_t, z_src, starts, ends, near, counts, sums)
     cmax = 0
     for k in range(counts.shape[0]):
         if counts[k] > 0 and use_need and not sums[k] * scale[k] >= need:
@@ -252,13 +242,9 @@ def _next_view_kernel(mask_flat, points, near, scale, use_need, need, frac, coun
 
 def _flat_f32(parts: list[np.ndarray], n: int) -> np.ndarray:
     """The arrays of ``parts`` end to end in one float32 (n,) array."""
-    out = np.empty(n, np.float32)
-    o = 0
-    for a in parts:
-        out[o:o + len(a)] = a
-        o += len(a)
-    if o != n:
-        raise ValueError(f"source depths: {o} values for {n} grid points")
+    out = np.concatenate(parts).astype(np.float32, copy=False) if parts else np.zeros(0, np.float32)
+    if len(out) != n:
+        raise ValueError(f"source depths: {len(out)} values for {n} grid points")
     return out
 
 

@@ -1,15 +1,12 @@
 """Merging a view into the target image, and the hole analysis that drives the adaptive loop (§3.4.4).
 
-:func:`merge_view_holes` / :func:`merge_into_holes` write a view's image into the accumulated target image only
-on replaceable pixels (holes, big ones dilated), never over earlier views elsewhere, and update the hole mask in
-the same pass. :func:`analyse_hole_mask` finds 8-connected hole components (row runs + union-find): the largest
-decides whether another view is warped, and components of >= ``big_hole_px`` are dilated by ``hole_dilation_px``
-so the next view also replaces their rim, where ghost contours live. Reference: scipy's 8-connected labelling
-plus ``cv2.dilate`` (tests/test_synthesis_core.py).
-"""
+A view writes only the replaceable pixels (holes, big ones dilated against ghost contours) and the hole mask is
+updated in the same pass. :func:`analyse_hole_mask` finds 8-connected holes (row runs + union-find); the largest
+decides whether another view is warped. Reference: scipy labelling plus ``cv2.dilate`` (tests)."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -226,49 +223,31 @@ def row_words(mask: np.ndarray) -> np.ndarray:
     return padded.view(np.uint64)
 
 
-_ELLIPSES: dict[int, np.ndarray] = {}
-
-
-def _ellipse(k: int) -> np.ndarray:
-    """OpenCV's k x k elliptic structuring element (cached: it is asked for once per view)."""
-    se = _ELLIPSES.get(k)
-    if se is None:
-        se = _ELLIPSES[k] = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    return se
-
-
-_ELLIPSE_ROWS: dict[int, np.ndarray] = {}
 _NO_HALF = np.zeros(0, np.int64)
 _NO_U8 = np.zeros((0, 0), np.uint8)
 
 
+@functools.lru_cache(maxsize=16)
 def _ellipse_rows(k: int) -> np.ndarray:
-    """int64 (k,): half width of each row of :func:`_ellipse` (k) about the centre column (-1: empty row)."""
-    half = _ELLIPSE_ROWS.get(k)
-    if half is None:
-        r = k // 2
-        half = np.full(k, -1, np.int64)
-        for i, row in enumerate(_ellipse(k).astype(bool)):
-            cols = np.flatnonzero(row)
-            if len(cols):
-                h = r - cols[0]
-                if cols[-1] != r + h or len(cols) != 2 * h + 1:
-                    raise AssertionError(f"OpenCV's {k}x{k} ellipse: row {i} is not one centred run")
-                half[i] = h
-        _ELLIPSE_ROWS[k] = half
+    """int64 (k,): half width of each row of OpenCV's k x k elliptic element about the centre column (-1: empty)."""
+    r = k // 2
+    half = np.full(k, -1, np.int64)
+    for i, row in enumerate(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)).astype(bool)):
+        cols = np.flatnonzero(row)
+        if len(cols):
+            h = r - cols[0]
+            if cols[-1] != r + h or len(cols) != 2 * h + 1:
+                raise AssertionError(f"OpenCV's {k}x{k} ellipse: row {i} is not one centred run")
+            half[i] = h
     return half
 
 
 def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
                   want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
-    """Hole statistics of a coverage mask, and the mask of pixels the next view may replace.
-
-    valid: bool (H, W), True where the accumulated image has a value; big_hole_px: holes this large are dilated
-    by ``hole_dilation_px`` (0 = none); want_replace: build the replace mask; stop_px: if all holes total at most
-    this, components are skipped (``largest_hole_px`` = total, ``replace`` / ``big`` None); want_largest False
-    (with want_replace False): only the hole fraction, ``largest_hole_px`` = total. One numba pass
-    (:func:`_hole_runs_kernel`; 93 vs 499 us for OpenCV labelling + area passes at 640x480).
-    """
+    """Hole statistics of a coverage mask ``valid`` (bool (H, W)) and the pixels the next view may replace
+    (holes of >= ``big_hole_px`` dilated by ``hole_dilation_px``). ``stop_px``: when all holes total at most
+    this, components are skipped (``largest_hole_px`` = total); ``want_largest`` and ``want_replace`` False:
+    only the fraction. One numba pass (93 vs 499 us for OpenCV labelling + area passes at 640x480)."""
     holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
     return analyse_hole_mask(holes, cv2.countNonZero(holes), big_hole_px, hole_dilation_px, want_replace,
                              stop_px, want_largest)

@@ -1,14 +1,9 @@
 """Slow, obviously correct numpy reference of the synthesis kernels, and the naive baseline.
 
-Every fast path (numba in :mod:`presim.synthesis.warp` / :mod:`presim.synthesis.cracks`, torch in
-:mod:`presim.synthesis.torch_kernels`) is tested against these (tests/test_synthesis_kernels.py). They *define*
-the conventions: a point lands on pixel ``floor(u + 0.5)``; camera z <= ``near_m`` is dropped; per layer the
-z-buffer keeps the smallest float32 z, exact ties to the lower point index
-(:func:`presim.capture.reprojection.zbuffer_splat`); empty pixels have depth 0 and colour 0; the switching median
-(thesis eq. 3.9) fills an empty pixel when more than half of its N x N window (out-of-image = empty) is non-empty,
-with the lower median of the non-empty values per channel; the plain median takes the whole zero-padded window;
-layers composite front to back (lowest layer index = nearest wins).
-"""
+They define the rules the fast paths are tested against: a point lands on pixel ``floor(u + 0.5)``; z <= ``near_m``
+is dropped; per layer the smallest float32 z wins, ties to the lower point index; empty = depth 0, colour 0; the
+switching median (eq. 3.9) fills an empty pixel whose N x N window (outside = empty) is more than half non-empty
+with the lower median per channel; the plain median takes the zero-padded window; layers composite front to back."""
 
 from __future__ import annotations
 
@@ -45,11 +40,8 @@ def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> np.ndarray:
 def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, num_layers: int,
                     T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-warp world points into ``num_layers`` z-buffered images of the target camera.
-
-    xyz_world: (n, 3) world points, metres; rgb: (n, 3) uint8; layer: (n,) int; T_cam_world: 4x4; K: target.
-    Returns ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty.
-    """
+    """Forward-warp world points (n, 3) with ``rgb`` and ``layer`` into ``num_layers`` z-buffered images of
+    the target camera: ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty."""
     H, W = K.height, K.width
     depth = np.zeros((num_layers, H, W), np.float32)
     color = np.zeros((num_layers, H, W, 3), np.uint8)
@@ -132,12 +124,8 @@ def composite_layers_ref(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.nda
 
 def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.ndarray]],
                       T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """The naive baseline: vectorized numpy z-buffer splat of whole frames, no layers, no filters.
-
-    Unprojects every view again per call (nothing cached), as a straightforward numpy DIBR does.
-    views: ``(color (h,w,3) uint8, depth_m (h,w) float32, K_view, T_world_view)`` each.
-    Returns ``(color (H, W, 3) uint8, depth_m (H, W) float32)``.
-    """
+    """The naive baseline: a numpy z-buffer splat of whole frames ``(color, depth_m, K_view, T_world_view)``,
+    no layers, no filters, nothing cached. Returns ``(color (H, W, 3), depth_m (H, W))``."""
     from presim.geometry import compose, invert, unproject_depth
 
     H, W = K.height, K.width

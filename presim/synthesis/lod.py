@@ -1,14 +1,8 @@
-"""Level of detail for the per-view point sets: a small pyramid per capture view, one level per frame.
+"""Level of detail: a pyramid of point sets per capture view, one level per frame.
 
-A splat costs one projection per source point, so a 128x128 frame from 640x480 captures would warp ~300 k
-points per view. Level 0 is the view's valid pixels (:func:`presim.synthesis.warp.prepare_view`); level k+1 is
-2x2 **depth-aware pooling** of level k (:func:`pool_depth_aware`, numpy reference :func:`pool_depth_aware_ref`):
-the pixels with ``d <= dmin * (1 + depth_tol)`` of a block's nearest valid depth are averaged (depth and
-colour), the rest ignored, so nothing mixes across a depth edge; the point sits at the block centre
-(:func:`half_intrinsics`). :func:`choose_level` takes the coarsest level whose median footprint
-``r_k = 2^k * (z_s / f_s) / (z_t / f_t)`` is <= ``max_footprint`` target pixels, so the crack median still
-closes the cracks: 640x480 targets stay at level 0, 256x256 take level 1, 128x128 level 2.
-"""
+Level k+1 is 2x2 depth-aware pooling of level k (:func:`pool_depth_aware`, reference :func:`pool_depth_aware_ref`:
+a block's pixels within ``depth_tol`` of its nearest depth are averaged, the rest ignored). :func:`choose_level`
+takes the coarsest level whose median footprint ``2^k (z_s / f_s) / (z_t / f_t)`` is <= ``max_footprint``."""
 
 from __future__ import annotations
 
@@ -35,14 +29,6 @@ class LodConfig:
     """A level is usable while one of its points covers at most this many target pixels (median)."""
     depth_tol: float = 0.02
     """Relative depth band of the front surface in a 2x2 block (pooled together)."""
-
-    def __post_init__(self) -> None:
-        if self.levels < 0 or self.levels > 8:
-            raise ValueError(f"LodConfig: levels must be in [0, 8], got {self.levels}")
-        if not self.max_footprint > 0:
-            raise ValueError("LodConfig: max_footprint must be > 0")
-        if not self.depth_tol >= 0:
-            raise ValueError("LodConfig: depth_tol must be >= 0")
 
 
 def half_intrinsics(K: Intrinsics) -> Intrinsics:
@@ -140,31 +126,25 @@ def _pool_kernel(d, c, tol, dout, cout):  # pragma: no cover
         _pool_row(d, c, tol, dout, cout, i)
 
 
-def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02, parallel: bool = True
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """2x2 depth-aware pooling (numba): per block, average depth and colour of the valid pixels within
-    ``depth_tol`` (relative) of the block's nearest depth; 0 where the block has no valid pixel.
-
-    depth_m: float32 (H, W), 0 or non-finite = invalid; color: uint8 (H, W, 3); parallel: False runs the serial
-    GIL-free twin (background threads, same output). Returns ``(depth (H//2, W//2) float32, color uint8)``.
-    """
+def pool_depth_aware(depth_m: np.ndarray, color: np.ndarray, depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """2x2 depth-aware pooling: per block, the mean depth and colour of the valid pixels within ``depth_tol``
+    of its nearest depth, 0 without one. float32 depth (0 / non-finite = invalid), uint8 colour -> halved."""
     # Non-finite depths count as invalid without a pass: NaN/-inf fail z > 0, +inf is never within the band.
     d = np.ascontiguousarray(depth_m, np.float32)
     H2, W2 = d.shape[0] // 2, d.shape[1] // 2
     dout = np.empty((H2, W2), np.float32)
     cout = np.empty((H2, W2, 3), np.uint8)
-    kernel = _pool_kernel if parallel else _pool_kernel.serial
-    kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
+    _pool_kernel(d, np.ascontiguousarray(color, np.uint8), float(depth_tol), dout, cout)
     return dout, cout
 
 
-def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02,
-                parallel: bool = True) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
-    """Pyramid level ``level`` (0 = input) as ``(color, depth, intrinsics)``; ``parallel``: :func:`pool_depth_aware`."""
+def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02
+                ) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
+    """Pyramid level ``level`` (0 = input) as ``(color, depth, intrinsics)``."""
     for _ in range(level):
         if min(depth_m.shape) < 2:
             break
-        depth_m, color = pool_depth_aware(depth_m, color, depth_tol, parallel)
+        depth_m, color = pool_depth_aware(depth_m, color, depth_tol)
         K = half_intrinsics(K)
     return color, depth_m, K
 
@@ -172,12 +152,8 @@ def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: in
 def footprint_ratio(grid_xyz_world: np.ndarray, T_cam_world_src: np.ndarray, f_src_px: float,
                     T_cam_world_tgt: np.ndarray, f_tgt_px: float, near_m: float = 0.01,
                     K_tgt: Intrinsics | None = None) -> float:
-    """Median over a view's grid points of (source pixel footprint) / (target pixel footprint) at level 0:
-    ``(z_s / f_s) / (z_t / f_t)``; nan when no grid point counts.
-
-    A point counts when in front of both cameras and, with ``K_tgt``, inside the target image (pixel-centre
-    rule): off-image points (e.g. the floor beside a low robot camera) would pull the level down.
-    """
+    """Median over a view's grid points in front of both cameras (and inside ``K_tgt`` when given) of
+    ``(z_s / f_s) / (z_t / f_t)``; nan when none counts."""
     if len(grid_xyz_world) == 0:
         return float("nan")
     z_s = transform_points(T_cam_world_src, grid_xyz_world)[:, 2]

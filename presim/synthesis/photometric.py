@@ -1,22 +1,15 @@
 """Per-view photometric correction at render time (the apply half of :mod:`presim.capture.photometric`).
 
-Applied to each capture frame's own pixels when the Renderer prepares a view (:class:`SourceColorCorrection`;
-cached with the view; warping, crack median and merge only move pixels). Per-channel model
-``observed_v = gain_v * radiance + bias_v`` maps to the output exposure as
-``out = gain_o * (observed_v - bias_v) / gain_v + bias_o``, ``(gain_o, bias_o)`` = (1, 0) for the scene mean or
-a frame's own (``RenderConfig.exposure_frame``), as a 256-entry ``cv2.LUT`` table per view (~0.3 ms at 640x480;
-reference :func:`apply_gain_bias`). The 3x3 affine model with vignetting maps
-``out = A_o (W(r) A_v^-1 (observed_v - b_v)) + b_o``, ``W(r) = 1 + k1 r^2 + k2 r^4``; when matching a frame,
-:class:`OutputVignetting` puts its vignetting back per target pixel. Reference of both: :func:`correct_colors`.
-Frames missing from the calibration are left as they are.
-"""
+A capture frame's pixels are mapped to the output exposure when its view is prepared: per channel
+``gain_o * (x - bias_v) / gain_v + bias_o`` as a 256-entry table, or with the affine/vignetting model
+``A_o (W(r) A_v^-1 (x - b_v)) + b_o`` (reference :func:`correct_colors`). Uncalibrated frames stay as they are."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-__all__ = ["apply_gain_bias", "gain_bias_lut", "ViewColorTransform", "output_exposure", "output_transform",
+__all__ = ["apply_gain_bias", "gain_bias_lut", "ViewColorTransform", "output_transform",
            "vignetting_gain_map", "correct_colors", "SourceColorCorrection", "OutputVignetting", "predict_exposure",
            "apply_exposure"]
 
@@ -36,15 +29,14 @@ def gain_bias_lut(gain_v: np.ndarray, bias_v: np.ndarray, gain_o: np.ndarray, bi
     return apply_gain_bias(levels, gain_v, bias_v, gain_o, bias_o).reshape(1, 256, 3)
 
 
-def output_exposure(calib, exposure_frame: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """``(gain_o, bias_o)`` of the output: the scene mean (identity) or the frame ``exposure_frame``."""
+def output_transform(calib, exposure_frame: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(A_o (3, 3), b_o (3,))`` of the output: the scene mean (identity) or frame ``exposure_frame``'s."""
     if exposure_frame is None:
-        return np.ones(3), np.zeros(3)
+        return np.eye(3), np.zeros(3)
     try:
-        i = calib.index(exposure_frame)
+        return calib.forward(calib.index(exposure_frame))
     except KeyError:
         raise ValueError(f"exposure_frame {exposure_frame!r} is not a frame of the photometric calibration") from None
-    return calib.gain[i].copy(), calib.bias[i].copy()
 
 
 class ViewColorTransform:
@@ -54,7 +46,8 @@ class ViewColorTransform:
     def __init__(self, calib, frame_ids: list[str], exposure_frame: str | None = None):
         self.calib = calib
         self.frame_ids = list(frame_ids)
-        self.gain_o, self.bias_o = output_exposure(calib, exposure_frame)
+        A_o, self.bias_o = output_transform(calib, exposure_frame)
+        self.gain_o = np.diag(A_o)
         self._luts: dict[int, np.ndarray | None] = {}
 
     def lut(self, view_idx: int) -> np.ndarray | None:
@@ -73,17 +66,6 @@ class ViewColorTransform:
         if lut is None:
             return color
         return cv2.LUT(np.ascontiguousarray(color), lut)
-
-
-def output_transform(calib, exposure_frame: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """``(A_o (3, 3), b_o (3,))`` of the output: the scene mean (identity) or frame ``exposure_frame``'s."""
-    if exposure_frame is None:
-        return np.eye(3), np.zeros(3)
-    try:
-        i = calib.index(exposure_frame)
-    except KeyError:
-        raise ValueError(f"exposure_frame {exposure_frame!r} is not a frame of the photometric calibration") from None
-    return calib.forward(i)
 
 
 def vignetting_gain_map(K, vignetting: tuple[float, float] | None) -> np.ndarray | None:

@@ -2,27 +2,10 @@
 
     synthesize_frame(views, T_cam_world, K, config) -> FrameResult
 
-``views`` (:class:`FrameViews`) is the frame's ordered candidate list and what the loop asks of
-it: one view's image in the target camera, and the next view to warp. The Renderer builds it;
-how its work is scheduled (threads, views warped ahead) is the
-executor's business (:mod:`presim.synthesis.execution`) and invisible here.
-
-Stages, in order:
-1. **view image** (:func:`view_image`, per backend): warp the view's layers with a z-buffer per
-   layer (:mod:`warp`), fill cracks per layer with the switching median, composite the layers front
-   to back, one more crack pass over the layer seams (:mod:`cracks`);
-2. **merge + hole analysis** (:mod:`holes`): the view's image goes into the accumulated image on
-   the pixels still missing (big holes dilated against ghost contours); the largest hole decides
-   whether a further view is warped;
-3. **completion** (:mod:`completion`, scenes with completed depth): the pixels still empty take the
-   warped views' completed depth (:mod:`presim.depth.complete`), so measured depth always wins;
-4. **resample** (:mod:`resample`, ``backward_color``): each covered pixel's colour is sampled in its
-   source view's image at the exact position it back-projects to;
-5. **blend** (optional, :mod:`blend`): the views that agree with the front surface are averaged;
-6. **fill** (:mod:`fill`): pixels no view covers are inpainted and stay ``valid=False``;
-7. **exposure** (:mod:`photometric`, calibrated scenes): the image takes the exposure predicted from
-   the capture frames it is made of.
-"""
+``views`` (:class:`FrameViews`) is the frame's candidate list and what the loop asks of it; how its work is
+scheduled is the executor's business (:mod:`presim.synthesis.execution`). Stages: view image (warp, crack
+filter, composite) -> merge + hole analysis (adaptive loop) -> completion (holes take the warped views'
+completed depth) -> resample -> blend -> fill -> exposure."""
 
 from __future__ import annotations
 
@@ -60,7 +43,6 @@ class ViewImage:
     depth_m: np.ndarray
     """float32 (H, W) z-depth, 0 = empty; exact at least on the ``replace`` pixels asked for."""
     color: np.ndarray
-    """uint8 (H, W, 3)."""
     warp_ms: float = 0.0
     crack_ms: float = 0.0
     composite_ms: float = 0.0
@@ -72,10 +54,9 @@ class Workspace:
     """Buffers a backend reuses across views and frames (one per rendering thread)."""
 
     layers: LayeredImage | None = None
-    """numba: the (L, H, W) warp buffers."""
     front: tuple[np.ndarray, np.ndarray] | None = None
-    """When set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with the
-    front-most surface of its warped layers (no crack filter; blending keeps it)."""
+    """When set, ``(depth (H, W), color (H, W, 3))`` that the next view image also fills with the front-most
+    surface of its warped layers (blending)."""
 
 
 def banded_applies(config: RenderConfig, num_layers: int) -> bool:
@@ -90,9 +71,8 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     t0 = time.perf_counter()
     banded = banded_applies(config, view.num_layers)
     front = workspace.front
-    # A later view's banded crack pass reads its layers only near the replaceable pixels: warp (and
-    # clear) only the tiles there. The banded pass reads colour only where depth > 0, so the colour
-    # planes need no clearing (the front surface for blending reads them everywhere).
+    # A later view's banded pass reads its layers only near the replaceable pixels (warp only the tiles
+    # there), and colour only where depth > 0 (no clearing; the front surface for blending reads it all).
     tiles = None
     if banded and replace is not None and front is None and K.width * K.height >= TILED_MIN_PIXELS:
         tiles = warp_tiles(replace)
@@ -109,9 +89,7 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     mode, kpx = config.crack_filter, config.crack_kernel_px
     d, c = crack_filter(lay.depth_m, lay.color, mode, kpx)
     t2 = time.perf_counter()
-    d, c = composite_layers(d, c)
-    # Second pass on the composite: cracks along layer seams and at crossings of crack lines.
-    d, c = crack_filter(d, c, mode, kpx)
+    d, c = crack_filter(*composite_layers(d, c), mode, kpx)  # the seams
     return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
 
 
@@ -181,7 +159,7 @@ class FrameViews(Protocol):
     candidates: list[int]
     """Ordered candidate view ids (scene frame indices), best first."""
     backend: str
-    """The backend of the view images (and of the stages after the loop that have several)."""
+    """The backend of the view images and of the later stages that have several."""
 
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
         """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
@@ -190,9 +168,9 @@ class FrameViews(Protocol):
         """The completed points of the views ``warped`` (empty when the scene has none)."""
 
     def next_view(self, pending: list[int], big_flat: np.ndarray, need_px: float | None, frac: float) -> int:
-        """Index in ``pending`` of the first view whose sub-sampled grid puts >= 1 point and >= ``frac``
-        of the best count into the big holes ``big_flat`` (uint8 (H * W,)) and, with ``need_px``,
-        is predicted to fill at least that many pixels; -1 when none can."""
+        """Index in ``pending`` of the first view whose grid puts >= 1 point and >= ``frac`` of the best count
+        into the big holes ``big_flat`` (uint8 (H * W,)) and, with ``need_px``, is predicted to fill that many
+        pixels; -1 when none can."""
 
     def blend(self, warped: list[int], color: np.ndarray, depth_m: np.ndarray, source: np.ndarray) -> np.ndarray:
         """The merged colour blended over the views that agree with its front surface."""
@@ -201,8 +179,7 @@ class FrameViews(Protocol):
         """The source images of the views ``warped`` (backward colour sampling)."""
 
     def exposure(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The output exposure ``(A, b)`` predicted for an image whose pixels come from the views in
-        ``source`` (int32 (H, W), -1 = none); None = keep the working exposure."""
+        """The output exposure ``(A, b)`` of an image made of the views in ``source`` (None: keep it)."""
 
 
 @dataclass(frozen=True)
@@ -233,13 +210,7 @@ class FrameResult:
 
 def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig
                      ) -> FrameResult:
-    """The adaptive loop, blending and the final fill for one target camera.
-
-    Args:
-        views: the frame's candidates and view images (:class:`FrameViews`).
-        T_cam_world: 4x4 world -> target camera; K: target intrinsics.
-        config: the algorithm (:class:`~presim.synthesis.config.RenderConfig`).
-    """
+    """The adaptive loop and the stages after it for one target camera (4x4 ``T_cam_world``, ``K``)."""
     cfg = config
     H, W = K.height, K.width
     ms = {s: 0.0 for s in STAGES}

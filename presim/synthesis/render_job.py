@@ -1,13 +1,11 @@
-"""Render a saved scene at a list of camera poses into a capture folder (what ``presim render`` runs).
-
-Layout of :mod:`presim.formats.kinfu_folder` (``presim import`` reads it back) plus ``frame-XXXXXX.valid.png``
-(255 = synthesized, 0 = filled) and ``render.json``, written last (without it the render is unfinished).
-"""
+"""``presim render``: a scene rendered at camera poses into a capture folder (:mod:`presim.formats.kinfu_folder`
+plus ``frame-XXXXXX.valid.png`` and ``render.json``, written last), and the poses the capture covers badly."""
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +16,7 @@ from presim.geometry import Intrinsics
 from presim.io_utils import atomic_write_json, progress
 from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 
-__all__ = ["output_intrinsics", "render_to_folder"]
+__all__ = ["output_intrinsics", "render_to_folder", "FarPose", "far_poses"]
 
 
 def output_intrinsics(K: Intrinsics, width: int | None = None, height: int | None = None, fx: float | None = None,
@@ -40,12 +38,9 @@ def output_intrinsics(K: Intrinsics, width: int | None = None, height: int | Non
 
 def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarray, K: Intrinsics, out: Path,
                      config: RenderConfig, batch_size: int = 16, perf: PerfConfig = PerfConfig()) -> dict:
-    """Render poses ``T_world_cams`` (B, 4, 4) with ``K`` into folder ``out`` (created), each file atomically;
-    ``stamps_s`` (B,) go to the timestamps and TUM files. ``batch_size`` poses per :meth:`Renderer.render_batch`
-    (pose ``i`` continues the camera stream of pose ``i - batch_size``). Depth PNGs are uint16 mm (filled pixels
-    keep their depth; values that do not fit are 0, counted in ``depth_clipped_px``). Returns the
-    ``render.json`` summary (``ms_per_frame_median``: median of batch time / frames).
-    """
+    """Render poses ``T_world_cams`` (B, 4, 4) with ``K`` into folder ``out``, ``batch_size`` per
+    :meth:`Renderer.render_batch`; depth PNGs are uint16 mm (values that do not fit: 0, counted). Returns the
+    ``render.json`` summary."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     r = Renderer(scene, config, perf)
@@ -78,3 +73,34 @@ def render_to_folder(scene: Scene, T_world_cams: np.ndarray, stamps_s: np.ndarra
     }
     atomic_write_json(out / "render.json", summary)
     return summary
+
+
+@dataclass(frozen=True)
+class FarPose:
+    """A rendered frame whose pose the capture covers badly."""
+
+    frame: int
+    distance_m: float
+    """Distance to the nearest captured camera centre."""
+    nearest_view: int
+    hole_frac: float
+    """Fraction of the image no captured view covered (before hole filling)."""
+
+    def __str__(self) -> str:
+        return (f"frame {self.frame}: pose is {self.distance_m:.2f} m from the nearest captured view "
+                f"(frame {self.nearest_view}); {self.hole_frac:.0%} of the image had no captured pixel "
+                "before hole filling")
+
+
+def far_poses(scene, T_world_cams: np.ndarray, hole_fracs, far_m: float = 1.0,
+              max_hole_frac: float = 0.5) -> list[FarPose]:
+    """Frames more than ``far_m`` from every captured view or with hole fraction above ``max_hole_frac``."""
+    centres = np.asarray(scene.camera_centres, dtype=np.float64).reshape(-1, 3)
+    T = np.asarray(T_world_cams, dtype=np.float64).reshape(-1, 4, 4)
+    out = []
+    for i, (Ti, hole) in enumerate(zip(T, hole_fracs)):
+        d = np.linalg.norm(centres - Ti[:3, 3], axis=1) if len(centres) else np.array([np.inf])
+        k = int(np.argmin(d))
+        if d[k] > far_m or float(hole) > max_hole_frac:
+            out.append(FarPose(i, float(d[k]), k, float(hole)))
+    return out

@@ -2,14 +2,9 @@
 
     Renderer(scene, RenderConfig(), PerfConfig()).render(T_world_cam, K) -> RGBD
 
-Per frame: select the candidate views (:mod:`select`), then the pure pipeline
-(:func:`presim.synthesis.pipeline.synthesize_frame`) with this renderer's views of the frame
-(:class:`_FrameViews`); the :class:`~presim.synthesis.execution.Executor` schedules the work.
-
-State kept per scene (built once, never per frame): camera centres, optical axes and FOVs of all
-views; per view, lazily, the prepared points at each level of detail (an LRU cache bounded by
-``PerfConfig.cache_mb``) and a small sub-sampled grid of world points (overlap and hole tests).
-"""
+Per frame: select the candidates (:mod:`select`), then :func:`presim.synthesis.pipeline.synthesize_frame` with
+this renderer's :class:`_FrameViews`. Per scene: camera centres, axes and FOVs; per view, lazily, the prepared
+points per level of detail (in the executor's cache) and a sub-sampled grid of world points."""
 
 from __future__ import annotations
 
@@ -18,16 +13,18 @@ import mmap
 import time
 from dataclasses import dataclass, field
 from dataclasses import replace as dc_replace
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
+from presim.capture.sharpness import sharpness_score
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
 from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import PerfConfig, RenderConfig
-from presim.synthesis.execution import Executor
+from presim.synthesis.execution import Executor, ViewCache
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, predict_exposure
@@ -35,11 +32,9 @@ from presim.synthesis.pipeline import STAGES, ViewImage, synthesize_frame, view_
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import Selection, select_views
-from presim.synthesis.sharpness import ViewSharpness
-from presim.synthesis.view_cache import ViewCache
 from presim.synthesis.warp import ViewPoints, prepare_view
 
-__all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer", "unmap_pages"]
+__all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer", "ViewSharpness", "unmap_pages"]
 
 
 def unmap_pages(arr: np.ndarray) -> None:
@@ -59,6 +54,40 @@ def unmap_pages(arr: np.ndarray) -> None:
             mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
     except (ValueError, OSError, TypeError):  # closed map, unusual layout: keep the pages
         pass
+
+
+class ViewSharpness:
+    """Sharpness-aware views: a cached blur score per capture frame (:func:`presim.capture.sharpness.sharpness_score`,
+    ~2 ms per VGA frame), compared among one target's candidates."""
+
+    def __init__(self, load_color: Callable[[int], np.ndarray], gamma: float = 2.0, demote_frac: float = 0.85):
+        self._load_color = load_color
+        self.gamma = float(gamma)
+        self.demote_frac = float(demote_frac)
+        self._scores: dict[int, float] = {}
+        self._best = 1.0
+
+    def score(self, v: int) -> float:
+        """Sharpness score of view ``v`` (computed on first use)."""
+        s = self._scores.get(v)
+        if s is None:
+            s = self._scores[v] = sharpness_score(self._load_color(v))
+        return s
+
+    def order(self, candidates: Sequence[int]) -> np.ndarray:
+        """int64 permutation of ``candidates`` moving blurred ones (score < demote_frac x best) behind the sharp
+        ones, order kept within each group; sets the best score :meth:`quality` uses."""
+        cand = [int(v) for v in candidates]
+        if not cand:
+            return np.zeros(0, np.int64)
+        sc = np.array([self.score(v) for v in cand])
+        self._best = max(float(sc.max()), 1e-6)
+        blurred = sc < self.demote_frac * self._best
+        return np.concatenate([np.flatnonzero(~blurred), np.flatnonzero(blurred)]).astype(np.int64)
+
+    def quality(self, v: int) -> float:
+        """Blend weight factor ``(score / best candidate score) ** gamma`` (<= 1)."""
+        return float(min(1.0, self.score(v) / self._best) ** self.gamma)
 
 
 @dataclass
@@ -121,11 +150,9 @@ class _FrameViews:
             d, c, _ = blend_stacks(r.blend_buffers, r.blend_config.max_views, self.K.height, self.K.width,
                                    r.blend_config.feather_px)
             front = (d[len(self.fronts)], c[len(self.fronts)])
-        if front is None:
+        with r.executor.with_front(front):
             img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
-        else:
-            with r.executor.with_front(front):
-                img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
+        if front is not None:
             self.fronts.append(view_id)
         img.load_ms = load_ms
         return img

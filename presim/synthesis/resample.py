@@ -1,17 +1,9 @@
-"""Backward colour sampling: the colour of each rendered pixel read from its source view's image.
+"""Backward colour sampling: each rendered pixel's colour read from its source view's image.
 
-The forward warp decides, per target pixel, the surface (depth) and the view that sees it, but a
-one-pixel splat carries the colour of the *nearest* source pixel, up to half a pixel off, and a crack
-filled by the median carries a neighbour's colour. This stage replaces both: the target pixel is
-back-projected with its depth (target camera -> world -> source camera) and its colour is
-interpolated bilinearly in the source image at the exact sub-pixel position it projects to.
-Taps whose source depth disagrees with the projected depth by more than ``depth_tol`` (relative)
-are dropped and the rest renormalised, so colours never bleed across a depth edge; a pixel with no
-valid tap keeps its splatted colour.
-
-Reference: :func:`resample_colors_ref` (numpy, float64); fast paths: :func:`resample_colors`
-(numba) and :func:`presim.synthesis.torch_kernels.resample_colors_torch`, tested against it.
-"""
+A one-pixel splat carries the colour of the nearest source pixel (up to half a pixel off). Here the target pixel
+is back-projected with its depth into its source view and its colour interpolated bilinearly there; taps whose
+source depth disagrees by more than ``depth_tol`` (relative) are dropped, and a pixel with no valid tap keeps its
+colour. Reference :func:`resample_colors_ref`; numba :func:`resample_colors`; torch ``resample_colors_torch``."""
 
 from __future__ import annotations
 
@@ -101,11 +93,9 @@ def source_projection(K: Intrinsics, T_world_cam: np.ndarray, sources: SourceSta
 
 def resample_colors_ref(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
                         T_world_cam: np.ndarray, sources: SourceStack, depth_tol: float = 0.05) -> np.ndarray:
-    """Reference (numpy, float64). Pixels with ``source`` < 0, depth 0, a source not in ``sources``,
-    a projection behind the source camera or outside ``[0, w - 1] x [0, h - 1]``, or no tap within
-    ``depth_tol`` keep ``color``; the others get ``floor(sum(w c) / sum(w) + 0.5)`` over the four
-    bilinear taps ``w`` of the valid ones (:func:`source_projection` maps the target point
-    ``((u - cx) / fx d, (v - cy) / fy d, d)`` into the source). Returns a new uint8 (H, W, 3)."""
+    """Reference (float64). A pixel keeps ``color`` unless its source is in ``sources``, its depth > 0 and
+    its projection lands in front of the source camera inside ``[0, w - 1] x [0, h - 1]`` with a tap within
+    ``depth_tol``; then ``floor(sum(w c) / sum(w) + 0.5)`` over the valid bilinear taps. New uint8 (H, W, 3)."""
     _check(color, depth_m, source, K)
     out = color.copy()
     s = source.astype(np.int64)

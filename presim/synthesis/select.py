@@ -1,11 +1,6 @@
 """View selection (thesis §3.4.2): distance -> angle vs FOV -> zero-overlap removal -> order.
 
-Keep the ``max_candidates`` nearest views (eq. 3.5); drop those whose optical axis angle to the target's (eq. 3.6)
-exceeds their hfov, and those whose sub-sampled depth grid has no point inside the target image; if none is left,
-take the smallest-angle views that overlap, largest overlap first. Order by distance (default: nearest beat
-largest overlap in leave-one-out PSNR, docs/synthesis.md) or overlap. Ablations (thesis Table 3.4):
-``mode="distance"`` (nearest, distance order), ``mode="angle"`` (smallest angle, angle order).
-"""
+Ablations (thesis Table 3.4): ``mode="distance"`` (nearest first), ``mode="angle"`` (smallest angle first)."""
 
 from __future__ import annotations
 
@@ -15,11 +10,9 @@ from typing import Callable
 import numpy as np
 
 from presim.geometry import Intrinsics, invert, project, transform_points
+from presim.synthesis.config import SELECTION_MODES, VIEW_ORDERS
 
-__all__ = ["SELECTION_MODES", "VIEW_ORDERS", "Selection", "view_overlap", "select_views"]
-
-SELECTION_MODES = ("adaptive", "distance", "angle")
-VIEW_ORDERS = ("overlap", "distance")
+__all__ = ["Selection", "view_overlap", "select_views"]
 
 
 @dataclass(frozen=True)
@@ -70,18 +63,13 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
                  overlaps: Callable[[np.ndarray], np.ndarray] | None = None,
                  overlapping: Callable[[np.ndarray], np.ndarray] | None = None,
                  exact_overlaps: int = 0) -> Selection:
-    """Select and order the input views for a target camera.
+    """Select and order the input views for a target camera (4x4 ``T_world_cam``, ``K``).
 
-    T_world_cam: 4x4 target pose; K: target intrinsics; centres_world, directions_world: (N, 3) input camera
-    centres and unit optical axes; hfov_deg: (N,) input horizontal FOV; grid_points(i) -> (m, 3) float32 world
-    points of view i's sub-sampled grid (called only at the overlap test); mode: ``"adaptive"`` (thesis),
-    ``"distance"`` or ``"angle"``; max_candidates: size of the local group; order: ``"distance"`` or
-    ``"overlap"`` (adaptive mode only).
-    overlaps: fast path, ``overlaps(idx)`` -> (k,) :func:`view_overlap` per view (reference; the Renderer uses
-    :class:`presim.synthesis.grids.FrameGrids`). overlapping: with ``exact_overlaps`` > 0 and order
-    ``"distance"``, ``overlapping(idx)`` -> bool (k,) = ``overlaps(idx) > 0`` (stops at the first point
-    inside); only the first ``exact_overlaps`` selected views get an overlap, later ones nan; selection and
-    order are unchanged.
+    centres_world, directions_world: (N, 3) input camera centres and unit optical axes; hfov_deg: (N,);
+    grid_points(i) -> (m, 3) world points of view i's grid; order: adaptive mode only. ``overlaps(idx)`` ->
+    (k,) :func:`view_overlap` per view (fast path: :class:`presim.synthesis.grids.FrameGrids`); with
+    ``overlapping(idx)`` -> ``overlaps(idx) > 0`` and ``exact_overlaps`` > 0 (distance order) only the first
+    ``exact_overlaps`` views get an overlap, later ones nan (same selection).
     """
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")

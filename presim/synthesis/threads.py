@@ -1,12 +1,10 @@
-"""How many numba threads one frame uses, and the serial GIL-free twins of the parallel kernels.
+"""Numba threads per frame, and the serial GIL-free twin of every parallel kernel.
 
-Idle OpenMP threads sleep (``OMP_WAIT_POLICY=PASSIVE``, set by ``presim/__init__.py``); waking one costs each
-parallel region ~0.1-0.4 ms on the 2-core machine, more than a small frame's region gains, so frames of at most
-:data:`SERIAL_MAX_PIXELS` pixels run on one thread (docs/synthesis.md, "Threads per frame"). Every parallel kernel
-is declared with :func:`parallel_kernel`, compiled twice: ``parallel=True`` and serially with ``nogil=True``. A
-thread inside :func:`numba_threads` ``(1)`` or :func:`serial_kernels` runs the serial twins (same arithmetic and
-order, same output), so several Python threads (warp-ahead, the view cache's background builds) can run kernels at
-once under any threading layer. Outputs never depend on the thread count (tested).
+Waking an idle OpenMP thread costs each parallel region ~0.1-0.4 ms on 2 cores, more than a small frame gains,
+so frames of at most :data:`SERIAL_MAX_PIXELS` pixels run on one thread. :func:`parallel_kernel` compiles a kernel
+twice (``parallel=True``, and serial with ``nogil=True``); inside :func:`numba_threads` ``(1)`` or
+:func:`serial_kernels` a Python thread runs the serial twins, so helper threads can run kernels at once under any
+threading layer. Outputs never depend on the thread count (tested).
 """
 
 from __future__ import annotations
@@ -23,22 +21,17 @@ __all__ = ["SERIAL_MAX_PIXELS", "LIGHT_SERIAL_BELOW", "frame_threads", "numba_th
            "parallel_kernel", "TwinKernel"]
 
 SERIAL_MAX_PIXELS = 40_000
-"""Frames of at most this many pixels render on one numba thread with ``PerfConfig.threads`` = 0 (auto): one
-thread is 1.13-1.61x faster at 128x128 on the 2-core machine, 256x256 is a draw, two win from 320x240."""
-
+"""Frames of at most this many pixels render on one numba thread with ``PerfConfig.threads`` = 0: 1.13-1.61x
+faster at 128x128 on 2 cores, 256x256 a draw, two threads win from 320x240."""
 
 LIGHT_SERIAL_BELOW = {"map": 1 << 20, "pass": 150_000}
-"""``serial_below`` (pixels) of the light per-view kernels (docs/synthesis.md, "Light kernels on one thread"):
-``"map"`` for passes reading one mask (a later view's merge: 256x256 90 -> 46 us serial), ``"pass"`` for passes
-over several images (first merge + hole mask, fill pull/push: serial faster up to 320x240, slower at 640x480)."""
+"""``serial_below`` (pixels) of the light per-view kernels: ``"map"`` for passes reading one mask (a later view's
+merge: 256x256 90 -> 46 us serial), ``"pass"`` for passes over several images (serial faster up to 320x240)."""
 
 
 def frame_threads(width: int, height: int, threads: int = 0) -> int:
-    """Numba threads for rendering one ``width`` x ``height`` frame.
-
-    threads: > 0: that many (at most numba's pool size); 0 = auto: one up to :data:`SERIAL_MAX_PIXELS` pixels,
-    else the calling thread's ``numba.get_num_threads()``.
-    """
+    """Numba threads for one ``width`` x ``height`` frame: ``threads`` > 0 that many (at most the pool size);
+    0 = one up to :data:`SERIAL_MAX_PIXELS` pixels, else ``numba.get_num_threads()``."""
     if threads < 0:
         raise ValueError(f"threads must be >= 0, got {threads}")
     if threads > 0:
@@ -81,10 +74,9 @@ def numba_threads(n: int) -> Iterator[None]:
 
 
 class TwinKernel:
-    """A numba kernel compiled twice from one function: ``parallel`` and ``serial`` (``prange`` = ``range``,
-    ``nogil=True``), both lazily and cached on disk separately. Calls run the serial twin inside
-    :func:`serial_kernels` or when argument ``size_arg`` has fewer than ``serial_below`` (> 0) elements
-    (:data:`LIGHT_SERIAL_BELOW`), else the parallel one."""
+    """A kernel compiled ``parallel`` and ``serial`` (``prange`` = ``range``, ``nogil``), each cached on disk.
+    Calls run the serial twin inside :func:`serial_kernels` or when argument ``size_arg`` has fewer than
+    ``serial_below`` (> 0) elements, else the parallel one."""
 
     def __init__(self, fn: Callable, serial_below: int = 0, size_arg: int = 0, **options: Any):
         self.py_func = fn
@@ -106,6 +98,6 @@ class TwinKernel:
 
 
 def parallel_kernel(serial_below: int = 0, size_arg: int = 0, **options: Any) -> Callable[[Callable], TwinKernel]:
-    """Decorator replacing ``@numba.njit(parallel=True, ...)``: makes a :class:`TwinKernel`. Synthesis kernels
-    pass ``error_model="numpy"`` (no ZeroDivisionError branch, which keeps division loops from vectorizing)."""
+    """Decorator replacing ``@numba.njit(parallel=True, ...)``: a :class:`TwinKernel`. Synthesis kernels pass
+    ``error_model="numpy"`` (no ZeroDivisionError branch, which keeps division loops from vectorizing)."""
     return lambda fn: TwinKernel(fn, serial_below, size_arg, **options)

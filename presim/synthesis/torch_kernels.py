@@ -1,11 +1,7 @@
-"""Torch path of the synthesis kernels (``PerfConfig(backend="torch")``): CUDA when available, else CPU.
+"""Torch path of the view image (``PerfConfig(backend="torch")``): CUDA when available, else CPU.
 
-Same definitions as :mod:`presim.synthesis.kernels_reference` (tested against it on CPU): the z-buffer is an
-``amin`` scatter of depths, then of point indices among the depth winners (lowest index wins a tie); the
-switching median gathers and sorts only the empty pixels with a non-empty majority; the composite takes the first
-non-empty layer by ``argmax``. :func:`view_image_torch` is this backend's
-:func:`presim.synthesis.pipeline.view_image`; per-view tensors (:func:`to_device`) are cached by the Renderer.
-"""
+Same rules as :mod:`presim.synthesis.kernels_reference` (tested on CPU): the z-buffer is an ``amin`` scatter of
+depths, then of point indices among the winners; the median gathers only the pixels it may change."""
 
 from __future__ import annotations
 
@@ -18,18 +14,13 @@ import torch
 from presim.geometry import Intrinsics
 from presim.synthesis.warp import ViewPoints
 
-__all__ = ["default_device", "resolve_device", "TorchView", "to_device", "warp_layers_torch",
+__all__ = ["resolve_device", "TorchView", "to_device", "warp_layers_torch",
            "crack_filter_torch", "composite_layers_torch", "view_image_torch"]
 
 
-def default_device() -> torch.device:
-    """CUDA when present, else CPU."""
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-
-
-def resolve_device(name: str | None) -> torch.device:
-    """``torch.device(name)``, or :func:`default_device` when ``name`` is None / empty."""
-    return torch.device(name) if name else default_device()
+def resolve_device(name: str | None = None) -> torch.device:
+    """``torch.device(name)``, or CUDA when present, else CPU when ``name`` is None / empty."""
+    return torch.device(name if name else "cuda" if torch.cuda.is_available() else "cpu")
 
 
 @dataclass(frozen=True)
@@ -53,7 +44,7 @@ class TorchView:
 
 
 def to_device(view: ViewPoints, device: torch.device | str | None = None) -> TorchView:
-    device = torch.device(device) if device is not None else default_device()
+    device = resolve_device(device)
     return TorchView(torch.from_numpy(view.xyz_world).to(device), torch.from_numpy(view.rgb).to(device),
                      torch.from_numpy(view.layer).to(device), view.num_layers, view.image)
 
@@ -110,32 +101,24 @@ def crack_filter_torch(depth_m: torch.Tensor, color: torch.Tensor, mode: str = "
     Hp, Wp = H + 2 * r, W + 2 * r
     off = _neighbour_offsets(r, Wp, depth_m.device)
     dflat, cflat = dp.reshape(-1), cp.reshape(-1, 3)
-    if mode == "median":
-        ll, vv, uu = torch.meshgrid(torch.arange(L, device=depth_m.device), torch.arange(H, device=depth_m.device),
-                                    torch.arange(W, device=depth_m.device), indexing="ij")
-        centre = (ll * (Hp * Wp) + (vv + r) * Wp + (uu + r)).reshape(-1)
-        nb_idx = centre[:, None] + off[None, :]
-        mid = (n_win - 1) // 2
-        d_med = dflat[nb_idx].sort(dim=1).values[:, mid]
-        c_med = cflat[nb_idx].sort(dim=1).values[:, mid]  # (P, 3) per channel
-        c_med = torch.where((d_med > 0)[:, None], c_med, torch.zeros_like(c_med))
-        return d_med.view(L, H, W), c_med.view(L, H, W, 3)
-    empty = depth_m == 0
-    cand = torch.nonzero(empty.reshape(-1)).squeeze(1)
-    ll = cand // (H * W)
-    rem = cand % (H * W)
-    centre = ll * (Hp * Wp) + (rem // W + r) * Wp + (rem % W + r)
-    nb_idx = centre[:, None] + off[None, :]
+    switching = mode == "switching_median"
+    flat = depth_m.reshape(-1)
+    cand = torch.nonzero(flat == 0).squeeze(1) if switching else torch.arange(flat.numel(), device=flat.device)
+    ll, rem = cand // (H * W), cand % (H * W)
+    nb_idx = (ll * (Hp * Wp) + (rem // W + r) * Wp + (rem % W + r))[:, None] + off[None, :]
     nd = dflat[nb_idx]
-    nz = nd > 0
+    nz = nd > 0 if switching else torch.ones_like(nd, dtype=torch.bool)  # plain: zeros count
     cnt = nz.sum(1)
-    sel = 2 * cnt > n_win
-    nb_idx, nd, nz, cnt, cand = nb_idx[sel], nd[sel], nz[sel], cnt[sel], cand[sel]
+    if switching:
+        sel = 2 * cnt > n_win
+        nb_idx, nd, nz, cnt, cand = nb_idx[sel], nd[sel], nz[sel], cnt[sel], cand[sel]
     k = ((cnt - 1) // 2)[:, None]
     d_med = torch.where(nz, nd, torch.full_like(nd, float("inf"))).sort(dim=1).values.gather(1, k)[:, 0]
     nc = cflat[nb_idx].to(torch.int16)  # (P, n_win, 3); 256 marks empty so it sorts last
     nc = torch.where(nz[..., None], nc, torch.full_like(nc, 256))
     c_med = nc.sort(dim=1).values.gather(1, k[:, :, None].expand(-1, 1, 3))[:, 0].to(torch.uint8)
+    if not switching:
+        c_med = torch.where((d_med > 0)[:, None], c_med, torch.zeros_like(c_med))
     dout = depth_m.reshape(-1).clone()
     cout = color.reshape(-1, 3).clone()
     dout[cand] = d_med
@@ -179,7 +162,7 @@ def resample_colors_torch(color: np.ndarray, depth_m: np.ndarray, source: np.nda
     gather per source view. ``sources``: a :class:`~presim.synthesis.resample.SourceStack`."""
     from presim.synthesis.resample import source_projection
 
-    dev = torch.device(device) if device is not None else default_device()
+    dev = resolve_device(device)
     f64 = torch.float64
     H, W = depth_m.shape
     out = torch.from_numpy(np.ascontiguousarray(color)).to(dev).reshape(-1, 3).clone()

@@ -1,11 +1,8 @@
 """Layered 3D warping (thesis §3.4.3, eq. 3.7-3.8) with a per-layer z-buffer (numba).
 
-:func:`prepare_view` (once per view) back-projects a depth map's valid pixels to world points (eq. 3.7), layers
-them (``num_layers`` equal depth slices, Fig. 3.8) and sorts by layer. :func:`warp_layers` (per frame) projects
-them into the target (eq. 3.8) and z-buffers each in its layer's image, skipping chunks that
-:func:`chunk_visibility` proves outside the target or its marked tiles (same output as ``cull=False``). Layers
-run in parallel, race-free; the inlined projection is tested against the geometry.py reference.
-"""
+:func:`prepare_view` back-projects a view's valid pixels to world points, splits them into ``num_layers`` depth
+slices and sorts by layer (once per view); :func:`warp_layers` projects them into the target and z-buffers each
+layer, skipping chunks :func:`chunk_visibility` proves outside the target (same output as ``cull=False``)."""
 
 from __future__ import annotations
 
@@ -23,8 +20,7 @@ __all__ = ["CHUNK_PTS", "TargetCam", "TileMarks", "ChunkBounds", "target_cam", "
            "prepare_view", "prepare_view_ref", "warp_layers"]
 
 CHUNK_PTS = 32
-"""Points per chunk: a run of neighbouring source pixels within a layer, culled as one by its bounds
-(:func:`chunk_visibility`)."""
+"""Points per chunk: a run of neighbouring source pixels within a layer, culled as one (:func:`chunk_visibility`)."""
 
 
 class TargetCam(NamedTuple):
@@ -37,14 +33,13 @@ class TargetCam(NamedTuple):
     cx: float
     cy: float
     near: float
-    """Points closer than this are dropped."""
     W: int
     H: int
 
 
 def target_cam(T_cam_world: np.ndarray, K: Intrinsics, near_m: float, dtype=np.float32) -> TargetCam:
     """:class:`TargetCam` of a 4x4 world -> target transform; float64 ``dtype`` holds the float32 values."""
-    f = (lambda x: np.float32(x)) if dtype == np.float32 else (lambda x: float(np.float32(x)))
+    f = np.float32 if dtype == np.float32 else (lambda x: float(np.float32(x)))
     M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
     return TargetCam(M, f(K.fx), f(K.fy), f(K.cx), f(K.cy), f(near_m), int(K.width), int(K.height))
 
@@ -57,9 +52,9 @@ class TileMarks(NamedTuple):
     use: bool
     tile_px: int
     of_px: np.ndarray
-    """uint8 (H * W,): each pixel's tile mark (one load per point instead of two divisions)."""
+    """uint8 (H * W,): each pixel's tile mark."""
     sat: np.ndarray
-    """int32 (th + 1, tw + 1) summed-area table of the marks (the culling's tile test)."""
+    """int32 (th + 1, tw + 1) summed-area table of the marks."""
 
 
 class ChunkBounds(NamedTuple):
@@ -70,27 +65,6 @@ class ChunkBounds(NamedTuple):
     projective: bool
     to_world: np.ndarray
     abs_max: float
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _chunk_bounds_kernel(xyz, chunk):  # pragma: no cover
-    n = xyz.shape[0]
-    m = (n + chunk - 1) // chunk
-    lo = np.empty((3, m), np.float32)
-    hi = np.empty((3, m), np.float32)
-    for c in range(m):
-        a = c * chunk
-        b = min(n, a + chunk)
-        for k in range(3):
-            mn = xyz[a, k]
-            mx = mn
-            for i in range(a + 1, b):
-                x = xyz[i, k]
-                mn = min(mn, x)
-                mx = max(mx, x)
-            lo[k, c] = mn
-            hi[k, c] = mx
-    return lo, hi
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -159,31 +133,22 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
     return lo, hi
 
 
-def _chunk_bounds_abs(xyz_world: np.ndarray, T_world_src: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
-    """:func:`chunk_bounds` and the largest |world coordinate| (inf if one is not finite, 0 without points)."""
-    xyz = np.ascontiguousarray(xyz_world, np.float32)
-    lo, hi = chunk_bounds(xyz, T_world_src=T_world_src)
-    A = max(-float(xyz.min()), float(xyz.max())) if len(xyz) else 0.0
-    return lo, hi, A if np.isfinite(A) else np.inf
-
-
 def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS, T_world_src: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of each run of ``chunk`` consecutive points (the last may be shorter): ``(lo, hi)``, float32
-    (3, ceil(n / chunk)), a row per coordinate, rounded outwards from float64 where not exact.
-
-    Without ``T_world_src``: world axis-aligned boxes. With it (4x4 pose of the source camera): ranges of
-    ``(x / z, y / z, z)`` in that camera, a frustum piece whose 8 corners' images span the chunk's image in any
-    camera (apc capture: 2-8x smaller projected boxes than world boxes). A chunk with a point not in front of
-    the source camera gets infinite bounds (never culled).
-    """
+    """Bounds of each run of ``chunk`` points: ``(lo, hi)``, float32 (3, ceil(n / chunk)), rounded outwards:
+    world boxes, or with ``T_world_src`` ranges of ``(x / z, y / z, z)`` in that camera (2-8x smaller projected
+    boxes on apc; a chunk with a point not in front of it is never culled)."""
     xyz = np.ascontiguousarray(xyz_world, np.float32)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"chunk_bounds: need (n, 3) points, got {xyz.shape}")
     if chunk < 1:
         raise ValueError(f"chunk_bounds: chunk must be >= 1, got {chunk}")
     if T_world_src is None:
-        return _chunk_bounds_kernel(xyz, int(chunk))
+        starts = np.arange(0, len(xyz), int(chunk))
+        if not len(xyz):
+            return np.empty((3, 0), np.float32), np.empty((3, 0), np.float32)
+        return (np.ascontiguousarray(np.minimum.reduceat(xyz, starts).T),
+                np.ascontiguousarray(np.maximum.reduceat(xyz, starts).T))
     T = np.asarray(T_world_src, np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise ValueError(f"chunk_bounds: T_world_src must be a finite 4x4 pose, got shape {T.shape}")
@@ -204,29 +169,26 @@ class ViewPoints:
     depth_range_m: tuple[float, float]
     """(min, max) valid depth of the view, metres (the layer split)."""
     T_world_src: np.ndarray | None = field(default=None, repr=False, compare=False)
-    """4x4 pose of the source camera (set by :func:`prepare_view`) or None; with it the chunk bounds are projective."""
+    """4x4 pose of the source camera or None; with it the chunk bounds are projective (:func:`chunk_bounds`)."""
     image: Any = field(default=None, repr=False, compare=False)
     """The source image (:class:`presim.synthesis.resample.SourceImage`) for backward colour sampling, or None."""
     chunk_lo: np.ndarray = field(init=False, repr=False, compare=False)
-    """float32 (3, ceil(n / CHUNK_PTS)): lower bounds of each chunk (:func:`chunk_bounds`), of ``(x / z, y / z, z)``
-    in the source camera with ``T_world_src``, else of the world coordinates."""
+    """float32 (3, ceil(n / CHUNK_PTS)): :func:`chunk_bounds` of the points; ``chunk_hi`` the upper ones."""
     chunk_hi: np.ndarray = field(init=False, repr=False, compare=False)
-    """float32, the upper bounds."""
     chunk_to_world: np.ndarray = field(init=False, repr=False, compare=False)
     """float64 (3, 4): the frame of the bounds -> world (``T_world_src[:3]``, or the identity)."""
     chunk_abs_max: float = field(init=False, repr=False, compare=False)
     """Largest |world coordinate| of the points (inf if one is not finite): bounds the projection's rounding."""
 
     def __post_init__(self) -> None:
-        T = self.T_world_src
-        if T is not None:
-            T = np.asarray(T, np.float64)
-            object.__setattr__(self, "T_world_src", T)
-        lo, hi, A = _chunk_bounds_abs(self.xyz_world, T)
-        object.__setattr__(self, "chunk_lo", lo)
-        object.__setattr__(self, "chunk_hi", hi)
-        object.__setattr__(self, "chunk_to_world", np.ascontiguousarray((np.eye(4) if T is None else T)[:3, :4]))
-        object.__setattr__(self, "chunk_abs_max", float(A))
+        T = None if self.T_world_src is None else np.asarray(self.T_world_src, np.float64)
+        xyz = np.ascontiguousarray(self.xyz_world, np.float32)
+        A = max(-float(xyz.min()), float(xyz.max())) if len(xyz) else 0.0
+        lo, hi = chunk_bounds(xyz, T_world_src=T)
+        for name, value in (("T_world_src", T), ("chunk_lo", lo), ("chunk_hi", hi),
+                            ("chunk_abs_max", A if np.isfinite(A) else np.inf),
+                            ("chunk_to_world", np.ascontiguousarray((np.eye(4) if T is None else T)[:3, :4]))):
+            object.__setattr__(self, name, value)
 
     @property
     def chunk_projective(self) -> bool:
@@ -572,49 +534,34 @@ NO_SAT = np.zeros((2, 2), np.int32)
 CULL_MARGIN = 1e-4  # relative: ~100x the float32 rounding of the kernel's projection
 
 
-def _tile_sat(tiles: np.ndarray) -> np.ndarray:
-    """int32 (th + 1, tw + 1) summed-area table of the tile marks (0 on the first row / column)."""
-    sat = np.zeros((tiles.shape[0] + 1, tiles.shape[1] + 1), np.int32)
-    np.cumsum(np.cumsum(tiles, 0, dtype=np.int32), 1, out=sat[1:, 1:])
-    return sat
-
-
 def tile_marks(tiles: np.ndarray | None, K: Intrinsics, tile_px: int, who: str) -> TileMarks:
-    """:class:`TileMarks` of optional tile marks for a K-sized target (checked)."""
+    """:class:`TileMarks` of optional uint8 marks of the ``tile_px`` tiles of a K-sized target (checked)."""
     if tiles is None:
         return TileMarks(NO_TILES, False, int(tile_px), NO_TILES.reshape(-1), NO_SAT)
-    _check_tiles(tiles, K, tile_px, who)
+    want = (-(-K.height // tile_px), -(-K.width // tile_px)) if tile_px >= 1 else None
+    if want is None or not isinstance(tiles, np.ndarray) or tiles.shape != want or tiles.dtype != np.uint8:
+        raise ValueError(f"{who}: tiles must be uint8 {want} (tile_px {tile_px} >= 1), got "
+                         f"{getattr(tiles, 'dtype', type(tiles))} {getattr(tiles, 'shape', '')}")
     of_px = np.ascontiguousarray(np.repeat(np.repeat(tiles, tile_px, 0)[:K.height], tile_px, 1)[:, :K.width])
-    return TileMarks(tiles, True, int(tile_px), of_px.reshape(-1), _tile_sat(tiles))
+    sat = np.zeros((tiles.shape[0] + 1, tiles.shape[1] + 1), np.int32)
+    np.cumsum(np.cumsum(tiles, 0, dtype=np.int32), 1, out=sat[1:, 1:])
+    return TileMarks(tiles, True, int(tile_px), of_px.reshape(-1), sat)
 
 
 def chunk_bounds_of(view: ViewPoints) -> ChunkBounds:
     return ChunkBounds(view.chunk_lo, view.chunk_hi, view.chunk_projective, view.chunk_to_world, view.chunk_abs_max)
 
 
-def _visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float, tm: TileMarks) -> np.ndarray:
+def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
+                     tiles: np.ndarray | None = None, tile_px: int = 16, tm: TileMarks | None = None) -> np.ndarray:
+    """uint8 (n_chunks,): 0 where every point of the chunk certainly falls outside the target (behind its near
+    plane, outside the image, or outside the marked ``tiles`` / ``tm``), so :func:`warp_layers` skips it; 1
+    otherwise (conservative). ``near_m`` <= 0 culls nothing."""
+    tm = tile_marks(tiles, K, tile_px, "chunk_visibility") if tm is None else tm
     vis = np.ones(view.chunk_lo.shape[1], np.uint8)
     if near_m > 0 and view.chunk_abs_max < np.inf:
         chunk_keep_kernel(chunk_bounds_of(view), target_cam(T_cam_world, K, near_m, np.float64), CULL_MARGIN, tm, vis)
     return vis
-
-
-def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
-                     tiles: np.ndarray | None = None, tile_px: int = 16) -> np.ndarray:
-    """uint8 (n_chunks,): 0 where every point of the chunk certainly falls outside the target (behind its near
-    plane, outside the image, or outside every tile marked in ``tiles``, as :func:`warp_layers` takes them), so
-    :func:`warp_layers` skips it; 1 otherwise (conservative). ``near_m`` <= 0 culls nothing."""
-    return _visibility(view, T_cam_world, K, near_m, tile_marks(tiles, K, tile_px, "chunk_visibility"))
-
-
-def _check_tiles(tiles: np.ndarray, K: Intrinsics, tile_px: int, who: str) -> None:
-    """Raise unless ``tiles`` marks the ``tile_px`` x ``tile_px`` tiles of a K-sized image (uint8)."""
-    if tile_px < 1:
-        raise ValueError(f"{who}: tile_px must be >= 1, got {tile_px}")
-    want = (-(-K.height // tile_px), -(-K.width // tile_px))
-    if not isinstance(tiles, np.ndarray) or tiles.shape != want or tiles.dtype != np.uint8:
-        raise ValueError(f"{who}: tiles must be uint8 {want}, got {getattr(tiles, 'dtype', type(tiles))} "
-                         f"{getattr(tiles, 'shape', '')}")
 
 
 WARP_BLOCK_PTS = 256
@@ -720,28 +667,20 @@ def warp_layers_kernel(xyz, rgb, layer_start, n_threads, cam, tm, vis, clear_c, 
 def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,
                 out: LayeredImage | None = None, tiles: np.ndarray | None = None,
                 tile_px: int = 16, cull: bool = True, clear_color: bool = True) -> LayeredImage:
-    """Warp a prepared view into the target camera (numba): a :class:`LayeredImage`, one z-buffered image per
-    layer, depth 0 (colour 0 with ``clear_color``) where a layer got no point.
+    """Warp a prepared view (:func:`prepare_view`) into the target camera (4x4 ``T_cam_world``, ``K``): one
+    z-buffered image per layer, depth 0 (colour 0 with ``clear_color``) where a layer got no point.
 
-    Args:
-        view: from :func:`prepare_view`; T_cam_world: 4x4 world -> target; K: target intrinsics (any size).
-        near_m: points closer than this to the target camera are dropped.
-        out: (L, H, W) / (L, H, W, 3) buffers to overwrite; new ones when None or of another shape.
-        tiles: optional uint8 (ceil(H / tile_px), ceil(W / tile_px)): warp into and clear only the marked
-            tiles; the layers are UNDEFINED outside them and exact inside (:func:`presim.synthesis.cracks.warp_tiles`).
-        cull: skip chunks :func:`chunk_visibility` proves outside the target or ``tiles`` (same output).
-        clear_color: False leaves colour UNDEFINED where a layer got no point (3 of 7 bytes per layer pixel not
-            written), for readers that take colour only where depth > 0 (the banded crack pass, tested).
+    ``out``: buffers to overwrite (new ones when None or of another shape). ``tiles`` (uint8, one mark per
+    ``tile_px`` tile): warp into and clear only the marked tiles, the layers are UNDEFINED elsewhere
+    (:func:`presim.synthesis.cracks.warp_tiles`). ``cull``: skip chunks :func:`chunk_visibility` proves outside
+    (same output). ``clear_color`` False leaves colour UNDEFINED where depth is 0 (the banded crack pass).
     """
     L = view.num_layers
     if out is None or out.depth_m.shape != (L, K.height, K.width):
         out = LayeredImage(np.empty((L, K.height, K.width), np.float32),
                            np.empty((L, K.height, K.width, 3), np.uint8))
     tm = tile_marks(tiles, K, tile_px, "warp_layers")
-    if cull:
-        vis = _visibility(view, T_cam_world, K, near_m, tm)
-    else:
-        vis = np.ones(view.chunk_lo.shape[1], np.uint8)
+    vis = chunk_visibility(view, T_cam_world, K, near_m, tm=tm) if cull else np.ones(view.chunk_lo.shape[1], np.uint8)
     warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), target_cam(T_cam_world, K, near_m),
                        tm, vis, bool(clear_color), out.depth_m, out.color)
     return out

@@ -1,21 +1,15 @@
 """Later candidate views warped on a helper thread while the main thread runs the adaptive loop.
 
-Frames of at most :data:`presim.synthesis.threads.SERIAL_MAX_PIXELS` pixels render on one numba thread, leaving a
-core idle. :class:`WarpAhead` (driven by :meth:`presim.synthesis.execution.Executor.warp_ahead`) warps the later
-candidates the camera stream's previous frame drew too (cached, >= :data:`WARP_AHEAD_MIN_POINTS` points) in one
-GIL-free numba call (:func:`_warp_jobs_kernel`: chunk culling, the serial warp kernel and the banded crack pass;
-per-view calls from Python retook the GIL and cost the main thread half the gain). Jobs have int32 states shared
-by both threads (queued, running, done, claimed); :meth:`WarpAhead.take` uses a done job, waits for a running
-one, or claims a queued one and lets the loop warp it; ``done`` is stored with release order after the images.
-The layers equal the loop's own warp (same kernels and inputs), so images are identical with and without the
-thread (tested).
-"""
+:class:`WarpAhead` warps and crack-filters the views in one GIL-free numba call per frame
+(:func:`_warp_jobs_kernel`: culling, the serial warp kernel and the banded crack pass). Jobs have int32 states
+shared by both threads (queued, running, done, claimed; ``done`` stored with release order after the images):
+:meth:`WarpAhead.take` uses a done job, waits for a running one, or claims a queued one for the loop. The images
+equal the loop's own (same kernels and inputs, tested)."""
 
 from __future__ import annotations
 
 import threading
 import weakref
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -26,11 +20,11 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from presim.geometry import Intrinsics
-from presim.synthesis.cracks import LOWEST_SET_BIT, banded_crack_kernel, rows_per_band
-from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, LayeredImage, chunk_keep_kernel, target_cam, tile_marks,
+from presim.synthesis.cracks import BAND_ROWS, LOWEST_SET_BIT, banded_crack_kernel
+from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, chunk_keep_kernel, target_cam, tile_marks,
                                    warp_layers_kernel)
 
-__all__ = ["WarpAhead", "AheadImage", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
+__all__ = ["WarpAhead", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
 
 MAX_JOBS = 8
 """At most this many views per frame (the kernel takes fixed-size tuples: one compilation)."""
@@ -45,7 +39,6 @@ QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3
 _warp_serial = warp_layers_kernel.serial
 _crack_serial = banded_crack_kernel.serial
 _NO_MASK = np.zeros((1, 1), np.bool_)
-_FIELDS_KEPT = 2 * MAX_JOBS  # views whose kernel arguments are kept (the view object too: ids stay unique)
 
 
 @intrinsic
@@ -94,10 +87,9 @@ class Jobs(NamedTuple):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # pragma: no cover
-    # Jobs k < n in order: warp_layers(view k) without tiles into zb[k] / cb[k], with ``crack`` then
-    # filtered_composite_banded's crack pass (no replace mask) into d[k] / c[k]. Claimed jobs are skipped;
-    # cancel[0] set (the loop has ended) stops the kernel.
+def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, band):  # pragma: no cover
+    # Jobs k < n in order: warp_layers(view k) without tiles into zb[k] / cb[k], then filtered_composite_banded
+    # (no replace mask) into d[k] / c[k]. Claimed jobs are skipped; cancel[0] set (the loop has ended) stops it.
     for k in range(n):
         if _load_acquire(cancel, 0) != 0:
             return
@@ -108,24 +100,13 @@ def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, crack, band):  # p
         vis = np.ones(b.lo.shape[1], np.uint8)
         if cam.near > 0 and b.abs_max < np.inf:
             chunk_keep_kernel(b, cam64, CULL_MARGIN, tm, vis)
-        # the crack pass reads colour only where depth > 0: no clearing needed with it
-        _warp_serial(jobs.xyz[k], jobs.rgb[k], jobs.layer_start[k], 1, cam, tm, vis, not crack, jobs.zb[k], jobs.cb[k])
-        if crack:
-            if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
-                _store_release(state, k, CLAIMED)
-                return
-            _crack_serial(jobs.zb[k], jobs.cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, jobs.d[k], jobs.c[k])
+        # the crack pass reads colour only where depth > 0: no clearing needed
+        _warp_serial(jobs.xyz[k], jobs.rgb[k], jobs.layer_start[k], 1, cam, tm, vis, False, jobs.zb[k], jobs.cb[k])
+        if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
+            _store_release(state, k, CLAIMED)
+            return
+        _crack_serial(jobs.zb[k], jobs.cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, jobs.d[k], jobs.c[k])
         _store_release(state, k, DONE)  # after the images: the loop reads them once it sees DONE
-
-
-@dataclass(frozen=True)
-class AheadImage:
-    """A view warped by the thread: its layers and, with ``crack``, its crack-filtered composite
-    (:func:`presim.synthesis.cracks.filtered_composite_banded` without replace mask). Valid until the next frame."""
-
-    layers: LayeredImage
-    depth_m: np.ndarray | None
-    color: np.ndarray | None
 
 
 class _Buffers:
@@ -169,7 +150,6 @@ class _Frame:
     state: np.ndarray
     cancel: np.ndarray
     bufs: _Buffers
-    crack: bool
     args: tuple
     begun: bool = False
     """The thread has taken the frame (its kernel call runs or has run)."""
@@ -184,6 +164,14 @@ class _Shared:
         self.cv = threading.Condition()
         self.frame: _Frame | None = None
         self.closed = False
+
+
+def _fields(view: Any) -> tuple:
+    """The kernel's per-view arguments (points, layer starts, chunk bounds), contiguous: one compilation."""
+    c = np.ascontiguousarray
+    return (c(view.xyz_world), c(view.rgb), c(view.layer_start), ChunkBounds(
+        c(view.chunk_lo), c(view.chunk_hi), bool(view.chunk_projective), c(view.chunk_to_world),
+        float(view.chunk_abs_max)))
 
 
 def _serve(sh: _Shared) -> None:
@@ -221,7 +209,6 @@ class WarpAhead:
         # Two buffer sets used in turn: a new frame does not wait for the previous one's last (cancelled) warp.
         self._sets = (_Buffers(), _Buffers())
         self._turn = 0
-        self._views: OrderedDict[int, tuple[Any, tuple]] = OrderedDict()  # id -> (view, kernel fields)
         self.taken = 0
         """Views the loop took from the thread."""
         self._finalizer = weakref.finalize(self, _close, self._sh)
@@ -230,10 +217,9 @@ class WarpAhead:
         """End the thread (after a running kernel call)."""
         self._finalizer()
 
-    def start(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
-              crack: bool = False) -> None:
+    def start(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> None:
         """Warp ``views`` (prepared :class:`~presim.synthesis.warp.ViewPoints`, likely loop order, at most
-        :data:`MAX_JOBS`) for this camera, with ``crack`` also the banded crack pass; unbegun older jobs are dropped."""
+        :data:`MAX_JOBS`) and crack-filter them for this camera; unbegun older jobs are dropped."""
         views = list(views)[:MAX_JOBS]
         if not views:
             return
@@ -251,15 +237,15 @@ class WarpAhead:
         H, W = K.height, K.width
         bufs.fit(views, H, W)
         n = len(views)
-        fields = [self._fields(v) for v in views]
+        fields = [_fields(v) for v in views]
         fields += [fields[0]] * (MAX_JOBS - n)  # fixed-size tuples; jobs >= n are never run
         state = np.full(MAX_JOBS, CLAIMED, np.int32)
         state[:n] = QUEUED
         cancel = np.zeros(1, np.int32)
         jobs = Jobs(*zip(*fields), bufs.padded("zb", n), bufs.padded("cb", n), bufs.padded("d", n), bufs.padded("c", n))
         args = (state, cancel, n, jobs, target_cam(T_cam_world, K, near_m), target_cam(T_cam_world, K, near_m, np.float64),
-                tile_marks(None, K, 16, "warp ahead"), bool(crack), int(rows_per_band(H)))
-        frame = _Frame(views, state, cancel, bufs, bool(crack), args)
+                tile_marks(None, K, 16, "warp ahead"), BAND_ROWS)
+        frame = _Frame(views, state, cancel, bufs, args)
         with sh.cv:
             bufs.user = frame
             sh.frame = frame
@@ -268,25 +254,9 @@ class WarpAhead:
                 self._thread.start()
             sh.cv.notify_all()
 
-    def _fields(self, view: Any) -> tuple:
-        """The kernel's per-view arguments (points, layer starts, chunk bounds), kept per view object."""
-        got = self._views.get(id(view))
-        if got is not None and got[0] is view:
-            self._views.move_to_end(id(view))
-            return got[1]
-        f = (np.ascontiguousarray(view.xyz_world), np.ascontiguousarray(view.rgb),
-             np.ascontiguousarray(view.layer_start),
-             ChunkBounds(np.ascontiguousarray(view.chunk_lo), np.ascontiguousarray(view.chunk_hi),
-                         bool(view.chunk_projective), np.ascontiguousarray(view.chunk_to_world),
-                         float(view.chunk_abs_max)))
-        self._views[id(view)] = (view, f)
-        while len(self._views) > _FIELDS_KEPT:
-            self._views.popitem(last=False)
-        return f
-
-    def take(self, view: Any) -> AheadImage | None:
-        """``view`` warped by the thread (waited for while running), or None: the loop warps it itself (not
-        handed over, not reached, or the kernel failed; the loop's warp then raises)."""
+    def take(self, view: Any) -> tuple[np.ndarray, np.ndarray] | None:
+        """``view``'s ``(depth_m, color)`` from the thread (= ``filtered_composite_banded`` of its warp; waited for
+        while running; valid until the next frame), or None: the loop warps it itself."""
         frame = self._sh.frame
         if frame is None:
             return None
@@ -303,9 +273,7 @@ class WarpAhead:
             return None
         st[k] = CLAIMED
         self.taken += 1
-        b = frame.bufs
-        lay = LayeredImage(b.zb[k], b.cb[k])
-        return AheadImage(lay, b.d[k], b.c[k]) if frame.crack else AheadImage(lay, None, None)
+        return frame.bufs.d[k], frame.bufs.c[k]
 
     def wait(self) -> None:
         """Block until the thread is done with the current frame's views (tests, benchmarks)."""
