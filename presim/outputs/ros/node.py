@@ -211,8 +211,8 @@ class RosBridge:
                     lag = t0 + n_paced * dt / cfg.real_time_factor - time.monotonic()
                     if lag > 0:
                         self._stop.wait(lag)
-                    elif lag < -dt / cfg.real_time_factor:  # a step late (slow render): re-anchor, never
-                        t0, n_paced = time.monotonic(), 0  # burst frames to catch up (subscribers drop them)
+                    elif lag < -1.0:  # far behind (slow render): re-anchor instead of bursting
+                        t0, n_paced = time.monotonic(), 0
         finally:
             for kind, _, ev, box in self.inbox.take_requests():
                 box.append(RuntimeError("node shutting down"))

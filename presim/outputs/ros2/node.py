@@ -221,5 +221,6 @@ class Ros2Bridge(RosBridge):
         counters, last, new = self.inbox.stats()
         counters["step_errors"] = self.step_errors
         counters["steps"] = self.steps
+        counters["uptime_ms"] = int(time.monotonic() * 1e3)  # the node's clock: rates that ignore delivery lag
         self._diag_pub.publish(diagnostics_msg(self.publisher.last_stamp_s, self.config.node_name, counters,
                                                last, new))

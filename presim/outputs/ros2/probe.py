@@ -47,7 +47,7 @@ class _State:
         self.tf_edges: set[tuple[str, str]] = set()
         self.static_edges: set[tuple[str, str]] = set()
         self.diag: dict[str, str] = {}
-        self.diag_steps: list[tuple[float, int]] = []  # (receive time, the node's step count)
+        self.diag_steps: list[tuple[float, int, int]] = []  # (receive time, the node's step count, its uptime_ms)
 
 
 def _setup(node, st: _State, cam: str, reliable: bool = False):
@@ -91,8 +91,8 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
             for s in m.status:
                 if s.name.endswith(": commands"):
                     st.diag = {kv.key: kv.value for kv in s.values}
-                    if st.diag.get("steps", "").isdigit():
-                        st.diag_steps.append((time.monotonic(), int(st.diag["steps"])))
+                    if st.diag.get("steps", "").isdigit() and st.diag.get("uptime_ms", "").isdigit():
+                        st.diag_steps.append((time.monotonic(), int(st.diag["steps"]), int(st.diag["uptime_ms"])))
 
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
     S = node.create_subscription
@@ -112,11 +112,11 @@ def _rate(ts: list[float], t0: float, t1: float) -> float:
     return (len(w) - 1) / (w[-1] - w[0]) if len(w) >= 2 and w[-1] > w[0] else 0.0
 
 
-def _step_rate(samples: list[tuple[float, int]], t0: float, t1: float) -> float:
-    """The node's own step (= published frame) rate from its /diagnostics ``steps`` counts received in
-    [t0, t1]: what the node did, apart from what this process managed to receive."""
+def _step_rate(samples: list[tuple[float, int, int]], t0: float, t1: float) -> float:
+    """The node's own step (= published frame) rate from its /diagnostics reports received in [t0, t1]:
+    steps over the node's own clock (``uptime_ms``), so late or bunched delivery does not change it."""
     w = [s for s in samples if t0 <= s[0] <= t1]
-    return (w[-1][1] - w[0][1]) / (w[-1][0] - w[0][0]) if len(w) >= 2 and w[-1][0] > w[0][0] else 0.0
+    return 1e3 * (w[-1][1] - w[0][1]) / (w[-1][2] - w[0][2]) if len(w) >= 2 and w[-1][2] > w[0][2] else 0.0
 
 
 def _twist(vals):
