@@ -13,7 +13,7 @@ from presim.capture.store import load_scene, save_scene
 from presim.depth.complete import (CompleteConfig, check_completion, check_completion_ref, complete_frame,
                                    complete_frame_ref, complete_scene_depth, completion_neighbours)
 from presim.geometry import Intrinsics, look_at
-from presim.synthesis.config import RenderConfig
+from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.renderer import Renderer
 from presim.testing.rect_scene import Rect, make_scene, raycast, room_rects
 
@@ -130,6 +130,8 @@ def test_renderer_fills_holes_from_completed_depth_and_keeps_measured_pixels(tmp
     assert np.median(np.abs(on.depth_m[new] - truth_d[new]) / truth_d[new]) < 0.02
     err = lambda img: np.abs(img.color[new].astype(float) - truth_c[new]).mean()  # noqa: E731
     assert err(on) < err(off)
+    tor = Renderer(withc, RenderConfig(), PerfConfig(backend="torch", torch_device="cpu")).render(target, K)
+    assert (~tor.valid).mean() < 0.5 * (~off.valid).mean()  # the torch backend runs the stage too
     # the scene folder keeps it (memory-mapped), and a wrong shape is named
     path = save_scene(withc, tmp_path / "room")
     loaded = load_scene(path)

@@ -209,7 +209,7 @@ _NB8 = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 def splat_into_holes_torch(points, T_cam_world: np.ndarray, K: Intrinsics, near_m: float, target,
                            device: torch.device | str | None = None) -> int:
     """Torch version of :func:`presim.synthesis.completion.splat_into_holes` (same pixels)."""
-    dev = torch.device(device) if device is not None else default_device()
+    dev = resolve_device(device)
     H, W = K.height, K.width
     holes = torch.from_numpy(np.ascontiguousarray(target.holes != 0)).to(dev).reshape(-1)
     M = torch.as_tensor(np.asarray(T_cam_world, np.float64), device=dev)
