@@ -190,6 +190,7 @@ class _Views:
     pixels at stride 1)."""
 
     backend = "numba"
+    smooth_sigma_px = 0.0
 
     def __init__(self, candidates, images, grids, calls=None, z_src=None, near_m=0.01):
         self.candidates = list(candidates)

@@ -314,6 +314,9 @@ class Scene:
     photometric: "PhotometricCalib | None" = None
     """Per-frame colour transforms keyed by frame id (``presim photometric``,
     :mod:`presim.photometric`); None if absent. Subsets keep it (lookups are by id)."""
+    render_filter_sigma_px: float | None = None
+    """Sigma (pixels at the capture's sampling) of the renderer's reconstruction filter fitted on this
+    capture (``presim fit-filter``, ``SCENE/render_filter.json``); None if absent."""
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)

@@ -10,6 +10,7 @@ Layout (format ``presim-scene``, version 1; see docs/scene-format.md)::
       depth_fused.npy       float32 (N, H, W)     optional, written by ``presim fuse`` (needs depth_refined)
       depth_completed.npy   float32 (N, H, W)     optional, written by ``presim complete`` (0 = not completed)
       photometric.json      per-frame colour transforms, optional, written by ``presim photometric``
+      render_filter.json    the renderer's fitted reconstruction filter, optional, written by ``presim fit-filter``
       points_xyz.npy        float32 (M, 3)        world-frame colored point cloud
       points_rgb.npy        uint8   (M, 3)
       objects/              object models (PLY/OBJ/xyz), metres, object frame
@@ -38,9 +39,11 @@ from presim.io_utils import (
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
            "set_has_refined_depth", "set_has_fused_depth",
            "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses",
-           "PHOTOMETRIC_FILE", "save_photometric", "saved_scene_bytes"]
+           "PHOTOMETRIC_FILE", "save_photometric", "saved_scene_bytes", "RENDER_FILTER_FILE", "save_render_filter"]
 
 PHOTOMETRIC_FILE = "photometric.json"
+RENDER_FILTER_FILE = "render_filter.json"
+MAX_FILTER_SIGMA_PX = 8.0
 
 FORMAT_NAME = "presim-scene"
 FORMAT_VERSION = 1
@@ -175,6 +178,8 @@ def _save_scene(scene: Scene, dst: Path, overwrite: bool, voxel_m: float, n: int
 
         if scene.photometric is not None:
             atomic_write_json(tmp / PHOTOMETRIC_FILE, scene.photometric.to_json(), indent=1)
+        if scene.render_filter_sigma_px is not None:
+            atomic_write_json(tmp / RENDER_FILTER_FILE, {"sigma_px": scene.render_filter_sigma_px}, indent=1)
 
         saved = load_scene(tmp, _skip_points=True)
         saved = _with_arrays(scene, saved)
@@ -262,6 +267,32 @@ def save_photometric(path: str | Path, calib) -> Path:
     out = path / PHOTOMETRIC_FILE
     atomic_write_json(out, calib.to_json(), indent=1)
     return out
+
+
+def save_render_filter(path: str | Path, sigma_px: float, fit: dict | None = None) -> Path:
+    """Write the renderer's reconstruction filter (sigma in pixels at the capture's sampling, and what the
+    fit measured) into the saved scene at ``path`` as ``render_filter.json`` (atomic). Returns the file."""
+    path = Path(path)
+    if not (path / "scene.json").is_file():
+        raise SceneError(f"{path}: not a PreSim scene (no scene.json)")
+    if not 0.0 <= float(sigma_px) <= MAX_FILTER_SIGMA_PX:
+        raise SceneError(f"{path}: render filter sigma must be in [0, {MAX_FILTER_SIGMA_PX}] px, got {sigma_px}")
+    out = path / RENDER_FILTER_FILE
+    atomic_write_json(out, {"sigma_px": float(sigma_px), **({"fit": fit} if fit else {})}, indent=1)
+    return out
+
+
+def _load_render_filter(path: Path) -> float | None:
+    f = path / RENDER_FILTER_FILE
+    if not f.is_file():
+        return None
+    try:
+        sigma = json.loads(f.read_text())["sigma_px"]
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise SceneError(f"{f}: corrupt render filter ({type(e).__name__}: {e}); rerun presim fit-filter") from None
+    if not isinstance(sigma, (int, float)) or not 0.0 <= sigma <= MAX_FILTER_SIGMA_PX:
+        raise SceneError(f"{f}: sigma_px must be a number in [0, {MAX_FILTER_SIGMA_PX}], got {sigma!r}")
+    return float(sigma)
 
 
 def _load_photometric(path: Path) -> PhotometricCalib | None:
@@ -467,6 +498,7 @@ def _scene_from_header(path: Path, hdr: dict, color: np.ndarray, depth: np.ndarr
         depth_completed=completed,
         path=path,
         photometric=_load_photometric(path),
+        render_filter_sigma_px=_load_render_filter(path),
     )
 
 

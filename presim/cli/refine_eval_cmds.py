@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -20,7 +21,20 @@ def register(sub) -> None:
                    help="down-weight blurred reference frames in the photo-consistency cost (sharpness score)")
     p.add_argument("--no-complete", action="store_true",
                    help="do not complete the refined depth afterwards (presim complete)")
+    p.add_argument("--no-fit-filter", action="store_true",
+                   help="do not fit the renderer's reconstruction filter afterwards (presim fit-filter)")
     p.set_defaults(func=_refine)
+
+    ff = sub.add_parser("fit-filter", help="fit the renderer's reconstruction filter on the capture",
+                        description="Renders capture frames spread over the capture from the other frames, "
+                                    "then picks the Gaussian sigma of the output filter that makes them closest "
+                                    "to the real frames (mean PSNR on covered pixels), and writes "
+                                    "SCENE/render_filter.json, which the renderer's default then uses. "
+                                    "`presim refine` runs it at its end; --sigma sets it by hand.")
+    ff.add_argument("scene", type=Path, help="saved scene folder")
+    ff.add_argument("--frames", type=int, default=8, help="capture frames rendered (default 8)")
+    ff.add_argument("--sigma", type=float, default=None, help="write this sigma (pixels) instead of fitting one")
+    ff.set_defaults(func=_fit_filter)
 
     c = sub.add_parser("complete", help="complete each frame's depth where the sensor has none (borders, dark or "
                                         "shiny surfaces)",
@@ -98,6 +112,29 @@ def _refine(args) -> int:
         from presim.depth.complete import complete_scene
 
         print(f"wrote {complete_scene(load_scene(args.scene), overwrite=True)}")
+    if not args.no_fit_filter:  # fitted on the depth just written
+        _fit_filter(argparse.Namespace(scene=args.scene, frames=8, sigma=None))
+    return 0
+
+
+def _fit_filter(args) -> int:
+    from presim.capture.store import load_scene, save_render_filter
+    from presim.evaluation.smooth_fit import SmoothFitConfig, fit_smoothing
+
+    scene = load_scene(args.scene)
+    if args.sigma is not None:
+        print(f"wrote {save_render_filter(args.scene, args.sigma, {'set_by_hand': True})}: sigma {args.sigma:g} px")
+        return 0
+    if args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    fit = fit_smoothing(scene, SmoothFitConfig(max_frames=args.frames))
+    if not fit.frames:
+        print(f"fit-filter: no frame could be scored (views covered < 20 % of each); {args.scene} keeps no filter")
+        return 0
+    row = lambda s: next(p for x, p in zip(fit.sigmas_px, fit.psnr_db) if x == s)  # noqa: E731
+    print(f"fit-filter: {len(fit.frames)} frames; covered-pixel PSNR {row(0.0):.2f} dB unfiltered, "
+          f"{row(fit.sigma_px):.2f} dB at sigma {fit.sigma_px:g} px")
+    print(f"wrote {save_render_filter(args.scene, fit.sigma_px, fit.to_json())}")
     return 0
 
 

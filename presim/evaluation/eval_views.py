@@ -54,6 +54,7 @@ from presim.depth.refine import RefineConfig
 from presim.depth.scene_fuse import fuse_frames
 from presim.depth.scene_refine import refine_frames_to_file, refine_one_frame
 from presim.evaluation.report import eval_strip, strip_name, write_report
+from presim.evaluation.smooth_fit import SmoothFitConfig, fit_smoothing
 from presim.evaluation.tsdf_baseline import MeshRaycaster, TSDFConfig, fuse_tsdf_mesh
 from presim.io_utils import progress, write_npy_atomic, write_png
 from presim.photometric import PhotometricConfig, calibrate_photometric
@@ -61,7 +62,7 @@ from presim.synthesis.fill import fill_holes
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.rgbd import RGBD
 
-__all__ = ["METHODS", "DEFAULT_METHODS", "EvalConfig", "EvalResult", "eval_views", "format_table",
+__all__ = ["METHODS", "DEFAULT_METHODS", "EvalConfig", "EvalResult", "eval_views", "format_table", "uses_fitted_filter",
            "capture_and_targets", "image_metrics"]
 
 TARGET_EXPOSURE = "<target>"
@@ -90,8 +91,12 @@ METHODS: dict[str, tuple[dict, str]] = {
     # candidates for the default (the default's loop): blending of 6 views, with sharpness weighting
     "default_blend6": ({"blend": True, "blend_views": 6, "backward_color": True}, "refined"),
     "default_fill_bg": ({"fill_background_px": 4}, "refined"),
+    # the default without the reconstruction filter fitted on the capture (presim.evaluation.smooth_fit)
+    "default_nosmooth": ({"smooth_sigma_px": 0.0}, "refined"),
     # the default without the capture's completed depth (presim.depth.complete)
     "default_nocomplete": ({"use_completed_depth": False}, "refined"),
+    # neither: the renderer's default on a scene with no completed depth and no fitted filter
+    "default_nocomplete_nosmooth": ({"use_completed_depth": False, "smooth_sigma_px": 0.0}, "refined"),
     "default_blend6_photo": ({"blend": True, "blend_views": 6, "backward_color": True, "use_photometric": True},
                              "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),
@@ -167,6 +172,9 @@ class EvalConfig:
     as on a scene without completed depth)."""
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     """Photometric calibration of the capture (methods with ``use_photometric``)."""
+    smooth: SmoothFitConfig | None = field(default_factory=SmoothFitConfig)
+    """Reconstruction filter fitted on the capture's non-target frames, used by the methods named
+    ``default*`` and ``full*`` (:func:`uses_fitted_filter`); None = no filter for any method."""
 
 
 @dataclass(frozen=True)
@@ -182,6 +190,12 @@ class EvalResult:
     def to_json(self) -> dict:
         return {"methods": self.methods, "skipped": self.skipped, "targets": self.target_ids,
                 "per_target": self.per_target, "refine_s": self.refine_s}
+
+
+def uses_fitted_filter(method: str) -> bool:
+    """Whether ``method`` renders with the filter fitted on the capture, as the renderer's default does on a
+    scene with ``render_filter.json``; the thesis and its ablations are measured without it."""
+    return method.startswith(("default", "full"))
 
 
 def capture_and_targets(num_frames: int, stride: int, target_every: int) -> tuple[list[int], list[int]]:
@@ -388,6 +402,16 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
         if log is not None:
             log(f"depth completion of the capture: {(time.perf_counter() - t1) / len(cap) * 1e3:.0f} ms/frame, "
                 f"{100 * float(np.mean([(completed[i] > 0).mean() for i in range(len(cap))])):.2f} % of pixels")
+    fitted = None
+    if config.smooth is not None and any(uses_fitted_filter(m) for m in config.methods):
+        t1 = time.perf_counter()
+        fit_scene = dataclasses.replace(cap, depth_refined=depth_sets.get("refined"), depth_completed=completed,
+                                        photometric=None, render_filter_sigma_px=None)
+        fit = fit_smoothing(fit_scene, config.smooth, exclude=targets)  # never renders or reads a target
+        fitted = fit.sigma_px
+        if log is not None:
+            log(f"reconstruction filter fitted on {len(fit.frames)} capture frames: sigma {fitted:.1f} px "
+                f"({time.perf_counter() - t1:.1f} s)")
     if "guided" in variants or "median" in variants:
         raws = [cap.frame(k) for k in range(len(cap))]
         if "guided" in variants:
@@ -450,7 +474,8 @@ def eval_views(scene: Scene, config: EvalConfig = EvalConfig(), cache_dir: str |
                     sub = dataclasses.replace(sub, depth_completed=completed)
                 # Only methods that ask for it see a photometric calibration (the scene's own
                 # photometric.json, if any, is not used: every method is defined by its overrides).
-                sub = dataclasses.replace(sub, photometric=photo_calib if overrides.get("use_photometric") else None)
+                sub = dataclasses.replace(sub, photometric=photo_calib if overrides.get("use_photometric") else None,
+                                          render_filter_sigma_px=fitted if uses_fitted_filter(name) else None)
                 loo = sub.subset(others)
                 r = Renderer(loo, rc)
                 if config.warmup:

@@ -87,6 +87,10 @@ class RenderConfig:
     previous frame reuses that selection; 0 disables."""
     reuse_turn_deg: float = 1.0
     """Rotation bound of the selection reuse, degrees."""
+    smooth_sigma_px: float | None = None
+    """Gaussian reconstruction filter of the output colour (:mod:`presim.synthesis.smooth`), sigma in pixels
+    at the capture's sampling (scaled with the output focal length); None = the scene's fitted value
+    (``scene.render_filter_sigma_px``, ``presim fit-filter``), none when it has none; 0 = off."""
     use_photometric: bool = True
     """Map every capture frame to one output exposure with ``scene.photometric`` when present."""
     exposure_frame: str | None = None
@@ -130,6 +134,7 @@ class RenderConfig:
             (self.fill_method in FILL_METHODS, f"fill_method must be one of {FILL_METHODS}"),
             (self.fill_background_px >= 0, "fill_background_px must be >= 0"),
             (self.max_zoom > 0, "max_zoom must be > 0"),
+            (self.smooth_sigma_px is None or 0.0 <= self.smooth_sigma_px <= 8.0, "smooth_sigma_px must be in [0, 8]"),
             (0 <= self.lod_levels <= 8, "lod_levels must be in [0, 8]"),
             (self.lod_max_footprint > 0 and self.lod_depth_tol >= 0, "lod_max_footprint must be > 0, lod_depth_tol >= 0"),
             (self.reuse_move_m >= 0 and self.reuse_turn_deg >= 0, "reuse_move_m / reuse_turn_deg must be >= 0"),

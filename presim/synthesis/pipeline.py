@@ -5,7 +5,7 @@
 ``views`` (:class:`FrameViews`) is the frame's candidate list and what the loop asks of it; how its work is
 scheduled is the executor's business (:mod:`presim.synthesis.execution`). Stages: view image (warp, crack
 filter, composite) -> merge + hole analysis (adaptive loop) -> completion (holes take the warped views'
-completed depth) -> resample -> blend -> fill -> exposure."""
+completed depth) -> resample -> blend -> fill -> smooth -> exposure."""
 
 from __future__ import annotations
 
@@ -27,12 +27,14 @@ from presim.synthesis.fill import fill_holes
 from presim.synthesis.holes import analyse_hole_mask, merge_into_holes, merge_view_holes
 from presim.synthesis.photometric import apply_exposure
 from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
+from presim.synthesis.smooth import MIN_SIGMA_PX, smooth_colors, smooth_colors_ref, smooth_colors_torch
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
            "synthesize_frame"]
 
-STAGES = ("select", "load", "warp", "crack", "composite", "holes", "complete", "resample", "fill", "blend", "exposure")
+STAGES = ("select", "load", "warp", "crack", "composite", "holes", "complete", "resample", "fill", "blend", "smooth",
+          "exposure")
 """Keys of the per-stage milliseconds (``FrameResult.ms``, ``RenderStats.ms``)."""
 
 
@@ -153,6 +155,12 @@ def resample(backend: str, color: np.ndarray, depth_m: np.ndarray, source: np.nd
     return torch_kernels.resample_colors_torch(color, depth_m, source, K, T_world_cam, sources, depth_tol)
 
 
+def smooth(backend: str, color: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The reconstruction filter (:mod:`presim.synthesis.smooth`) on ``backend``."""
+    fn = {"numba": smooth_colors, "reference": smooth_colors_ref}.get(backend, smooth_colors_torch)
+    return fn(color, sigma_px)
+
+
 class FrameViews(Protocol):
     """The views of one target camera, as the adaptive loop sees them."""
 
@@ -160,6 +168,8 @@ class FrameViews(Protocol):
     """Ordered candidate view ids (scene frame indices), best first."""
     backend: str
     """The backend of the view images and of the later stages that have several."""
+    smooth_sigma_px: float
+    """Sigma of the reconstruction filter in this frame's pixels (0 = none)."""
 
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
         """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
@@ -291,6 +301,10 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
     if cfg.fill_holes and hole_frac > 0:
         acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px)
     ms["fill"] = (time.perf_counter() - t) * 1e3
+    if views.smooth_sigma_px >= MIN_SIGMA_PX:
+        t = time.perf_counter()
+        acc_c = smooth(views.backend, acc_c, views.smooth_sigma_px)
+        ms["smooth"] = (time.perf_counter() - t) * 1e3
     if cfg.use_photometric and cfg.predict_exposure and cfg.exposure_frame is None and warped:
         t = time.perf_counter()
         exposure = views.exposure(acc_src)

@@ -131,6 +131,7 @@ class _FrameViews:
         self.r, self.T_world_cam, self.T_cam_world, self.K, self.grids = r, T_world_cam, T_cam_world, K, grids
         self.candidates = [int(v) for v in sel.view_idx]
         self.backend = r.perf.backend
+        self.smooth_sigma_px = r.smooth_sigma_px * float(np.sqrt(K.fx * K.fy)) / r._focal_px
         self.levels: dict[int, int] = {}
         self.fronts: list[int] = []  # views whose front surface the loop wrote into the blend stacks
 
@@ -226,6 +227,9 @@ class Renderer:
         self._use_refined = bool(config.use_refined_depth and scene.depth_refined is not None)
         self._use_fused = bool(config.use_fused_depth and getattr(scene, "depth_fused", None) is not None)
         self.use_completed = bool(config.use_completed_depth and getattr(scene, "depth_completed", None) is not None)
+        fitted = getattr(scene, "render_filter_sigma_px", None)
+        self.smooth_sigma_px = float(config.smooth_sigma_px if config.smooth_sigma_px is not None else fitted or 0.0)
+        """Sigma of the reconstruction filter at the capture's sampling (pixels; 0 = none)."""
         self._grids: dict[int, np.ndarray] = {}
         self._grid_zsrc: dict[int, np.ndarray] = {}
         self._lod = LodConfig(config.lod_levels, config.lod_max_footprint, config.lod_depth_tol)
