@@ -87,6 +87,11 @@ def test_cli_refine(tmp_path):
     # refine completes the new refined depth; `presim complete` alone refuses to overwrite unless asked
     assert np.load(tmp_path / "s" / "depth_completed.npy").shape == (3, 36, 48)
     assert load_scene(tmp_path / "s").depth_completed is not None
+    # ... and fits the renderer's reconstruction filter on it
+    assert load_scene(tmp_path / "s").render_filter_sigma_px is not None
+    save_scene(tiny_scene(1), tmp_path / "one")
+    assert main(["refine", str(tmp_path / "one")]) == 0  # one frame: nothing to fit the filter on
+    assert load_scene(tmp_path / "one").render_filter_sigma_px is None
     assert main(["complete", str(tmp_path / "s")]) == 1
     assert main(["complete", str(tmp_path / "s"), "--overwrite"]) == 0
     assert main(["refine", str(tmp_path / "nope")]) == 1

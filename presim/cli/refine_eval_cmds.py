@@ -113,7 +113,10 @@ def _refine(args) -> int:
 
         print(f"wrote {complete_scene(load_scene(args.scene), overwrite=True)}")
     if not args.no_fit_filter:  # fitted on the depth just written
-        _fit_filter(argparse.Namespace(scene=args.scene, frames=8, sigma=None))
+        if len(scene) < 2:
+            print(f"fit-filter: skipped, {args.scene} has one frame (the fit renders frames from the others)")
+        else:
+            _fit_filter(argparse.Namespace(scene=args.scene, frames=8, sigma=None))
     return 0
 
 
