@@ -34,18 +34,19 @@ _NAN, _INF = float("nan"), float("inf")
 
 class _Images:
     """One image topic, taken raw (serialized bytes): per message its arrival time, publication
-    sequence number, wait in the middleware before the callback (ms) and serialized size; the first
-    and the last message are kept and deserialized for the report."""
+    sequence number, source timestamp (the publisher's clock, ns), wait in the middleware before the
+    callback (ms) and serialized size; the first and the last message are kept and deserialized."""
 
     def __init__(self):
-        self.arrivals: list[tuple[float, int, float, int]] = []
+        self.arrivals: list[tuple[float, int, int, float, int]] = []
         self.first: bytes | None = None
         self.last: bytes | None = None
 
     def add(self, raw: bytes, info) -> None:
         now_ns = time.time_ns()  # received_timestamp is on the system clock
         wait_ms = (now_ns - int(info.get("received_timestamp", now_ns))) * 1e-6
-        self.arrivals.append((time.monotonic(), int(info.get("publication_sequence_number", 0)), wait_ms, len(raw)))
+        self.arrivals.append((time.monotonic(), int(info.get("publication_sequence_number", 0)),
+                              int(info.get("source_timestamp", 0)), wait_ms, len(raw)))
         if self.first is None:
             self.first = raw
         self.last = raw
@@ -54,18 +55,23 @@ class _Images:
         return [a[0] for a in self.arrivals]
 
     def report(self, name: str, t0: float, t1: float) -> dict:
-        """Rate, frames lost (gaps in the publisher's sequence numbers), the longest wait before the
-        callback, the distinct serialized sizes in [t0, t1]; and (width, height, encoding, data length)
-        of the first and the last message received."""
+        """In [t0, t1]: the rate received; what the publisher sent meanwhile (its sequence numbers over
+        its source timestamps: ``published_hz``, and its longest pause between two frames received:
+        ``pause_s_max``); frames lost on the way (gaps in the sequence numbers); the longest wait in
+        the middleware before the callback; the distinct serialized sizes. And (width, height,
+        encoding, data length) of the first and the last message received."""
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import Image
 
         w = [a for a in self.arrivals if t0 <= a[0] <= t1]
-        seq = [a[1] for a in w]
+        seq, src = [a[1] for a in w], [a[2] * 1e-9 for a in w]
+        known = len(w) >= 2 and seq[0] > 0 and src[-1] > src[0] > 0
         out = {f"{name}_rate_hz": _rate([a[0] for a in w], t0, t1),
-               f"{name}_lost": (seq[-1] - seq[0] + 1 - len(seq)) if seq and seq[0] > 0 else None,
-               f"{name}_wait_ms_max": max((a[2] for a in w), default=None),
-               f"{name}_sizes": sorted({a[3] for a in w})}
+               f"{name}_published_hz": (seq[-1] - seq[0]) / (src[-1] - src[0]) if known else None,
+               f"{name}_pause_s_max": max(b - a for a, b in zip(src, src[1:])) if known else None,
+               f"{name}_lost": (seq[-1] - seq[0] + 1 - len(seq)) if known else None,
+               f"{name}_wait_ms_max": max((a[3] for a in w), default=None),
+               f"{name}_sizes": sorted({a[4] for a in w})}
         for key, raw in (("first", self.first), ("", self.last)):
             m = deserialize_message(raw, Image) if raw is not None else None
             out[f"{name}_{key}".rstrip("_")] = (m.width, m.height, m.encoding, len(m.data)) if m is not None else None
