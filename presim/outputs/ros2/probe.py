@@ -2,8 +2,9 @@
 
 ``python -m presim.outputs.ros2.probe e2e`` waits for the first image, then
 
-1. listens for ``--listen-s`` seconds: image rates (color, depth), sizes and encodings, camera_info,
-   ``/clock``, ``/odom`` and the ``/tf`` + ``/tf_static`` edges seen;
+1. listens for ``--listen-s`` seconds: image rates (color, depth) received, and what the node published
+   meanwhile (its sequence numbers and source timestamps: rate, longest pause, frames lost on the way),
+   sizes and encodings, camera_info, ``/clock``, ``/odom`` and the ``/tf`` + ``/tf_static`` edges seen;
 2. teleports the base with ``/presim/teleport`` (``--start x y yaw``);
 3. sends invalid commands (NaN, ±inf, huge twists; malformed joint commands; bad ``/initialpose``)
    and reads the dropped counters back from ``/diagnostics``, and whether the base moved;
@@ -15,7 +16,9 @@
 rate (a zero twist) and reports the messages sent, and the color image rate and the node's step rate
 (from ``/diagnostics``) during the soak and in the ``--before-s`` seconds before it.
 
-Both print one JSON object on stdout.
+Both print one JSON object on stdout. Images are taken raw (serialized) and counted; the first and
+the last are deserialized to check their format. One ``SingleThreadedExecutor`` thread runs the
+callbacks.
 """
 
 from __future__ import annotations
