@@ -88,7 +88,8 @@ def test_ros2_end_to_end_images_tf_commands(node):
     r = _probe(domain_id, "e2e", "--start", *map(str, START), "--listen-s", "4")
     assert p.poll() is None, "node died"
     print(f"e2e: node {r['node_step_rate_hz']:.2f} steps/s, color {r['color_rate_hz']:.2f} Hz, "
-          f"depth {r['depth_rate_hz']:.2f} Hz (published {r['color_published_hz']:.2f}, {r['depth_published_hz']:.2f} Hz, "
+          f"depth {r['depth_rate_hz']:.2f} Hz (published {r['color_published_hz']:.2f}, "
+          f"{r['depth_published_hz']:.2f} Hz, "
           f"longest pause {r['color_pause_s_max']:.2f} s; lost {r['color_lost']}, {r['depth_lost']}; waited at most "
           f"{r['color_wait_ms_max']:.0f}, {r['depth_wait_ms_max']:.0f} ms), drive {r['drive_distance_m']:.3f} m "
           f"in {r['drive_sim_s']:.2f} s sim, diagnostics {r['diagnostics']}")

@@ -335,7 +335,8 @@ def run_soak(node, st: _State, args) -> dict:
     t1 = time.monotonic()
     with st.lock:
         return {"sent": sent, "seconds": t1 - t0, "send_hz": sent / (t1 - t0),
-                "color_rate_hz": _rate(st.images["color"].times(), t0, t1), "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1),
+                "color_rate_hz": _rate(st.images["color"].times(), t0, t1),
+                "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1),
                 "before_color_rate_hz": _rate(st.images["color"].times(), tb, t0),
                 "before_node_step_rate_hz": _step_rate(st.diag_steps, tb, t0)}
 
