@@ -2,7 +2,7 @@
 
 ``python -m presim.outputs.ros2.probe e2e`` waits for the first image, then
 
-1. listens for ``--listen-s`` seconds, from ``--settle-s`` after the first image: image rates (color, depth) received, and what the node published
+1. listens for ``--listen-s`` seconds: image rates (color, depth) received, and what the node published
    meanwhile (its sequence numbers and source timestamps: rate, longest pause, frames lost on the way),
    sizes and encodings, camera_info, ``/clock``, ``/odom`` and the ``/tf`` + ``/tf_static`` edges seen;
 2. teleports the base with ``/presim/teleport`` (``--start x y yaw``);
@@ -226,7 +226,6 @@ def run_e2e(node, st: _State, args) -> dict:
     out: dict = {}
     if not _wait(lambda: st.images["color"].arrivals and st.diag_steps, args.timeout_s):
         return {"error": f"no image or /diagnostics within {args.timeout_s} s"}
-    time.sleep(args.settle_s)
     t0 = time.monotonic()
     time.sleep(args.listen_s)
     t1 = time.monotonic()
@@ -350,7 +349,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="subscribe to the reliable camera topics (/<camera>/reliable/...) instead")
     ap.add_argument("--timeout-s", type=float, default=90.0, help="wait this long for the first image")
     ap.add_argument("--listen-s", type=float, default=4.0)
-    ap.add_argument("--settle-s", type=float, default=0.0, help="e2e: start listening this long after the first image")
     ap.add_argument("--start", type=float, nargs=3, default=None, metavar=("X", "Y", "YAW"),
                     help="teleport here before the command checks")
     ap.add_argument("--speed", type=float, default=0.3)
