@@ -88,22 +88,30 @@ def test_ros2_end_to_end_images_tf_commands(node):
     r = _probe(domain_id, "e2e", "--start", *map(str, START), "--listen-s", "4")
     assert p.poll() is None, "node died"
     print(f"e2e: node {r['node_step_rate_hz']:.2f} steps/s, color {r['color_rate_hz']:.2f} Hz, "
-          f"depth {r['depth_rate_hz']:.2f} Hz, drive {r['drive_distance_m']:.3f} m "
+          f"depth {r['depth_rate_hz']:.2f} Hz (published {r['color_published_hz']:.2f}, "
+          f"{r['depth_published_hz']:.2f} Hz, "
+          f"longest pause {r['color_pause_s_max']:.2f} s; lost {r['color_lost']}, {r['depth_lost']}; waited at most "
+          f"{r['color_wait_ms_max']:.0f}, {r['depth_wait_ms_max']:.0f} ms), drive {r['drive_distance_m']:.3f} m "
           f"in {r['drive_sim_s']:.2f} s sim, diagnostics {r['diagnostics']}")
-    # what a stock subscriber gets
-    assert r["color"] == [640, 480, "rgb8", 640 * 480 * 3]
-    assert r["depth"] == [640, 480, "32FC1", 640 * 480 * 4]
+    # what a stock subscriber gets: the first and the last image deserialized, and every image received
+    # in the window of one serialized size (the same layout)
+    for key, enc, px in (("color", "rgb8", 3), ("depth", "32FC1", 4)):
+        assert r[key] == r[f"{key}_first"] == [640, 480, enc, 640 * 480 * px], r
+        assert len(r[f"{key}_sizes"]) == 1 and r[f"{key}_sizes"][0] > 640 * 480 * px, r
     w, h, model, k = r["camera_info"]
     assert (w, h, model) == (640, 480, "plumb_bob") and k[2] == pytest.approx(319.5) and k[8] == 1.0
     assert r["clock_n"] > 0 and r["odom_n"] > 0
     edges = {tuple(e) for e in r["tf_edges"]}
     assert {("map", "odom"), ("odom", "base_link")} <= edges
     assert ("camera_link", "camera_optical_frame") in {tuple(e) for e in r["static_edges"]}
-    # The node publishes a frame per step: its own step rate (from /diagnostics) must hold 10 Hz. What
-    # this process receives is checked loosely: a best-effort subscriber that shares the 2 cores with
-    # the node (and the suite) loses frames of its own (docs/ros2.md, "Measured").
+    # The node publishes a frame per step. This separate process (best effort, sensor-data QoS) receives
+    # what the node published in the window (its sequence numbers over its source timestamps): in every
+    # measured run all of it. What the node publishes at 10 Hz is checked loosely: in about 1 run of 8
+    # it paused 0.3-1.0 s in the window and published 5.7-9.0 Hz there (docs/ros2.md, "Tests").
     assert r["node_step_rate_hz"] >= 9.0, r
-    assert r["color_rate_hz"] >= 3.0 and r["depth_rate_hz"] >= 3.0, r
+    for key in ("color", "depth"):
+        assert r[f"{key}_lost"] <= 1 and r[f"{key}_rate_hz"] >= 0.95 * r[f"{key}_published_hz"], r
+        assert r[f"{key}_rate_hz"] >= 3.0, r
     # QoS: sensor data (best effort) + reliable variant; latched topics transient local
     q = r["qos"]
     assert q["/head_camera/color/image_raw"] == ["best_effort", "volatile"]

@@ -2,8 +2,9 @@
 
 ``python -m presim.outputs.ros2.probe e2e`` waits for the first image, then
 
-1. listens for ``--listen-s`` seconds: image rates (color, depth), sizes and encodings, camera_info,
-   ``/clock``, ``/odom`` and the ``/tf`` + ``/tf_static`` edges seen;
+1. listens for ``--listen-s`` seconds: image rates (color, depth) received, and what the node published
+   meanwhile (its sequence numbers and source timestamps: rate, longest pause, frames lost on the way),
+   sizes and encodings, camera_info, ``/clock``, ``/odom`` and the ``/tf`` + ``/tf_static`` edges seen;
 2. teleports the base with ``/presim/teleport`` (``--start x y yaw``);
 3. sends invalid commands (NaN, ±inf, huge twists; malformed joint commands; bad ``/initialpose``)
    and reads the dropped counters back from ``/diagnostics``, and whether the base moved;
@@ -15,7 +16,9 @@
 rate (a zero twist) and reports the messages sent, and the color image rate and the node's step rate
 (from ``/diagnostics``) during the soak and in the ``--before-s`` seconds before it.
 
-Both print one JSON object on stdout.
+Both print one JSON object on stdout. Images are taken raw (serialized) and counted; the first and
+the last are deserialized to check their format. One ``SingleThreadedExecutor`` thread runs the
+callbacks.
 """
 
 from __future__ import annotations
@@ -32,13 +35,56 @@ __all__ = ["main"]
 _NAN, _INF = float("nan"), float("inf")
 
 
+class _Images:
+    """One image topic, taken raw (serialized bytes): per message its arrival time, publication
+    sequence number, source timestamp (the publisher's clock, ns), wait in the middleware before the
+    callback (ms) and serialized size; the first and the last message are kept and deserialized."""
+
+    def __init__(self):
+        self.arrivals: list[tuple[float, int, int, float, int]] = []
+        self.first: bytes | None = None
+        self.last: bytes | None = None
+
+    def add(self, raw: bytes, info) -> None:
+        now_ns = time.time_ns()  # received_timestamp is on the system clock
+        wait_ms = (now_ns - int(info.get("received_timestamp", now_ns))) * 1e-6
+        self.arrivals.append((time.monotonic(), int(info.get("publication_sequence_number", 0)),
+                              int(info.get("source_timestamp", 0)), wait_ms, len(raw)))
+        if self.first is None:
+            self.first = raw
+        self.last = raw
+
+    def times(self) -> list[float]:
+        return [a[0] for a in self.arrivals]
+
+    def report(self, name: str, t0: float, t1: float) -> dict:
+        """In [t0, t1]: the rate received; what the publisher sent meanwhile (its sequence numbers over
+        its source timestamps: ``published_hz``, and its longest pause between two frames received:
+        ``pause_s_max``); frames lost on the way (gaps in the sequence numbers); the longest wait in
+        the middleware before the callback; the distinct serialized sizes. And (width, height,
+        encoding, data length) of the first and the last message received."""
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import Image
+
+        w = [a for a in self.arrivals if t0 <= a[0] <= t1]
+        seq, src = [a[1] for a in w], [a[2] * 1e-9 for a in w]
+        known = len(w) >= 2 and seq[0] > 0 and src[-1] > src[0] > 0
+        out = {f"{name}_rate_hz": _rate([a[0] for a in w], t0, t1),
+               f"{name}_published_hz": (seq[-1] - seq[0]) / (src[-1] - src[0]) if known else None,
+               f"{name}_pause_s_max": max(b - a for a, b in zip(src, src[1:])) if known else None,
+               f"{name}_lost": (seq[-1] - seq[0] + 1 - len(seq)) if known else None,
+               f"{name}_wait_ms_max": max((a[3] for a in w), default=None),
+               f"{name}_sizes": sorted({a[4] for a in w})}
+        for key, raw in (("first", self.first), ("", self.last)):
+            m = deserialize_message(raw, Image) if raw is not None else None
+            out[f"{name}_{key}".rstrip("_")] = (m.width, m.height, m.encoding, len(m.data)) if m is not None else None
+        return out
+
+
 class _State:
     def __init__(self):
         self.lock = threading.Lock()
-        self.color_t: list[float] = []
-        self.depth_t: list[float] = []
-        self.color_fmt: tuple | None = None
-        self.depth_fmt: tuple | None = None
+        self.images = {"color": _Images(), "depth": _Images()}
         self.info: tuple | None = None
         self.clock_s: float | None = None
         self.clock_n = 0
@@ -58,15 +104,11 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
     from sensor_msgs.msg import CameraInfo, Image
     from tf2_msgs.msg import TFMessage
 
-    def on_color(m):
-        with st.lock:
-            st.color_t.append(time.monotonic())
-            st.color_fmt = (m.width, m.height, m.encoding, len(m.data))
-
-    def on_depth(m):
-        with st.lock:
-            st.depth_t.append(time.monotonic())
-            st.depth_fmt = (m.width, m.height, m.encoding, len(m.data))
+    def on_image(images: _Images):
+        def cb(raw, info):
+            with st.lock:
+                images.add(raw, info)
+        return cb
 
     def on_info(m):
         st.info = (m.width, m.height, m.distortion_model, list(m.k))
@@ -97,8 +139,9 @@ def _setup(node, st: _State, cam: str, reliable: bool = False):
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
     S = node.create_subscription
     ns, q = (f"/{cam}/reliable", 5) if reliable else (f"/{cam}", qos_profile_sensor_data)
-    return [S(Image, f"{ns}/color/image_raw", on_color, q),
-            S(Image, f"{ns}/depth/image_raw", on_depth, q),
+    # images raw: counting a 0.9-1.2 MB message costs no deserialization in Python (_Images)
+    return [S(Image, f"{ns}/color/image_raw", on_image(st.images["color"]), q, raw=True),
+            S(Image, f"{ns}/depth/image_raw", on_image(st.images["depth"]), q, raw=True),
             S(CameraInfo, f"{ns}/color/camera_info", on_info, q),
             # keep last 1: the probe reads the newest /clock and /odom; with deeper queues a probe whose
             # executor falls behind works through seconds-old messages (stale positions and clocks)
@@ -181,15 +224,15 @@ def run_e2e(node, st: _State, args) -> dict:
     from sensor_msgs.msg import JointState
 
     out: dict = {}
-    if not _wait(lambda: len(st.color_t) > 0 and len(st.diag_steps) > 0, args.timeout_s):
+    if not _wait(lambda: st.images["color"].arrivals and st.diag_steps, args.timeout_s):
         return {"error": f"no image or /diagnostics within {args.timeout_s} s"}
     t0 = time.monotonic()
     time.sleep(args.listen_s)
     t1 = time.monotonic()
     with st.lock:
-        out.update(color_rate_hz=_rate(st.color_t, t0, t1), depth_rate_hz=_rate(st.depth_t, t0, t1),
-                   node_step_rate_hz=_step_rate(st.diag_steps, t0, t1),
-                   color=st.color_fmt, depth=st.depth_fmt, camera_info=st.info, clock_n=st.clock_n,
+        for name, images in st.images.items():
+            out.update(images.report(name, t0, t1))
+        out.update(node_step_rate_hz=_step_rate(st.diag_steps, t0, t1), camera_info=st.info, clock_n=st.clock_n,
                    odom_n=st.odom_n, tf_edges=sorted(st.tf_edges), static_edges=sorted(st.static_edges))
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
     joints = node.create_publisher(JointState, "/joint_command", 10)
@@ -213,7 +256,7 @@ def run_e2e(node, st: _State, args) -> dict:
 
     # invalid commands: all dropped, the node alive, the base still
     with st.lock:
-        before, n_img = st.odom, len(st.color_t)
+        before, n_img = st.odom, len(st.images["color"].arrivals)
     for tw in BAD_TWISTS:
         cmd.publish(_twist(tw))
         time.sleep(0.03)
@@ -227,7 +270,7 @@ def run_e2e(node, st: _State, args) -> dict:
     with st.lock:
         after = st.odom
         out.update(bad_sent={"cmd_vel": len(BAD_TWISTS), "joint_command": len(BAD_JOINTS), "initialpose": 3},
-                   diagnostics=dict(st.diag), images_after_bad=len(st.color_t) - n_img)
+                   diagnostics=dict(st.diag), images_after_bad=len(st.images["color"].arrivals) - n_img)
     out["moved_by_bad_m"] = math.dist(before, after) if before and after else None
 
     # drive forward
@@ -266,7 +309,7 @@ def run_e2e(node, st: _State, args) -> dict:
 def run_soak(node, st: _State, args) -> dict:
     from geometry_msgs.msg import Twist
 
-    if not _wait(lambda: len(st.color_t) > 0 and len(st.diag_steps) > 0, args.timeout_s):
+    if not _wait(lambda: st.images["color"].arrivals and st.diag_steps, args.timeout_s):
         return {"error": f"no image or /diagnostics within {args.timeout_s} s"}
     cmd = node.create_publisher(Twist, "/cmd_vel", 10)
     _wait(lambda: cmd.get_subscription_count() > 0, 10.0)
@@ -292,8 +335,9 @@ def run_soak(node, st: _State, args) -> dict:
     t1 = time.monotonic()
     with st.lock:
         return {"sent": sent, "seconds": t1 - t0, "send_hz": sent / (t1 - t0),
-                "color_rate_hz": _rate(st.color_t, t0, t1), "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1),
-                "before_color_rate_hz": _rate(st.color_t, tb, t0),
+                "color_rate_hz": _rate(st.images["color"].times(), t0, t1),
+                "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1),
+                "before_color_rate_hz": _rate(st.images["color"].times(), tb, t0),
                 "before_node_step_rate_hz": _step_rate(st.diag_steps, tb, t0)}
 
 
@@ -317,13 +361,16 @@ def main(argv: list[str] | None = None) -> int:
     from presim.outputs.ros2.env import import_rclpy
 
     rclpy = import_rclpy()
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
 
     rclpy.init()
     node = rclpy.create_node("presim_probe")
     st = _State()
     subs = _setup(node, st, args.camera, args.reliable)  # noqa: F841 (kept alive)
-    ex = MultiThreadedExecutor(num_threads=2)
+    # One thread: the callbacks share the node's mutually exclusive group, so a pool adds only its
+    # own overhead (a MultiThreadedExecutor took 0.11 of a core and delivered 25 ms late (median) on
+    # the loaded 2 cores, this one 0.05 and 3.5 ms; docs/ros2.md, "Measured")
+    ex = SingleThreadedExecutor()
     ex.add_node(node)
     th = threading.Thread(target=ex.spin, daemon=True)
     th.start()
