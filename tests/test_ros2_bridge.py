@@ -164,15 +164,19 @@ def test_ros2_cmd_vel_soak_1khz_keeps_rate_and_memory(node):
     rss1 = proc.memory_info().rss
     assert p.poll() is None
     print(f"soak: {r['sent']} msgs in {r['seconds']:.1f} s ({r['send_hz']:.0f} Hz), images {r['color_rate_hz']:.1f} Hz "
-          f"(node {r['node_step_rate_hz']:.1f} steps/s; before: {r['before_color_rate_hz']:.1f}, "
+          f"(published {r['color_published_hz']:.1f} Hz, lost {r['color_lost']}; node {r['node_step_rate_hz']:.1f} steps/s; "
+          f"before: {r['before_color_rate_hz']:.1f}, "
           f"{r['before_node_step_rate_hz']:.1f}), "
           f"RSS {rss0 / 2**20:.1f} -> {rss1 / 2**20:.1f} MiB")
     assert r["sent"] >= 6500, r  # the sender shares 2 cores with the node
     # The flood does not slow the node (its loop takes at most 20 waiting commands per step, docs/ros2.md):
-    # its step rate, and the images the probe receives, hold their rate of the 3 s before the flood (other
-    # work on the 2 cores moves both; 0.4-1.3 Hz in the flood when the executor ran a callback per command).
+    # its step rate holds its rate of the 3 s before the flood, and the probe receives the images it publishes
+    # (other work on the 2 cores moves both; 0.4-1.3 Hz in the flood when the executor ran a callback per
+    # command). Both are measured against the node's own clock: the probe's arrival rate over a few seconds
+    # is not, since frames arrive bunched (17.5 Hz "received" in a 3 s window of a node stepping at 10 Hz).
     assert r["node_step_rate_hz"] >= max(6.0, 0.8 * r["before_node_step_rate_hz"]), r
-    assert r["color_rate_hz"] >= max(6.0, 0.8 * r["before_color_rate_hz"]), r
+    assert r["color_rate_hz"] >= max(6.0, 0.8 * r["node_step_rate_hz"]), r
+    assert r["color_lost"] is not None and r["color_lost"] <= 2, r
     assert rss1 - rss0 < 20 * 2**20
 
 

@@ -13,8 +13,9 @@
 5. calls ``/presim/reset`` and checks that ``/clock`` keeps increasing.
 
 ``python -m presim.outputs.ros2.probe soak --hz 1000 --seconds 10`` publishes ``/cmd_vel`` at the given
-rate (a zero twist) and reports the messages sent, and the color image rate and the node's step rate
-(from ``/diagnostics``) during the soak and in the ``--before-s`` seconds before it.
+rate (a zero twist) and reports the messages sent; the color images received during the soak and what
+the node published meanwhile (rate, longest pause, frames lost); and the color rate received and the
+node's step rate (from ``/diagnostics``) during the soak and in the ``--before-s`` seconds before it.
 
 Both print one JSON object on stdout. Images are taken raw (serialized) and counted; the first and
 the last are deserialized to check their format. One ``SingleThreadedExecutor`` thread runs the
@@ -335,7 +336,7 @@ def run_soak(node, st: _State, args) -> dict:
     t1 = time.monotonic()
     with st.lock:
         return {"sent": sent, "seconds": t1 - t0, "send_hz": sent / (t1 - t0),
-                "color_rate_hz": _rate(st.images["color"].times(), t0, t1),
+                **st.images["color"].report("color", t0, t1),
                 "node_step_rate_hz": _step_rate(st.diag_steps, t0, t1),
                 "before_color_rate_hz": _rate(st.images["color"].times(), tb, t0),
                 "before_node_step_rate_hz": _step_rate(st.diag_steps, tb, t0)}
