@@ -31,12 +31,13 @@ def merge_holes_torch(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source
                       holes: np.ndarray, device: torch.device | str | None = None) -> int:
     """:func:`~presim.synthesis.holes.merge_view_holes` (``replace`` None: the first view, whose image is the
     accumulator) or :func:`~presim.synthesis.holes.merge_into_holes` (``holes`` the mask before the merge): the
-    host arrays updated in place, the same pixels. Returns the number of hole pixels after the merge."""
+    host arrays updated in place, the same pixels and return value (the hole count; the holes filled)."""
     dev = resolve_device(device)
     has = _on(depth_m, dev) > 0
     if replace is None:
         np.copyto(acc_source, torch.where(has, int(view_id), -1).cpu().numpy(), casting="unsafe")
         h = ~has
+        n = h.sum()
     else:
         take = _on(replace, dev).bool() & has
         for acc, new in ((acc_depth_m, depth_m), (acc_color, color), (acc_source, None)):
@@ -44,9 +45,11 @@ def merge_holes_torch(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source
             b = torch.full_like(a, int(view_id)) if new is None else _on(new, dev)
             t = take if a.dim() == 2 else take[..., None]
             np.copyto(acc, torch.where(t, b, a).cpu().numpy())
-        h = _on(holes, dev).bool() & ~take
+        h = _on(holes, dev).bool()
+        n = (h & take).sum()
+        h &= ~take
     np.copyto(holes, h.cpu().numpy(), casting="unsafe")
-    return int(h.sum())
+    return int(n)
 
 
 def label_components_torch(mask: torch.Tensor) -> torch.Tensor:
