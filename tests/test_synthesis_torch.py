@@ -3,6 +3,7 @@ numpy paths on CPU torch, and the torch backend end to end against numba."""
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -13,6 +14,7 @@ torch = pytest.importorskip("torch")
 
 from scipy import ndimage  # noqa: E402
 
+from presim.capture.calibration import PhotometricCalib  # noqa: E402
 from presim.geometry import Intrinsics, look_at  # noqa: E402
 from presim.synthesis import torch_stages as ts  # noqa: E402
 from presim.synthesis.blend import BlendConfig, BlendInput, blend_reference  # noqa: E402
@@ -166,23 +168,32 @@ def test_exposure_matches_numba():
 
 def test_torch_backend_renders_as_numba_and_runs_the_torch_stages(room, monkeypatch):
     calls = []
-    for name in ("merge_holes_torch", "analyse_hole_mask_torch", "pushpull_rgbd_torch", "blend_torch"):
+    names = ("merge_holes_torch", "analyse_hole_mask_torch", "pushpull_rgbd_torch", "blend_torch",
+             "apply_exposure_torch")
+    for name in names:
         real = getattr(ts, name)
         monkeypatch.setattr(ts, name, lambda *a, _f=real, _n=name, **k: calls.append(_n) or _f(*a, **k))
-    for cfg in (RenderConfig(), RenderConfig(fill_method="pushpull", hole_dilation_px=3, fixed_views=3)):
+    n = len(room)  # a calibrated copy: the predicted exposure runs, with gains and biases that differ per frame
+    calib = PhotometricCalib(tuple(room.frame_ids), np.repeat(np.linspace(0.8, 1.2, n)[:, None], 3, 1),
+                             np.repeat(np.linspace(-4.0, 4.0, n)[:, None], 3, 1))
+    calibrated = dataclasses.replace(room, photometric=calib)
+    for scene, cfg in ((room, RenderConfig()), (calibrated, RenderConfig()),
+                       (room, RenderConfig(fill_method="pushpull", hole_dilation_px=3, fixed_views=3))):
         for T in (look_at((0.1, -1.0, 1.25), (0.0, 0.5, 0.4)), look_at((0.5, -0.6, 1.0), (0.0, 0.5, 0.4))):
-            rn = Renderer(room, cfg, PerfConfig(backend="numba"))
-            rt = Renderer(room, cfg, PerfConfig(backend="torch", torch_device="cpu"))
+            rn = Renderer(scene, cfg, PerfConfig(backend="numba"))
+            rt = Renderer(scene, cfg, PerfConfig(backend="torch", torch_device="cpu"))
             a, b = rn.render(T, K), rt.render(T, K)
             assert rn.last.views == rt.last.views and rn.last.hole_frac_per_view == rt.last.hole_frac_per_view
             assert np.array_equal(a.valid, b.valid) and np.array_equal(a.source_view, b.source_view)
             assert 0 < (~a.valid).mean() < 0.1
-            # the fill's float32 order (test_pushpull_matches_numba); covered pixels equal
+            # the fill's float32 order (test_pushpull_matches_numba), one level through an exposure gain <= 1.2
+            # up to 2; covered pixels equal
             assert np.abs(a.depth_m - b.depth_m).max() < 1e-5
-            assert np.abs(a.color.astype(int) - b.color).max() <= 1 and (a.color != b.color).mean() < 0.01
+            tol = 2 if scene is calibrated else 1
+            assert np.abs(a.color.astype(int) - b.color).max() <= tol and (a.color != b.color).mean() < 0.01
             assert np.array_equal(a.color[a.valid], b.color[b.valid])
     Renderer(room, RenderConfig(blend=True), PerfConfig(backend="torch", torch_device="cpu")).render(T, K)
-    assert set(calls) == {"merge_holes_torch", "analyse_hole_mask_torch", "pushpull_rgbd_torch", "blend_torch"}
+    assert set(calls) == set(names)
 
 
 def test_numba_backend_does_not_import_torch(room):

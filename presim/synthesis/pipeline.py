@@ -5,7 +5,8 @@
 ``views`` (:class:`FrameViews`) is the frame's candidate list and what the loop asks of it; how its work is
 scheduled is the executor's business (:mod:`presim.synthesis.execution`). Stages: view image (warp, crack
 filter, composite) -> merge + hole analysis (adaptive loop) -> completion (holes take the warped views'
-completed depth) -> resample -> blend -> fill -> exposure."""
+completed depth) -> resample -> blend -> fill -> exposure; the stages with several backends dispatch on
+``views.backend`` (:func:`view_image`, :func:`splat_into_holes`, :func:`resample`, :func:`stage_kernels`)."""
 
 from __future__ import annotations
 
