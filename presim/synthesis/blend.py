@@ -376,14 +376,17 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
                 T_world_cam: np.ndarray, K: Intrinsics, config: BlendConfig,
                 front_image: Callable[[int, np.ndarray, np.ndarray], None],
                 centre_of: Callable[[int], np.ndarray], quality_of: Callable[[int], float] | None = None,
-                use_reference: bool = False, buffers: dict | None = None) -> tuple[np.ndarray, float]:
+                kernel: Callable[..., np.ndarray] | None = None, buffers: dict | None = None
+                ) -> tuple[np.ndarray, float]:
     """Blend the first ``config.max_views`` of ``views`` into the loop's result: ``(color, ms)``.
 
     ``front_image(id, depth_out, color_out)`` writes a view's front surface (:func:`front_image_points` or
     :func:`front_of_layers`); ``centre_of(id)``: its camera centre; ``quality_of``: its factor (None = 1);
+    ``kernel``: :func:`blend_numba` (None), :func:`blend_reference` or a kernel of their contract (torch);
     ``buffers``: a dict kept across frames for the stacks.
     """
     t0 = time.perf_counter()
+    kernel = kernel or blend_numba
     use = [int(v) for v in list(views)[:config.max_views]]
     if len(use) < 2:
         return color, (time.perf_counter() - t0) * 1e3
@@ -394,11 +397,11 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
     vd, vc, fc = d_all[:n], c_all[:n], f_all[:n]
     for i, v in enumerate(use):
         front_image(v, vd[i], vc[i])  # the caller may have filled slot i already (the loop's warp)
-        if not use_reference:
+        if kernel is blend_numba:
             coverage_counts(vd[i], config.feather_px, out=fc[i])
     inp = BlendInput(color, depth_m, source, np.asarray(use, np.int32), vd, vc,
                      np.stack([np.asarray(centre_of(v), np.float64) for v in use]),
                      np.array([1.0 if quality_of is None else float(quality_of(v)) for v in use]),
-                     None if use_reference else fc)
-    out = (blend_reference if use_reference else blend_numba)(inp, K, np.asarray(T_world_cam, np.float64), config)
+                     fc if kernel is blend_numba else None)
+    out = kernel(inp, K, np.asarray(T_world_cam, np.float64), config)
     return out, (time.perf_counter() - t0) * 1e3

@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+from typing import Callable
+
 import cv2
 import numba as nb
 import numpy as np
@@ -209,11 +211,13 @@ def foreground_rim(depth_m: np.ndarray, valid: np.ndarray, rim_px: int = 4, dept
 
 
 def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method: str = "auto",
-               telea_max_hole_frac: float = 0.02, background_rim_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
+               telea_max_hole_frac: float = 0.02, background_rim_px: int = 0,
+               pushpull: Callable = pushpull_rgbd) -> tuple[np.ndarray, np.ndarray]:
     """Fill ``color`` (uint8 (H, W, 3)) and ``depth_m`` (float32) where ``valid`` is False: new arrays.
 
     ``"auto"`` uses pull-push above ``telea_max_hole_frac``; ``background_rim_px`` > 0: :func:`foreground_rim`
-    pixels neither feed the colour fill nor change.
+    pixels neither feed the colour fill nor change. ``pushpull``: the pull-push kernel (:func:`pushpull_rgbd`'s
+    contract; the torch backend's); Telea and the rim run on the host.
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")
@@ -229,9 +233,9 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
         if method == "telea":
             out_c = telea_inpaint(color, ~src, 3)
         else:
-            out_c = pushpull_rgbd(color, depth_m, src)[0]
+            out_c = pushpull(color, depth_m, src)[0]
         out_c[rim] = color[rim]
-        return out_c, pushpull_rgbd(None, depth_m, valid)[1]
+        return out_c, pushpull(None, depth_m, valid)[1]
     if method == "telea":
-        return telea_inpaint(color, holes, 3), pushpull_rgbd(None, depth_m, valid)[1]
-    return pushpull_rgbd(color, depth_m, valid)
+        return telea_inpaint(color, holes, 3), pushpull(None, depth_m, valid)[1]
+    return pushpull(color, depth_m, valid)

@@ -5,33 +5,36 @@
 ``views`` (:class:`FrameViews`) is the frame's candidate list and what the loop asks of it; how its work is
 scheduled is the executor's business (:mod:`presim.synthesis.execution`). Stages: view image (warp, crack
 filter, composite) -> merge + hole analysis (adaptive loop) -> completion (holes take the warped views'
-completed depth) -> resample -> blend -> fill -> smooth -> exposure."""
+completed depth) -> resample -> blend -> fill -> smooth -> exposure; the stages with several backends
+dispatch on ``views.backend`` (:func:`view_image`, :func:`splat_into_holes`, :func:`resample`, :func:`smooth`,
+:func:`stage_kernels`)."""
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Callable, NamedTuple, Protocol
 
 import numpy as np
 
 from presim.geometry import Intrinsics, invert
 from presim.synthesis import completion
 from presim.synthesis import kernels_reference as ref
-from presim.synthesis.blend import front_of_layers
+from presim.synthesis.blend import blend_numba, front_of_layers
 from presim.synthesis.completion import CompletedPoints, Target
 from presim.synthesis.config import RenderConfig
 from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX,
                                      composite_layers, crack_filter, filtered_composite_banded, warp_tiles)
-from presim.synthesis.fill import fill_holes
-from presim.synthesis.holes import analyse_hole_mask, merge_into_holes, merge_view_holes
+from presim.synthesis.fill import fill_holes, pushpull_rgbd
+from presim.synthesis.holes import HoleStats, analyse_hole_mask, merge_into_holes, merge_view_holes
 from presim.synthesis.photometric import apply_exposure
 from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
 from presim.synthesis.smooth import MIN_SIGMA_PX, smooth_colors, smooth_colors_ref, smooth_colors_torch
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
-           "synthesize_frame"]
+           "StageKernels", "stage_kernels", "synthesize_frame"]
 
 STAGES = ("select", "load", "warp", "crack", "composite", "holes", "complete", "resample", "fill", "blend", "smooth",
           "exposure")
@@ -132,15 +135,15 @@ def view_image(backend: str, view, T_cam_world: np.ndarray, K: Intrinsics, confi
 
 
 def splat_into_holes(backend: str, points: list[CompletedPoints], T_cam_world: np.ndarray, K: Intrinsics,
-                     near_m: float, target: Target) -> int:
-    """The completion stage (:mod:`presim.synthesis.completion`) on ``backend``."""
+                     near_m: float, target: Target, device: str | None = None) -> int:
+    """The completion stage (:mod:`presim.synthesis.completion`) on ``backend`` (torch: on ``device``)."""
     if backend == "numba":
         return completion.splat_into_holes(points, T_cam_world, K, near_m, target)
     if backend == "reference":
         return completion.splat_into_holes_ref(points, T_cam_world, K, near_m, target)
     from presim.synthesis import torch_kernels  # torch is imported only when asked for
 
-    return torch_kernels.splat_into_holes_torch(points, T_cam_world, K, near_m, target)
+    return torch_kernels.splat_into_holes_torch(points, T_cam_world, K, near_m, target, device)
 
 
 def resample(backend: str, color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
@@ -155,10 +158,40 @@ def resample(backend: str, color: np.ndarray, depth_m: np.ndarray, source: np.nd
     return torch_kernels.resample_colors_torch(color, depth_m, source, K, T_world_cam, sources, depth_tol)
 
 
-def smooth(backend: str, color: np.ndarray, sigma_px: float) -> np.ndarray:
-    """The reconstruction filter (:mod:`presim.synthesis.smooth`) on ``backend``."""
-    fn = {"numba": smooth_colors, "reference": smooth_colors_ref}.get(backend, smooth_colors_torch)
-    return fn(color, sigma_px)
+def smooth(backend: str, color: np.ndarray, sigma_px: float, device: str | None = None) -> np.ndarray:
+    """The reconstruction filter (:mod:`presim.synthesis.smooth`) on ``backend`` (torch on ``device``)."""
+    if backend == "torch":
+        return smooth_colors_torch(color, sigma_px, device=device)
+    return (smooth_colors if backend == "numba" else smooth_colors_ref)(color, sigma_px)
+
+
+class StageKernels(NamedTuple):
+    """A backend's kernels of merge + holes, fill, blend and exposure, with the numba functions' contracts."""
+
+    merge_view_holes: Callable[..., int]
+    merge_into_holes: Callable[..., int]
+    analyse_hole_mask: Callable[..., HoleStats]
+    pushpull: Callable[..., tuple]
+    blend: Callable[..., np.ndarray]
+    apply_exposure: Callable[..., np.ndarray]
+
+
+_NUMBA_STAGES = StageKernels(merge_view_holes, merge_into_holes, analyse_hole_mask, pushpull_rgbd, blend_numba,
+                             apply_exposure)
+
+
+def stage_kernels(backend: str, device: str | None = None) -> StageKernels:
+    """The stage kernels of ``backend``: torch's (on ``device``, None: CUDA when present) for ``"torch"``, else
+    numba's (the reference backend's too)."""
+    if backend != "torch":
+        return _NUMBA_STAGES
+    from presim.synthesis import torch_stages as ts  # torch is imported only when asked for
+
+    on = functools.partial
+    merge = on(ts.merge_holes_torch, device=device)
+    return StageKernels(merge, merge, on(ts.analyse_hole_mask_torch, device=device),
+                        on(ts.pushpull_rgbd_torch, device=device), on(ts.blend_torch, device=device),
+                        on(ts.apply_exposure_torch, device=device))
 
 
 class FrameViews(Protocol):
@@ -168,6 +201,8 @@ class FrameViews(Protocol):
     """Ordered candidate view ids (scene frame indices), best first."""
     backend: str
     """The backend of the view images and of the later stages that have several."""
+    device: str | None
+    """The torch backend's device (None: CUDA when present); read only on that backend."""
     smooth_sigma_px: float
     """Sigma of the reconstruction filter in this frame's pixels (0 = none)."""
 
@@ -222,6 +257,8 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
                      ) -> FrameResult:
     """The adaptive loop and the stages after it for one target camera (4x4 ``T_cam_world``, ``K``)."""
     cfg = config
+    device = views.device if views.backend == "torch" else None
+    kern = stage_kernels(views.backend, device)
     H, W = K.height, K.width
     ms = {s: 0.0 for s in STAGES}
     adaptive = cfg.fixed_views == 0
@@ -258,13 +295,13 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         if replace is None:  # the first view's image is the accumulator
             acc_d, acc_c = img.depth_m, img.color
             holes = np.empty((H, W), np.uint8)
-            n_hole = merge_view_holes(acc_d, acc_c, acc_src, None, acc_d, acc_c, vi, holes)
+            n_hole = kern.merge_view_holes(acc_d, acc_c, acc_src, None, acc_d, acc_c, vi, holes)
         else:  # merge on the replaceable pixels, the hole mask updated in place
-            n_hole -= merge_into_holes(acc_d, acc_c, acc_src, replace, img.depth_m, img.color, vi, holes)
+            n_hole -= kern.merge_into_holes(acc_d, acc_c, acc_src, replace, img.depth_m, img.color, vi, holes)
         warped.append(vi)
         last = len(warped) == n_target or not pending
-        hs = analyse_hole_mask(holes, n_hole, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
-                               stop_px=stop_px if adaptive else 0.0, want_largest=not last)
+        hs = kern.analyse_hole_mask(holes, n_hole, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
+                                    stop_px=stop_px if adaptive else 0.0, want_largest=not last)
         hole_fracs.append(hs.hole_frac)
         replace, big = hs.replace, hs.big
         ms["holes"] += (time.perf_counter() - t) * 1e3
@@ -276,7 +313,7 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         if points:
             completed = holes != 0
             n_hole -= splat_into_holes(views.backend, points, T_cam_world, K, cfg.near_m,
-                                       Target(acc_d, acc_c, acc_src, holes))
+                                       Target(acc_d, acc_c, acc_src, holes), device)
             completed &= holes == 0
         ms["complete"] = (time.perf_counter() - t) * 1e3
     if holes is None:  # no view warped
@@ -299,16 +336,17 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         ms["blend"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     if cfg.fill_holes and hole_frac > 0:
-        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px)
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px,
+                                  pushpull=kern.pushpull)
     ms["fill"] = (time.perf_counter() - t) * 1e3
     if views.smooth_sigma_px >= MIN_SIGMA_PX:
         t = time.perf_counter()
-        acc_c = smooth(views.backend, acc_c, views.smooth_sigma_px)
+        acc_c = smooth(views.backend, acc_c, views.smooth_sigma_px, views.device)
         ms["smooth"] = (time.perf_counter() - t) * 1e3
     if cfg.use_photometric and cfg.predict_exposure and cfg.exposure_frame is None and warped:
         t = time.perf_counter()
         exposure = views.exposure(acc_src)
         if exposure is not None:
-            acc_c = apply_exposure(acc_c, *exposure)
+            acc_c = kern.apply_exposure(acc_c, *exposure)
         ms["exposure"] = (time.perf_counter() - t) * 1e3
     return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, warped, hole_fracs, skipped, ms, completed)

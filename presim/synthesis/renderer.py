@@ -28,7 +28,7 @@ from presim.synthesis.execution import Executor, ViewCache
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
 from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, predict_exposure
-from presim.synthesis.pipeline import STAGES, ViewImage, synthesize_frame, view_image
+from presim.synthesis.pipeline import STAGES, ViewImage, stage_kernels, synthesize_frame, view_image
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import Selection, select_views
@@ -130,7 +130,7 @@ class _FrameViews:
                  grids: FrameGrids, sel: Selection):
         self.r, self.T_world_cam, self.T_cam_world, self.K, self.grids = r, T_world_cam, T_cam_world, K, grids
         self.candidates = [int(v) for v in sel.view_idx]
-        self.backend = r.perf.backend
+        self.backend, self.device = r.perf.backend, r.perf.torch_device
         self.smooth_sigma_px = r.smooth_sigma_px * float(np.sqrt(K.fx * K.fy)) / r._focal_px
         self.levels: dict[int, int] = {}
         self.fronts: list[int] = []  # views whose front surface the loop wrote into the blend stacks
@@ -206,7 +206,8 @@ class _FrameViews:
             color_out[:] = img.color
 
         out, _ = blend_frame(views, color, depth_m, source, self.T_world_cam, self.K, r.blend_config, front_image,
-                             lambda v: r.centres[v], r.view_quality, buffers=r.blend_buffers)
+                             lambda v: r.centres[v], r.view_quality, stage_kernels(self.backend, self.device).blend,
+                             r.blend_buffers)
         return out
 
 

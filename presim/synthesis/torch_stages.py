@@ -1,0 +1,230 @@
+"""Torch kernels of the stages after the view image (``PerfConfig(backend="torch")``): merge + hole analysis,
+pull-push fill, blend and exposure. Host arrays in and out, as :mod:`presim.synthesis.torch_kernels`; the work
+runs on ``device`` (None: CUDA when present, else CPU). Each is tested against its numba / numpy path."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from presim.geometry import Intrinsics
+from presim.synthesis.blend import BlendConfig, BlendInput, feather_box
+from presim.synthesis.holes import HoleStats
+from presim.synthesis.photometric import gain_bias_lut
+from presim.synthesis.torch_kernels import resolve_device
+
+__all__ = ["merge_holes_torch", "label_components_torch", "analyse_hole_mask_torch", "pushpull_rgbd_torch",
+           "blend_torch", "apply_exposure_torch"]
+
+
+def _on(a: np.ndarray, dev: torch.device) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a)).to(dev)
+
+
+def merge_holes_torch(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
+                      replace: np.ndarray | None, depth_m: np.ndarray, color: np.ndarray, view_id: int,
+                      holes: np.ndarray, device: torch.device | str | None = None) -> int:
+    """:func:`~presim.synthesis.holes.merge_view_holes` (``replace`` None: the first view, whose image is the
+    accumulator) or :func:`~presim.synthesis.holes.merge_into_holes` (``holes`` the mask before the merge): the
+    host arrays updated in place, the same pixels and return value (the hole count; the holes filled)."""
+    dev = resolve_device(device)
+    has = _on(depth_m, dev) > 0
+    if replace is None:
+        np.copyto(acc_source, torch.where(has, int(view_id), -1).cpu().numpy(), casting="unsafe")
+        h = ~has
+        n = h.sum()
+    else:
+        take = _on(replace, dev).bool() & has
+        for acc, new in ((acc_depth_m, depth_m), (acc_color, color), (acc_source, None)):
+            a = _on(acc, dev)
+            b = torch.full_like(a, int(view_id)) if new is None else _on(new, dev)
+            t = take if a.dim() == 2 else take[..., None]
+            np.copyto(acc, torch.where(t, b, a).cpu().numpy())
+        h = _on(holes, dev).bool()
+        n = (h & take).sum()
+        h &= ~take
+    np.copyto(holes, h.cpu().numpy(), casting="unsafe")
+    return int(n)
+
+
+def label_components_torch(mask: torch.Tensor) -> torch.Tensor:
+    """int64 (H, W) 8-connected components of a bool (H, W) mask: every pixel of a component holds the smallest
+    flat index in it, -1 outside. Roots hook onto the smaller root across each edge, then pointer jumping, until
+    no edge joins two roots (Shiloach-Vishkin style; O(log n) rounds on the masks tested)."""
+    H, W = mask.shape
+    idx = torch.arange(H * W, device=mask.device).view(H, W)
+    ends = []
+    for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each 8-neighbour pair once
+        x0, x1 = max(0, -dx), W - max(0, dx)
+        both = mask[:H - dy, x0:x1] & mask[dy:, x0 + dx:x1 + dx]
+        ends.append((idx[:H - dy, x0:x1][both], idx[dy:, x0 + dx:x1 + dx][both]))
+    a, b = torch.cat([e[0] for e in ends]), torch.cat([e[1] for e in ends])
+    parent = idx.reshape(-1).clone()
+    while len(a):
+        pa, pb = parent[a], parent[b]
+        split = pa != pb
+        a, b, pa, pb = a[split], b[split], pa[split], pb[split]  # joined edges stay joined
+        parent.scatter_reduce_(0, torch.maximum(pa, pb), torch.minimum(pa, pb), "amin")
+        while True:  # parent[i] <= i: no cycle, jumping ends at the roots
+            up = parent[parent]
+            if torch.equal(up, parent):
+                break
+            parent = up
+    return torch.where(mask.reshape(-1), parent, -1).view(H, W)
+
+
+@functools.lru_cache(maxsize=8)
+def _ellipse(k: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)).astype(np.float32)
+
+
+def analyse_hole_mask_torch(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hole_dilation_px: int = 2,
+                            want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True,
+                            device: torch.device | str | None = None) -> HoleStats:
+    """:func:`~presim.synthesis.holes.analyse_hole_mask` in torch (the same :class:`HoleStats`): components by
+    :func:`label_components_torch`, areas by ``bincount``, big holes dilated by OpenCV's elliptic element."""
+    H, W = holes.shape
+    if n_hole == 0:
+        return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
+    if n_hole <= stop_px or not (want_largest or want_replace):
+        return HoleStats(n_hole / float(H * W), n_hole, None, None)
+    dev = resolve_device(device)
+    m = _on(holes, dev) != 0
+    lab = label_components_torch(m)
+    area = torch.bincount(lab[m], minlength=H * W)
+    largest = int(area.max())
+    if not want_replace:
+        return HoleStats(n_hole / float(H * W), largest, None, None)
+    big = m & (area[lab.clamp(min=0)] >= big_hole_px)
+    rep = m
+    if hole_dilation_px > 0:
+        el = torch.from_numpy(_ellipse(2 * hole_dilation_px + 1)).to(dev)
+        rep = m | (F.conv2d(big.float()[None, None], el[None, None], padding=hole_dilation_px)[0, 0] > 0)
+    return HoleStats(n_hole / float(H * W), largest, rep.cpu().numpy(), big.cpu().numpy())
+
+
+@functools.lru_cache(maxsize=64)
+def _area_taps(n: int, n2: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(index, weight)`` (n2, 3) of OpenCV's INTER_AREA from n to n2 (n / 2 <= n2 <= n) samples, as its
+    ``computeResizeAreaTab`` (unused taps: weight 0)."""
+    idx, wt = np.zeros((n2, 3), np.int64), np.zeros((n2, 3), np.float32)
+    s = n / n2
+    for j in range(n2):
+        f1 = j * s
+        f2, cell = f1 + s, min(s, n - f1)
+        s2 = min(math.floor(f2), n - 1)
+        s1 = min(math.ceil(f1), s2)
+        taps = ([(s1 - 1, (s1 - f1) / cell)] if s1 - f1 > 1e-3 else []) + [(x, 1.0 / cell) for x in range(s1, s2)]
+        taps += [(s2, min(f2 - s2, 1.0, cell) / cell)] if f2 - s2 > 1e-3 else []
+        for k, (x, w) in enumerate(taps):
+            idx[j, k], wt[j, k] = x, w
+    return idx, wt
+
+
+def _area_halve(x: torch.Tensor) -> torch.Tensor:
+    """(C, h, w) -> (C, ceil(h / 2), ceil(w / 2)) as ``cv2.resize(INTER_AREA)``."""
+    for dim in (2, 1):
+        n = x.shape[dim]
+        idx, wt = (torch.from_numpy(t).to(x.device) for t in _area_taps(n, (n + 1) // 2))
+        x = (x.movedim(dim, -1)[..., idx] * wt).sum(-1).movedim(-1, dim)
+    return x
+
+
+def pushpull_rgbd_torch(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarray,
+                        device: torch.device | str | None = None) -> tuple[np.ndarray | None, np.ndarray]:
+    """:func:`~presim.synthesis.fill.pushpull_rgbd` in torch (float32): pull = OpenCV area halving of the
+    premultiplied values and weights, push = bilinear upsampling (``align_corners=False`` = INTER_LINEAR) blended
+    by ``clip(w, 0, 1)``. Known pixels unchanged; the rest within float32 rounding of :func:`pushpull_fill`."""
+    dev = resolve_device(device)
+    known = _on(valid, dev).bool()
+    d = _on(np.asarray(depth_m, np.float32), dev)
+    c = None if color is None else _on(color, dev)
+    v = d[None] if c is None else torch.cat([c.permute(2, 0, 1).float(), d[None]])
+    acc, w = torch.where(known, v, 0.0), known.float()
+    levels = []
+    while not bool((w > 0).all()) and min(w.shape) > 1:
+        levels.append((acc, w))
+        both = _area_halve(torch.cat([acc, w[None]]))
+        acc, w = both[:-1], both[-1]
+    est = acc / w.clamp(min=1e-12)
+    for acc_l, w_l in reversed(levels):
+        up = F.interpolate(est[None], size=w_l.shape, mode="bilinear", align_corners=False)[0]
+        a = w_l.clamp(0.0, 1.0)
+        est = acc_l / w_l.clamp(min=1e-12) * a + up * (1.0 - a)
+    out_d = torch.where(known, d, est[-1]).cpu().numpy()
+    if c is None:
+        return None, out_d
+    rounded = (est[:3] + 0.5).clamp(0.0, 255.0).to(torch.uint8).permute(1, 2, 0)
+    return torch.where(known[..., None], c, rounded).cpu().numpy(), out_d
+
+
+def _feather(depth_m: torch.Tensor, feather_px: float) -> torch.Tensor:
+    """:func:`~presim.synthesis.blend.feather_map` of (n, H, W) depths, bit for bit (box counts, as
+    :func:`~presim.synthesis.blend.coverage_counts`)."""
+    cov = (depth_m > 0).float()
+    if feather_px <= 1:
+        return cov
+    k = feather_box(feather_px)
+    count = F.avg_pool2d(F.pad(cov[:, None], (k // 2,) * 4, mode="replicate"), k, stride=1, divisor_override=1)
+    m = (count[:, 0].double() * (1.0 / (k * k))).float()
+    return (2.0 * m - 1.0).clamp(0.0, 1.0) * cov
+
+
+def blend_torch(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config: BlendConfig,
+                device: torch.device | str | None = None) -> np.ndarray:
+    """:func:`~presim.synthesis.blend.blend_reference` in torch, float64 as the reference; uint8 (H, W, 3).
+    Ignores ``inp.feather_count`` (feathers from the view depths)."""
+    dev = resolve_device(device)
+    f64 = torch.float64
+    d = _on(inp.depth_m, dev).to(f64)
+    H, W = d.shape
+    T = torch.as_tensor(np.asarray(T_world_cam, np.float64), device=dev)
+    v, u = torch.meshgrid(torch.arange(H, dtype=f64, device=dev), torch.arange(W, dtype=f64, device=dev),
+                          indexing="ij")
+    P = torch.stack([(u - K.cx) / K.fx * d, (v - K.cy) / K.fy * d, d], -1)
+    X = P @ T[:3, :3].T + T[:3, 3]
+    rt = X - T[:3, 3]
+    lt = rt.pow(2).sum(-1).sqrt()
+    color, source = _on(inp.color, dev), _on(inp.source, dev)
+    vdepth, vcolor = _on(inp.view_depth_m, dev), _on(inp.view_color, dev)
+    centres = torch.as_tensor(np.asarray(inp.centres, np.float64), device=dev)
+    feather = _feather(vdepth, config.feather_px)
+    min_f = torch.tensor(1.0 / config.feather_px, dtype=torch.float32, device=dev)
+    num = torch.zeros((H, W, 3), dtype=f64, device=dev)
+    den = torch.zeros((H, W), dtype=f64, device=dev)
+    cnt = torch.zeros((H, W), dtype=torch.int64, device=dev)
+    for k in range(len(inp.view_ids)):
+        win = source == int(inp.view_ids[k])
+        dk = vdepth[k].to(f64)
+        use = (d > 0) & (win | ((dk > 0) & ((dk - d).abs() <= config.depth_tol_rel * d)))
+        rk = X - centres[k]
+        lk = rk.pow(2).sum(-1).sqrt()
+        cosang = ((rt * rk).sum(-1) / (lt * lk)).clamp(-1.0, 1.0)
+        pen = (2.0 - 2.0 * cosang).sqrt() + config.resolution_weight * (lk / lt - 1.0).clamp(min=0.0)
+        f = torch.where(win, torch.maximum(feather[k], min_f), feather[k]).to(f64)
+        w = torch.where(use, f * float(inp.quality[k]) / (pen + config.penalty_eps), 0.0)
+        num += w[..., None] * torch.where(win[..., None], color, vcolor[k]).to(f64)
+        den += w
+        cnt += use
+    m = (cnt >= 2) & (den > 0)
+    mixed = torch.floor(num / den[..., None] + 0.5).clamp(0, 255).to(torch.uint8)
+    return torch.where(m[..., None], mixed, color).cpu().numpy()
+
+
+def apply_exposure_torch(color: np.ndarray, A: np.ndarray, b: np.ndarray,
+                         device: torch.device | str | None = None) -> np.ndarray:
+    """:func:`~presim.synthesis.photometric.apply_exposure` in torch: a diagonal ``A`` gathers from the same
+    256-entry tables (equal bytes); any other ``round(clip(A x + b))`` in float64, a channel at 0 stays 0."""
+    dev = resolve_device(device)
+    A = np.asarray(A, np.float64)
+    c = _on(color, dev)
+    if np.count_nonzero(A - np.diag(np.diag(A))) == 0:
+        lut = _on(gain_bias_lut(np.ones(3), np.zeros(3), np.diag(A), np.asarray(b))[0], dev)  # (256, 3)
+        return lut[c.long(), torch.arange(3, device=dev)].cpu().numpy()
+    y = c.to(torch.float64) @ torch.as_tensor(A.T, device=dev) + torch.as_tensor(np.asarray(b, np.float64), device=dev)
+    return torch.where(c == 0, 0, torch.floor(y + 0.5).clamp(0, 255)).to(torch.uint8).cpu().numpy()
