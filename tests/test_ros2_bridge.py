@@ -104,14 +104,14 @@ def test_ros2_end_to_end_images_tf_commands(node):
     edges = {tuple(e) for e in r["tf_edges"]}
     assert {("map", "odom"), ("odom", "base_link")} <= edges
     assert ("camera_link", "camera_optical_frame") in {tuple(e) for e in r["static_edges"]}
-    # The node publishes a frame per step. This separate process (best effort, sensor-data QoS) receives
-    # what the node published in the window (its sequence numbers over its source timestamps): in every
-    # measured run all of it. What the node publishes at 10 Hz is checked loosely: in about 1 run of 8
-    # it paused 0.3-1.0 s in the window and published 5.7-9.0 Hz there (docs/ros2.md, "Tests").
+    # The node publishes a frame per step; this separate process (best effort, sensor-data QoS) receives
+    # them at >= 9 Hz (the bound at --rate-hz 10), and what the node published in the window (its
+    # sequence numbers over its source timestamps) with at most one frame lost. With rclpy's
+    # MultiThreadedExecutor in the node, 1 run in 3-8 paused 0.3-1.0 s here (5.7-9.0 Hz; docs/ros2.md).
     assert r["node_step_rate_hz"] >= 9.0, r
     for key in ("color", "depth"):
         assert r[f"{key}_lost"] <= 1 and r[f"{key}_rate_hz"] >= 0.95 * r[f"{key}_published_hz"], r
-        assert r[f"{key}_rate_hz"] >= 3.0, r
+        assert r[f"{key}_rate_hz"] >= 9.0, r
     # QoS: sensor data (best effort) + reliable variant; latched topics transient local
     q = r["qos"]
     assert q["/head_camera/color/image_raw"] == ["best_effort", "volatile"]

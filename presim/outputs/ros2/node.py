@@ -14,8 +14,12 @@ node only the middleware's own (C++, GIL-free) receive work. Run by rclpy's Pyth
 a 1 kHz ``/cmd_vel`` flood kept the executor thread holding the GIL and the step loop, which gives up
 the GIL at every numba kernel and publish, waiting for it: 0.4-5 steps/s of 10 (docs/ros2.md).
 
-Threads: an rclpy ``MultiThreadedExecutor`` (2 threads) runs the services in a daemon thread; they
-hand a request to the loop through the bounded inbox and wait for the answer. The step loop runs in
+Threads: an rclpy ``SingleThreadedExecutor`` runs the services (and the node's own ``/clock`` and
+parameter callbacks) in a daemon thread; the services hand a request to the loop through the bounded
+inbox and wait for the answer. Not the ``MultiThreadedExecutor``: rclpy's re-queues a task that its pool
+has not started yet and returns from its wait at once while one is queued (rclpy issue 1452, fixed
+upstream by PR 1547, not in the installed release), so its spin thread held the GIL at 100 % of a core
+for 0.3-1 s at a time, and the step loop, waiting for the GIL, published 5.7-9 frames/s instead of 10. The step loop runs in
 the caller's thread, takes the inputs and publishes. rclpy's own signal handlers are off: Ctrl-C
 and SIGTERM reach Python (``presim.cli.main`` turns SIGTERM into KeyboardInterrupt), so the loop's
 ``finally`` closes every sink and the node.
@@ -140,7 +144,7 @@ class Ros2Bridge(RosBridge):
         from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
         from nav_msgs.srv import SetMap
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
         from rclpy.parameter import Parameter
         from rclpy.signals import SignalHandlerOptions
         from sensor_msgs.msg import JointState
@@ -199,7 +203,7 @@ class Ros2Bridge(RosBridge):
         self._srvs = [node.create_service(Empty, "/presim/reset", on_reset, callback_group=srv_group),
                       node.create_service(SetMap, "/presim/teleport", on_teleport, callback_group=srv_group)]
         self._diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", qos["default"])
-        executor = MultiThreadedExecutor(num_threads=2, context=context)
+        executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         thread = threading.Thread(target=self._spin, args=(executor,), name="presim-ros2-executor", daemon=True)
         transport = _Transport(rclpy, context, node, executor, thread)
