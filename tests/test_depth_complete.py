@@ -113,7 +113,9 @@ def _room_with_empty_top(tmp_path):
     return dataclasses.replace(scene, frames=ArrayFrameSource(colors, depths)), poses
 
 
-def test_renderer_fills_holes_from_completed_depth_and_keeps_measured_pixels(tmp_path):
+def test_renderer_fills_holes_from_completed_depth_and_keeps_measured_pixels(tmp_path, monkeypatch):
+    from presim.synthesis import pipeline
+
     scene, poses = _room_with_empty_top(tmp_path)
     comp = complete_scene_depth(scene, config=SMALL)
     assert (comp[:, :10] > 0).mean() > 0.8 and (comp[:, 10:] == 0).all()
@@ -130,6 +132,14 @@ def test_renderer_fills_holes_from_completed_depth_and_keeps_measured_pixels(tmp
     assert np.median(np.abs(on.depth_m[new] - truth_d[new]) / truth_d[new]) < 0.02
     err = lambda img: np.abs(img.color[new].astype(float) - truth_c[new]).mean()  # noqa: E731
     assert err(on) < err(off)
+    # what completion left is filled by pull-push under "auto" (RenderConfig.fill_method); without
+    # completion "auto" picks by hole fraction
+    methods = []
+    fill = pipeline.fill_holes
+    monkeypatch.setattr(pipeline, "fill_holes", lambda *a, **k: methods.append(a[3]) or fill(*a, **k))
+    for sc, cfg in ((withc, RenderConfig()), (withc, RenderConfig(fill_method="telea")), (withc, RenderConfig(use_completed_depth=False))):
+        Renderer(sc, cfg).render(target, K)
+    assert methods == ["pushpull", "telea", "auto"]
     tor = Renderer(withc, RenderConfig(), PerfConfig(backend="torch", torch_device="cpu")).render(target, K)
     assert (~tor.valid).mean() < 0.5 * (~off.valid).mean()  # the torch backend runs the stage too
     # the scene folder keeps it (memory-mapped), and a wrong shape is named

@@ -336,7 +336,9 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         ms["blend"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     if cfg.fill_holes and hole_frac > 0:
-        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, cfg.fill_method, background_rim_px=cfg.fill_background_px,
+        # what the completion stage left is filled by pull-push under "auto" (RenderConfig.fill_method)
+        method = "pushpull" if cfg.fill_method == "auto" and completed is not None else cfg.fill_method
+        acc_c, acc_d = fill_holes(acc_c, acc_d, valid, method, background_rim_px=cfg.fill_background_px,
                                   pushpull=kern.pushpull)
     ms["fill"] = (time.perf_counter() - t) * 1e3
     if views.smooth_sigma_px >= MIN_SIGMA_PX:
