@@ -19,8 +19,8 @@ parameter callbacks) in a daemon thread; the services hand a request to the loop
 inbox and wait for the answer. Not the ``MultiThreadedExecutor``: rclpy's re-queues a task that its pool
 has not started yet and returns from its wait at once while one is queued (rclpy issue 1452, fixed
 upstream by PR 1547, not in the installed release), so its spin thread held the GIL at 100 % of a core
-for 0.3-1 s at a time, and the step loop, waiting for the GIL, published 5.7-9 frames/s instead of 10. The step loop runs in
-the caller's thread, takes the inputs and publishes. rclpy's own signal handlers are off: Ctrl-C
+for 0.3-1 s at a time, and the step loop, waiting for the GIL, published 5.7-9 frames/s instead of 10.
+The step loop runs in the caller's thread, takes the inputs and publishes. rclpy's own signal handlers are off: Ctrl-C
 and SIGTERM reach Python (``presim.cli.main`` turns SIGTERM into KeyboardInterrupt), so the loop's
 ``finally`` closes every sink and the node.
 """
