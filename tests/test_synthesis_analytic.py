@@ -7,10 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from presim.geometry import Intrinsics, make_pose
+from presim.geometry import Intrinsics, invert, make_pose
 from presim.testing import rect_scene as S
 from presim.synthesis.cracks import crack_filter
 from presim.synthesis.renderer import RenderConfig, Renderer
+from presim.synthesis.grids import FrameGrids
+from presim.synthesis.select import ring_views
 from presim.synthesis.warp import assign_layers, prepare_view
 
 K = Intrinsics(100.0, 100.0, 59.5, 44.5, 120, 90)
@@ -119,6 +121,12 @@ def test_view_selection_keeps_near_in_fov_overlapping_views():
     r = Renderer(scene, RenderConfig(max_candidates=4, view_order="distance"))
     sel = r.select(_pose(), K60)
     assert list(sel.view_idx) == [0, 3]
+    # The ring beyond a local group of 3 (0, 2, 1 by distance): 3 passes, 4 sees neither rect.
+    grids = FrameGrids(invert(_pose()), K60, r.grid_points)
+    ring = ring_views(_pose(), r.centres, r.dirs, r.hfov_deg, 3, 2, grids.overlapping)
+    assert list(ring) == [3]
+    assert list(ring_views(_pose(), r.centres, r.dirs, r.hfov_deg, 3, 1, grids.overlapping)) == [3]
+    assert list(ring_views(_pose(), r.centres, r.dirs, r.hfov_deg, 4, 1, grids.overlapping)) == []
     # Ablations: distance only keeps the 4 nearest, angle only ranks by angle.
     r_d = Renderer(scene, RenderConfig(max_candidates=4, selection="distance"))
     assert sorted(r_d.select(_pose(), K60).view_idx) == [0, 1, 2, 3]

@@ -194,6 +194,7 @@ class _Views:
 
     def __init__(self, candidates, images, grids, calls=None, z_src=None, near_m=0.01):
         self.candidates = list(candidates)
+        self.ring_ids: list[int] = []
         self.images, self.calls, self.near_m = images, calls if calls is not None else [], near_m
         self.grids = FrameGrids(np.eye(4), K8, grids.__getitem__)
         self._grid = grids
@@ -223,6 +224,9 @@ class _Views:
 
     def completed_points(self, warped):
         return []  # no completed depth
+
+    def ring(self):
+        return list(self.ring_ids)
 
 
 def _grid_at(pixels: list[tuple[int, int]]) -> np.ndarray:
@@ -287,6 +291,32 @@ def test_synthesize_frame_min_view_gain_known_answer():
     assert seen and all(n == 32 for n in seen)  # asked with the big-hole mask (the right half)
     with pytest.raises(ValueError, match="min_view_gain"):
         RenderConfig(min_view_gain=1.0)
+
+
+def test_synthesize_frame_draws_the_ring_only_for_holes_the_local_group_leaves():
+    """Views beyond the local group (``hole_candidates``) come after all of its own views, and only into big
+    holes: the local group's 10 leaves the right half empty, its 11 cannot reach it, the ring's 20 can."""
+    d0 = np.ones((8, 8), np.float32)
+    d0[:, 4:] = 0
+    c0 = np.full((8, 8, 3), 10, np.uint8)
+    c0[d0 == 0] = 0
+    d1 = np.full((8, 8), 2.0, np.float32)
+    images = {10: (d0, c0), 11: (d0, c0), 20: (d1, np.full((8, 8, 3), 30, np.uint8))}
+    grids = {10: _grid_at([(0, 0)]), 11: _grid_at([(1, 1)]), 20: _grid_at([(5, 5)])}
+    cfg = _cfg(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False, ring_min_hole_frac=0.5)
+    views = _Views([10, 11], images, grids)
+    assert synthesize_frame(views, np.eye(4), K8, cfg).views == [10]  # no ring: the hole stays
+    views.ring_ids = [20]
+    calls: list = []
+    views.calls = calls
+    res = synthesize_frame(views, np.eye(4), K8, cfg)
+    assert res.views == [10, 20] and res.hole_frac == 0.0
+    assert np.array_equal(calls[1][1], d0 == 0)  # the ring's view wrote the hole only
+    assert np.array_equal(res.source_view, np.where(d0 > 0, 10, 20))
+    assert np.array_equal(res.color[..., 0], np.where(d0 > 0, 10, 30))
+    # a fixed view count never draws the ring, nor does a hole smaller than ring_min_hole_frac (32 px < 33)
+    assert synthesize_frame(views, np.eye(4), K8, dataclasses.replace(cfg, fixed_views=1)).views == [10]
+    assert synthesize_frame(views, np.eye(4), K8, dataclasses.replace(cfg, ring_min_hole_frac=0.51)).views == [10]
 
 
 def test_synthesize_frame_stops_when_no_candidate_can_fill_and_fixed_views():

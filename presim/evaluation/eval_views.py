@@ -97,6 +97,10 @@ METHODS: dict[str, tuple[dict, str]] = {
     "default_nocomplete": ({"use_completed_depth": False}, "refined"),
     # neither: the renderer's default on a scene with no completed depth and no fitted filter
     "default_nocomplete_nosmooth": ({"use_completed_depth": False, "smooth_sigma_px": 0.0}, "refined"),
+    # the default without the ring of further views for big holes (RenderConfig.hole_candidates)
+    "default_local": ({"hole_candidates": 0}, "refined"),
+    # the default before completion, filter and ring: identical to 76d1f55's default on the shared captures
+    "default_before": ({"use_completed_depth": False, "smooth_sigma_px": 0.0, "hole_candidates": 0}, "refined"),
     "default_blend6_photo": ({"blend": True, "blend_views": 6, "backward_color": True, "use_photometric": True},
                              "refined"),
     "DIBR": ({"num_layers": 1}, "raw"),

@@ -32,6 +32,13 @@ class RenderConfig:
     """Warp order: ``"distance"`` (nearest first; better on the real capture) or ``"overlap"`` (largest first)."""
     max_views: int = 6
     """The adaptive loop draws from the first ``max_views`` selected views only."""
+    hole_candidates: int = 20
+    """The ring: after the completion stage, the loop draws from this many further views by camera distance (within
+    the FOV angle, overlapping the target; each must pass ``min_view_gain``) for the holes the local group left;
+    0 = the local group only. TUM fr1/rpy +0.36 dB (hole fraction 6.99 -> 2.22 %), APC and sample unchanged."""
+    ring_min_hole_frac: float = 0.005
+    """The ring writes only holes of at least this fraction of the image (smaller ones are mostly missing geometry,
+    which a distant view sees through: all holes, APC -0.7 dB)."""
     stop_hole_frac: float = 0.0005
     """The adaptive loop stops when the largest hole is at most this fraction of the image (154 px at 640x480)."""
     big_hole_px: int = 16
@@ -119,6 +126,8 @@ class RenderConfig:
 
     def __post_init__(self) -> None:
         checks = [
+            (self.hole_candidates >= 0, "hole_candidates must be >= 0"),
+            (0.0 <= self.ring_min_hole_frac <= 1.0, "ring_min_hole_frac must be in [0, 1]"),
             (self.num_layers >= 1, f"num_layers must be >= 1, got {self.num_layers}"),
             (self.selection in SELECTION_MODES, f"selection must be one of {SELECTION_MODES}"),
             (self.fixed_views >= 0, "fixed_views must be >= 0"),

@@ -209,6 +209,9 @@ class FrameViews(Protocol):
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
         """The view's image in the target camera (exact on ``replace``; everywhere when None)."""
 
+    def ring(self) -> list[int]:
+        """Further view ids (the ring beyond the candidates, nearest first) for the big holes the loop left."""
+
     def completed_points(self, warped: list[int]) -> list[CompletedPoints]:
         """The completed points of the views ``warped`` (empty when the scene has none)."""
 
@@ -253,6 +256,73 @@ class FrameResult:
     """bool (H, W): pixels the completion stage covered (None when it did not run)."""
 
 
+@dataclass
+class _Merged:
+    """The frame's image while the loop draws views into it."""
+
+    depth_m: np.ndarray | None = None
+    color: np.ndarray | None = None
+    source: np.ndarray | None = None
+    holes: np.ndarray | None = None
+    """uint8 (H, W), 1 = no view yet; None before the first view."""
+    n_hole: int = 0
+    replace: np.ndarray | None = None
+    big: np.ndarray | None = None
+
+
+def _ring_min_px(cfg: RenderConfig, K: Intrinsics) -> int:
+    """Smallest hole (pixels) the ring writes."""
+    return max(cfg.big_hole_px, int(np.ceil(cfg.ring_min_hole_frac * K.height * K.width)))
+
+
+def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsics, m: _Merged, pending: list[int],
+          res: dict, ring: bool = False) -> None:
+    """The adaptive loop over ``pending`` (best first): merge each view's image into ``m`` on the replaceable
+    pixels until no big hole is left or no candidate can fill one. The local group replaces the holes, big ones
+    grown by ``hole_dilation_px``; the ``ring`` only the holes of at least ``ring_min_hole_frac`` of the image."""
+    adaptive = cfg.fixed_views == 0
+    big_px = _ring_min_px(cfg, K) if ring else cfg.big_hole_px  # the ring starts with m.replace = m.big
+    dilation_px = 0 if ring else cfg.hole_dilation_px
+    H, W = K.height, K.width
+    n_target = len(res["warped"]) + len(pending)
+    stop_px = cfg.stop_hole_frac * H * W if adaptive else 0.0
+    need_px = cfg.min_view_gain * H * W if cfg.min_view_gain > 0 else None
+    ms, t_start = res["ms"], res["t_start"]
+    while pending:
+        if m.holes is not None and adaptive and cfg.time_budget_ms > 0 and \
+                (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
+            break  # time budget spent: deliver what we have (the fill closes the rest)
+        best = 0
+        if m.holes is not None and adaptive:
+            t = time.perf_counter()
+            best = views.next_view(pending, m.big.reshape(-1), need_px, cfg.next_view_fill_frac)
+            ms["select"] += (time.perf_counter() - t) * 1e3
+            if best < 0:  # no candidate can fill a big hole
+                res["skipped"].extend(pending)
+                break
+        vi = pending.pop(best)
+        img = views.view_image(vi, m.replace)
+        for stage in ("load", "warp", "crack", "composite"):
+            ms[stage] += getattr(img, f"{stage}_ms")
+        t = time.perf_counter()
+        if m.holes is None:  # the first view's image is the accumulator
+            m.depth_m, m.color = img.depth_m, img.color
+            m.holes = np.empty((H, W), np.uint8)
+            m.n_hole = kern.merge_view_holes(m.depth_m, m.color, m.source, None, m.depth_m, m.color, vi, m.holes)
+        else:  # merge on the replaceable pixels, the hole mask updated in place
+            m.n_hole -= kern.merge_into_holes(m.depth_m, m.color, m.source, m.replace, img.depth_m, img.color, vi,
+                                              m.holes)
+        res["warped"].append(vi)
+        last = len(res["warped"]) == n_target or not pending
+        hs = kern.analyse_hole_mask(m.holes, m.n_hole, big_px, dilation_px, want_replace=not last,
+                                    stop_px=stop_px, want_largest=not last)
+        res["hole_fracs"].append(hs.hole_frac)
+        m.replace, m.big = (hs.big if ring else hs.replace), hs.big
+        ms["holes"] += (time.perf_counter() - t) * 1e3
+        if last or (adaptive and hs.largest_hole_px <= stop_px):
+            break
+
+
 def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig
                      ) -> FrameResult:
     """The adaptive loop and the stages after it for one target camera (4x4 ``T_cam_world``, ``K``)."""
@@ -262,60 +332,32 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
     H, W = K.height, K.width
     ms = {s: 0.0 for s in STAGES}
     adaptive = cfg.fixed_views == 0
-    pending = [int(v) for v in list(views.candidates)[:cfg.max_views if adaptive else cfg.fixed_views]]
-    n_target = len(pending)
-    acc_d = acc_c = holes = replace = big = None
-    acc_src = np.empty((H, W), np.int32)
-    warped: list[int] = []
-    hole_fracs: list[float] = []
-    skipped: list[int] = []
-    stop_px = cfg.stop_hole_frac * H * W
-    need_px = cfg.min_view_gain * H * W if cfg.min_view_gain > 0 else None
-    n_hole = 0
+    res = {"warped": [], "hole_fracs": [], "skipped": [], "ms": ms, "t_start": time.perf_counter()}
+    warped = res["warped"]
+    m = _Merged(source=np.empty((H, W), np.int32))
+    _draw(views, kern, cfg, K, m, [int(v) for v in list(views.candidates)[:cfg.max_views if adaptive else cfg.fixed_views]],
+          res)
     completed = None
-    t_start = time.perf_counter()
-    while pending and len(warped) < n_target:
-        if warped and adaptive and cfg.time_budget_ms > 0 and (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
-            break  # time budget spent: deliver what we have (the fill closes the rest)
-        best = 0
-        if warped and adaptive:
-            t = time.perf_counter()
-            best = views.next_view(pending, big.reshape(-1), need_px, cfg.next_view_fill_frac)
-            ms["select"] += (time.perf_counter() - t) * 1e3
-            if best < 0:  # no candidate can fill a big hole
-                skipped.extend(pending)
-                break
-        vi = pending.pop(best)
-        img = views.view_image(vi, replace)
-        ms["load"] += img.load_ms
-        ms["warp"] += img.warp_ms
-        ms["crack"] += img.crack_ms
-        ms["composite"] += img.composite_ms
-        t = time.perf_counter()
-        if replace is None:  # the first view's image is the accumulator
-            acc_d, acc_c = img.depth_m, img.color
-            holes = np.empty((H, W), np.uint8)
-            n_hole = kern.merge_view_holes(acc_d, acc_c, acc_src, None, acc_d, acc_c, vi, holes)
-        else:  # merge on the replaceable pixels, the hole mask updated in place
-            n_hole -= kern.merge_into_holes(acc_d, acc_c, acc_src, replace, img.depth_m, img.color, vi, holes)
-        warped.append(vi)
-        last = len(warped) == n_target or not pending
-        hs = kern.analyse_hole_mask(holes, n_hole, cfg.big_hole_px, cfg.hole_dilation_px, want_replace=not last,
-                                    stop_px=stop_px if adaptive else 0.0, want_largest=not last)
-        hole_fracs.append(hs.hole_frac)
-        replace, big = hs.replace, hs.big
-        ms["holes"] += (time.perf_counter() - t) * 1e3
-        if last or (adaptive and hs.largest_hole_px <= stop_px):
-            break
-    if holes is not None and n_hole > 0 and cfg.use_completed_depth:
+    if m.holes is not None and m.n_hole > 0 and cfg.use_completed_depth:
         t = time.perf_counter()
         points = views.completed_points(warped)
         if points:
-            completed = holes != 0
-            n_hole -= splat_into_holes(views.backend, points, T_cam_world, K, cfg.near_m,
-                                       Target(acc_d, acc_c, acc_src, holes), device)
-            completed &= holes == 0
+            completed = m.holes != 0
+            m.n_hole -= splat_into_holes(views.backend, points, T_cam_world, K, cfg.near_m,
+                                         Target(m.depth_m, m.color, m.source, m.holes), device)
+            completed &= m.holes == 0
         ms["complete"] = (time.perf_counter() - t) * 1e3
+    ring_px = _ring_min_px(cfg, K)
+    if adaptive and cfg.hole_candidates > 0 and m.holes is not None and m.n_hole >= ring_px:
+        # holes neither the local group nor its completed depth covered: views further away, into those holes only
+        t = time.perf_counter()
+        hs = kern.analyse_hole_mask(m.holes, m.n_hole, ring_px, 0)
+        ms["holes"] += (time.perf_counter() - t) * 1e3
+        if hs.largest_hole_px >= ring_px:
+            m.replace = m.big = hs.big
+            _draw(views, kern, cfg, K, m, [v for v in views.ring() if v not in warped], res, ring=True)
+    acc_d, acc_c, acc_src, holes, n_hole = m.depth_m, m.color, m.source, m.holes, m.n_hole
+    hole_fracs, skipped = res["hole_fracs"], res["skipped"]
     if holes is None:  # no view warped
         acc_d = np.zeros((H, W), np.float32)
         acc_c = np.zeros((H, W, 3), np.uint8)

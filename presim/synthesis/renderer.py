@@ -31,7 +31,7 @@ from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection
 from presim.synthesis.pipeline import STAGES, ViewImage, stage_kernels, synthesize_frame, view_image
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
-from presim.synthesis.select import Selection, select_views
+from presim.synthesis.select import Selection, ring_views, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view
 
 __all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer", "ViewSharpness", "unmap_pages"]
@@ -157,6 +157,11 @@ class _FrameViews:
             self.fronts.append(view_id)
         img.load_ms = load_ms
         return img
+
+    def ring(self) -> list[int]:
+        r = self.r
+        return [int(v) for v in ring_views(self.T_world_cam, r.centres, r.dirs, r.hfov_deg, r.config.max_candidates,
+                                           r.config.hole_candidates, self.grids.overlapping)]
 
     def completed_points(self, warped: list[int]) -> list[CompletedPoints]:
         r = self.r

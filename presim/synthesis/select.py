@@ -12,7 +12,7 @@ import numpy as np
 from presim.geometry import Intrinsics, invert, project, transform_points
 from presim.synthesis.config import SELECTION_MODES, VIEW_ORDERS
 
-__all__ = ["Selection", "view_overlap", "select_views"]
+__all__ = ["Selection", "view_overlap", "select_views", "ring_views"]
 
 
 @dataclass(frozen=True)
@@ -113,3 +113,18 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
         o = np.argsort(-np.round(ov, 2), kind="stable")
         idx, ov = idx[o], ov[o]
     return Selection(idx, dist[idx], angle[idx], ov)
+
+
+def ring_views(T_world_cam: np.ndarray, centres_world: np.ndarray, directions_world: np.ndarray,
+               hfov_deg: np.ndarray, skip: int, n: int, overlapping: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """The ring beyond the local group: int64 positions of the views ranked ``skip`` to ``skip + n`` by centre
+    distance (ties by angle, as :func:`select_views`) whose angle to the target is within their FOV and for which
+    ``overlapping(idx)`` -> bool (k,) holds, nearest first."""
+    T_world_cam = np.asarray(T_world_cam, np.float64)
+    dist = np.linalg.norm(centres_world - T_world_cam[:3, 3], axis=1)
+    angle = np.degrees(np.arccos(np.clip(directions_world @ T_world_cam[:3, 2], -1.0, 1.0)))
+    ring = np.lexsort((angle, dist))[skip:skip + max(n, 0)]
+    ring = ring[angle[ring] <= hfov_deg[ring]]
+    if len(ring):
+        ring = ring[np.asarray(overlapping(ring), bool).reshape(len(ring))]
+    return ring.astype(np.int64)
