@@ -36,6 +36,8 @@ class RenderConfig:
     """The ring: after the completion stage, the loop draws from this many further views by camera distance (within
     the FOV angle, overlapping the target; each must pass ``min_view_gain``) for the holes the local group left;
     0 = the local group only. TUM fr1/rpy +0.36 dB (hole fraction 6.99 -> 2.22 %), APC and sample unchanged."""
+    ring_max_views: int = 3
+    """The ring warps at most this many views per frame."""
     ring_min_hole_frac: float = 0.005
     """The ring writes only holes of at least this fraction of the image (smaller ones are mostly missing geometry,
     which a distant view sees through: all holes, APC -0.7 dB)."""
@@ -128,6 +130,7 @@ class RenderConfig:
         checks = [
             (self.hole_candidates >= 0, "hole_candidates must be >= 0"),
             (0.0 <= self.ring_min_hole_frac <= 1.0, "ring_min_hole_frac must be in [0, 1]"),
+            (self.ring_max_views >= 0, "ring_max_views must be >= 0"),
             (self.num_layers >= 1, f"num_layers must be >= 1, got {self.num_layers}"),
             (self.selection in SELECTION_MODES, f"selection must be one of {SELECTION_MODES}"),
             (self.fixed_views >= 0, "fixed_views must be >= 0"),

@@ -284,7 +284,7 @@ def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsic
     big_px = _ring_min_px(cfg, K) if ring else cfg.big_hole_px  # the ring starts with m.replace = m.big
     dilation_px = 0 if ring else cfg.hole_dilation_px
     H, W = K.height, K.width
-    n_target = len(res["warped"]) + len(pending)
+    n_target = len(res["warped"]) + (min(len(pending), cfg.ring_max_views) if ring else len(pending))
     stop_px = cfg.stop_hole_frac * H * W if adaptive else 0.0
     need_px = cfg.min_view_gain * H * W if cfg.min_view_gain > 0 else None
     ms, t_start = res["ms"], res["t_start"]
