@@ -11,6 +11,7 @@ import pytest
 
 from presim.capture.reprojection import forward_warp, nearest_pixel, zbuffer_splat
 from presim.geometry import Intrinsics
+from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import BACKENDS, PerfConfig, RenderConfig
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.grids import FrameGrids, grid_pixels
@@ -195,6 +196,7 @@ class _Views:
     def __init__(self, candidates, images, grids, calls=None, z_src=None, near_m=0.01):
         self.candidates = list(candidates)
         self.ring_ids: list[int] = []
+        self.completed: list = []
         self.images, self.calls, self.near_m = images, calls if calls is not None else [], near_m
         self.grids = FrameGrids(np.eye(4), K8, grids.__getitem__)
         self._grid = grids
@@ -223,7 +225,7 @@ class _Views:
         return None  # no photometric calibration: the working exposure
 
     def completed_points(self, warped):
-        return []  # no completed depth
+        return list(self.completed)  # none by default: no completed depth
 
     def ring(self):
         return list(self.ring_ids)
@@ -307,10 +309,12 @@ def test_synthesize_frame_draws_the_ring_only_for_holes_the_local_group_leaves()
     views = _Views([10, 11], images, grids)
     assert synthesize_frame(views, np.eye(4), K8, cfg).views == [10]  # no ring: the hole stays
     views.ring_ids = [20]
+    assert synthesize_frame(views, np.eye(4), K8, cfg).views == [10]  # the ring needs the completion stage
+    views.completed = [CompletedPoints(10, np.array([[0.0, 0.0, -1.0]], np.float32), np.zeros((1, 3), np.uint8))]
     calls: list = []
     views.calls = calls
-    res = synthesize_frame(views, np.eye(4), K8, cfg)
-    assert res.views == [10, 20] and res.hole_frac == 0.0
+    res = synthesize_frame(views, np.eye(4), K8, cfg)  # completion ran (its one point lies behind the camera)
+    assert res.views == [10, 20] and res.hole_frac == 0.0 and not res.completed.any()
     assert np.array_equal(calls[1][1], d0 == 0)  # the ring's view wrote the hole only
     assert np.array_equal(res.source_view, np.where(d0 > 0, 10, 20))
     assert np.array_equal(res.color[..., 0], np.where(d0 > 0, 10, 30))

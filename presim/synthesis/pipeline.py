@@ -348,8 +348,9 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
             completed &= m.holes == 0
         ms["complete"] = (time.perf_counter() - t) * 1e3
     ring_px = _ring_min_px(cfg, K)
-    if adaptive and cfg.hole_candidates > 0 and m.holes is not None and m.n_hole >= ring_px:
+    if adaptive and cfg.hole_candidates > 0 and completed is not None and m.n_hole >= ring_px:
         # holes neither the local group nor its completed depth covered: views further away, into those holes only
+        # (without completed depth most holes are missing geometry, which a distant view sees through)
         t = time.perf_counter()
         hs = kern.analyse_hole_mask(m.holes, m.n_hole, ring_px, 0)
         ms["holes"] += (time.perf_counter() - t) * 1e3
