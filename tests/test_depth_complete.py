@@ -179,3 +179,37 @@ def test_splat_into_holes_matches_reference(backend):
     for a, b in zip(got, ref):
         np.testing.assert_array_equal(a, b)
     assert ((ref.holes == 0) | (holes != 0)).all() and (ref.depth_m[holes == 0] == 1).all()  # only holes written
+
+
+def test_the_ring_covers_what_the_local_group_never_saw():
+    """Ten views beside the target look at the back wall; two views further away see the left wall the target
+    turns to. The ring (RenderConfig.hole_candidates) draws those into the region no near view saw, once the
+    completion stage ran; a scene without completed depth renders as without the ring."""
+    near = [look_at((x, -1.0, 1.3), (x, 1.5, 1.0)) for x in np.linspace(-0.1, 0.1, 10)]
+    far = [look_at((0.3, -0.3, 1.3), (-2.0, 0.3 + 0.2 * k, 1.0)) for k in range(2)]
+    poses = np.stack(near + far)
+    scene = make_scene(room_rects(), poses, K)
+    colors = np.stack([scene.frames.load(i)[0] for i in range(len(scene))])
+    truth = np.stack([scene.frames.load(i)[1] for i in range(len(scene))])
+    depths = truth.copy()
+    depths[:, :4] = 0  # the sensor misses the top rows: the completion stage has something to do
+    from presim.capture.scene import ArrayFrameSource
+
+    plain = dataclasses.replace(scene, frames=ArrayFrameSource(colors, depths))
+    withc = dataclasses.replace(plain, depth_completed=np.where(depths > 0, 0, truth).astype(np.float32))
+    target = look_at((0.0, -1.0, 1.3), (-1.2, 1.2, 1.0))  # turned to the back-left corner
+    r_off = Renderer(withc, RenderConfig(hole_candidates=0))
+    off = r_off.render(target, K)
+    r_on = Renderer(withc, RenderConfig())
+    on = r_on.render(target, K)
+    assert set(r_off.last.views) <= set(range(10)) and set(r_on.last.views) & {10, 11}
+    assert (~on.valid).mean() < 0.5 * (~off.valid).mean(), ((~on.valid).mean(), (~off.valid).mean())
+    np.testing.assert_array_equal(on.color[off.valid], off.color[off.valid])  # the ring writes holes only
+    truth_c, _ = raycast(room_rects(), target, K)
+    new = on.valid & ~off.valid
+    err = lambda img: np.abs(img.color[new].astype(float) - truth_c[new]).mean()  # noqa: E731
+    assert err(on) < 0.5 * err(off), (err(on), err(off))
+    # no completed depth: no ring
+    a = Renderer(plain, RenderConfig()).render(target, K)
+    b = Renderer(plain, RenderConfig(hole_candidates=0)).render(target, K)
+    np.testing.assert_array_equal(a.color, b.color)
