@@ -21,13 +21,13 @@ import numpy as np
 from presim.capture.scene import Scene, SceneError
 from presim.capture.sharpness import sharpness_score
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
+from presim.photometric.apply import OutputVignetting, SourceColorCorrection, predict_exposure
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
 from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.execution import Executor, ViewCache
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
-from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, predict_exposure
 from presim.synthesis.pipeline import STAGES, ViewImage, stage_kernels, synthesize_frame, view_image
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
