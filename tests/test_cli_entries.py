@@ -111,7 +111,7 @@ def test_run_drive_bad_controller_makes_no_sinks(toy_path, tmp_path):
 
 
 def test_output_intrinsics():
-    from presim.synthesis.render_job import output_intrinsics
+    from presim.cli.render_job import output_intrinsics
 
     K = Intrinsics(500.0, 510.0, 319.5, 239.5, 640, 480)
     assert output_intrinsics(K) == K
@@ -122,7 +122,7 @@ def test_output_intrinsics():
 
 def test_render_to_folder_is_a_capture_folder(toy_path, tmp_path):
     from presim.capture.importers import kinfu
-    from presim.synthesis.render_job import render_to_folder
+    from presim.cli.render_job import render_to_folder
     from presim.synthesis.renderer import RenderConfig
 
     scene = open_scene(toy_path)

@@ -26,7 +26,7 @@ ALLOWED: dict[str, set[str]] = {
     "align": {"formats", "capture"},
     "photometric": {"formats", "capture"},
     "depth": {"formats", "capture"},
-    "synthesis": {"formats", "capture"},
+    "synthesis": {"formats", "capture", "photometric"},
     "evaluation": {"formats", "sensors", "capture", "photometric", "depth", "synthesis"},
     "sim": {"formats", "sensors", "capture", "synthesis"},
     "datasets": {"formats", "sensors", "capture", "synthesis"},

@@ -1,5 +1,5 @@
-"""Photometric calibration (presim/photometric/; its types in presim/capture/calibration.py), its
-storage, and its application at render time (presim/synthesis/photometric.py, RenderConfig.use_photometric / exposure_frame)."""
+"""Photometric calibration (presim/photometric/; its types in presim/capture/calibration.py), its storage,
+and its application at render time (presim/photometric/apply.py, RenderConfig.use_photometric / exposure_frame)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from presim.capture.calibration import PhotometricCalib
+from presim.photometric.apply import ViewColorTransform, apply_gain_bias, gain_bias_lut
 from presim.photometric.calibrate import PhotometricConfig, calibrate_photometric, photometric_pairs
 from presim.capture.scene import ArrayFrameSource, SceneError
 from presim.capture.store import PHOTOMETRIC_FILE, load_scene, save_photometric, save_scene
 from presim.geometry import Intrinsics
-from presim.synthesis.photometric import ViewColorTransform, apply_gain_bias, gain_bias_lut
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.testing import rect_scene as S
 
@@ -97,7 +97,7 @@ def test_lut_equals_the_float_reference():
 
 
 def test_clipped_black_stays_black():
-    from presim.synthesis.photometric import apply_exposure, correct_colors
+    from presim.photometric.apply import apply_exposure, correct_colors
 
     img = np.array([[[0, 0, 0], [0, 40, 200], [10, 10, 10]]], np.uint8)
     lifted = apply_gain_bias(img, np.ones(3), np.full(3, -3.0), np.ones(3), np.zeros(3))  # bias +3 levels
@@ -247,7 +247,7 @@ def test_renderer_applies_affine_and_vignetting_at_the_source(room):
     """A calibration with known 3x3 transforms and vignetting maps every frame back to the radiance
     (mean exposure, no vignetting); matching a frame puts its transform and vignetting back."""
     from presim.capture.calibration import vignetting_radius_sq
-    from presim.synthesis.photometric import SourceColorCorrection, correct_colors, vignetting_gain_map
+    from presim.photometric.apply import SourceColorCorrection, correct_colors, vignetting_gain_map
 
     base, _ = room
     A, b = _known_affine()

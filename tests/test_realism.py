@@ -8,8 +8,8 @@ import pytest
 
 from presim.capture.calibration import PhotometricCalib
 from presim.geometry import Intrinsics
+from presim.photometric.apply import apply_exposure, correct_colors, predict_exposure
 from presim.synthesis.fill import fill_holes, foreground_rim
-from presim.synthesis.photometric import apply_exposure, correct_colors, predict_exposure
 from presim.synthesis.resample import SourceImage, resample_colors, resample_colors_ref, stack_sources
 
 K = Intrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)

@@ -116,7 +116,7 @@ def test_render_warns_when_the_pose_is_far_from_the_capture(capsys, tmp_path, to
 
 def test_far_poses_known_distance(toy):
     from presim.capture.store import load_scene
-    from presim.synthesis.render_job import far_poses
+    from presim.cli.render_job import far_poses
 
     scene = load_scene(toy)
     T = scene.T_world_cam[[0, 0]].copy()

@@ -1,4 +1,4 @@
-"""Sharpness scores (presim/capture/sharpness.py) and sharpness-aware views (presim/synthesis/renderer.py)."""
+"""Sharpness scores and sharpness-aware views (presim/capture/sharpness.py) in the renderer."""
 
 from __future__ import annotations
 
@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from presim.capture.scene import ArrayFrameSource
-from presim.capture.sharpness import sharpness_score
+from presim.capture.sharpness import ViewSharpness, sharpness_score
 from presim.geometry import Intrinsics
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.renderer import ViewSharpness
 from presim.testing import rect_scene as S
 
 

@@ -16,11 +16,11 @@ from scipy import ndimage  # noqa: E402
 
 from presim.capture.calibration import PhotometricCalib  # noqa: E402
 from presim.geometry import Intrinsics, look_at  # noqa: E402
+from presim.photometric.apply import apply_exposure, correct_colors  # noqa: E402
 from presim.synthesis import torch_stages as ts  # noqa: E402
 from presim.synthesis.blend import BlendConfig, BlendInput, blend_reference  # noqa: E402
 from presim.synthesis.fill import pushpull_rgbd  # noqa: E402
 from presim.synthesis.holes import analyse_hole_mask, merge_into_holes, merge_view_holes  # noqa: E402
-from presim.synthesis.photometric import apply_exposure, correct_colors  # noqa: E402
 from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer  # noqa: E402
 from presim.testing import rect_scene as S  # noqa: E402
 

@@ -1,8 +1,8 @@
 """Photometric calibration types: what a render reads of a capture's colour calibration.
 
-A leaf module (numpy only) so that the scene (:mod:`presim.capture.scene`), its store and the
-renderer (:mod:`presim.synthesis.photometric`) read a calibration without importing the solver that
-estimates it (:mod:`presim.photometric`, a sub-package above ``capture``).
+A leaf module (numpy only) so that the scene (:mod:`presim.capture.scene`) and its store read a
+calibration without importing :mod:`presim.photometric`, the sub-package above ``capture`` that
+estimates it and applies it at render time (:mod:`presim.photometric.apply`).
 
 - :class:`PhotometricCalib`: per-frame colour transforms (forward model ``observed = gain *
   radiance + bias``, or an affine colour matrix), keyed by frame id; stored with a scene as

@@ -19,15 +19,17 @@ rotationally symmetric Laplacian averages away. It costs two box filters and fou
 the grey image (~2 ms at 640x480).
 
 Views of one capture look at similar content, so scores are compared among the candidate views
-of a target (:class:`presim.synthesis.renderer.ViewSharpness`).
+of a target (:class:`ViewSharpness`, which the renderer uses).
 """
 
 from __future__ import annotations
 
+from typing import Callable, Sequence
+
 import cv2
 import numpy as np
 
-__all__ = ["sharpness_score"]
+__all__ = ["sharpness_score", "ViewSharpness"]
 
 
 def sharpness_score(color: np.ndarray, box_px: int = 9) -> float:
@@ -48,3 +50,37 @@ def sharpness_score(color: np.ndarray, box_px: int = 9) -> float:
         sv = float(np.maximum(0.0, df - db).sum())
         blurs.append(1.0 if sf <= 0 else (sf - sv) / sf)
     return float(1.0 - max(blurs))
+
+
+class ViewSharpness:
+    """Sharpness-aware views (``RenderConfig.sharpness``): a cached :func:`sharpness_score` per capture frame
+    (~2 ms per VGA frame), compared among one target's candidates."""
+
+    def __init__(self, load_color: Callable[[int], np.ndarray], gamma: float = 2.0, demote_frac: float = 0.85):
+        self._load_color = load_color
+        self.gamma = float(gamma)
+        self.demote_frac = float(demote_frac)
+        self._scores: dict[int, float] = {}
+        self._best = 1.0
+
+    def score(self, v: int) -> float:
+        """Sharpness score of view ``v`` (computed on first use)."""
+        s = self._scores.get(v)
+        if s is None:
+            s = self._scores[v] = sharpness_score(self._load_color(v))
+        return s
+
+    def order(self, candidates: Sequence[int]) -> np.ndarray:
+        """int64 permutation of ``candidates`` moving blurred ones (score < demote_frac x best) behind the sharp
+        ones, order kept within each group; sets the best score :meth:`quality` uses."""
+        cand = [int(v) for v in candidates]
+        if not cand:
+            return np.zeros(0, np.int64)
+        sc = np.array([self.score(v) for v in cand])
+        self._best = max(float(sc.max()), 1e-6)
+        blurred = sc < self.demote_frac * self._best
+        return np.concatenate([np.flatnonzero(~blurred), np.flatnonzero(blurred)]).astype(np.int64)
+
+    def quality(self, v: int) -> float:
+        """Blend weight factor ``(score / best candidate score) ** gamma`` (<= 1)."""
+        return float(min(1.0, self.score(v) / self._best) ** self.gamma)

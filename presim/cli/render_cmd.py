@@ -54,7 +54,7 @@ def _main(args: argparse.Namespace) -> int:
     from presim.formats.tum import read_tum
     from presim.geometry import pose_from_tum
     from presim.limits import check_intrinsics, check_positive_int
-    from presim.synthesis.render_job import far_poses, output_intrinsics, render_to_folder
+    from presim.cli.render_job import far_poses, output_intrinsics, render_to_folder
     from presim.synthesis.renderer import PerfConfig, RenderConfig
 
     check_intrinsics(args.width, args.height, args.fx, args.fy, args.cx, args.cy)

@@ -36,7 +36,7 @@ How (:func:`calibrate_photometric`):
 The result (:class:`presim.capture.calibration.PhotometricCalib`, a leaf type the scene and the
 renderer read) is keyed by frame id, so ``Scene.subset`` keeps it valid; it
 is stored with the scene as ``photometric.json`` (:func:`presim.capture.store.save_photometric`)
-and applied at render time by :mod:`presim.synthesis.photometric`.
+and applied at render time by :mod:`presim.photometric.apply`.
 """
 
 from __future__ import annotations

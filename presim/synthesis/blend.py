@@ -383,8 +383,7 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
     ``front_image(id, depth_out, color_out)`` writes a view's front surface (:func:`front_image_points` or
     :func:`front_of_layers`); ``centre_of(id)``: its camera centre; ``quality_of``: its factor (None = 1);
     ``kernel``: :func:`blend_numba` (None), :func:`blend_reference` or a kernel of their contract (torch);
-    ``buffers``: a dict kept across frames for the stacks.
-    """
+    ``buffers``: a dict kept across frames for the stacks."""
     t0 = time.perf_counter()
     kernel = kernel or blend_numba
     use = [int(v) for v in list(views)[:config.max_views]]

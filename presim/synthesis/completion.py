@@ -4,8 +4,7 @@ After the adaptive loop, the points of each warped view's completed depth (:mod:
 are splatted with a z-buffer into the pixels still empty, and one-pixel cracks between them (a hole
 pixel empty with at least 5 of its 8 neighbours hit) take the nearest hit neighbour. Only empty pixels
 are written, so measured depth always wins. Numba kernel :func:`splat_into_holes`, numpy reference
-:func:`splat_into_holes_ref` (tested equal), torch :func:`presim.synthesis.torch_kernels.splat_into_holes_torch`.
-"""
+:func:`splat_into_holes_ref` (tested equal), torch :func:`presim.synthesis.torch_kernels.splat_into_holes_torch`."""
 
 from __future__ import annotations
 

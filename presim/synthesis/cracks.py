@@ -4,8 +4,7 @@ The switching median fills an empty pixel whose N x N window is more than half n
 the non-empty depths and of each colour channel; the plain median (``"median"``) filters every pixel over its
 zero-padded window. Layers are filtered alone, composited front to back, then filtered once more for the seams.
 Rules: :mod:`kernels_reference`. :func:`crack_filter` + :func:`composite_layers` take any mode and window;
-:func:`filtered_composite_banded` fuses the default (3 x 3 switching, <= 8 layers) per band, bit-identical.
-"""
+:func:`filtered_composite_banded` fuses the default (3 x 3 switching, <= 8 layers) per band, bit-identical."""
 
 from __future__ import annotations
 
@@ -537,8 +536,7 @@ def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: n
     With ``replace`` (bool (H, W)) only those pixels are defined: on large frames only runs of ``tile_cols`` x
     ``band_rows`` tiles holding one are computed, reading the layers within 2 px of them (:func:`warp_tiles`).
     ``band_rows`` / ``tile_cols`` (None: :data:`BAND_ROWS` / :data:`TILE_ROWS`, :data:`TILE_COLS`) never change
-    the output.
-    """
+    the output."""
     L, H, W = depth_m.shape
     if L > BANDED_MAX_LAYERS:
         raise ValueError(f"filtered_composite_banded: at most {BANDED_MAX_LAYERS} layers, got {L}")

@@ -49,8 +49,7 @@ def _coarse_levels(acc: np.ndarray, w: np.ndarray, fast: bool) -> np.ndarray:
 def pushpull_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """Pull-push interpolation of ``values`` (H, W) or (H, W, C) where ``known`` (H, W bool) is False.
 
-    Returns float32 of the input shape, known pixels unchanged (zeros when nothing is known).
-    """
+    Returns float32 of the input shape, known pixels unchanged (zeros when nothing is known)."""
     squeeze = values.ndim == 2
     v = values[..., None] if squeeze else values
     H, W, C = v.shape
@@ -185,11 +184,10 @@ def pushpull_rgbd(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarr
 
 
 def foreground_rim(depth_m: np.ndarray, valid: np.ndarray, rim_px: int = 4, depth_tol: float = 0.05) -> np.ndarray:
-    """bool (H, W): the known pixels within ``rim_px`` of a hole that lie in front of the hole's
-    background by more than ``depth_tol`` (relative): the foreground side of a disocclusion, which a
-    fill should not continue into the hole (the hole hides what is behind the object). A hole's
-    background depth is the 90th percentile of the known depths of its rim (per 8-connected
-    component of the holes grown by ``rim_px``). ``rim_px`` 0: none."""
+    """bool (H, W): the known pixels within ``rim_px`` of a hole that lie in front of the hole's background by more than
+    ``depth_tol`` (relative): the foreground side of a disocclusion, which a fill should not continue into the hole (the
+    hole hides what is behind the object). A hole's background depth is the 90th percentile of the known depths of its
+    rim (per 8-connected component of the holes grown by ``rim_px``). ``rim_px`` 0: none."""
     holes = (~valid).view(np.uint8)
     if rim_px <= 0 or not holes.any():
         return np.zeros(valid.shape, bool)
@@ -217,8 +215,7 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
 
     ``"auto"`` uses pull-push above ``telea_max_hole_frac``; ``background_rim_px`` > 0: :func:`foreground_rim`
     pixels neither feed the colour fill nor change. ``pushpull``: the pull-push kernel (:func:`pushpull_rgbd`'s
-    contract; the torch backend's); Telea and the rim run on the host.
-    """
+    contract; the torch backend's); Telea and the rim run on the host."""
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")
     holes = ~valid

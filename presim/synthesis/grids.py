@@ -83,8 +83,7 @@ def _any_front_kernel(P, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
 
 def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
     """Project world points (n, 3) into a target camera (numba, one thread). Returns ``(pix, z)``: int64 (n,)
-    flat pixel ``v * W + u`` by ``floor(u + 0.5)``, -1 behind the camera or outside; float32 (n,) target z.
-    """
+    flat pixel ``v * W + u`` by ``floor(u + 0.5)``, -1 behind the camera or outside; float32 (n,) target z."""
     P = per_coordinate(np.asarray(xyz_world).reshape(-1, 3))
     n = P.shape[1]
     pix = np.empty(n, np.int64)
@@ -255,8 +254,7 @@ def _mask_u8(mask_flat: np.ndarray) -> np.ndarray:
 
 class FrameGrids:
     """The views' grids projected into one target camera (``T_cam_world`` 4x4, ``K``), each view at most once;
-    ``grid_points(id)`` -> (m, 3) float32 world grid of view ``id`` (cached by the caller).
-    """
+    ``grid_points(id)`` -> (m, 3) float32 world grid of view ``id`` (cached by the caller)."""
 
     def __init__(self, T_cam_world: np.ndarray, K: Intrinsics, grid_points: Callable[[int], np.ndarray]):
         self.T_cam_world, self.K = T_cam_world, K

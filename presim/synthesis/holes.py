@@ -52,8 +52,7 @@ def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source:
                      holes: np.ndarray) -> int:
     """Merge a view into the accumulator where ``replace`` (bool (H, W)) and write ``holes`` (uint8 (H, W), 1 where
     ``acc_depth_m`` is not > 0) in one numba pass; returns the number of hole pixels. ``replace`` None: the first
-    view, whose image is the accumulator; only ``acc_source`` is written (``view_id`` where it has a value, else -1).
-    """
+    view, whose image is the accumulator; only ``acc_source`` is written (``view_id`` where it has a value, else -1)."""
     first = replace is None
     return int(_merge_holes_kernel(acc_depth_m, acc_color, acc_source, _NO_MASK if first else replace, depth_m,
                                    color, np.int32(view_id), first, holes))
@@ -89,8 +88,7 @@ def merge_into_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source:
                      replace: np.ndarray, depth_m: np.ndarray, color: np.ndarray, view_id: int,
                      holes: np.ndarray) -> int:
     """The merge of :func:`merge_view_holes` for a later view, updating ``holes`` (uint8 (H, W), the mask before
-    the merge) in place and visiting only replaceable pixels (same result, tested). Returns the holes filled.
-    """
+    the merge) in place and visiting only replaceable pixels (same result, tested). Returns the holes filled."""
     r8 = replace.view(np.uint8)
     return int(_merge_into_holes_kernel(acc_depth_m, acc_color, acc_source, r8, row_words(r8), depth_m, color,
                                         np.int32(view_id), holes))

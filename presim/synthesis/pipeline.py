@@ -19,6 +19,7 @@ from typing import Callable, NamedTuple, Protocol
 import numpy as np
 
 from presim.geometry import Intrinsics, invert
+from presim.photometric.apply import apply_exposure
 from presim.synthesis import completion
 from presim.synthesis import kernels_reference as ref
 from presim.synthesis.blend import blend_numba, front_of_layers
@@ -28,7 +29,6 @@ from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MI
                                      composite_layers, crack_filter, filtered_composite_banded, warp_tiles)
 from presim.synthesis.fill import fill_holes, pushpull_rgbd
 from presim.synthesis.holes import HoleStats, analyse_hole_mask, merge_into_holes, merge_view_holes
-from presim.synthesis.photometric import apply_exposure
 from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
 from presim.synthesis.smooth import MIN_SIGMA_PX, smooth_colors, smooth_colors_ref, smooth_colors_torch
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers

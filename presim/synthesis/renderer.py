@@ -13,28 +13,27 @@ import mmap
 import time
 from dataclasses import dataclass, field
 from dataclasses import replace as dc_replace
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
-from presim.capture.sharpness import sharpness_score
+from presim.capture.sharpness import ViewSharpness
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
+from presim.photometric.apply import OutputVignetting, SourceColorCorrection, predict_exposure
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
 from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.execution import Executor, ViewCache
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
-from presim.synthesis.photometric import OutputVignetting, SourceColorCorrection, predict_exposure
 from presim.synthesis.pipeline import STAGES, ViewImage, stage_kernels, synthesize_frame, view_image
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import Selection, ring_views, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view
 
-__all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer", "ViewSharpness", "unmap_pages"]
+__all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer", "unmap_pages"]
 
 
 def unmap_pages(arr: np.ndarray) -> None:
@@ -54,40 +53,6 @@ def unmap_pages(arr: np.ndarray) -> None:
             mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
     except (ValueError, OSError, TypeError):  # closed map, unusual layout: keep the pages
         pass
-
-
-class ViewSharpness:
-    """Sharpness-aware views: a cached blur score per capture frame (:func:`presim.capture.sharpness.sharpness_score`,
-    ~2 ms per VGA frame), compared among one target's candidates."""
-
-    def __init__(self, load_color: Callable[[int], np.ndarray], gamma: float = 2.0, demote_frac: float = 0.85):
-        self._load_color = load_color
-        self.gamma = float(gamma)
-        self.demote_frac = float(demote_frac)
-        self._scores: dict[int, float] = {}
-        self._best = 1.0
-
-    def score(self, v: int) -> float:
-        """Sharpness score of view ``v`` (computed on first use)."""
-        s = self._scores.get(v)
-        if s is None:
-            s = self._scores[v] = sharpness_score(self._load_color(v))
-        return s
-
-    def order(self, candidates: Sequence[int]) -> np.ndarray:
-        """int64 permutation of ``candidates`` moving blurred ones (score < demote_frac x best) behind the sharp
-        ones, order kept within each group; sets the best score :meth:`quality` uses."""
-        cand = [int(v) for v in candidates]
-        if not cand:
-            return np.zeros(0, np.int64)
-        sc = np.array([self.score(v) for v in cand])
-        self._best = max(float(sc.max()), 1e-6)
-        blurred = sc < self.demote_frac * self._best
-        return np.concatenate([np.flatnonzero(~blurred), np.flatnonzero(blurred)]).astype(np.int64)
-
-    def quality(self, v: int) -> float:
-        """Blend weight factor ``(score / best candidate score) ** gamma`` (<= 1)."""
-        return float(min(1.0, self.score(v) / self._best) ** self.gamma)
 
 
 @dataclass

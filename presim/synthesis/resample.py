@@ -196,8 +196,7 @@ def _resample_view_kernel(depth, source, view_id, tg, img, dep, P, tol, out):  #
 
 def resample_colors(color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
                     T_world_cam: np.ndarray, sources: SourceStack, depth_tol: float = 0.05) -> np.ndarray:
-    """:func:`resample_colors_ref` in numba (one parallel pass per source view). Returns a new uint8
-    (H, W, 3)."""
+    """:func:`resample_colors_ref` in numba (one parallel pass per source view). Returns a new uint8 (H, W, 3)."""
     _check(color, depth_m, source, K)
     out = np.array(color, np.uint8, order="C")
     tg = _Target(float(K.fx), float(K.fy), float(K.cx), float(K.cy))

@@ -15,8 +15,7 @@ __all__ = ["RGBD"]
 class RGBD:
     """A synthesized RGB-D image at one camera pose.
 
-    ``color`` and ``depth_m`` are complete unless hole filling is off; ``valid`` marks synthesized pixels.
-    """
+    ``color`` and ``depth_m`` are complete unless hole filling is off; ``valid`` marks synthesized pixels."""
 
     color: np.ndarray
     """uint8 (H, W, 3) RGB."""

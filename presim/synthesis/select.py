@@ -69,8 +69,7 @@ def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarr
     grid_points(i) -> (m, 3) world points of view i's grid; order: adaptive mode only. ``overlaps(idx)`` ->
     (k,) :func:`view_overlap` per view (fast path: :class:`presim.synthesis.grids.FrameGrids`); with
     ``overlapping(idx)`` -> ``overlaps(idx) > 0`` and ``exact_overlaps`` > 0 (distance order) only the first
-    ``exact_overlaps`` views get an overlap, later ones nan (same selection).
-    """
+    ``exact_overlaps`` views get an overlap, later ones nan (same selection)."""
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")
     if order not in VIEW_ORDERS:

@@ -4,8 +4,7 @@ Waking an idle OpenMP thread costs each parallel region ~0.1-0.4 ms on 2 cores, 
 so frames of at most :data:`SERIAL_MAX_PIXELS` pixels run on one thread. :func:`parallel_kernel` compiles a kernel
 twice (``parallel=True``, and serial with ``nogil=True``); inside :func:`numba_threads` ``(1)`` or
 :func:`serial_kernels` a Python thread runs the serial twins, so helper threads can run kernels at once under any
-threading layer. Outputs never depend on the thread count (tested).
-"""
+threading layer. Outputs never depend on the thread count (tested)."""
 
 from __future__ import annotations
 

@@ -13,9 +13,9 @@ import torch
 import torch.nn.functional as F
 
 from presim.geometry import Intrinsics
+from presim.photometric.apply import gain_bias_lut
 from presim.synthesis.blend import BlendConfig, BlendInput, feather_box
 from presim.synthesis.holes import HoleStats
-from presim.synthesis.photometric import gain_bias_lut
 from presim.synthesis.torch_kernels import resolve_device
 
 __all__ = ["merge_holes_torch", "label_components_torch", "analyse_hole_mask_torch", "pushpull_rgbd_torch",
@@ -218,7 +218,7 @@ def blend_torch(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
 
 def apply_exposure_torch(color: np.ndarray, A: np.ndarray, b: np.ndarray,
                          device: torch.device | str | None = None) -> np.ndarray:
-    """:func:`~presim.synthesis.photometric.apply_exposure` in torch: a diagonal ``A`` gathers from the same
+    """:func:`~presim.photometric.apply.apply_exposure` in torch: a diagonal ``A`` gathers from the same
     256-entry tables (equal bytes); any other ``round(clip(A x + b))`` in float64, a channel at 0 stays 0."""
     dev = resolve_device(device)
     A = np.asarray(A, np.float64)

@@ -673,8 +673,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
     ``out``: buffers to overwrite (new ones when None or of another shape). ``tiles`` (uint8, one mark per
     ``tile_px`` tile): warp into and clear only the marked tiles, the layers are UNDEFINED elsewhere
     (:func:`presim.synthesis.cracks.warp_tiles`). ``cull``: skip chunks :func:`chunk_visibility` proves outside
-    (same output). ``clear_color`` False leaves colour UNDEFINED where depth is 0 (the banded crack pass).
-    """
+    (same output). ``clear_color`` False leaves colour UNDEFINED where depth is 0 (the banded crack pass)."""
     L = view.num_layers
     if out is None or out.depth_m.shape != (L, K.height, K.width):
         out = LayeredImage(np.empty((L, K.height, K.width), np.float32),

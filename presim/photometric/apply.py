@@ -1,4 +1,4 @@
-"""Per-view photometric correction at render time (the apply half of :mod:`presim.capture.photometric`).
+"""The photometric colour model applied at render time (the solver is :mod:`presim.photometric.calibrate`).
 
 A capture frame's pixels are mapped to the output exposure when its view is prepared: per channel
 ``gain_o * (x - bias_v) / gain_v + bias_o`` as a 256-entry table, or with the affine/vignetting model
@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from presim.capture.calibration import vignetting_radius_sq
 
 __all__ = ["apply_gain_bias", "gain_bias_lut", "ViewColorTransform", "output_transform",
            "vignetting_gain_map", "correct_colors", "SourceColorCorrection", "OutputVignetting", "predict_exposure",
@@ -72,8 +74,6 @@ def vignetting_gain_map(K, vignetting: tuple[float, float] | None) -> np.ndarray
     """float32 (H, W) ``W(r) = 1 + k1 r^2 + k2 r^4`` of every pixel of a camera (None: no term)."""
     if vignetting is None:
         return None
-    from presim.capture.calibration import vignetting_radius_sq
-
     u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
     r2 = vignetting_radius_sq(np.stack([u.ravel(), v.ravel()], axis=1), K).reshape(K.height, K.width)
     return (1.0 + vignetting[0] * r2 + vignetting[1] * r2 ** 2).astype(np.float32)
