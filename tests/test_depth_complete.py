@@ -209,6 +209,8 @@ def test_the_ring_covers_what_the_local_group_never_saw():
     new = on.valid & ~off.valid
     err = lambda img: np.abs(img.color[new].astype(float) - truth_c[new]).mean()  # noqa: E731
     assert err(on) < 0.5 * err(off), (err(on), err(off))
+    r_t = Renderer(withc, RenderConfig(), PerfConfig(backend="torch", torch_device="cpu"))
+    assert (~r_t.render(target, K).valid).mean() < 0.5 * (~off.valid).mean()  # the torch backend draws it too
     # no completed depth: no ring
     a = Renderer(plain, RenderConfig()).render(target, K)
     b = Renderer(plain, RenderConfig(hole_candidates=0)).render(target, K)

@@ -297,7 +297,8 @@ def test_synthesize_frame_min_view_gain_known_answer():
 
 def test_synthesize_frame_draws_the_ring_only_for_holes_the_local_group_leaves():
     """Views beyond the local group (``hole_candidates``) come after all of its own views, and only into big
-    holes: the local group's 10 leaves the right half empty, its 11 cannot reach it, the ring's 20 can."""
+    holes: the local group's 10 leaves the right half empty, its 11 cannot reach it, the ring's 20 can. A ring view
+    must be predicted to fill ``ring_min_hole_frac`` of the image (32 px here): 20's one grid point stands for 40."""
     d0 = np.ones((8, 8), np.float32)
     d0[:, 4:] = 0
     c0 = np.full((8, 8, 3), 10, np.uint8)
@@ -306,7 +307,7 @@ def test_synthesize_frame_draws_the_ring_only_for_holes_the_local_group_leaves()
     images = {10: (d0, c0), 11: (d0, c0), 20: (d1, np.full((8, 8, 3), 30, np.uint8))}
     grids = {10: _grid_at([(0, 0)]), 11: _grid_at([(1, 1)]), 20: _grid_at([(5, 5)])}
     cfg = _cfg(big_hole_px=4, hole_dilation_px=0, stop_hole_frac=0.0, fill_holes=False, ring_min_hole_frac=0.5)
-    views = _Views([10, 11], images, grids)
+    views = _Views([10, 11], images, grids, z_src={20: float(np.sqrt(40.0))})
     assert synthesize_frame(views, np.eye(4), K8, cfg).views == [10]  # no ring: the hole stays
     views.ring_ids = [20]
     assert synthesize_frame(views, np.eye(4), K8, cfg).views == [10]  # the ring needs the completion stage
@@ -321,6 +322,10 @@ def test_synthesize_frame_draws_the_ring_only_for_holes_the_local_group_leaves()
     # a fixed view count never draws the ring, nor does a hole smaller than ring_min_hole_frac (32 px < 33)
     assert synthesize_frame(views, np.eye(4), K8, dataclasses.replace(cfg, fixed_views=1)).views == [10]
     assert synthesize_frame(views, np.eye(4), K8, dataclasses.replace(cfg, ring_min_hole_frac=0.51)).views == [10]
+    views = _Views([10, 11], images, grids, z_src={20: float(np.sqrt(30.0))})  # predicted 30 px < 32: passed over
+    views.ring_ids, views.completed = [20], [CompletedPoints(10, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))]
+    res = synthesize_frame(views, np.eye(4), K8, cfg)
+    assert res.views == [10] and res.skipped == [11, 20]
 
 
 def test_synthesize_frame_stops_when_no_candidate_can_fill_and_fixed_views():

@@ -38,7 +38,7 @@ class RenderConfig:
     0 = the local group only. TUM fr1/rpy +0.36 dB (hole fraction 6.99 -> 2.22 %), APC and sample unchanged."""
     ring_max_views: int = 3
     """The ring warps at most this many views per frame."""
-    ring_min_hole_frac: float = 0.005
+    ring_min_hole_frac: float = 0.04
     """The ring writes only holes of at least this fraction of the image (smaller ones are mostly missing geometry,
     which a distant view sees through: all holes, APC -0.7 dB)."""
     stop_hole_frac: float = 0.0005

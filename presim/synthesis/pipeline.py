@@ -286,7 +286,8 @@ def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsic
     H, W = K.height, K.width
     n_target = len(res["warped"]) + (min(len(pending), cfg.ring_max_views) if ring else len(pending))
     stop_px = cfg.stop_hole_frac * H * W if adaptive else 0.0
-    need_px = cfg.min_view_gain * H * W if cfg.min_view_gain > 0 else None
+    gain = max(cfg.min_view_gain, cfg.ring_min_hole_frac) if ring else cfg.min_view_gain
+    need_px = gain * H * W if gain > 0 else None
     ms, t_start = res["ms"], res["t_start"]
     while pending:
         if m.holes is not None and adaptive and cfg.time_budget_ms > 0 and \
