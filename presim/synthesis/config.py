@@ -33,14 +33,13 @@ class RenderConfig:
     max_views: int = 6
     """The adaptive loop draws from the first ``max_views`` selected views only."""
     hole_candidates: int = 20
-    """The ring: after the completion stage, the loop draws from this many further views by camera distance (within
-    the FOV angle, overlapping the target; each must pass ``min_view_gain``) for the holes the local group left;
-    0 = the local group only. TUM fr1/rpy +0.36 dB (hole fraction 6.99 -> 2.22 %), APC and sample unchanged."""
+    """The ring: where the completion stage ran, the loop goes on over this many further views by camera distance
+    (within the FOV angle, overlapping the target) for the large holes left (docs/synthesis.md); 0 = off."""
     ring_max_views: int = 3
     """The ring warps at most this many views per frame."""
     ring_min_hole_frac: float = 0.04
-    """The ring writes only holes of at least this fraction of the image (smaller ones are mostly missing geometry,
-    which a distant view sees through: all holes, APC -0.7 dB)."""
+    """The ring writes only holes of at least this fraction of the image, and a ring view must be predicted to fill
+    that much: smaller holes are mostly missing geometry, which a distant view sees through to the background."""
     stop_hole_frac: float = 0.0005
     """The adaptive loop stops when the largest hole is at most this fraction of the image (154 px at 640x480)."""
     big_hole_px: int = 16
