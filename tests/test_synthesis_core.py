@@ -323,7 +323,8 @@ def test_synthesize_frame_draws_the_ring_only_for_holes_the_local_group_leaves()
     assert synthesize_frame(views, np.eye(4), K8, dataclasses.replace(cfg, fixed_views=1)).views == [10]
     assert synthesize_frame(views, np.eye(4), K8, dataclasses.replace(cfg, ring_min_hole_frac=0.51)).views == [10]
     views = _Views([10, 11], images, grids, z_src={20: float(np.sqrt(30.0))})  # predicted 30 px < 32: passed over
-    views.ring_ids, views.completed = [20], [CompletedPoints(10, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))]
+    views.ring_ids = [20]
+    views.completed = [CompletedPoints(10, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))]
     res = synthesize_frame(views, np.eye(4), K8, cfg)
     assert res.views == [10] and res.skipped == [11, 20]
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, NamedTuple, Protocol
 
 import numpy as np
@@ -257,17 +257,23 @@ class FrameResult:
 
 
 @dataclass
-class _Merged:
-    """The frame's image while the loop draws views into it."""
+class _Loop:
+    """The frame's image and what the adaptive loop did, while it draws views into it."""
 
+    source: np.ndarray
+    """int32 (H, W) view of each pixel (valid where ``holes`` is 0)."""
+    ms: dict[str, float]
+    t_start: float
     depth_m: np.ndarray | None = None
     color: np.ndarray | None = None
-    source: np.ndarray | None = None
     holes: np.ndarray | None = None
     """uint8 (H, W), 1 = no view yet; None before the first view."""
     n_hole: int = 0
     replace: np.ndarray | None = None
     big: np.ndarray | None = None
+    warped: list[int] = field(default_factory=list)
+    hole_fracs: list[float] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
 
 
 def _ring_min_px(cfg: RenderConfig, K: Intrinsics) -> int:
@@ -275,8 +281,8 @@ def _ring_min_px(cfg: RenderConfig, K: Intrinsics) -> int:
     return max(cfg.big_hole_px, int(np.ceil(cfg.ring_min_hole_frac * K.height * K.width)))
 
 
-def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsics, m: _Merged, pending: list[int],
-          res: dict, ring: bool = False) -> None:
+def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsics, m: _Loop, pending: list[int],
+          ring: bool = False) -> None:
     """The adaptive loop over ``pending`` (best first): merge each view's image into ``m`` on the replaceable
     pixels until no big hole is left or no candidate can fill one. The local group replaces the holes, big ones
     grown by ``hole_dilation_px``; the ``ring`` only the holes of at least ``ring_min_hole_frac`` of the image."""
@@ -284,14 +290,14 @@ def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsic
     big_px = _ring_min_px(cfg, K) if ring else cfg.big_hole_px  # the ring starts with m.replace = m.big
     dilation_px = 0 if ring else cfg.hole_dilation_px
     H, W = K.height, K.width
-    n_target = len(res["warped"]) + (min(len(pending), cfg.ring_max_views) if ring else len(pending))
+    n_target = len(m.warped) + (min(len(pending), cfg.ring_max_views) if ring else len(pending))
     stop_px = cfg.stop_hole_frac * H * W if adaptive else 0.0
     gain = max(cfg.min_view_gain, cfg.ring_min_hole_frac) if ring else cfg.min_view_gain
     need_px = gain * H * W if gain > 0 else None
-    ms, t_start = res["ms"], res["t_start"]
+    ms = m.ms
     while pending:
         if m.holes is not None and adaptive and cfg.time_budget_ms > 0 and \
-                (time.perf_counter() - t_start) * 1e3 >= cfg.time_budget_ms:
+                (time.perf_counter() - m.t_start) * 1e3 >= cfg.time_budget_ms:
             break  # time budget spent: deliver what we have (the fill closes the rest)
         best = 0
         if m.holes is not None and adaptive:
@@ -299,7 +305,7 @@ def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsic
             best = views.next_view(pending, m.big.reshape(-1), need_px, cfg.next_view_fill_frac)
             ms["select"] += (time.perf_counter() - t) * 1e3
             if best < 0:  # no candidate can fill a big hole
-                res["skipped"].extend(pending)
+                m.skipped.extend(pending)
                 break
         vi = pending.pop(best)
         img = views.view_image(vi, m.replace)
@@ -313,11 +319,11 @@ def _draw(views: FrameViews, kern: StageKernels, cfg: RenderConfig, K: Intrinsic
         else:  # merge on the replaceable pixels, the hole mask updated in place
             m.n_hole -= kern.merge_into_holes(m.depth_m, m.color, m.source, m.replace, img.depth_m, img.color, vi,
                                               m.holes)
-        res["warped"].append(vi)
-        last = len(res["warped"]) == n_target or not pending
+        m.warped.append(vi)
+        last = len(m.warped) == n_target or not pending
         hs = kern.analyse_hole_mask(m.holes, m.n_hole, big_px, dilation_px, want_replace=not last,
                                     stop_px=stop_px, want_largest=not last)
-        res["hole_fracs"].append(hs.hole_frac)
+        m.hole_fracs.append(hs.hole_frac)
         m.replace, m.big = (hs.big if ring else hs.replace), hs.big
         ms["holes"] += (time.perf_counter() - t) * 1e3
         if last or (adaptive and hs.largest_hole_px <= stop_px):
@@ -333,11 +339,10 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
     H, W = K.height, K.width
     ms = {s: 0.0 for s in STAGES}
     adaptive = cfg.fixed_views == 0
-    res = {"warped": [], "hole_fracs": [], "skipped": [], "ms": ms, "t_start": time.perf_counter()}
-    warped = res["warped"]
-    m = _Merged(source=np.empty((H, W), np.int32))
-    _draw(views, kern, cfg, K, m, [int(v) for v in list(views.candidates)[:cfg.max_views if adaptive else cfg.fixed_views]],
-          res)
+    m = _Loop(np.empty((H, W), np.int32), ms, time.perf_counter())
+    warped = m.warped
+    local = [int(v) for v in list(views.candidates)[:cfg.max_views if adaptive else cfg.fixed_views]]
+    _draw(views, kern, cfg, K, m, local)
     completed = None
     if m.holes is not None and m.n_hole > 0 and cfg.use_completed_depth:
         t = time.perf_counter()
@@ -357,9 +362,9 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         ms["holes"] += (time.perf_counter() - t) * 1e3
         if hs.largest_hole_px >= ring_px:
             m.replace = m.big = hs.big
-            _draw(views, kern, cfg, K, m, [v for v in views.ring() if v not in warped], res, ring=True)
+            _draw(views, kern, cfg, K, m, [v for v in views.ring() if v not in warped], ring=True)
     acc_d, acc_c, acc_src, holes, n_hole = m.depth_m, m.color, m.source, m.holes, m.n_hole
-    hole_fracs, skipped = res["hole_fracs"], res["skipped"]
+    hole_fracs, skipped = m.hole_fracs, m.skipped
     if holes is None:  # no view warped
         acc_d = np.zeros((H, W), np.float32)
         acc_c = np.zeros((H, W, 3), np.uint8)
