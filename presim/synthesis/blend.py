@@ -19,10 +19,9 @@ import numpy as np
 
 from presim.geometry import Intrinsics
 from presim.synthesis.threads import parallel_kernel
-from presim.synthesis.warp import FASTMATH as WARP_FASTMATH
 
 __all__ = ["BlendConfig", "BlendInput", "feather_map", "feather_box", "coverage_counts",
-           "front_image_points", "front_of_layers", "blend_reference",
+           "front_of_layers", "blend_reference",
            "blend_numba", "blend_stacks", "blend_frame"]
 
 
@@ -106,48 +105,10 @@ def coverage_counts(depth_m: np.ndarray, feather_px: float, out: np.ndarray | No
     return out
 
 
-def front_image_points(view, T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
-                       depth_out: np.ndarray, color_out: np.ndarray) -> None:
-    """Front-most surface of a prepared view (:class:`~presim.synthesis.warp.ViewPoints`) in the target into
-    ``depth_out`` (float32 (H, W)) / ``color_out`` (uint8 (H, W, 3)): one z-buffered layer, no crack filter."""
-    M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4], np.float32)
-    _front_warp_kernel(view.xyz_world, view.rgb, M, np.float32(K.fx), np.float32(K.fy), np.float32(K.cx),
-                       np.float32(K.cy), np.float32(near_m), depth_out, color_out.transpose(2, 0, 1))
-
-
-@nb.njit(fastmath=WARP_FASTMATH, cache=True, nogil=True, error_model="numpy")  # warp kernel's flags: equal bits
-def _front_warp_kernel(xyz, rgb, M, fx, fy, cx, cy, near, zbuf, cbuf):  # pragma: no cover
-    # Same arithmetic as warp.warp_layers_kernel with one layer (tested equal); colours into planes cbuf (3, H, W).
-    H, W = zbuf.shape
-    zbuf[:] = 0.0
-    cbuf[:] = 0
-    for i in range(xyz.shape[0]):
-        x = xyz[i, 0]
-        y = xyz[i, 1]
-        z = xyz[i, 2]
-        zc = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-        if not (zc > near):
-            continue
-        xc = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]
-        yc = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]
-        uf = fx * xc / zc + cx + np.float32(0.5)
-        vf = fy * yc / zc + cy + np.float32(0.5)
-        if not (uf >= 0.0 and uf < W and vf >= 0.0 and vf < H):
-            continue
-        ui = int(uf)
-        vi = int(vf)
-        cur = zbuf[vi, ui]
-        if cur == 0.0 or zc < cur:
-            zbuf[vi, ui] = zc
-            cbuf[0, vi, ui] = rgb[i, 0]
-            cbuf[1, vi, ui] = rgb[i, 1]
-            cbuf[2, vi, ui] = rgb[i, 2]
-
-
 def front_of_layers(layer_depth_m: np.ndarray, layer_color: np.ndarray, depth_out: np.ndarray,
                     color_out: np.ndarray) -> None:
     """Front-most surface of an already warped view (the loop's (L, H, W) layers): smallest depth per pixel into
-    ``depth_out`` / ``color_out`` (= :func:`front_image_points` without warping again; planar colour allowed)."""
+    ``depth_out`` / ``color_out`` (planar colour allowed): the one-layer z-buffer of the view's points (tested)."""
     _front_of_layers_kernel(layer_depth_m, layer_color, depth_out, color_out.transpose(2, 0, 1))
 
 
@@ -380,8 +341,8 @@ def blend_frame(views: Sequence[int], color: np.ndarray, depth_m: np.ndarray, so
                 ) -> tuple[np.ndarray, float]:
     """Blend the first ``config.max_views`` of ``views`` into the loop's result: ``(color, ms)``.
 
-    ``front_image(id, depth_out, color_out)`` writes a view's front surface (:func:`front_image_points` or
-    :func:`front_of_layers`); ``centre_of(id)``: its camera centre; ``quality_of``: its factor (None = 1);
+    ``front_image(id, depth_out, color_out)`` writes a view's front surface (:func:`front_of_layers`);
+    ``centre_of(id)``: its camera centre; ``quality_of``: its factor (None = 1);
     ``kernel``: :func:`blend_numba` (None), :func:`blend_reference` or a kernel of their contract (torch);
     ``buffers``: a dict kept across frames for the stacks."""
     t0 = time.perf_counter()

@@ -21,7 +21,7 @@ from presim.capture.scene import Scene, SceneError
 from presim.capture.sharpness import ViewSharpness
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
 from presim.photometric.apply import OutputVignetting, SourceColorCorrection, predict_exposure
-from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_image_points
+from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_of_layers
 from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.execution import Executor, ViewCache
@@ -31,7 +31,7 @@ from presim.synthesis.pipeline import STAGES, ViewImage, stage_kernels, synthesi
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import Selection, ring_views, select_views
-from presim.synthesis.warp import ViewPoints, prepare_view
+from presim.synthesis.warp import ViewPoints, prepare_view, warp_layers
 
 __all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer", "unmap_pages"]
 
@@ -167,9 +167,10 @@ class _FrameViews:
                     np.copyto(depth_out, d[n])
                     np.copyto(color_out, c[n])
                 return
-            view = r.view(v, r.lod_level(v, self.T_cam_world, self.K))
+            view = r.view(v, self.level(v))
             if isinstance(view, ViewPoints):
-                front_image_points(view, self.T_cam_world, self.K, r.config.near_m, depth_out, color_out)
+                lay = warp_layers(view, self.T_cam_world, self.K, r.config.near_m)
+                front_of_layers(lay.depth_m, lay.color, depth_out, color_out)
                 return
             img = view_image(r.perf.backend, view, self.T_cam_world, self.K, r.config, None, r.executor.workspace)
             depth_out[:] = img.depth_m
