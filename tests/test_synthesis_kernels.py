@@ -15,7 +15,7 @@ import pytest
 from presim.geometry import Intrinsics, invert, look_at, make_pose, transform_points
 from presim.synthesis import kernels_reference as ref
 from presim.testing import rect_scene as S
-from presim.synthesis.cracks import composite_layers, crack_filter
+from presim.synthesis.cracks import crack_filter
 from presim.synthesis.warp import assign_layers, prepare_view, warp_layers
 
 K_SMALL = Intrinsics.from_fov(96, 72, 60.0)
@@ -53,33 +53,74 @@ def test_numba_warp_matches_reference(L):
     assert _frac_diff(dn.color, cr) < 0.005
 
 
-@pytest.mark.parametrize("mode,fn", [("switching_median", ref.switching_median_ref), ("median", ref.plain_median_ref)])
-def test_numba_crack_filter_matches_reference_exactly(mode, fn):
+def _switching_median_per_pixel(depth_m, color, kernel_px):
+    """Eq. 3.9 pixel by pixel: an empty pixel whose window (outside = empty) is more than half non-empty takes
+    the lower median of the non-empty depths and of each colour channel."""
+    H, W = depth_m.shape
+    r = kernel_px // 2
+    out_d, out_c = depth_m.copy(), color.copy()
+    for v in range(H):
+        for u in range(W):
+            if depth_m[v, u] > 0:
+                continue
+            win = [(y, x) for y in range(v - r, v + r + 1) for x in range(u - r, u + r + 1)
+                   if 0 <= y < H and 0 <= x < W and depth_m[y, x] > 0]
+            if 2 * len(win) > kernel_px * kernel_px:
+                k = (len(win) - 1) // 2
+                out_d[v, u] = sorted(depth_m[y, x] for y, x in win)[k]
+                out_c[v, u] = [sorted(color[y, x, ch] for y, x in win)[k] for ch in range(3)]
+    return out_d, out_c
+
+
+def _plain_median_per_pixel(depth_m, color, kernel_px):
+    """Every pixel: the median of its zero-padded window; colour 0 where that depth is not > 0."""
+    r, mid = kernel_px // 2, (kernel_px * kernel_px - 1) // 2
+    pd, pc = np.pad(depth_m, r), np.pad(color, ((r, r), (r, r), (0, 0)))
+    out_d, out_c = np.zeros_like(depth_m), np.zeros_like(color)
+    for v in range(depth_m.shape[0]):
+        for u in range(depth_m.shape[1]):
+            out_d[v, u] = np.sort(pd[v:v + kernel_px, u:u + kernel_px].ravel())[mid]
+            if out_d[v, u] > 0:
+                out_c[v, u] = np.sort(pc[v:v + kernel_px, u:u + kernel_px].reshape(-1, 3), axis=0)[mid]
+    return out_d, out_c
+
+
+@pytest.mark.parametrize("mode,fn", [("switching_median", _switching_median_per_pixel),
+                                     ("median", _plain_median_per_pixel)])
+def test_crack_filter_reference_is_the_per_pixel_definition(mode, fn):
+    """The vectorized reference (crack_filter) = the filter written pixel by pixel: random cracks of all
+    densities, ties, NaN and negative depths, 255 colours, windows 1 / 3 / 5, layers and single images."""
     rng = np.random.default_rng(1)
-    d = rng.uniform(0.5, 3.0, (2, 40, 50)).astype(np.float32)
-    d[rng.random(d.shape) < 0.35] = 0  # cracks of all densities
-    c = rng.integers(0, 256, d.shape + (3,), dtype=np.uint8)
-    c[d == 0] = 0
-    dn, cn = crack_filter(d, c, mode, 3)
-    for i in range(2):
-        dr, cr = fn(d[i], c[i], 3)
-        np.testing.assert_array_equal(dn[i], dr)
-        np.testing.assert_array_equal(cn[i], cr)
-    d5, c5 = crack_filter(d[0], c[0], "switching_median", 5)
-    dr5, cr5 = ref.switching_median_ref(d[0], c[0], 5)
-    np.testing.assert_array_equal(d5, dr5)
-    np.testing.assert_array_equal(c5, cr5)
+    for trial in range(12):
+        d = rng.uniform(0.5, 3.0, (2, int(rng.integers(1, 24)), int(rng.integers(1, 24)))).astype(np.float32)
+        d[rng.random(d.shape) < rng.uniform(0.0, 1.0)] = 0
+        d[rng.random(d.shape) < 0.1] = 2.0  # ties
+        d[rng.random(d.shape) < 0.05] = np.nan if trial % 2 else -1.0
+        c = rng.integers(0, 256, d.shape + (3,), dtype=np.uint8)
+        c[rng.random(d.shape) < 0.2] = 255
+        for kpx in (1, 3, 5):
+            dn, cn = crack_filter(d, c, mode, kpx)
+            for i in range(2):
+                dr, cr = fn(d[i], c[i], kpx)
+                np.testing.assert_array_equal(dn[i], dr)
+                np.testing.assert_array_equal(cn[i], cr)
+            d1, c1 = crack_filter(d[0], c[0], mode, kpx)
+            np.testing.assert_array_equal(d1, dn[0])
+            np.testing.assert_array_equal(c1, cn[0])
 
 
-def test_numba_composite_matches_reference_exactly():
+def test_composite_reference_is_the_per_pixel_definition():
     rng = np.random.default_rng(2)
     d = rng.uniform(0.5, 3.0, (4, 30, 40)).astype(np.float32)
     d[rng.random(d.shape) < 0.6] = 0
+    d[rng.random(d.shape) < 0.05] = np.nan
     c = rng.integers(0, 256, d.shape + (3,), dtype=np.uint8)
-    dn, cn = composite_layers(d, c)
     dr, cr = ref.composite_layers_ref(d, c)
-    np.testing.assert_array_equal(dn, dr)
-    np.testing.assert_array_equal(cn, cr)
+    for v in range(d.shape[1]):
+        for u in range(d.shape[2]):
+            front = [lay for lay in range(d.shape[0]) if d[lay, v, u] > 0]
+            assert dr[v, u] == (d[front[0], v, u] if front else 0.0)
+            assert cr[v, u].tolist() == (c[front[0], v, u].tolist() if front else [0, 0, 0])
 
 
 def test_torch_paths_match_reference_on_cpu():

@@ -1,4 +1,5 @@
-"""Slow, obviously correct numpy reference of the synthesis kernels, and the naive baseline.
+"""Plain numpy reference of the synthesis kernels (the definitions the fast paths are tested against), and the
+naive baseline.
 
 They define the rules the fast paths are tested against: a point lands on pixel ``floor(u + 0.5)``; z <= ``near_m``
 is dropped; per layer the smallest float32 z wins, ties to the lower point index; empty = depth 0, colour 0; the
@@ -64,61 +65,47 @@ def _splat_front(uv: np.ndarray, z: np.ndarray, near_m: float, W: int, H: int) -
     return lin, front[win]
 
 
+def _windows(a: np.ndarray, r: int) -> np.ndarray:
+    """Each pixel's (2r + 1) x (2r + 1) window of ``a`` (H, W, ...), zero outside the image: (H, W, ..., n)."""
+    w = np.lib.stride_tricks.sliding_window_view(np.pad(a, [(r, r), (r, r)] + [(0, 0)] * (a.ndim - 2)),
+                                                 (2 * r + 1, 2 * r + 1), axis=(0, 1))
+    return w.reshape(w.shape[:-2] + (-1,))
+
+
 def switching_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Switching median (eq. 3.9) of one image: depth (H, W), color (H, W, 3). Returns new arrays."""
-    H, W = depth_m.shape
     r = kernel_px // 2
+    full = _windows(depth_m, r) > 0  # (H, W, n): the window's non-empty pixels
+    n = full.sum(-1)
+    fill = ~(depth_m > 0) & (2 * n > kernel_px * kernel_px)
+    k = ((n[fill] - 1) // 2)[:, None]  # the lower median of the non-empty values; empties sort last
     out_d, out_c = depth_m.copy(), color.copy()
-    for v in range(H):
-        for u in range(W):
-            if depth_m[v, u] > 0:
-                continue
-            vals_d, vals_c = [], []
-            for dv in range(-r, r + 1):
-                for du in range(-r, r + 1):
-                    y, x = v + dv, u + du
-                    if 0 <= y < H and 0 <= x < W and depth_m[y, x] > 0:
-                        vals_d.append(depth_m[y, x])
-                        vals_c.append(color[y, x])
-            n = len(vals_d)
-            if 2 * n > kernel_px * kernel_px:
-                k = (n - 1) // 2  # lower median
-                out_d[v, u] = np.sort(np.asarray(vals_d, np.float32))[k]
-                out_c[v, u] = np.sort(np.asarray(vals_c, np.uint8), axis=0)[k]
+    d = np.sort(np.where(full[fill], _windows(depth_m, r)[fill], np.float32(np.inf)), -1)
+    c = np.sort(np.where(full[fill][:, None], _windows(color, r)[fill], np.uint8(255)), -1)  # (m, 3, n)
+    out_d[fill] = np.take_along_axis(d, k, -1)[:, 0]
+    out_c[fill] = np.take_along_axis(c, k[:, None], -1)[..., 0]
     return out_d, out_c
 
 
 def plain_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Traditional median of every pixel over its N x N window (zero padded, empties included)."""
-    H, W = depth_m.shape
-    r = kernel_px // 2
-    pd = np.pad(depth_m, r)
-    pc = np.pad(color, ((r, r), (r, r), (0, 0)))
-    out_d = np.zeros_like(depth_m)
-    out_c = np.zeros_like(color)
-    mid = (kernel_px * kernel_px - 1) // 2
-    for v in range(H):
-        for u in range(W):
-            out_d[v, u] = np.sort(pd[v:v + kernel_px, u:u + kernel_px].ravel())[mid]
-            if out_d[v, u] > 0:
-                out_c[v, u] = np.sort(pc[v:v + kernel_px, u:u + kernel_px].reshape(-1, 3), axis=0)[mid]
+    """Traditional median of every pixel over its N x N window (zero padded, empties included); colour 0 where
+    the median depth is not > 0."""
+    r, mid = kernel_px // 2, (kernel_px * kernel_px - 1) // 2
+    out_d = np.sort(_windows(depth_m, r), -1)[..., mid]
+    out_c = np.where((out_d > 0)[..., None], np.sort(_windows(color, r), -1)[..., mid], np.uint8(0))
     return out_d, out_c
 
 
 def composite_layers_ref(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Front-to-back composite of (L, H, W) / (L, H, W, 3) layers -> (H, W), (H, W, 3)."""
-    L, H, W = depth_m.shape
-    out_d = np.zeros((H, W), np.float32)
-    out_c = np.zeros((H, W, 3), np.uint8)
-    for v in range(H):
-        for u in range(W):
-            for layer in range(L):
-                if depth_m[layer, v, u] > 0:
-                    out_d[v, u] = depth_m[layer, v, u]
-                    out_c[v, u] = color[layer, v, u]
-                    break
+    """Front-to-back composite of (L, H, W) / (L, H, W, 3) layers -> (H, W), (H, W, 3): each pixel's first
+    non-empty layer, 0 where none is."""
+    full = depth_m > 0
+    front = np.argmax(full, axis=0)[None]
+    hit = full.any(0)
+    out_d = np.where(hit, np.take_along_axis(depth_m, front, 0)[0], np.float32(0))
+    out_c = np.where(hit[..., None], np.take_along_axis(color, front[..., None], 0)[0], np.uint8(0))
     return out_d, out_c
 
 

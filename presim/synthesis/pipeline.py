@@ -25,8 +25,8 @@ from presim.synthesis import kernels_reference as ref
 from presim.synthesis.blend import blend_numba, front_of_layers
 from presim.synthesis.completion import CompletedPoints, Target
 from presim.synthesis.config import RenderConfig
-from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX,
-                                     composite_layers, crack_filter, filtered_composite_banded, warp_tiles)
+from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX, crack_filter,
+                                     filtered_composite_banded, warp_tiles)
 from presim.synthesis.fill import fill_holes, pushpull_rgbd
 from presim.synthesis.holes import HoleStats, analyse_hole_mask, merge_into_holes, merge_view_holes
 from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
@@ -91,11 +91,7 @@ def view_image_numba(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, c
     if banded:
         d, c = filtered_composite_banded(lay.depth_m, lay.color, replace)
         return ViewImage(d, c, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3)
-    mode, kpx = config.crack_filter, config.crack_kernel_px
-    d, c = crack_filter(lay.depth_m, lay.color, mode, kpx)
-    t2 = time.perf_counter()
-    d, c = crack_filter(*composite_layers(d, c), mode, kpx)  # the seams
-    return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
+    return _filtered_composite(lay.depth_m, lay.color, config, t0, t1)
 
 
 def view_image_reference(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
@@ -106,17 +102,16 @@ def view_image_reference(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsic
                                        T_cam_world, K, config.near_m)
     if workspace.front is not None:
         front_of_layers(lay_d, lay_c, *workspace.front)
-    t1 = time.perf_counter()
-    kpx = config.crack_kernel_px
-    filt = {"switching_median": ref.switching_median_ref, "median": ref.plain_median_ref}.get(config.crack_filter)
-    if filt is not None:
-        pairs = [filt(lay_d[i], lay_c[i], kpx) for i in range(view.num_layers)]
-        lay_d = np.stack([p[0] for p in pairs])
-        lay_c = np.stack([p[1] for p in pairs])
+    return _filtered_composite(lay_d, lay_c, config, t0, time.perf_counter())
+
+
+def _filtered_composite(lay_d: np.ndarray, lay_c: np.ndarray, config: RenderConfig, t0: float, t1: float
+                        ) -> ViewImage:
+    """Crack filter per layer, composite, crack filter of the seams: the reference (any mode and window)."""
+    mode, kpx = config.crack_filter, config.crack_kernel_px
+    d, c = crack_filter(lay_d, lay_c, mode, kpx)
     t2 = time.perf_counter()
-    d, c = ref.composite_layers_ref(lay_d, lay_c)
-    if filt is not None:
-        d, c = filt(d, c, kpx)
+    d, c = crack_filter(*ref.composite_layers_ref(d, c), mode, kpx)  # the seams
     return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
 
 
