@@ -124,7 +124,7 @@ def bench(scene, K, poses: np.ndarray, warmup: int, config, perf, today=None, pa
             _measure(r, K, poses, accs[name])
     res = _summary(accs["new"])
     r = rs["new"]
-    res.update({"cache_mb": r.cache_bytes / 2**20, "cold_pass_ms_per_frame": cold["new"]})
+    res.update({"cache_mb": r.executor.cache.nbytes / 2**20, "cold_pass_ms_per_frame": cold["new"]})
     # The baseline in its own pass over the same poses and views (interleaving it with the
     # pipeline frame by frame evicted the pipeline's caches and parked its threads: +50 % per frame).
     frames, base_ms, base_cpu = {}, [], []

@@ -328,7 +328,7 @@ def memory_child(args) -> dict:
             sample()
         renderer, n = sim.renderer, 1
     out.update(peak_mb=common.status_mb("VmHWM"), rss_end_mb=common.status_mb("VmRSS"), num_envs=n,
-               cache_mb=renderer.cache_bytes / 2**20, cached_views=len(renderer.view_cache), steps=args.steps)
+               cache_mb=renderer.executor.cache.nbytes / 2**20, cached_views=len(renderer.executor.cache), steps=args.steps)
     out.update(peak_per_env_mb=out["peak_mb"] / n, peak_anon_mb=anon[0], peak_anon_per_env_mb=anon[0] / n)
     return out
 

@@ -6,11 +6,15 @@ import numpy as np
 import pytest
 
 from presim.geometry import Intrinsics, invert, look_at
-from presim.synthesis.grids import FrameGrids, grid_pixels, per_coordinate, project_grid, project_grid_ref
-from presim.synthesis.lod import footprint_ratio
+from presim.synthesis.grids import FrameGrids, count_in_mask, fill_area_ref, grid_pixels, per_coordinate, project_grid_ref
+from presim.synthesis.lod import choose_level, footprint_ratio
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.select import view_overlap
 from presim.testing import rect_scene as S
+
+
+def _projection(pts, T_cam_world, K):
+    return FrameGrids(T_cam_world, K, lambda v: pts).projection(0)
 
 
 def test_project_grid_known_pixels():
@@ -20,10 +24,10 @@ def test_project_grid_known_pixels():
                     [0.03, 0.0, 2.0],  # u = 1.5 + 3.5 = 5 -> floor(5.5) = 5
                     [0.0, 0.0, -1.0],  # behind
                     [1.0, 0.0, 1.0]], np.float32)  # u = 103.5: outside
-    pix, z = project_grid(pts, np.eye(4), K)
-    assert pix.tolist() == [3 * 8 + 4, 3 * 8 + 5, -1, -1]
-    np.testing.assert_array_equal(z, [2.0, 2.0, -1.0, 1.0])
-    assert project_grid(np.zeros((0, 3), np.float32), np.eye(4), K)[0].shape == (0,)
+    for pix, z in (_projection(pts, np.eye(4), K), project_grid_ref(pts, np.eye(4), K)):
+        assert pix.tolist() == [3 * 8 + 4, 3 * 8 + 5, -1, -1]
+        np.testing.assert_array_equal(z, [2.0, 2.0, -1.0, 1.0])
+    assert _projection(np.zeros((0, 3), np.float32), np.eye(4), K)[0].shape == (0,)
 
 
 def test_project_grid_matches_reference():
@@ -31,7 +35,7 @@ def test_project_grid_matches_reference():
     pts = rng.uniform(-3, 3, (20000, 3)).astype(np.float32)
     T = look_at([0.3, -0.2, -4.0], [0.0, 0.1, 0.0])
     K = Intrinsics.from_fov(160, 120, 70.0)
-    a_pix, a_z = project_grid(pts, invert(T), K)
+    a_pix, a_z = _projection(pts, invert(T), K)
     b_pix, b_z = project_grid_ref(pts, invert(T), K)
     np.testing.assert_array_equal(a_z, b_z)
     assert (a_pix == b_pix).mean() > 0.9995  # float64 summation order may move a boundary point
@@ -67,10 +71,12 @@ def test_frame_grids_answers_equal_the_reference_functions():
     for i, v in enumerate(ids):
         grid = r.grid_points(v)
         assert ov[i] == pytest.approx(view_overlap(grid, T_cw, Kt), abs=1e-9)
-        np.testing.assert_array_equal(g.pixels(v, 0.01), grid_pixels(grid, T_cw, Kt, 0.01))
-        assert r.lod_level_in(v, g) == r.lod_level(v, T_cw, Kt)
+        np.testing.assert_array_equal(_front_pixels(g, v, 0.01), grid_pixels(grid, T_cw, Kt, 0.01))
         ref = footprint_ratio(grid, invert(scene.T_world_cam[v]), float(r.src_focal[v]), T_cw,
                               float(np.sqrt(Kt.fx * Kt.fy)), 0.01, Kt)
+        ref_near = footprint_ratio(grid, invert(scene.T_world_cam[v]), float(r.src_focal[v]), T_cw,
+                                   float(np.sqrt(Kt.fx * Kt.fy)), r.config.near_m, Kt)
+        assert r.lod_level_in(v, g) == choose_level(ref_near, r._lod)
         got = g.footprint_ratio(v, r.grid_zsrc(v), float(r.src_focal[v]), 0.01)
         assert got == pytest.approx(ref, rel=1e-6)
     assert 0.3 < ov.max() <= 1.0
@@ -108,49 +114,59 @@ def testunmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path):
     assert w.sum() == 16
 
 
-def test_fill_area_known_answers_and_reference():
+def _front_pixels(g, v, near_m):
+    """The target pixels of view v's grid points in front of near_m (= grid_pixels, on the kernel's projection)."""
+    pix, z = g.projection(v)
+    return pix[(pix >= 0) & (z > np.float32(near_m))]
+
+
+def _fill_area(r, g, v, mask_flat, near_m):
+    """A view's fill area: its grid points on the mask, each (stride x z_src / z_t x f_t / f_src)^2 target pixels
+    (fill_area_ref's terms, summed in point order as the kernel does: a need set to one view's area is exact)."""
+    pix, z_t = g.projection(v)
+    zs = r.grid_zsrc(v)
+    near = np.float32(near_m)
+    ok = (pix >= 0) & (zs > near) & (z_t > near)
+    ok[ok] &= np.asarray(mask_flat).reshape(-1)[pix[ok]] != 0
+    terms = (zs[ok].astype(np.float64) / z_t[ok].astype(np.float64)) ** 2
+    total = float(np.cumsum(terms)[-1]) if len(terms) else 0.0
+    assert total == pytest.approx(fill_area_ref(mask_flat, pix, zs, z_t, near_m), rel=1e-12)
+    return total * (r.config.overlap_stride_px * np.sqrt(g.K.fx * g.K.fy) / r.src_focal[v]) ** 2
+
+
+def test_fill_area_known_answers():
     """Each grid point landing on the mask stands for (stride x z_src / z_t x f_t / f_src)^2 target
     pixels: a target at a view's own pose sees its stride-8 grid as 64 px per point; a target with
-    half the focal length as 16 px; only masked points count."""
-    from presim.synthesis.grids import _fill_area_kernel, fill_area_ref
-
+    half the focal length as 16 px; only masked points count. next_view's kernel gates on the same area."""
     scene = S.make_scene(S.room_rects(), S.orbit_poses(3, span_m=0.6), Intrinsics.from_fov(96, 72, 60.0))
     r = Renderer(scene, RenderConfig())
     K = scene.intrinsics[1]
+    near = r.config.near_m
+
+    def check(g, mask, want):
+        assert _fill_area(r, g, 1, mask, near) == pytest.approx(want, rel=1e-5)
+        for need, got in ((want * (1 - 1e-4), 0), (want * (1 + 1e-4), -1)):
+            assert g.next_view([1], mask, r.grid_zsrc, lambda v: float(r.src_focal[v]), near,
+                               float(r.config.overlap_stride_px), need, 0.0) == got
+
     grids = FrameGrids(invert(scene.T_world_cam[1]), K, r.grid_points)
-    full = np.ones(K.width * K.height, np.uint8)
     n_in = int((grids.projection(1)[0] >= 0).sum())
     assert n_in > 50
-
-    def grid_fill(v, g, mask_flat):  # what the adaptive loop's min_view_gain test asks of a view
-        return g.fill_area(v, mask_flat, r.grid_zsrc(v), float(r.src_focal[v]), r.config.near_m,
-                           float(r.config.overlap_stride_px))
-    np.testing.assert_allclose(grid_fill(1, grids, full), 64.0 * n_in, rtol=1e-5)
+    check(grids, np.ones(K.width * K.height, np.uint8), 64.0 * n_in)
     half = K.scaled(K.width // 2, K.height // 2)
     g2 = FrameGrids(invert(scene.T_world_cam[1]), half, r.grid_points)
-    n2 = int((g2.projection(1)[0] >= 0).sum())
-    np.testing.assert_allclose(grid_fill(1, g2, np.ones(half.width * half.height, bool)), 16.0 * n2, rtol=1e-5)
+    check(g2, np.ones(half.width * half.height, bool), 16.0 * int((g2.projection(1)[0] >= 0).sum()))
     top = np.zeros((K.height, K.width), np.uint8)
     top[:K.height // 2] = 1  # only the points landing in the top half count
     pix = grids.projection(1)[0]
-    n_top = int(((pix >= 0) & (pix < (K.height // 2) * K.width)).sum())
-    np.testing.assert_allclose(grid_fill(1, grids, top.reshape(-1)), 64.0 * n_top, rtol=1e-5)
-    # numba kernel = numpy reference on random data (points behind / outside / off the mask)
-    rng = np.random.default_rng(3)
-    pix = rng.integers(-1, 500, 3000)
-    zs, zt = rng.uniform(-0.5, 3, 3000).astype(np.float32), rng.uniform(-0.5, 3, 3000).astype(np.float32)
-    mask = (rng.random(500) < 0.4).astype(np.uint8)
-    np.testing.assert_allclose(_fill_area_kernel(mask, pix, zs, zt, np.float32(0.01)),
-                               fill_area_ref(mask, pix, zs, zt, 0.01), rtol=1e-12)
+    check(grids, top.reshape(-1), 64.0 * int(((pix >= 0) & (pix < (K.height // 2) * K.width)).sum()))
 
 
 def test_next_view_is_the_loops_rule_on_the_per_candidate_counts_and_fill_areas():
-    """FrameGrids.next_view (all pending candidates in one kernel call) = the adaptive loop's rule on
-    count_in_mask of each view's front pixels and its fill_area: the first view whose count reaches
-    ``frac`` x the largest, counting only views whose fill area reaches ``need``; views projected in
-    separate calls or all in one, views with no point in the image and bool / uint8 masks included."""
-    from presim.synthesis.grids import count_in_mask
-
+    """FrameGrids.next_view (all pending candidates in one kernel call) = the adaptive loop's rule on the
+    references: count_in_mask of each view's target pixels and its fill area (fill_area_ref): the first view
+    whose count reaches ``frac`` x the largest, counting only views whose fill area reaches ``need``; views
+    projected in separate calls or all in one, views with no point in the image and bool / uint8 masks."""
     K = Intrinsics.from_fov(64, 48, 60.0)
     scene = S.make_scene(S.room_rects(), S.orbit_poses(8, span_m=1.6), K)
     r = Renderer(scene, RenderConfig(overlap_stride_px=4))
@@ -169,9 +185,8 @@ def test_next_view_is_the_loops_rule_on_the_per_candidate_counts_and_fill_areas(
                 mask = (rng.random(Kt.width * Kt.height) < frac).astype(dtype)
                 ids = [5, 0, 7, 2, 1]
                 for near_m in (near, 1.2):  # 1.2 m: drops part of the grids (in the image, too near)
-                    counts = [count_in_mask(mask, grids.pixels(v, near_m)) for v in ids]
-                    fills = [grids.fill_area(v, mask, r.grid_zsrc(v), float(r.src_focal[v]), near_m, stride)
-                             for v in ids]
+                    counts = [count_in_mask(mask.view(np.uint8), _front_pixels(grids, v, near_m)) for v in ids]
+                    fills = [_fill_area(r, grids, v, mask, near_m) for v in ids]
                     checked += sum(counts)
                     for need in (None, 0.0, float(np.median(fills)), max(fills) + 1.0):
                         for pick in (0.0, 0.5, 1.0):

@@ -130,7 +130,7 @@ def test_renderer_lod_keeps_native_size_and_coarsens_small_targets():
     assert psnr(a.color) >= psnr(b.color) - 0.2, (psnr(a.color), psnr(b.color))
     assert a.hole_frac_before_fill <= b.hole_frac_before_fill + 0.01
     assert np.abs(a.depth_m - b.depth_m)[a.valid & b.valid].mean() < 0.02
-    pts_full = sum(len(on.view_points(v).xyz_world) for v in on.last.views)
+    pts_full = sum(len(on.view(v).xyz_world) for v in on.last.views)
     pts_lod = sum(on.view(v, k).xyz_world.shape[0] for v, k in zip(on.last.views, on.last.lod_levels))
     assert pts_lod <= pts_full / 3  # 1/4 (level 1) or 1/16 (level 2) of the pixels
 

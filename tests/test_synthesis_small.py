@@ -215,7 +215,7 @@ def test_frame_grids_lod_level_is_choose_level_of_the_footprint_median():
 
 
 def test_grid_count_kernels_equal_numpy():
-    from presim.synthesis.grids import _count_front_kernel, _front_pixels_kernel, count_in_mask
+    from presim.synthesis.grids import _count_front_kernel, count_in_mask
 
     rng = np.random.default_rng(1)
     pix = rng.integers(-1, 500, 300).astype(np.int64)
@@ -223,7 +223,6 @@ def test_grid_count_kernels_equal_numpy():
     z[:20] = np.float32(0.01)
     ok = (pix >= 0) & (z > 0.01)
     assert _count_front_kernel(pix, z, np.float32(0.01)) == np.count_nonzero(ok)
-    np.testing.assert_array_equal(_front_pixels_kernel(pix, z, np.float32(0.01)), pix[ok])
     mask = rng.random(500) < 0.3
     px = pix[ok]
     assert count_in_mask(mask, px) == np.count_nonzero(mask[px])

@@ -36,7 +36,7 @@ def _banded(view, T_cam_world, K):
 def test_warp_ahead_gives_the_loops_images_and_claims_jobs_it_has_not_begun():
     scene = _scene()
     r = Renderer(scene, RenderConfig())
-    views = [r.view_points(i) for i in range(4)]
+    views = [r.view(i) for i in range(4)]
     T_cw = invert(_target(scene))
     K = Intrinsics.from_fov(40, 30, 60.0)
     wa = WarpAhead()
@@ -44,7 +44,7 @@ def test_warp_ahead_gives_the_loops_images_and_claims_jobs_it_has_not_begun():
         wa.start(views, T_cw, K, 0.01)
         assert wa.take(views[0]) is None  # queued: claimed, the loop warps it itself
     wa.wait()
-    assert wa.take(r.view_points(5)) is None  # not handed over
+    assert wa.take(r.view(5)) is None  # not handed over
     for v in views[1:]:
         got = wa.take(v)
         want = _banded(v, T_cw, K)
@@ -73,7 +73,7 @@ def test_warp_ahead_thread_ends_with_its_owner():
     scene = _scene(3)
     r = Renderer(scene, RenderConfig())
     wa = WarpAhead()
-    wa.start([r.view_points(1)], invert(_target(scene, 1)), Intrinsics.from_fov(40, 30, 60.0), 0.01)
+    wa.start([r.view(1)], invert(_target(scene, 1)), Intrinsics.from_fov(40, 30, 60.0), 0.01)
     wa.wait()
     th = wa._thread
     assert th.is_alive()
@@ -175,7 +175,7 @@ def test_a_first_view_taken_from_the_thread_is_copied(monkeypatch):
     monkeypatch.setattr(EX, "WARP_AHEAD_MIN_POINTS", 0)
     scene = _scene(3)
     r = Renderer(scene, RenderConfig())
-    view = r.view_points(1)
+    view = r.view(1)
     T_cw = invert(_target(scene, 1))
     K = Intrinsics.from_fov(40, 30, 60.0)
     cfg = RenderConfig()

@@ -4,7 +4,7 @@ Each candidate's grid (``RenderConfig.overlap_stride_px``) answers the overlap (
 :func:`presim.synthesis.select.view_overlap`), the target pixels and fill area (next view; references
 :func:`grid_pixels`, :func:`fill_area_ref`, :func:`count_in_mask`) and the footprint ratio (level of detail;
 reference :func:`presim.synthesis.lod.footprint_ratio`). :class:`FrameGrids` projects each grid once per frame
-(:func:`project_grid`, reference :func:`project_grid_ref`), branch-free per coordinate so it vectorizes."""
+(reference :func:`project_grid_ref`), branch-free per coordinate so it vectorizes."""
 
 from __future__ import annotations
 
@@ -17,12 +17,13 @@ from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
 from presim.synthesis.lod import LodConfig, choose_level
 
-__all__ = ["grid_pixels", "per_coordinate", "project_grid", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
+__all__ = ["grid_pixels", "per_coordinate", "project_grid_ref", "count_in_mask", "fill_area_ref", "FrameGrids"]
 
 
 def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Reference of :func:`project_grid` (numpy, via geometry.py)."""
+    """``(pix, z)``: int64 (n,) flat pixel ``v * W + u`` by ``floor(u + 0.5)`` of world points (n, 3) in a target
+    camera, -1 behind it or outside; float32 (n,) target z. Reference of :meth:`FrameGrids.projection` (numpy)."""
     p = transform_points(T_cam_world, np.asarray(xyz_world, np.float32))
     uv, z = project(K, p)
     u, v, inb = nearest_pixel(uv, K.width, K.height)
@@ -31,7 +32,7 @@ def project_grid_ref(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsi
 
 
 def grid_pixels(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> np.ndarray:
-    """Flat pixels (v * W + u) where a view's grid (m, 3) lands in the target (reference: FrameGrids.pixels)."""
+    """Flat pixels (v * W + u) where a view's grid (m, 3) lands in the target, in front of ``near_m``."""
     if len(grid_xyz_world) == 0:
         return np.zeros(0, np.int64)
     uv, z = project(K, transform_points(T_cam_world, grid_xyz_world))
@@ -73,26 +74,12 @@ def _project_grid_kernel(P, M, fx, fy, cx, cy, W, H, pix, z_out):  # pragma: no 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _any_front_kernel(P, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
-    # = _count_front_kernel(*project_grid(...), near) > 0, stopping at the first point that counts.
+    # = _count_front_kernel(*projection, near) > 0, stopping at the first point that counts.
     for i in range(P.shape[1]):
         p, zc = _grid_pixel(P, i, M, fx, fy, cx, cy, W, H)
         if p >= 0 and zc > near:
             return True
     return False
-
-
-def project_grid(xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points (n, 3) into a target camera (numba, one thread). Returns ``(pix, z)``: int64 (n,)
-    flat pixel ``v * W + u`` by ``floor(u + 0.5)``, -1 behind the camera or outside; float32 (n,) target z."""
-    P = per_coordinate(np.asarray(xyz_world).reshape(-1, 3))
-    n = P.shape[1]
-    pix = np.empty(n, np.int64)
-    z = np.empty(n, np.float32)
-    if n:
-        M = np.ascontiguousarray(np.asarray(T_cam_world, np.float64)[:3, :4])
-        _project_grid_kernel(P, M, float(K.fx), float(K.fy), float(K.cx), float(K.cy), int(K.width),
-                             int(K.height), pix, z)
-    return pix, z
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: also run by the view cache's background thread
@@ -167,36 +154,12 @@ def _count_front_kernel(pix, z, near):  # pragma: no cover
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _front_pixels_kernel(pix, z, near):  # pragma: no cover
-    # pix[(pix >= 0) & (z > near)], in order.
-    out = np.empty(pix.shape[0], np.int64)
-    m = 0
-    for i in range(pix.shape[0]):
-        if pix[i] >= 0 and z[i] > near:
-            out[m] = pix[i]
-            m += 1
-    return out[:m].copy()
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
 def count_in_mask(mask_flat, px):  # pragma: no cover
     """``np.count_nonzero(mask_flat[px])`` (numba: no gathered copy)."""
     n = 0
     for i in range(px.shape[0]):
         n += mask_flat[px[i]] != 0
     return n
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _fill_area_kernel(mask_flat, pix, z_src, z_t, near):  # pragma: no cover
-    # sum over points with pix >= 0, both depths > near and mask_flat[pix] of (z_src / z_t)^2 (float64)
-    s = 0.0
-    for i in range(pix.shape[0]):
-        p = pix[i]
-        if p >= 0 and z_src[i] > near and z_t[i] > near and mask_flat[p] != 0:
-            r = np.float64(z_src[i]) / np.float64(z_t[i])
-            s += r * r
-    return s
 
 
 def fill_area_ref(mask_flat: np.ndarray, pix: np.ndarray, z_src: np.ndarray, z_t: np.ndarray, near_m: float) -> float:
@@ -264,7 +227,6 @@ class FrameGrids:
         self._where: dict[int, tuple[int, int, int]] = {}
         self._bufs: list[tuple[np.ndarray, np.ndarray, list[int]]] = []
         self._zsrc_of_buf: dict[int, np.ndarray] = {}
-        self._px: dict[tuple[int, float], np.ndarray] = {}
         self._args: tuple | None = None
         self._scales: dict[tuple[int, float], float] = {}
 
@@ -312,7 +274,7 @@ class FrameGrids:
         return out
 
     def projection(self, v: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(pix, z)`` of view ``v``'s grid (see :func:`project_grid`)."""
+        """``(pix, z)`` of view ``v``'s grid (see :func:`project_grid_ref`)."""
         v = int(v)
         if v not in self._proj:
             self.project([v])
@@ -328,15 +290,6 @@ class FrameGrids:
             if len(pix):
                 out[i] = _count_front_kernel(pix, z, near) / len(pix)
         return out
-
-    def pixels(self, v: int, near_m: float) -> np.ndarray:
-        """Flat target pixels of view ``v``'s grid points = :func:`grid_pixels`."""
-        key = (int(v), float(near_m))
-        px = self._px.get(key)
-        if px is None:
-            pix, z = self.projection(v)
-            px = self._px[key] = _front_pixels_kernel(pix, z, np.float32(near_m))
-        return px
 
     def footprint_ratio(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float) -> float:
         """= :func:`presim.synthesis.lod.footprint_ratio` (with ``K_tgt``) from the view's source depths ``z_src``."""
@@ -358,8 +311,9 @@ class FrameGrids:
                   f_src_px: Callable[[int], float], near_m: float, stride_px: float, need: float | None,
                   frac: float) -> int:
         """The adaptive loop's next view in one kernel call: index in ``ids`` of the first view whose count of grid
-        pixels on ``mask_flat`` reaches ``frac`` x the largest, counting only views whose :meth:`fill_area` reaches
-        ``need`` (None: all); -1 if none. References: :func:`count_in_mask` / :meth:`pixels`, :meth:`fill_area`."""
+        pixels on ``mask_flat`` reaches ``frac`` x the largest, counting only views whose fill area reaches ``need``
+        (None: all): the target pixels its grid points on ``mask_flat`` stand for, each ``(stride_px x z_src / z_t x
+        f_t / f_src)^2``; -1 if none. References: :func:`count_in_mask` of :func:`grid_pixels`, :func:`fill_area_ref`."""
         ids = [int(v) for v in ids]
         if not ids:
             return -1
@@ -402,14 +356,3 @@ class FrameGrids:
                 q = self._scales[key] = float((stride_px * f_t / f_src_px(v)) ** 2) if len(self._proj[v][1]) else 0.0
             out.append(q)
         return out
-
-    def fill_area(self, v: int, mask_flat: np.ndarray, z_src: np.ndarray, f_src_px: float, near_m: float,
-                  stride_px: float) -> float:
-        """Target pixels view ``v``'s grid points on ``mask_flat`` (H * W, nonzero = wanted) stand for, each
-        ``(stride_px x z_src / z_t x f_t / f_src)^2``: the loop's ``min_view_gain`` test; ref. :func:`fill_area_ref`."""
-        pix, z_t = self.projection(v)
-        if len(z_t) == 0:
-            return 0.0
-        m = _mask_u8(mask_flat)
-        s = _fill_area_kernel(m, pix, np.ascontiguousarray(z_src, np.float32), z_t, np.float32(near_m))
-        return float(s * (stride_px * np.sqrt(self.K.fx * self.K.fy) / f_src_px) ** 2)

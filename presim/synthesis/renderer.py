@@ -24,9 +24,9 @@ from presim.photometric.apply import OutputVignetting, SourceColorCorrection, pr
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_of_layers
 from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import PerfConfig, RenderConfig
-from presim.synthesis.execution import Executor, ViewCache
+from presim.synthesis.execution import Executor
 from presim.synthesis.grids import FrameGrids
-from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio
+from presim.synthesis.lod import LodConfig, build_level
 from presim.synthesis.pipeline import STAGES, ViewImage, stage_kernels, synthesize_frame, view_image
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
@@ -308,34 +308,12 @@ class Renderer:
 
         return self.executor.view((idx, level, "completed"), build)
 
-    def view_points(self, idx: int) -> ViewPoints:
-        """The prepared points of view ``idx`` at level 0 (numpy)."""
-        v = self.view(idx)
-        return v if isinstance(v, ViewPoints) else self._prepare(idx, 0)
-
-    def lod_level(self, idx: int, T_cam_world: np.ndarray, K: Intrinsics) -> int:
-        """Pyramid level of view ``idx`` for a target camera (reference of :meth:`lod_level_in`)."""
-        if self._lod.levels == 0:
-            return 0
-        r0 = footprint_ratio(self.grid_points(idx), self._T_cam_world_src[idx], float(self.src_focal[idx]),
-                             T_cam_world, float(np.sqrt(K.fx * K.fy)), self.config.near_m, K)
-        return choose_level(r0, self._lod)
-
     def lod_level_in(self, idx: int, grids: FrameGrids) -> int:
-        """:meth:`lod_level` from the frame's one projection of the grids (same result)."""
+        """Pyramid level of view ``idx`` for the frame's target camera, from its one projection of the grids
+        (reference: :func:`~presim.synthesis.lod.choose_level` of :func:`~presim.synthesis.lod.footprint_ratio`)."""
         if self._lod.levels == 0:
             return 0
         return grids.lod_level(idx, self.grid_zsrc(idx), float(self.src_focal[idx]), self.config.near_m, self._lod)
-
-    @property
-    def cache_bytes(self) -> int:
-        """Bytes held by the per-view point cache."""
-        return self.executor.cache.nbytes
-
-    @property
-    def view_cache(self) -> ViewCache:
-        """The per-view point cache."""
-        return self.executor.cache
 
     # ---- public API ----------------------------------------------------------------------------
     def select(self, T_world_cam: np.ndarray, K: Intrinsics, grids: FrameGrids | None = None) -> Selection:

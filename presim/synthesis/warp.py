@@ -16,7 +16,7 @@ from presim.geometry import Intrinsics, unproject_depth
 from presim.synthesis.threads import parallel_kernel
 
 __all__ = ["CHUNK_PTS", "TargetCam", "TileMarks", "ChunkBounds", "target_cam", "tile_marks", "chunk_bounds_of",
-           "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility", "layer_slots",
+           "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility",
            "prepare_view", "prepare_view_ref", "warp_layers"]
 
 CHUNK_PTS = 32
@@ -364,14 +364,6 @@ def _layer_slots_kernel(layer_start, n_slots):  # pragma: no cover
         order[pos[slot_of[l]]] = l
         pos[slot_of[l]] += 1
     return order, slot_start
-
-
-def layer_slots(layer_start: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.ndarray]:
-    """Layers grouped into ``n_slots`` slots of similar point counts (largest layer first, each to the lightest
-    slot, ties to the lower index), one slot per thread: ``(order, slot_start)``, int64; slot ``s`` holds
-    ``order[slot_start[s]:slot_start[s + 1]]`` (at most one slot per layer)."""
-    ls = np.ascontiguousarray(layer_start, np.int64)
-    return _layer_slots_kernel(ls, max(1, min(int(n_slots), ls.shape[0] - 1)))
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
