@@ -4,7 +4,7 @@ For each scene and output size: a trajectory of novel poses (midpoints between c
 views, so every frame is a new pose near the capture; ``common.trajectory``) is rendered with the
 full pipeline (``RenderConfig()``, ``PerfConfig()`` unless ``--backend``/``--threads`` say
 otherwise), after a warm-up that compiles/loads what is needed. For every frame the naive baseline
-(:func:`presim.synthesis.kernels_reference.naive_zbuffer_ref`: vectorized numpy unproject -> project
+(:func:`presim.testing.naive.naive_zbuffer`: vectorized numpy unproject -> project
 -> lexsort z-buffer of whole frames, no layers, no filtering, no fill) splats the SAME views the
 pipeline used, so the ratio compares implementations, not view counts. Steady state = the second
 pass over the trajectory (every view it needs already prepared and cached); the first (cold) pass,
@@ -103,7 +103,7 @@ def _summary(acc: dict) -> dict:
 def bench(scene, K, poses: np.ndarray, warmup: int, config, perf, today=None, passes: int = 2) -> dict:
     """Steady-state numbers of ``config``; with ``today``, the same for that config in the same run,
     measured passes alternating (config, today, config, today, ...) so load changes hit both."""
-    from presim.synthesis.kernels_reference import naive_zbuffer_ref
+    from presim.testing.naive import naive_zbuffer
     from presim.synthesis.renderer import Renderer
 
     rs = {"new": Renderer(scene, config, perf)}
@@ -134,7 +134,7 @@ def bench(scene, K, poses: np.ndarray, warmup: int, config, perf, today=None, pa
             if v not in frames:
                 frames[v] = scene.frames.load(v)
             used.append((*frames[v], scene.intrinsics[v], scene.T_world_cam[v]))
-        ms, cpu, _ = common.timed(lambda: naive_zbuffer_ref(used, T, K))
+        ms, cpu, _ = common.timed(lambda: naive_zbuffer(used, T, K))
         base_ms.append(ms)
         base_cpu.append(cpu)
     res.update({

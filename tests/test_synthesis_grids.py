@@ -93,8 +93,8 @@ def _rss_of_map_kb(path) -> int:
     return total
 
 
-def testunmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path):
-    from presim.synthesis.renderer import unmap_pages
+def test_unmap_pages_drops_a_read_only_memmap_slice_and_keeps_its_data(tmp_path):
+    from presim.capture.store import unmap_pages
 
     path = tmp_path / "a.npy"
     a = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(8, 256, 256))

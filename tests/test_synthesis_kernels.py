@@ -16,6 +16,7 @@ from presim.geometry import Intrinsics, invert, look_at, make_pose, transform_po
 from presim.synthesis import kernels_reference as ref
 from presim.testing import rect_scene as S
 from presim.synthesis.cracks import crack_filter
+from presim.testing.naive import naive_zbuffer
 from presim.synthesis.warp import assign_layers, prepare_view, warp_layers
 
 K_SMALL = Intrinsics.from_fov(96, 72, 60.0)
@@ -165,7 +166,7 @@ def test_naive_baseline_matches_single_layer_warp():
     vp, T_cam_world = _room_view(L=1)
     T_src = look_at((0.0, -1.0, 1.3), (0.0, 0.5, 0.4))
     color, depth = S.raycast(S.room_rects(), T_src, K_SMALL)
-    cb, db = ref.naive_zbuffer_ref([(color, depth, K_SMALL, T_src)], invert(T_cam_world), K_SMALL)
+    cb, db = naive_zbuffer([(color, depth, K_SMALL, T_src)], invert(T_cam_world), K_SMALL)
     dr, cr = ref.warp_layers_ref(vp.xyz_world, vp.rgb, vp.layer, 1, T_cam_world, K_SMALL, 1e-3)
     assert _frac_diff(db > 0, dr[0] > 0) < 0.005
     assert _frac_diff(cb, cr[0]) < 0.005

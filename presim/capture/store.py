@@ -22,6 +22,7 @@ but only the frames touched are paged in. Saving streams frame by frame into the
 from __future__ import annotations
 
 import json
+import mmap
 import shutil
 from pathlib import Path
 
@@ -39,7 +40,7 @@ from presim.io_utils import (
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_scene", "load_scene", "fuse_point_cloud", "is_scene_dir",
            "set_has_refined_depth", "set_has_fused_depth",
            "REFINED_POSES_FILE", "POSE_CHOICES", "save_refined_poses", "read_refined_poses",
-           "PHOTOMETRIC_FILE", "save_photometric", "saved_scene_bytes", "RENDER_FILTER_FILE", "save_render_filter"]
+           "PHOTOMETRIC_FILE", "save_photometric", "saved_scene_bytes", "RENDER_FILTER_FILE", "save_render_filter", "unmap_pages"]
 
 PHOTOMETRIC_FILE = "photometric.json"
 RENDER_FILTER_FILE = "render_filter.json"
@@ -508,3 +509,22 @@ def model_abspath(scene: Scene, obj: SceneObject) -> Path | None:
         return None
     p = Path(obj.model_path)
     return p if p.is_absolute() or scene.path is None else scene.path / p
+
+
+def unmap_pages(arr: np.ndarray) -> None:
+    """Drop this process's mapping of the pages of ``arr`` when it is a slice of a read-only memory map
+    (a saved scene's colour/depth arrays): the prepared view holds copies, so the pages would only sit
+    in the process's RSS (they stay in the page cache). No-op otherwise."""
+    mm, b = None, arr
+    while b is not None and mm is None:  # np.asarray(memmap[i]) is a plain view: find the map below
+        mm, b = getattr(b, "_mmap", None), getattr(b, "base", None)
+    if mm is None or arr.flags.writeable or not hasattr(mmap, "MADV_DONTNEED") or arr.nbytes == 0:
+        return
+    try:
+        start = arr.ctypes.data - np.frombuffer(mm, np.uint8).ctypes.data
+        lo = start // mmap.PAGESIZE * mmap.PAGESIZE
+        hi = min(len(mm), -(-(start + arr.nbytes) // mmap.PAGESIZE) * mmap.PAGESIZE)
+        if 0 <= lo < hi:
+            mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
+    except (ValueError, OSError, TypeError):  # closed map, unusual layout: keep the pages
+        pass

@@ -1,5 +1,4 @@
-"""Plain numpy reference of the synthesis kernels (the definitions the fast paths are tested against), and the
-naive baseline.
+"""Plain numpy reference of the synthesis kernels: the definitions the fast paths are tested against.
 
 They define the rules the fast paths are tested against: a point lands on pixel ``floor(u + 0.5)``; z <= ``near_m``
 is dropped; per layer the smallest float32 z wins, ties to the lower point index; empty = depth 0, colour 0; the
@@ -19,7 +18,6 @@ __all__ = [
     "switching_median_ref",
     "plain_median_ref",
     "composite_layers_ref",
-    "naive_zbuffer_ref",
 ]
 
 
@@ -107,29 +105,6 @@ def composite_layers_ref(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.nda
     out_d = np.where(hit, np.take_along_axis(depth_m, front, 0)[0], np.float32(0))
     out_c = np.where(hit[..., None], np.take_along_axis(color, front[..., None], 0)[0], np.uint8(0))
     return out_d, out_c
-
-
-def naive_zbuffer_ref(views: list[tuple[np.ndarray, np.ndarray, Intrinsics, np.ndarray]],
-                      T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """The naive baseline: a numpy z-buffer splat of whole frames ``(color, depth_m, K_view, T_world_view)``,
-    no layers, no filters, nothing cached. Returns ``(color (H, W, 3), depth_m (H, W))``."""
-    from presim.geometry import compose, invert, unproject_depth
-
-    H, W = K.height, K.width
-    zbuf = np.full(H * W, np.inf, np.float32)
-    out = np.zeros((H * W, 3), np.uint8)
-    T_cam_world = invert(T_world_cam)
-    for color_v, depth_v, K_v, T_world_v in views:
-        pts, mask = unproject_depth(K_v, depth_v, compose(T_cam_world, T_world_v))
-        uv, z = project(K, pts)
-        lin, win = _splat_front(uv, z, 1e-3, W, H)
-        zz, cc = z[win].astype(np.float32), color_v[mask][win]
-        closer = zz < zbuf[lin]
-        zbuf[lin[closer]] = zz[closer]
-        out[lin[closer]] = cc[closer]
-    depth = np.where(np.isfinite(zbuf), zbuf, 0).astype(np.float32)
-    return out.reshape(H, W, 3), depth.reshape(H, W)
-
 
 
 def tile_any_ref(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:

@@ -9,7 +9,6 @@ points per level of detail (in the executor's cache) and a sub-sampled grid of w
 from __future__ import annotations
 
 import math
-import mmap
 import time
 from dataclasses import dataclass, field
 from dataclasses import replace as dc_replace
@@ -18,6 +17,7 @@ import cv2
 import numpy as np
 
 from presim.capture.scene import Scene, SceneError
+from presim.capture.store import unmap_pages
 from presim.capture.sharpness import ViewSharpness
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
 from presim.photometric.apply import OutputVignetting, SourceColorCorrection, predict_exposure
@@ -33,26 +33,7 @@ from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import Selection, ring_views, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view, warp_layers
 
-__all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer", "unmap_pages"]
-
-
-def unmap_pages(arr: np.ndarray) -> None:
-    """Drop this process's mapping of the pages of ``arr`` when it is a slice of a read-only memory map
-    (a saved scene's colour/depth arrays): the prepared view holds copies, so the pages would only sit
-    in the process's RSS (they stay in the page cache). No-op otherwise."""
-    mm, b = None, arr
-    while b is not None and mm is None:  # np.asarray(memmap[i]) is a plain view: find the map below
-        mm, b = getattr(b, "_mmap", None), getattr(b, "base", None)
-    if mm is None or arr.flags.writeable or not hasattr(mmap, "MADV_DONTNEED") or arr.nbytes == 0:
-        return
-    try:
-        start = arr.ctypes.data - np.frombuffer(mm, np.uint8).ctypes.data
-        lo = start // mmap.PAGESIZE * mmap.PAGESIZE
-        hi = min(len(mm), -(-(start + arr.nbytes) // mmap.PAGESIZE) * mmap.PAGESIZE)
-        if 0 <= lo < hi:
-            mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
-    except (ValueError, OSError, TypeError):  # closed map, unusual layout: keep the pages
-        pass
+__all__ = ["STAGES", "RenderConfig", "PerfConfig", "RenderStats", "Renderer"]
 
 
 @dataclass
