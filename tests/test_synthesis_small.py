@@ -235,7 +235,7 @@ def test_frame_threads_rule():
     """Auto: one numba thread up to SERIAL_MAX_PIXELS, the caller's count above; explicit counts are
     capped at numba's pool; a negative count is an error (here and in PerfConfig)."""
     from presim.synthesis.renderer import PerfConfig
-    from presim.synthesis.threads import SERIAL_MAX_PIXELS, frame_threads, numba_threads
+    from presim.numba_threads import SERIAL_MAX_PIXELS, frame_threads, numba_threads
 
     assert frame_threads(128, 128) == 1
     assert frame_threads(SERIAL_MAX_PIXELS, 1) == 1
@@ -256,7 +256,7 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     the caller's count is restored afterwards, and forcing two threads gives the same image."""
     from presim.geometry import Intrinsics, look_at
     from presim.synthesis import renderer as R
-    from presim.synthesis.threads import serial_now
+    from presim.numba_threads import serial_now
     from presim.testing import rect_scene as S
 
     K = Intrinsics.from_fov(64, 48, 60.0)
@@ -291,7 +291,7 @@ def test_synthesis_kernels_use_numpy_error_model():
 
     from numba.core.registry import CPUDispatcher
 
-    from presim.synthesis.threads import TwinKernel
+    from presim.numba_threads import TwinKernel
 
     seen = 0
     for name in ("blend", "cracks", "holes", "fill", "grids", "lod", "resample", "telea", "warp", "warp_ahead"):
@@ -317,7 +317,7 @@ def test_light_kernels_run_their_serial_twin_below_their_size():
     their output does not depend on which twin ran."""
     from presim.synthesis import fill as F
     from presim.synthesis import holes as C
-    from presim.synthesis.threads import LIGHT_SERIAL_BELOW, TwinKernel, parallel_kernel, serial_kernels
+    from presim.numba_threads import LIGHT_SERIAL_BELOW, TwinKernel, parallel_kernel, serial_kernels
 
     def _double(a, out):  # pragma: no cover
         for i in numba.prange(a.shape[0]):
@@ -365,7 +365,7 @@ def test_twin_kernels_dispatch_by_the_threads_mode_and_agree():
     import threading
 
     from presim.synthesis.lod import _pool_kernel, pool_depth_aware
-    from presim.synthesis.threads import TwinKernel, numba_threads, serial_kernels, serial_now
+    from presim.numba_threads import TwinKernel, numba_threads, serial_kernels, serial_now
 
     assert isinstance(_pool_kernel, TwinKernel)
     assert _pool_kernel.serial.targetoptions.get("nogil") and _pool_kernel.parallel.targetoptions.get("parallel")

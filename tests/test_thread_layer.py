@@ -49,8 +49,8 @@ import torch
 import presim.runtime, numba, numpy as np
 presim.runtime.configure()
 from presim.geometry import Intrinsics, look_at
+from presim.numba_threads import SERIAL_MAX_PIXELS
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.threads import SERIAL_MAX_PIXELS
 from presim.testing import rect_scene as S
 K = Intrinsics.from_fov(256, 200, 60.0)
 small = K.scaled(64, 50)

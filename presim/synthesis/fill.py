@@ -12,9 +12,9 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.numba_threads import LIGHT_SERIAL_BELOW, parallel_kernel
 from presim.synthesis.config import FILL_METHODS
 from presim.synthesis.telea import telea_inpaint
-from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
 __all__ = ["pushpull_fill", "pushpull_rgbd", "foreground_rim", "fill_holes"]
 

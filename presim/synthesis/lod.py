@@ -13,7 +13,7 @@ import numpy as np
 
 from presim.capture.reprojection import nearest_pixel
 from presim.geometry import Intrinsics, project, transform_points
-from presim.synthesis.threads import parallel_kernel
+from presim.numba_threads import parallel_kernel
 
 __all__ = ["LodConfig", "pool_depth_aware", "pool_depth_aware_ref", "half_intrinsics", "build_level",
            "footprint_ratio", "choose_level"]
