@@ -13,7 +13,7 @@ SCRIPT = """
 import {first}
 import presim.runtime, numba, numpy as np
 presim.runtime.configure()
-from presim.synthesis.lod import pool_depth_aware
+from presim.imaging.pool import pool_depth_aware
 pool_depth_aware(np.ones((4, 4), np.float32), np.zeros((4, 4, 3), np.uint8))  # a parallel kernel
 print(numba.threading_layer(), __import__("os").environ.get("OMP_WAIT_POLICY"))
 """

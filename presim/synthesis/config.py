@@ -98,7 +98,7 @@ class RenderConfig:
     reuse_turn_deg: float = 1.0
     """Rotation bound of the selection reuse, degrees."""
     smooth_sigma_px: float | None = None
-    """Gaussian reconstruction filter of the output colour (:mod:`presim.synthesis.smooth`), sigma in pixels
+    """Gaussian reconstruction filter of the output colour (:mod:`presim.imaging.gaussian`), sigma in pixels
     at the capture's sampling (scaled with the output focal length); None = the scene's fitted value
     (``scene.render_filter_sigma_px``, ``presim fit-filter``), none when it has none; 0 = off."""
     use_photometric: bool = True
