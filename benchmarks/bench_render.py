@@ -29,7 +29,7 @@ Other modes (one per run, on the same scenes, sizes and trajectory):
   correction (``RenderConfig(blend=True, sharpness=True)`` on the scene with a photometric
   calibration, matching frame 0's exposure), passes alternating; the in-run ratio of the medians
   (blend / base, wall and CPU) and both configs' per-stage medians.
-- ``--fill``: the final fill's Telea kernel (:func:`presim.synthesis.telea.telea_inpaint`) against
+- ``--fill``: the final fill's Telea kernel (:func:`presim.imaging.inpaint.telea_inpaint`) against
   its reference ``cv2.inpaint``, on the colour and hole mask of each frame rendered with
   ``fill_holes=False`` whose holes are at most ``--max-hole-frac`` of the image (the frames where
   ``fill_method="auto"`` runs Telea); alternating repeats; exits 1 when the outputs differ.
@@ -221,7 +221,7 @@ def compare_fill(scene, K, poses: np.ndarray, perf, repeats: int, max_hole_frac:
     import cv2
 
     from presim.synthesis.renderer import RenderConfig, Renderer
-    from presim.synthesis.telea import telea_inpaint
+    from presim.imaging.inpaint import telea_inpaint
 
     r = Renderer(scene, RenderConfig(fill_holes=False), perf)
     rows = []

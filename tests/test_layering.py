@@ -17,17 +17,18 @@ PKG = Path(__file__).resolve().parents[1] / "presim"
 
 # Sub-package -> sub-packages it may import. Root modules (presim/*.py and the package __init__) are
 # the base: everybody may import them and they import only each other (see _unit / _violations).
-_ALL = {"formats", "sensors", "capture", "align", "photometric", "depth", "synthesis", "evaluation", "sim",
-        "datasets", "outputs", "pose", "api", "cli", "testing"}
+_ALL = {"formats", "sensors", "imaging", "capture", "align", "photometric", "depth", "synthesis", "evaluation",
+        "sim", "datasets", "outputs", "pose", "api", "cli", "testing"}
 ALLOWED: dict[str, set[str]] = {
     "formats": set(),
     "sensors": set(),
+    "imaging": set(),
     "capture": {"formats", "sensors"},
     "align": {"formats", "capture"},
     "photometric": {"formats", "capture"},
     "depth": {"formats", "capture"},
-    "synthesis": {"formats", "capture", "photometric"},
-    "evaluation": {"formats", "sensors", "capture", "photometric", "depth", "synthesis"},
+    "synthesis": {"formats", "imaging", "capture", "photometric"},
+    "evaluation": {"formats", "sensors", "imaging", "capture", "photometric", "depth", "synthesis"},
     "sim": {"formats", "sensors", "capture", "synthesis"},
     "datasets": {"formats", "sensors", "capture", "synthesis"},
     "outputs": {"formats", "sensors", "capture", "sim"},

@@ -1,5 +1,5 @@
-"""The renderer's reconstruction filter (presim.synthesis.smooth) and its fit on the capture
-(presim.evaluation.smooth_fit, presim fit-filter)."""
+"""The renderer's reconstruction filter (presim.imaging.gaussian, presim.imaging.torch_ops) and its fit on the
+capture (presim.evaluation.smooth_fit, presim fit-filter)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,9 @@ from presim.capture.store import load_scene, save_render_filter, save_scene
 from presim.evaluation.eval_views import EvalConfig, eval_views, uses_fitted_filter
 from presim.evaluation.smooth_fit import SmoothFitConfig, fit_smoothing, held_out_frames
 from presim.geometry import Intrinsics, look_at
+from presim.imaging.gaussian import MIN_SIGMA_PX, gaussian_taps, kernel_size, smooth_colors, smooth_colors_ref
 from presim.synthesis.config import RenderConfig
 from presim.synthesis.renderer import Renderer
-from presim.synthesis.smooth import (MIN_SIGMA_PX, gaussian_taps, kernel_size, smooth_colors, smooth_colors_ref,
-                                     smooth_colors_torch)
 from presim.testing.rect_scene import make_scene, room_rects
 
 K = Intrinsics(60.0, 60.0, 39.5, 29.5, 80, 60)
@@ -38,6 +37,8 @@ def test_gaussian_of_a_single_bright_pixel_is_the_outer_product_of_the_taps():
 
 
 def test_fast_paths_match_the_reference_and_keep_flat_images():
+    from presim.imaging.torch_ops import smooth_colors_torch  # torch only here
+
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
     for sigma in (0.3, 0.6, 0.9, 2.0):

@@ -36,7 +36,7 @@ def test_batch_frames_equal_render_per_stream(size):
     """render_batch: frame b of every batch equals what render() gives for camera stream b (its own
     renderer, same config, the selection reuse on), at a small size (one thread, views warped
     ahead) and at one whose frames run parallel kernels."""
-    from presim.synthesis.threads import SERIAL_MAX_PIXELS
+    from presim.numba_threads import SERIAL_MAX_PIXELS
 
     Kc = Intrinsics.from_fov(64, 48, 60.0)
     scene = S.make_scene(S.room_rects(), S.orbit_poses(5), Kc)

@@ -438,7 +438,7 @@ def test_forward_warp_rounds_half_pixels_up():
 
 
 def test_synthesis_imports_nothing_above_capture():
-    # Layering: geometry -> capture -> photometric/depth -> synthesis; synthesis needs no depth (the
+    # Layering: geometry -> capture/imaging -> photometric/depth -> synthesis; synthesis needs no depth (the
     # evaluation, which refines depth, lives in presim.evaluation) and of photometric only apply.py.
     import subprocess
     import sys
@@ -450,7 +450,8 @@ def test_synthesis_imports_nothing_above_capture():
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('presim.'))))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     # presim.runtime is the package's own import-time process setup (imported by presim/__init__).
-    assert out and not [m for m in out if m.split(".")[1] not in ("capture", "geometry", "synthesis", "runtime")
+    assert out and not [m for m in out if m.split(".")[1] not in ("capture", "geometry", "imaging", "numba_threads",
+                                                                  "synthesis", "runtime")
                         and m not in ("presim.photometric", "presim.photometric.apply")], out
 
 
@@ -458,7 +459,7 @@ def test_synthesis_imports_nothing_above_capture():
 def test_numba_pushpull_matches_reference_pushpull(shape, known_frac):
     """The numba full-size steps against pushpull_fill (the OpenCV version, the reference): sparse
     and dense known pixels; an odd size takes pushpull_fill itself."""
-    from presim.synthesis.fill import pushpull_fill, pushpull_rgbd
+    from presim.imaging.pushpull import pushpull_fill, pushpull_rgbd
 
     rng = np.random.default_rng(shape[0])
     color = rng.integers(0, 256, shape + (3,), dtype=np.uint8)
@@ -484,7 +485,7 @@ def test_pull0_kernel_is_the_exact_mean_of_known_children(with_color):
     """Level 0 -> 1 of the numba pull-push: the 2x2 means of the known children (float32 sums in
     row order, weights = known count / 4), exactly, whatever the unknown pixels hold (0, NaN, inf,
     negative: they must not leak into the sums)."""
-    from presim.synthesis.fill import _pull0_kernel
+    from presim.imaging.pushpull import _pull0_kernel
 
     rng = np.random.default_rng(7)
     H, W = 34, 46
@@ -515,7 +516,7 @@ def test_pull0_kernel_is_the_exact_mean_of_known_children(with_color):
 def test_numba_and_reference_pushpull_agree_on_a_ramp():
     """The numba fill and its reference (pushpull_fill) reproduce a linear ramp inside a hole the
     same way (the pyramids differ only at odd sizes)."""
-    from presim.synthesis.fill import pushpull_fill
+    from presim.imaging.pushpull import pushpull_fill
 
     u = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
     color = np.stack([2 * u, 200 - u, np.full_like(u, 77)], -1).astype(np.uint8)
@@ -560,7 +561,7 @@ def test_analyse_holes_matches_scipy_labelling(seed, hole_frac, shape):
 def test_fill_push_step_kernel_equals_numpy_expression_exactly(C):
     """One push step of the numba pull-push = pushpull_fill's numpy expression, bit for bit
     (weights 0, fractional, 1; values from a real-like range)."""
-    from presim.synthesis.fill import _blend_level_kernel
+    from presim.imaging.pushpull import _blend_level_kernel
 
     rng = np.random.default_rng(C)
     h, w = 31, 47

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from presim.geometry import Intrinsics, invert, look_at, make_pose, project, transform_points, unproject_depth
-from presim.synthesis.lod import (LodConfig, build_level, choose_level, footprint_ratio, half_intrinsics,
-                                  pool_depth_aware, pool_depth_aware_ref)
+from presim.imaging.pool import pool_depth_aware, pool_depth_aware_ref
+from presim.numba_threads import serial_kernels
+from presim.synthesis.lod import LodConfig, build_level, choose_level, footprint_ratio, half_intrinsics
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.threads import serial_kernels
 from presim.testing import rect_scene as S
 
 

@@ -52,7 +52,7 @@ def _psnr(a, b, mask=None):
 
 
 def test_crack_fraction_after_warping_a_real_view_is_small(apc):
-    from presim.synthesis.fill import pushpull_fill
+    from presim.imaging.pushpull import pushpull_fill
 
     color, depth = apc.frames.load(24)
     K = apc.intrinsics[24]

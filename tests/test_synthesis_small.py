@@ -234,7 +234,7 @@ def test_frame_threads_rule():
     """Auto: one numba thread up to SERIAL_MAX_PIXELS, the caller's count above; explicit counts are
     capped at numba's pool; a negative count is an error (here and in PerfConfig)."""
     from presim.synthesis.renderer import PerfConfig
-    from presim.synthesis.threads import SERIAL_MAX_PIXELS, frame_threads, numba_threads
+    from presim.numba_threads import SERIAL_MAX_PIXELS, frame_threads, numba_threads
 
     assert frame_threads(128, 128) == 1
     assert frame_threads(SERIAL_MAX_PIXELS, 1) == 1
@@ -255,7 +255,7 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     the caller's count is restored afterwards, and forcing two threads gives the same image."""
     from presim.geometry import Intrinsics, look_at
     from presim.synthesis import renderer as R
-    from presim.synthesis.threads import serial_now
+    from presim.numba_threads import serial_now
     from presim.testing import rect_scene as S
 
     K = Intrinsics.from_fov(64, 48, 60.0)
@@ -282,19 +282,20 @@ def test_small_frames_render_on_one_thread_with_the_same_image(monkeypatch):
     np.testing.assert_array_equal(auto.depth_m, forced.depth_m)
 
 
-def test_synthesis_kernels_use_numpy_error_model():
-    """Every numba kernel of the synthesis (both twins of a TwinKernel) is compiled with numpy's
+def test_numba_kernels_use_numpy_error_model():
+    """Every numba kernel of the synthesis and of imaging (both twins of a TwinKernel) is compiled with numpy's
     error model: no ZeroDivisionError branch in the loops, which keeps LLVM from vectorizing any
     loop with a division or a modulo (docs/synthesis.md, "numpy's error model")."""
     import importlib
 
     from numba.core.registry import CPUDispatcher
 
-    from presim.synthesis.threads import TwinKernel
+    from presim.numba_threads import TwinKernel
 
     seen = 0
-    for name in ("blend", "cracks", "holes", "fill", "grids", "lod", "resample", "telea", "warp", "warp_ahead"):
-        mod = importlib.import_module(f"presim.synthesis.{name}")
+    for name in ("synthesis.blend", "synthesis.cracks", "synthesis.holes", "synthesis.grids", "synthesis.resample",
+                 "synthesis.warp", "synthesis.warp_ahead", "imaging.inpaint", "imaging.pool", "imaging.pushpull"):
+        mod = importlib.import_module(f"presim.{name}")
         for attr, obj in vars(mod).items():
             if isinstance(obj, TwinKernel):
                 dispatchers = [obj.parallel, obj.serial]
@@ -314,9 +315,9 @@ def test_light_kernels_run_their_serial_twin_below_their_size():
     """A TwinKernel with serial_below runs the serial twin when its size argument is smaller (and in
     serial mode), the parallel one otherwise; the per-view light kernels declare their sizes, and
     their output does not depend on which twin ran."""
-    from presim.synthesis import fill as F
+    from presim.imaging import pushpull as F
     from presim.synthesis import holes as C
-    from presim.synthesis.threads import LIGHT_SERIAL_BELOW, TwinKernel, parallel_kernel, serial_kernels
+    from presim.numba_threads import LIGHT_SERIAL_BELOW, TwinKernel, parallel_kernel, serial_kernels
 
     def _double(a, out):  # pragma: no cover
         for i in numba.prange(a.shape[0]):
@@ -363,8 +364,8 @@ def test_twin_kernels_dispatch_by_the_threads_mode_and_agree():
     otherwise; both give the same output, and the serial twin runs without the GIL."""
     import threading
 
-    from presim.synthesis.lod import _pool_kernel, pool_depth_aware
-    from presim.synthesis.threads import TwinKernel, numba_threads, serial_kernels, serial_now
+    from presim.imaging.pool import _pool_kernel, pool_depth_aware
+    from presim.numba_threads import TwinKernel, numba_threads, serial_kernels, serial_now
 
     assert isinstance(_pool_kernel, TwinKernel)
     assert _pool_kernel.serial.targetoptions.get("nogil") and _pool_kernel.parallel.targetoptions.get("parallel")

@@ -1,5 +1,6 @@
-"""Torch kernels of the stages after the view image (presim/synthesis/torch_stages.py) against their numba /
-numpy paths on CPU torch, and the torch backend end to end against numba."""
+"""Torch kernels of the stages after the view image (presim/synthesis/torch_stages.py, the pull-push of
+presim/imaging/torch_ops.py) against their numba / numpy paths on CPU torch, and the torch backend end to end
+against numba."""
 
 from __future__ import annotations
 
@@ -16,10 +17,11 @@ from scipy import ndimage  # noqa: E402
 
 from presim.capture.calibration import PhotometricCalib  # noqa: E402
 from presim.geometry import Intrinsics, look_at  # noqa: E402
+from presim.imaging import torch_ops  # noqa: E402
+from presim.imaging.pushpull import pushpull_rgbd  # noqa: E402
 from presim.photometric.apply import apply_exposure, correct_colors  # noqa: E402
 from presim.synthesis import torch_stages as ts  # noqa: E402
 from presim.synthesis.blend import BlendConfig, BlendInput, blend_reference  # noqa: E402
-from presim.synthesis.fill import pushpull_rgbd  # noqa: E402
 from presim.synthesis.holes import analyse_hole_mask, merge_into_holes, merge_view_holes  # noqa: E402
 from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer  # noqa: E402
 from presim.testing import rect_scene as S  # noqa: E402
@@ -117,7 +119,7 @@ def test_pushpull_matches_numba(shape, known_frac):
     valid = rng.random(shape) < known_frac
     valid.flat[0] = True
     c, d = pushpull_rgbd(color, depth, valid)
-    tc, td = ts.pushpull_rgbd_torch(color, depth, valid, device="cpu")
+    tc, td = torch_ops.pushpull_rgbd_torch(color, depth, valid, device="cpu")
     assert tc.dtype == np.uint8 and td.dtype == np.float32
     np.testing.assert_array_equal(tc[valid], color[valid])
     np.testing.assert_array_equal(td[valid], depth[valid])
@@ -125,7 +127,7 @@ def test_pushpull_matches_numba(shape, known_frac):
     # flip one level where a value sits within float error of .5 (the numba-vs-OpenCV rule of test_synthesis_core).
     assert np.abs(td - d).max() < 1e-5
     assert np.abs(tc.astype(int) - c).max() <= 1 and np.mean(tc != c) < 0.01
-    assert np.array_equal(ts.pushpull_rgbd_torch(None, depth, valid, device="cpu")[1], td)
+    assert np.array_equal(torch_ops.pushpull_rgbd_torch(None, depth, valid, device="cpu")[1], td)
 
 
 def _blend_inputs(seed: int):
@@ -171,8 +173,9 @@ def test_torch_backend_renders_as_numba_and_runs_the_torch_stages(room, monkeypa
     names = ("merge_holes_torch", "analyse_hole_mask_torch", "pushpull_rgbd_torch", "blend_torch",
              "apply_exposure_torch")
     for name in names:
-        real = getattr(ts, name)
-        monkeypatch.setattr(ts, name, lambda *a, _f=real, _n=name, **k: calls.append(_n) or _f(*a, **k))
+        mod = torch_ops if name == "pushpull_rgbd_torch" else ts
+        real = getattr(mod, name)
+        monkeypatch.setattr(mod, name, lambda *a, _f=real, _n=name, **k: calls.append(_n) or _f(*a, **k))
     n = len(room)  # a calibrated copy: the predicted exposure runs, with gains and biases that differ per frame
     calib = PhotometricCalib(tuple(room.frame_ids), np.repeat(np.linspace(0.8, 1.2, n)[:, None], 3, 1),
                              np.repeat(np.linspace(-4.0, 4.0, n)[:, None], 3, 1))

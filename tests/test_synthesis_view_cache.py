@@ -10,10 +10,10 @@ import pytest
 
 from presim.capture.scene import SceneError
 from presim.geometry import Intrinsics, look_at
+from presim.imaging.pool import pool_depth_aware
+from presim.numba_threads import serial_kernels
 from presim.synthesis.execution import ViewCache
-from presim.synthesis.lod import pool_depth_aware
 from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
-from presim.synthesis.threads import serial_kernels
 from presim.testing import rect_scene as S
 
 

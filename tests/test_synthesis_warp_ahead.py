@@ -97,7 +97,7 @@ def test_renderer_images_do_not_depend_on_warp_ahead(cfg, monkeypatch):
     asks (the loop then takes them all: fixed views are drawn in candidate order)."""
     monkeypatch.setattr(EX, "WARP_AHEAD_MIN_POINTS", 0)  # the test views are small
     scene = _scene()
-    K = Intrinsics.from_fov(48, 36, 60.0)  # one thread per frame (threads.SERIAL_MAX_PIXELS)
+    K = Intrinsics.from_fov(48, 36, 60.0)  # one thread per frame (numba_threads.SERIAL_MAX_PIXELS)
     base = _frames(Renderer(scene, RenderConfig(**cfg), PerfConfig(warp_ahead=False)), scene, K)
     r = Renderer(scene, RenderConfig(**cfg))
     for a, b in zip(base, _frames(r, scene, K)):  # the thread as it runs
@@ -126,7 +126,7 @@ def test_warp_ahead_is_off_where_it_cannot_help(monkeypatch):
     """Not with an explicit thread count, for frames on several threads, with blending, for small
     views, for a stream's first frame, or for frames that draw one view; otherwise this frame's
     later candidates that the stream's previous frame drew."""
-    from presim.synthesis import threads as TH
+    from presim import numba_threads as TH
 
     scene = _scene()
     calls = []

@@ -13,7 +13,7 @@ SCRIPT = """
 import {first}
 import presim.runtime, numba, numpy as np
 presim.runtime.configure()
-from presim.synthesis.lod import pool_depth_aware
+from presim.imaging.pool import pool_depth_aware
 pool_depth_aware(np.ones((4, 4), np.float32), np.zeros((4, 4, 3), np.uint8))  # a parallel kernel
 print(numba.threading_layer(), __import__("os").environ.get("OMP_WAIT_POLICY"))
 """
@@ -49,8 +49,8 @@ import torch
 import presim.runtime, numba, numpy as np
 presim.runtime.configure()
 from presim.geometry import Intrinsics, look_at
+from presim.numba_threads import SERIAL_MAX_PIXELS
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.threads import SERIAL_MAX_PIXELS
 from presim.testing import rect_scene as S
 K = Intrinsics.from_fov(256, 200, 60.0)
 small = K.scaled(64, 50)

@@ -1,7 +1,7 @@
 """The renderer's reconstruction filter fitted on the capture itself (``presim fit-filter``).
 
 Capture frames spread over the capture are each rendered from the *other* frames at their own pose and
-intrinsics, unfiltered; then every candidate sigma filters the renders (:mod:`presim.synthesis.smooth`) and is
+intrinsics, unfiltered; then every candidate sigma filters the renders (:mod:`presim.imaging.gaussian`) and is
 scored by the mean squared colour error against the real frames on the pixels a view covered. The sigma with
 the lowest mean error is the scene's filter: it weighs the views' sensor noise and sub-pixel misregistration
 against detail for this capture and camera, and no frame the renderer is later compared with is needed."""
@@ -15,10 +15,10 @@ from typing import Sequence
 import numpy as np
 
 from presim.capture.scene import Scene
+from presim.imaging.gaussian import smooth_colors
 from presim.io_utils import progress
 from presim.synthesis.config import RenderConfig
 from presim.synthesis.renderer import Renderer
-from presim.synthesis.smooth import smooth_colors
 
 __all__ = ["SmoothFitConfig", "SmoothFit", "held_out_frames", "fit_smoothing"]
 

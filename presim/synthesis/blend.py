@@ -18,7 +18,7 @@ import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics
-from presim.synthesis.threads import parallel_kernel
+from presim.numba_threads import parallel_kernel
 
 __all__ = ["BlendConfig", "BlendInput", "feather_map", "feather_box", "coverage_counts",
            "front_of_layers", "blend_reference",

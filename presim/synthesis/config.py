@@ -98,7 +98,7 @@ class RenderConfig:
     reuse_turn_deg: float = 1.0
     """Rotation bound of the selection reuse, degrees."""
     smooth_sigma_px: float | None = None
-    """Gaussian reconstruction filter of the output colour (:mod:`presim.synthesis.smooth`), sigma in pixels
+    """Gaussian reconstruction filter of the output colour (:mod:`presim.imaging.gaussian`), sigma in pixels
     at the capture's sampling (scaled with the output focal length); None = the scene's fitted value
     (``scene.render_filter_sigma_px``, ``presim fit-filter``), none when it has none; 0 = off."""
     use_photometric: bool = True
@@ -172,7 +172,7 @@ class PerfConfig:
     torch_device: str | None = None
     """Torch device (None: CUDA when available, else CPU)."""
     threads: int = 0
-    """numba threads per frame: 0 = one up to ``threads.SERIAL_MAX_PIXELS`` pixels, else all; > 0 that many."""
+    """numba threads per frame: 0 = one up to ``numba_threads.SERIAL_MAX_PIXELS`` pixels, else all; > 0 that many."""
     warp_ahead: bool = True
     """Frames on one thread: a helper thread warps the later candidates the stream's previous frame drew
     (:mod:`presim.synthesis.warp_ahead`; 1.13x at 128x128 on the apc capture)."""

@@ -14,10 +14,10 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.numba_threads import parallel_kernel
 from presim.synthesis import kernels_reference as ref
 from presim.synthesis.config import CRACK_FILTERS
 from presim.synthesis.holes import row_words
-from presim.synthesis.threads import parallel_kernel
 
 __all__ = ["BANDED_MAX_LAYERS", "TILED_MIN_PIXELS", "TILED_MAX_FRAC", "WARP_TILE_PX",
            "crack_filter", "filtered_composite_banded", "tile_any", "warp_tiles"]

@@ -1,6 +1,6 @@
 """The executor: when and on which thread a frame's work runs; it never changes a pixel.
 
-Frames of at most ``threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (the serial twins); such a frame
+Frames of at most ``numba_threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (the serial twins); such a frame
 leaves a core idle, so a helper thread (:mod:`presim.synthesis.warp_ahead`) warps the later candidates the
 stream's previous frame drew while the loop works on the first view. Prepared views live in a :class:`ViewCache`.
 Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and earned >= 10 % on a case of
@@ -16,10 +16,10 @@ from typing import Any, Callable, Hashable, Iterator
 import numpy as np
 
 from presim.geometry import Intrinsics
+from presim.numba_threads import frame_threads, numba_threads
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.cracks import TILED_MIN_PIXELS
 from presim.synthesis.pipeline import ViewImage, Workspace, banded_applies, view_image
-from presim.synthesis.threads import frame_threads, numba_threads
 from presim.synthesis.warp_ahead import WARP_AHEAD_MIN_POINTS, WarpAhead
 
 __all__ = ["Executor", "ViewCache"]

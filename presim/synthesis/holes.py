@@ -13,7 +13,7 @@ import cv2
 import numba as nb
 import numpy as np
 
-from presim.synthesis.threads import LIGHT_SERIAL_BELOW, parallel_kernel
+from presim.numba_threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
 __all__ = ["HoleStats", "merge_view_holes", "merge_into_holes", "analyse_holes", "analyse_hole_mask", "row_words"]
 

@@ -19,6 +19,8 @@ from typing import Callable, NamedTuple, Protocol
 import numpy as np
 
 from presim.geometry import Intrinsics, invert
+from presim.imaging.gaussian import MIN_SIGMA_PX, smooth_colors, smooth_colors_ref
+from presim.imaging.pushpull import pushpull_rgbd
 from presim.photometric.apply import apply_exposure
 from presim.synthesis import completion
 from presim.synthesis import kernels_reference as ref
@@ -27,10 +29,9 @@ from presim.synthesis.completion import CompletedPoints, Target
 from presim.synthesis.config import RenderConfig
 from presim.synthesis.cracks import (BANDED_MAX_LAYERS, TILED_MAX_FRAC, TILED_MIN_PIXELS, WARP_TILE_PX, crack_filter,
                                      filtered_composite_banded, warp_tiles)
-from presim.synthesis.fill import fill_holes, pushpull_rgbd
+from presim.synthesis.fill import fill_holes
 from presim.synthesis.holes import HoleStats, analyse_hole_mask, merge_into_holes, merge_view_holes
 from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
-from presim.synthesis.smooth import MIN_SIGMA_PX, smooth_colors, smooth_colors_ref, smooth_colors_torch
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
 __all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
@@ -154,9 +155,13 @@ def resample(backend: str, color: np.ndarray, depth_m: np.ndarray, source: np.nd
 
 
 def smooth(backend: str, color: np.ndarray, sigma_px: float, device: str | None = None) -> np.ndarray:
-    """The reconstruction filter (:mod:`presim.synthesis.smooth`) on ``backend`` (torch on ``device``)."""
+    """The reconstruction filter on ``backend`` (torch on ``device``): a Gaussian of the output colour
+    (:mod:`presim.imaging.gaussian`) that weighs the splats' placement (up to half a pixel off) and sensor noise
+    against detail, sigma fitted per capture (docs/synthesis.md, item 13)."""
     if backend == "torch":
-        return smooth_colors_torch(color, sigma_px, device=device)
+        from presim.imaging import torch_ops  # torch is imported only when asked for
+
+        return torch_ops.smooth_colors_torch(color, sigma_px, device=device)
     return (smooth_colors if backend == "numba" else smooth_colors_ref)(color, sigma_px)
 
 
@@ -180,12 +185,13 @@ def stage_kernels(backend: str, device: str | None = None) -> StageKernels:
     numba's (the reference backend's too)."""
     if backend != "torch":
         return _NUMBA_STAGES
-    from presim.synthesis import torch_stages as ts  # torch is imported only when asked for
+    from presim.imaging import torch_ops  # torch is imported only when asked for
+    from presim.synthesis import torch_stages as ts
 
     on = functools.partial
     merge = on(ts.merge_holes_torch, device=device)
     return StageKernels(merge, merge, on(ts.analyse_hole_mask_torch, device=device),
-                        on(ts.pushpull_rgbd_torch, device=device), on(ts.blend_torch, device=device),
+                        on(torch_ops.pushpull_rgbd_torch, device=device), on(ts.blend_torch, device=device),
                         on(ts.apply_exposure_torch, device=device))
 
 

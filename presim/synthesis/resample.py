@@ -14,7 +14,7 @@ import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics
-from presim.synthesis.threads import parallel_kernel
+from presim.numba_threads import parallel_kernel
 
 __all__ = ["MAX_SOURCES", "SourceImage", "SourceStack", "stack_sources", "source_projection", "resample_colors_ref", "resample_colors"]
 

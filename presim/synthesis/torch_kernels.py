@@ -12,15 +12,11 @@ import numpy as np
 import torch
 
 from presim.geometry import Intrinsics
+from presim.imaging.torch_ops import resolve_device
 from presim.synthesis.warp import ViewPoints
 
 __all__ = ["resolve_device", "TorchView", "to_device", "warp_layers_torch",
            "crack_filter_torch", "composite_layers_torch", "view_image_torch"]
-
-
-def resolve_device(name: str | None = None) -> torch.device:
-    """``torch.device(name)``, or CUDA when present, else CPU when ``name`` is None / empty."""
-    return torch.device(name if name else "cuda" if torch.cuda.is_available() else "cpu")
 
 
 @dataclass(frozen=True)

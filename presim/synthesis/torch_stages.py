@@ -1,11 +1,11 @@
 """Torch kernels of the stages after the view image (``PerfConfig(backend="torch")``): merge + hole analysis,
-pull-push fill, blend and exposure. Host arrays in and out, as :mod:`presim.synthesis.torch_kernels`; the work
-runs on ``device`` (None: CUDA when present, else CPU). Each is tested against its numba / numpy path."""
+blend and exposure (the pull-push fill's: :mod:`presim.imaging.torch_ops`). Host arrays in and out, as
+:mod:`presim.synthesis.torch_kernels`; the work runs on ``device`` (None: CUDA when present, else CPU). Each is
+tested against its numba / numpy path."""
 
 from __future__ import annotations
 
 import functools
-import math
 
 import cv2
 import numpy as np
@@ -13,13 +13,13 @@ import torch
 import torch.nn.functional as F
 
 from presim.geometry import Intrinsics
+from presim.imaging.torch_ops import resolve_device
 from presim.photometric.apply import gain_bias_lut
 from presim.synthesis.blend import BlendConfig, BlendInput, feather_box
 from presim.synthesis.holes import HoleStats
-from presim.synthesis.torch_kernels import resolve_device
 
-__all__ = ["merge_holes_torch", "label_components_torch", "analyse_hole_mask_torch", "pushpull_rgbd_torch",
-           "blend_torch", "apply_exposure_torch"]
+__all__ = ["merge_holes_torch", "label_components_torch", "analyse_hole_mask_torch", "blend_torch",
+           "apply_exposure_torch"]
 
 
 def _on(a: np.ndarray, dev: torch.device) -> torch.Tensor:
@@ -106,61 +106,6 @@ def analyse_hole_mask_torch(holes: np.ndarray, n_hole: int, big_hole_px: int = 1
         el = torch.from_numpy(_ellipse(2 * hole_dilation_px + 1)).to(dev)
         rep = m | (F.conv2d(big.float()[None, None], el[None, None], padding=hole_dilation_px)[0, 0] > 0)
     return HoleStats(n_hole / float(H * W), largest, rep.cpu().numpy(), big.cpu().numpy())
-
-
-@functools.lru_cache(maxsize=64)
-def _area_taps(n: int, n2: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(index, weight)`` (n2, 3) of OpenCV's INTER_AREA from n to n2 (n / 2 <= n2 <= n) samples, as its
-    ``computeResizeAreaTab`` (unused taps: weight 0)."""
-    idx, wt = np.zeros((n2, 3), np.int64), np.zeros((n2, 3), np.float32)
-    s = n / n2
-    for j in range(n2):
-        f1 = j * s
-        f2, cell = f1 + s, min(s, n - f1)
-        s2 = min(math.floor(f2), n - 1)
-        s1 = min(math.ceil(f1), s2)
-        taps = ([(s1 - 1, (s1 - f1) / cell)] if s1 - f1 > 1e-3 else []) + [(x, 1.0 / cell) for x in range(s1, s2)]
-        taps += [(s2, min(f2 - s2, 1.0, cell) / cell)] if f2 - s2 > 1e-3 else []
-        for k, (x, w) in enumerate(taps):
-            idx[j, k], wt[j, k] = x, w
-    return idx, wt
-
-
-def _area_halve(x: torch.Tensor) -> torch.Tensor:
-    """(C, h, w) -> (C, ceil(h / 2), ceil(w / 2)) as ``cv2.resize(INTER_AREA)``."""
-    for dim in (2, 1):
-        n = x.shape[dim]
-        idx, wt = (torch.from_numpy(t).to(x.device) for t in _area_taps(n, (n + 1) // 2))
-        x = (x.movedim(dim, -1)[..., idx] * wt).sum(-1).movedim(-1, dim)
-    return x
-
-
-def pushpull_rgbd_torch(color: np.ndarray | None, depth_m: np.ndarray, valid: np.ndarray,
-                        device: torch.device | str | None = None) -> tuple[np.ndarray | None, np.ndarray]:
-    """:func:`~presim.synthesis.fill.pushpull_rgbd` in torch (float32): pull = OpenCV area halving of the
-    premultiplied values and weights, push = bilinear upsampling (``align_corners=False`` = INTER_LINEAR) blended
-    by ``clip(w, 0, 1)``. Known pixels unchanged; the rest within float32 rounding of :func:`pushpull_fill`."""
-    dev = resolve_device(device)
-    known = _on(valid, dev).bool()
-    d = _on(np.asarray(depth_m, np.float32), dev)
-    c = None if color is None else _on(color, dev)
-    v = d[None] if c is None else torch.cat([c.permute(2, 0, 1).float(), d[None]])
-    acc, w = torch.where(known, v, 0.0), known.float()
-    levels = []
-    while not bool((w > 0).all()) and min(w.shape) > 1:
-        levels.append((acc, w))
-        both = _area_halve(torch.cat([acc, w[None]]))
-        acc, w = both[:-1], both[-1]
-    est = acc / w.clamp(min=1e-12)
-    for acc_l, w_l in reversed(levels):
-        up = F.interpolate(est[None], size=w_l.shape, mode="bilinear", align_corners=False)[0]
-        a = w_l.clamp(0.0, 1.0)
-        est = acc_l / w_l.clamp(min=1e-12) * a + up * (1.0 - a)
-    out_d = torch.where(known, d, est[-1]).cpu().numpy()
-    if c is None:
-        return None, out_d
-    rounded = (est[:3] + 0.5).clamp(0.0, 255.0).to(torch.uint8).permute(1, 2, 0)
-    return torch.where(known[..., None], c, rounded).cpu().numpy(), out_d
 
 
 def _feather(depth_m: torch.Tensor, feather_px: float) -> torch.Tensor:

@@ -13,7 +13,7 @@ import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics, unproject_depth
-from presim.synthesis.threads import parallel_kernel
+from presim.numba_threads import parallel_kernel
 
 __all__ = ["CHUNK_PTS", "TargetCam", "TileMarks", "ChunkBounds", "target_cam", "tile_marks", "chunk_bounds_of",
            "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility",

@@ -1,4 +1,4 @@
-"""Telea inpainting in numba (presim/synthesis/telea.py) against its reference, cv2.inpaint.
+"""Telea inpainting in numba (presim/imaging/inpaint.py) against its reference, cv2.inpaint.
 
 The numba kernel reproduces OpenCV's discretisation (queue order with first-in-first-out ties, the
 outside arrival times, the border rules, float32 arithmetic), so the two must agree pixel for pixel.
@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from presim.imaging.inpaint import telea_inpaint
 from presim.synthesis.fill import fill_holes
-from presim.synthesis.telea import telea_inpaint
 
 
 def _cv(color, holes, radius=3):

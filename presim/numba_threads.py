@@ -1,4 +1,4 @@
-"""Numba threads per frame, and the serial GIL-free twin of every parallel kernel.
+"""Numba threads per frame, and the serial GIL-free twin of every parallel kernel of presim.
 
 Waking an idle OpenMP thread costs each parallel region ~0.1-0.4 ms on 2 cores, more than a small frame gains,
 so frames of at most :data:`SERIAL_MAX_PIXELS` pixels run on one thread. :func:`parallel_kernel` compiles a kernel
@@ -20,8 +20,9 @@ __all__ = ["SERIAL_MAX_PIXELS", "LIGHT_SERIAL_BELOW", "frame_threads", "numba_th
            "parallel_kernel", "TwinKernel"]
 
 SERIAL_MAX_PIXELS = 40_000
-"""Frames of at most this many pixels render on one numba thread with ``PerfConfig.threads`` = 0: 1.13-1.61x
-faster at 128x128 on 2 cores, 256x256 a draw, two threads win from 320x240."""
+"""Frames of at most this many pixels render on one numba thread with the renderer's ``PerfConfig.threads`` = 0
+(:mod:`presim.synthesis.config`): 1.13-1.61x faster at 128x128 on 2 cores, 256x256 a draw, two threads win from
+320x240."""
 
 LIGHT_SERIAL_BELOW = {"map": 1 << 20, "pass": 150_000}
 """``serial_below`` (pixels) of the light per-view kernels: ``"map"`` for passes reading one mask (a later view's
@@ -97,6 +98,6 @@ class TwinKernel:
 
 
 def parallel_kernel(serial_below: int = 0, size_arg: int = 0, **options: Any) -> Callable[[Callable], TwinKernel]:
-    """Decorator replacing ``@numba.njit(parallel=True, ...)``: a :class:`TwinKernel`. Synthesis kernels pass
+    """Decorator replacing ``@numba.njit(parallel=True, ...)``: a :class:`TwinKernel`. The project's kernels pass
     ``error_model="numpy"`` (no ZeroDivisionError branch, which keeps division loops from vectorizing)."""
     return lambda fn: TwinKernel(fn, serial_below, size_arg, **options)
