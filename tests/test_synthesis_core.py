@@ -16,7 +16,7 @@ from presim.synthesis.config import BACKENDS, PerfConfig, RenderConfig
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.grids import FrameGrids, grid_pixels
 from presim.synthesis.holes import analyse_holes, merge_view_holes
-from presim.synthesis.pipeline import ViewImage, Workspace, synthesize_frame, view_image
+from presim.synthesis.pipeline import NUMBA, ViewImage, Workspace, stage_kernels, synthesize_frame
 
 H, W = 48, 64
 
@@ -190,7 +190,7 @@ class _Views:
     the given grids (identity target pose, K8; each grid point stands for ``z_src(v)^2`` target
     pixels at stride 1)."""
 
-    backend = "numba"
+    kernels = NUMBA
     smooth_sigma_px = 0.0
 
     def __init__(self, candidates, images, grids, calls=None, z_src=None, near_m=0.01):
@@ -396,7 +396,7 @@ def test_backends_share_one_signature_and_agree_on_a_plane():
             except ImportError:  # torch is an optional group
                 continue
             v = torch_kernels.to_device(view, "cpu")
-        outs[name] = view_image(name, v, T, K, cfg, None, Workspace())
+        outs[name] = stage_kernels(name).view_image(v, T, K, cfg, None, Workspace())
     ref = outs["reference"]
     for name, img in outs.items():
         assert img.depth_m.dtype == np.float32 and img.color.dtype == np.uint8

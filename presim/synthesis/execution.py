@@ -19,7 +19,7 @@ from presim.geometry import Intrinsics
 from presim.numba_threads import frame_threads, numba_threads
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.cracks import TILED_MIN_PIXELS
-from presim.synthesis.pipeline import ViewImage, Workspace, banded_applies, view_image
+from presim.synthesis.pipeline import ViewImage, Workspace, banded_applies, stage_kernels
 from presim.synthesis.warp_ahead import WARP_AHEAD_MIN_POINTS, WarpAhead
 
 __all__ = ["Executor", "ViewCache"]
@@ -62,7 +62,8 @@ class Executor:
 
     def __init__(self, perf: PerfConfig, config: RenderConfig):
         self.perf = perf
-        self.backend = perf.backend
+        self.kernels = stage_kernels(perf.backend, perf.torch_device)
+        """The backend's stage kernels."""
         self.cache = ViewCache(perf.cache_mb * 2**20)
         self.workspace = Workspace()
         # Warping ahead needs the numba backend's banded crack pass, no blending (which keeps the
@@ -121,7 +122,7 @@ class Executor:
                 if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
                     d, c = d.copy(), c.copy()
                 return ViewImage(d, c)
-        return view_image(self.backend, view, T_cam_world, K, config, replace, self.workspace)
+        return self.kernels.view_image(view, T_cam_world, K, config, replace, self.workspace)
 
     @contextlib.contextmanager
     def with_front(self, front: tuple[np.ndarray, np.ndarray] | None) -> Iterator[None]:

@@ -5,8 +5,8 @@
 ``views`` (:class:`FrameViews`) is the frame's candidate list and what the loop asks of it; how its work is
 scheduled is the executor's business (:mod:`presim.synthesis.execution`). Stages: view image (warp, crack
 filter, composite) -> merge + hole analysis (adaptive loop) -> completion (holes take the warped views'
-completed depth) -> resample -> blend -> fill -> smooth -> exposure; the stages with several backends
-dispatch on ``views.backend`` (:func:`view_image`, :func:`splat_into_holes`, :func:`resample`, :func:`smooth`,
+completed depth) -> resample -> blend -> fill -> smooth -> exposure. A backend is one table of the kernels of
+the stages that have several (:class:`StageKernels`: :data:`NUMBA`, :data:`REFERENCE`, torch's from
 :func:`stage_kernels`)."""
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ from presim.synthesis.holes import HoleStats, analyse_hole_mask, merge_into_hole
 from presim.synthesis.resample import SourceStack, resample_colors, resample_colors_ref
 from presim.synthesis.warp import LayeredImage, ViewPoints, warp_layers
 
-__all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "view_image", "banded_applies",
-           "StageKernels", "stage_kernels", "synthesize_frame"]
+__all__ = ["STAGES", "ViewImage", "Workspace", "FrameViews", "FrameResult", "banded_applies", "StageKernels",
+           "NUMBA", "REFERENCE", "stage_kernels", "synthesize_frame"]
 
 STAGES = ("select", "load", "warp", "crack", "composite", "holes", "complete", "resample", "fill", "blend", "smooth",
           "exposure")
@@ -116,83 +116,57 @@ def _filtered_composite(lay_d: np.ndarray, lay_c: np.ndarray, config: RenderConf
     return ViewImage(d, c, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (time.perf_counter() - t2) * 1e3)
 
 
-def view_image(backend: str, view, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
-               replace: np.ndarray | None, workspace: Workspace) -> ViewImage:
-    """One view's image on ``backend`` (``"numba"``, ``"reference"`` or ``"torch"``; the view in the
-    backend's form: :class:`~presim.synthesis.warp.ViewPoints`, or a ``TorchView`` for torch)."""
-    if backend == "numba":
-        return view_image_numba(view, T_cam_world, K, config, replace, workspace)
-    if backend == "reference":
-        return view_image_reference(view, T_cam_world, K, config, replace, workspace)
-    from presim.synthesis import torch_kernels  # torch is imported only when asked for
-
-    return ViewImage(*torch_kernels.view_image_torch(view, T_cam_world, K, config.near_m, config.crack_filter,
-                                                     config.crack_kernel_px))
-
-
-def splat_into_holes(backend: str, points: list[CompletedPoints], T_cam_world: np.ndarray, K: Intrinsics,
-                     near_m: float, target: Target, device: str | None = None) -> int:
-    """The completion stage (:mod:`presim.synthesis.completion`) on ``backend`` (torch: on ``device``)."""
-    if backend == "numba":
-        return completion.splat_into_holes(points, T_cam_world, K, near_m, target)
-    if backend == "reference":
-        return completion.splat_into_holes_ref(points, T_cam_world, K, near_m, target)
-    from presim.synthesis import torch_kernels  # torch is imported only when asked for
-
-    return torch_kernels.splat_into_holes_torch(points, T_cam_world, K, near_m, target, device)
-
-
-def resample(backend: str, color: np.ndarray, depth_m: np.ndarray, source: np.ndarray, K: Intrinsics,
-             T_world_cam: np.ndarray, sources: SourceStack, depth_tol: float) -> np.ndarray:
-    """Backward colour sampling (:mod:`presim.synthesis.resample`) on ``backend``."""
-    if backend == "numba":
-        return resample_colors(color, depth_m, source, K, T_world_cam, sources, depth_tol)
-    if backend == "reference":
-        return resample_colors_ref(color, depth_m, source, K, T_world_cam, sources, depth_tol)
-    from presim.synthesis import torch_kernels  # torch is imported only when asked for
-
-    return torch_kernels.resample_colors_torch(color, depth_m, source, K, T_world_cam, sources, depth_tol)
-
-
-def smooth(backend: str, color: np.ndarray, sigma_px: float, device: str | None = None) -> np.ndarray:
-    """The reconstruction filter on ``backend`` (torch on ``device``): a Gaussian of the output colour
-    (:mod:`presim.imaging.gaussian`) that weighs the splats' placement (up to half a pixel off) and sensor noise
-    against detail, sigma fitted per capture (docs/synthesis.md, item 13)."""
-    if backend == "torch":
-        from presim.imaging import torch_ops  # torch is imported only when asked for
-
-        return torch_ops.smooth_colors_torch(color, sigma_px, device=device)
-    return (smooth_colors if backend == "numba" else smooth_colors_ref)(color, sigma_px)
-
-
 class StageKernels(NamedTuple):
-    """A backend's kernels of merge + holes, fill, blend and exposure, with the numba functions' contracts."""
+    """One backend's kernel of every stage that has several, with the numba functions' contracts (torch's bound to
+    its device): the pipeline and the executor call only these."""
 
+    view_image: Callable[..., ViewImage]
+    """``(view, T_cam_world, K, config, replace, workspace)``: warp, crack filter, composite
+    (:func:`view_image_numba`); the view in the backend's form (:class:`ViewPoints`, or a ``TorchView``)."""
     merge_view_holes: Callable[..., int]
     merge_into_holes: Callable[..., int]
     analyse_hole_mask: Callable[..., HoleStats]
+    splat_into_holes: Callable[..., int]
+    """The completion stage (:func:`presim.synthesis.completion.splat_into_holes`)."""
+    resample: Callable[..., np.ndarray]
+    """Backward colour sampling (:func:`presim.synthesis.resample.resample_colors`)."""
     pushpull: Callable[..., tuple]
     blend: Callable[..., np.ndarray]
+    smooth: Callable[..., np.ndarray]
+    """The reconstruction filter ``(color, sigma_px)``: a Gaussian of the output colour
+    (:mod:`presim.imaging.gaussian`) that weighs the splats' placement (up to half a pixel off) and sensor noise
+    against detail, sigma fitted per capture (docs/synthesis.md, item 13)."""
     apply_exposure: Callable[..., np.ndarray]
 
 
-_NUMBA_STAGES = StageKernels(merge_view_holes, merge_into_holes, analyse_hole_mask, pushpull_rgbd, blend_numba,
-                             apply_exposure)
+NUMBA = StageKernels(view_image_numba, merge_view_holes, merge_into_holes, analyse_hole_mask,
+                     completion.splat_into_holes, resample_colors, pushpull_rgbd, blend_numba, smooth_colors,
+                     apply_exposure)
+REFERENCE = NUMBA._replace(view_image=view_image_reference, splat_into_holes=completion.splat_into_holes_ref,
+                           resample=resample_colors_ref, smooth=smooth_colors_ref)
+"""The reference backend: numpy stages where they have a reference, numba's elsewhere."""
 
 
 def stage_kernels(backend: str, device: str | None = None) -> StageKernels:
-    """The stage kernels of ``backend``: torch's (on ``device``, None: CUDA when present) for ``"torch"``, else
-    numba's (the reference backend's too)."""
+    """The kernels of ``backend`` (``"numba"``, ``"reference"`` or ``"torch"``: on ``device``, None = CUDA when
+    present, else CPU; torch is imported only then)."""
     if backend != "torch":
-        return _NUMBA_STAGES
-    from presim.imaging import torch_ops  # torch is imported only when asked for
+        return REFERENCE if backend == "reference" else NUMBA
+    from presim.imaging import torch_ops
+    from presim.synthesis import torch_kernels as tk
     from presim.synthesis import torch_stages as ts
+
+    def view_image_torch(view, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig, replace, workspace
+                         ) -> ViewImage:  # every pixel: no replace mask, no front surface (the blend re-warps)
+        return ViewImage(*tk.view_image_torch(view, T_cam_world, K, config.near_m, config.crack_filter,
+                                              config.crack_kernel_px))
 
     on = functools.partial
     merge = on(ts.merge_holes_torch, device=device)
-    return StageKernels(merge, merge, on(ts.analyse_hole_mask_torch, device=device),
+    return StageKernels(view_image_torch, merge, merge, on(ts.analyse_hole_mask_torch, device=device),
+                        on(tk.splat_into_holes_torch, device=device), on(tk.resample_colors_torch, device=device),
                         on(torch_ops.pushpull_rgbd_torch, device=device), on(ts.blend_torch, device=device),
-                        on(ts.apply_exposure_torch, device=device))
+                        on(torch_ops.smooth_colors_torch, device=device), on(ts.apply_exposure_torch, device=device))
 
 
 class FrameViews(Protocol):
@@ -200,10 +174,8 @@ class FrameViews(Protocol):
 
     candidates: list[int]
     """Ordered candidate view ids (scene frame indices), best first."""
-    backend: str
-    """The backend of the view images and of the later stages that have several."""
-    device: str | None
-    """The torch backend's device (None: CUDA when present); read only on that backend."""
+    kernels: StageKernels
+    """The backend of the stages after the view image that have several (:data:`NUMBA`, ...)."""
     smooth_sigma_px: float
     """Sigma of the reconstruction filter in this frame's pixels (0 = none)."""
 
@@ -335,8 +307,7 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
                      ) -> FrameResult:
     """The adaptive loop and the stages after it for one target camera (4x4 ``T_cam_world``, ``K``)."""
     cfg = config
-    device = views.device if views.backend == "torch" else None
-    kern = stage_kernels(views.backend, device)
+    kern = views.kernels
     H, W = K.height, K.width
     ms = {s: 0.0 for s in STAGES}
     adaptive = cfg.fixed_views == 0
@@ -350,8 +321,8 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         points = views.completed_points(warped)
         if points:
             completed = m.holes != 0
-            m.n_hole -= splat_into_holes(views.backend, points, T_cam_world, K, cfg.near_m,
-                                         Target(m.depth_m, m.color, m.source, m.holes), device)
+            m.n_hole -= kern.splat_into_holes(points, T_cam_world, K, cfg.near_m,
+                                              Target(m.depth_m, m.color, m.source, m.holes))
             completed &= m.holes == 0
         ms["complete"] = (time.perf_counter() - t) * 1e3
     ring_px = _ring_min_px(cfg, K)
@@ -377,8 +348,8 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         hole_frac = float(1.0 - (H * W - n_hole) / float(H * W))
     if cfg.backward_color and warped:
         t = time.perf_counter()
-        acc_c = resample(views.backend, acc_c, acc_d, acc_src, K, invert(T_cam_world), views.sources(warped),
-                         cfg.backward_depth_tol)
+        acc_c = kern.resample(acc_c, acc_d, acc_src, K, invert(T_cam_world), views.sources(warped),
+                              cfg.backward_depth_tol)
         ms["resample"] = (time.perf_counter() - t) * 1e3
     if cfg.blend and len(warped) > 1:
         t = time.perf_counter()
@@ -393,7 +364,7 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
     ms["fill"] = (time.perf_counter() - t) * 1e3
     if views.smooth_sigma_px >= MIN_SIGMA_PX:
         t = time.perf_counter()
-        acc_c = smooth(views.backend, acc_c, views.smooth_sigma_px, views.device)
+        acc_c = kern.smooth(acc_c, views.smooth_sigma_px)
         ms["smooth"] = (time.perf_counter() - t) * 1e3
     if cfg.use_photometric and cfg.predict_exposure and cfg.exposure_frame is None and warped:
         t = time.perf_counter()

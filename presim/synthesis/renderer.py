@@ -27,7 +27,7 @@ from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.execution import Executor
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level
-from presim.synthesis.pipeline import STAGES, ViewImage, stage_kernels, synthesize_frame, view_image
+from presim.synthesis.pipeline import STAGES, ViewImage, synthesize_frame
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
 from presim.synthesis.rgbd import RGBD
 from presim.synthesis.select import Selection, ring_views, select_views
@@ -76,7 +76,7 @@ class _FrameViews:
                  grids: FrameGrids, sel: Selection):
         self.r, self.T_world_cam, self.T_cam_world, self.K, self.grids = r, T_world_cam, T_cam_world, K, grids
         self.candidates = [int(v) for v in sel.view_idx]
-        self.backend, self.device = r.perf.backend, r.perf.torch_device
+        self.kernels = r.executor.kernels
         self.smooth_sigma_px = r.smooth_sigma_px * float(np.sqrt(K.fx * K.fy)) / r._focal_px
         self.levels: dict[int, int] = {}
         self.fronts: list[int] = []  # views whose front surface the loop wrote into the blend stacks
@@ -153,12 +153,12 @@ class _FrameViews:
                 lay = warp_layers(view, self.T_cam_world, self.K, r.config.near_m)
                 front_of_layers(lay.depth_m, lay.color, depth_out, color_out)
                 return
-            img = view_image(r.perf.backend, view, self.T_cam_world, self.K, r.config, None, r.executor.workspace)
+            img = r.executor.kernels.view_image(view, self.T_cam_world, self.K, r.config, None, r.executor.workspace)
             depth_out[:] = img.depth_m
             color_out[:] = img.color
 
         out, _ = blend_frame(views, color, depth_m, source, self.T_world_cam, self.K, r.blend_config, front_image,
-                             lambda v: r.centres[v], r.view_quality, stage_kernels(self.backend, self.device).blend,
+                             lambda v: r.centres[v], r.view_quality, r.executor.kernels.blend,
                              r.blend_buffers)
         return out
 
