@@ -12,7 +12,7 @@ from presim.depth.refine import RefineConfig
 from presim.testing.two_planes import render_two_planes, two_plane_poses
 from presim.geometry import Intrinsics
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.rgbd import RGBD
+from presim.sensors.rgbd import RGBD
 from presim.evaluation.eval_views import (
     METHODS, METRICS, EvalConfig, capture_and_targets, eval_views, format_table, image_metrics,
 )

@@ -27,7 +27,7 @@ ALLOWED: dict[str, set[str]] = {
     "align": {"formats", "capture"},
     "photometric": {"formats", "capture"},
     "depth": {"formats", "capture"},
-    "synthesis": {"formats", "imaging", "capture", "photometric"},
+    "synthesis": {"formats", "imaging", "sensors", "capture", "photometric"},
     "evaluation": {"formats", "sensors", "imaging", "capture", "photometric", "depth", "synthesis"},
     "sim": {"formats", "sensors", "capture", "synthesis"},
     "datasets": {"formats", "sensors", "capture", "synthesis"},

@@ -34,7 +34,7 @@ from presim.runtime import configure
 from presim.sim.simulator import SimConfig
 from presim.sim.simulator import Simulator as _Simulator
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.rgbd import RGBD
+from presim.sensors.rgbd import RGBD
 
 __all__ = ["RGBD", "RenderConfig", "Scene", "Simulator", "as_intrinsics", "as_pose", "open_scene"]
 
@@ -95,7 +95,7 @@ class Scene(_CaptureScene):
             config: renderer settings (default ``RenderConfig()``, as ``presim render``).
 
         Returns:
-            :class:`~presim.synthesis.rgbd.RGBD`: ``color`` uint8 (H, W, 3), ``depth_m`` float32 (H, W)
+            :class:`~presim.sensors.rgbd.RGBD`: ``color`` uint8 (H, W, 3), ``depth_m`` float32 (H, W)
             z-depth in metres, ``valid`` bool (H, W) (False = filled hole), ``source_view`` int (H, W).
         """
         K = as_intrinsics(self.intrinsics if K is None else K)

@@ -60,7 +60,7 @@ from presim.io_utils import progress, write_npy_atomic, write_png
 from presim.photometric import PhotometricConfig, calibrate_photometric
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.renderer import RenderConfig, Renderer
-from presim.synthesis.rgbd import RGBD
+from presim.sensors.rgbd import RGBD
 
 __all__ = ["METHODS", "DEFAULT_METHODS", "EvalConfig", "EvalResult", "eval_views", "format_table", "uses_fitted_filter",
            "capture_and_targets", "image_metrics"]

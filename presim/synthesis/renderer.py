@@ -29,7 +29,7 @@ from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level
 from presim.synthesis.pipeline import STAGES, ViewImage, synthesize_frame
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
-from presim.synthesis.rgbd import RGBD
+from presim.sensors.rgbd import RGBD
 from presim.synthesis.select import Selection, ring_views, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view, warp_layers
 

@@ -1,4 +1,4 @@
-"""The engine's output type, shared by renderer, simulator sensors, recorder and dataset generator."""
+"""The RGB-D frame: what the renderer synthesizes and the simulated camera, recorder and dataset generator carry."""
 
 from __future__ import annotations
 
