@@ -473,22 +473,16 @@ def test_warp_same_with_any_thread_count():
 
 
 def test_chunk_bounds_match_numpy():
-    """Bounds of each run of CHUNK_PTS points (the last run shorter), against numpy."""
+    """Bounds of each run of CHUNK_PTS points (the last run shorter) in a source camera's frame: ranges of
+    x / z, y / z and z against numpy (float32, rounded outwards: they contain the float64 ranges, within 3
+    float32 steps)."""
     from presim.synthesis.warp import CHUNK_PTS, chunk_bounds
 
     xyz = np.random.default_rng(3).normal(size=(5 * CHUNK_PTS + 17, 3)).astype(np.float32)
-    lo, hi = chunk_bounds(xyz)
-    assert lo.shape == hi.shape == (3, 6)
-    for c in range(6):
-        part = xyz[c * CHUNK_PTS:(c + 1) * CHUNK_PTS]
-        np.testing.assert_array_equal(lo[:, c], part.min(0))
-        np.testing.assert_array_equal(hi[:, c], part.max(0))
-    # In a source camera's frame: ranges of x / z, y / z and z, against numpy (float32, rounded
-    # outwards: they contain the float64 ranges, within 3 float32 steps).
     T_src = look_at((0.3, -4.0, 0.5), (0.0, 0.0, 0.0))
     p = transform_points(invert(T_src), xyz.astype(np.float64))
-    lo, hi = chunk_bounds(xyz, T_world_src=T_src)
-    assert lo.dtype == hi.dtype == np.float32
+    lo, hi = chunk_bounds(xyz, T_src)
+    assert lo.dtype == hi.dtype == np.float32 and lo.shape == hi.shape == (3, 6)
     abz = np.column_stack([p[:, 0] / p[:, 2], p[:, 1] / p[:, 2], p[:, 2]])
     for c in range(6):
         part = abz[c * CHUNK_PTS:(c + 1) * CHUNK_PTS]
@@ -498,16 +492,15 @@ def test_chunk_bounds_match_numpy():
     # A chunk with a point behind the source camera is unbounded (never culled).
     behind = xyz.copy()
     behind[CHUNK_PTS + 3] = transform_points(T_src, np.array([[0.0, 0.0, -1.0]]))[0]
-    lo, hi = chunk_bounds(behind, T_world_src=T_src)
+    lo, hi = chunk_bounds(behind, T_src)
     assert np.isinf(lo[:, 1]).all() and np.isinf(hi[:, 1]).all() and np.isfinite(lo[:, [0, 2]]).all()
     # prepare_view keeps the source pose: its bounds are in the source frame.
     vp, _ = _room_view(L=4)
-    assert vp.chunk_projective
-    np.testing.assert_array_equal(vp.chunk_lo, chunk_bounds(vp.xyz_world, T_world_src=vp.T_world_src)[0])
+    np.testing.assert_array_equal(vp.chunk_lo, chunk_bounds(vp.xyz_world, vp.T_world_src)[0])
     with pytest.raises(ValueError, match="chunk must be >= 1"):
-        chunk_bounds(xyz, 0)
+        chunk_bounds(xyz, T_src, 0)
     with pytest.raises(ValueError, match="finite 4x4"):
-        chunk_bounds(xyz, T_world_src=np.full((4, 4), np.nan))
+        chunk_bounds(xyz, np.full((4, 4), np.nan))
 
 
 def test_chunk_visibility_known_answers():
@@ -518,7 +511,7 @@ def test_chunk_visibility_known_answers():
     rng = np.random.default_rng(0)
     xyz = np.column_stack([rng.uniform(-0.3, 0.3, 640), rng.uniform(-0.3, 0.3, 640),
                            np.full(640, 2.0)]).astype(np.float32)
-    vp = ViewPoints(xyz, np.zeros((640, 3), np.uint8), np.array([0, 640], np.int64), (2.0, 2.0))
+    vp = ViewPoints(xyz, np.zeros((640, 3), np.uint8), np.array([0, 640], np.int64), (2.0, 2.0), np.eye(4))
     n = -(-640 // CHUNK_PTS)
     eye = np.eye(4)
     assert chunk_visibility(vp, eye, K_SMALL).tolist() == [1] * n
@@ -600,10 +593,6 @@ def test_culled_tiled_warp_is_exactly_the_full_warp_on_the_marked_tiles():
     full = warp_layers(vp0, T_cam_world, K, 1e-3, cull=False)
     assert (full.depth_m > 0).mean() > 0.02
     fd, fc = full.depth_m.copy(), full.color.copy()
-    # The same points with world boxes (no source pose) and with source-frame bounds.
-    from presim.synthesis.warp import ViewPoints
-
-    world = ViewPoints(vp0.xyz_world, vp0.rgb, vp0.layer_start, vp0.depth_range_m)
     tile_culled = []
     for t in range(24):
         tile_px = int(rng.choice([4, 7, 16]))
@@ -611,10 +600,9 @@ def test_culled_tiled_warp_is_exactly_the_full_warp_on_the_marked_tiles():
         tiles = (rng.random(shape) < rng.uniform(0.02, 0.5)).astype(np.uint8)
         tiles[rng.integers(shape[0]), rng.integers(shape[1])] = 1
         on = np.repeat(np.repeat(tiles, tile_px, 0), tile_px, 1)[:K.height, :K.width].astype(bool)
-        for vp in (vp0, world):
-            lay = warp_layers(vp, T_cam_world, K, 1e-3, tiles=tiles, tile_px=tile_px)
-            np.testing.assert_array_equal(lay.depth_m[:, on], fd[:, on])
-            np.testing.assert_array_equal(lay.color[:, on], fc[:, on])
+        lay = warp_layers(vp0, T_cam_world, K, 1e-3, tiles=tiles, tile_px=tile_px)
+        np.testing.assert_array_equal(lay.depth_m[:, on], fd[:, on])
+        np.testing.assert_array_equal(lay.color[:, on], fc[:, on])
         tv = chunk_visibility(vp0, T_cam_world, K, 1e-3, tiles=tiles, tile_px=tile_px)
         assert (tv <= vis).all()  # the tiles only add culls
         tile_culled.append(vis.mean() - tv.mean())
@@ -622,13 +610,12 @@ def test_culled_tiled_warp_is_exactly_the_full_warp_on_the_marked_tiles():
 
 
 def test_tile_culled_warp_is_exact_for_random_cameras():
-    """Tile culling (source-frame bounds and world boxes) over random target cameras, sizes, tile
-    sizes and marks: the marked tiles equal the full warp's."""
-    from presim.synthesis.warp import ViewPoints, chunk_visibility
+    """Tile culling over random target cameras, sizes, tile sizes and marks: the marked tiles equal the
+    full warp's."""
+    from presim.synthesis.warp import chunk_visibility
 
     rng = np.random.default_rng(5)
     vp, _ = _room_view(L=4)
-    world = ViewPoints(vp.xyz_world, vp.rgb, vp.layer_start, vp.depth_range_m)
     culled = 0
     for t in range(40):
         K = Intrinsics.from_fov(int(rng.integers(8, 120)), int(rng.integers(8, 90)), float(rng.uniform(30, 110)))
@@ -640,46 +627,34 @@ def test_tile_culled_warp_is_exact_for_random_cameras():
         shape = (-(-K.height // tile_px), -(-K.width // tile_px))
         tiles = (rng.random(shape) < rng.uniform(0.01, 0.6)).astype(np.uint8)
         on = np.repeat(np.repeat(tiles, tile_px, 0), tile_px, 1)[:K.height, :K.width].astype(bool)
-        for v in (vp, world):
-            lay = warp_layers(v, T_cam_world, K, 1e-3, tiles=tiles, tile_px=tile_px)
-            np.testing.assert_array_equal(lay.depth_m[:, on], fd[:, on])
-            np.testing.assert_array_equal(lay.color[:, on], fc[:, on])
+        lay = warp_layers(vp, T_cam_world, K, 1e-3, tiles=tiles, tile_px=tile_px)
+        np.testing.assert_array_equal(lay.depth_m[:, on], fd[:, on])
+        np.testing.assert_array_equal(lay.color[:, on], fc[:, on])
         frustum = chunk_visibility(vp, T_cam_world, K, 1e-3)
         culled += int((chunk_visibility(vp, T_cam_world, K, 1e-3, tiles=tiles, tile_px=tile_px) < frustum).any())
     assert culled >= 4
 
 
-def test_source_frame_bounds_cull_more_than_world_boxes():
-    """The same view's chunks, bounded in the source camera's frame, are culled at least as often
-    as with world boxes for a camera turned partly away, and tile culling with source-frame
-    bounds keeps fewer chunks; both warps equal the full warp (checked above)."""
+def test_tile_marks_are_checked_and_a_turned_scene_warps_exactly():
+    """Tiles of the wrong shape or type are an error naming the caller; a scene turned off the axes (thin
+    world boxes would not help) still warps the marked tiles exactly."""
     from presim.synthesis.warp import ViewPoints, chunk_visibility
 
     vp0, _ = _room_view(L=4)
-    # The room's walls are axis-aligned, which makes world boxes thin: turn the whole scene (points,
-    # source pose and targets) so that they are not.
     turn = make_pose(np.array([[0.8, -0.6, 0.0], [0.48, 0.64, -0.6], [0.36, 0.48, 0.8]]), np.zeros(3))
     xyz = transform_points(turn, vp0.xyz_world.astype(np.float64)).astype(np.float32)
     vp = ViewPoints(xyz, vp0.rgb, vp0.layer_start, vp0.depth_range_m, turn @ vp0.T_world_src)
-    world = ViewPoints(xyz, vp0.rgb, vp0.layer_start, vp0.depth_range_m)
-    assert not world.chunk_projective and vp.chunk_projective
-    T_cam_world = invert(turn @ look_at((0.15, -0.9, 1.25), (1.6, 0.3, 0.4)))
-    a, b = chunk_visibility(vp, T_cam_world, K_SMALL), chunk_visibility(world, T_cam_world, K_SMALL)
-    assert a.sum() <= b.sum()
     tiles = np.zeros((-(-K_SMALL.height // 8), -(-K_SMALL.width // 8)), np.uint8)
     tiles[2:4, 3:6] = 1
     T_near = invert(turn @ look_at((0.15, -0.9, 1.25), (0.0, 0.5, 0.4)))
-    ta = chunk_visibility(vp, T_near, K_SMALL, tiles=tiles, tile_px=8)
-    tb = chunk_visibility(world, T_near, K_SMALL, tiles=tiles, tile_px=8)
-    assert 0 < ta.sum() < tb.sum()
+    assert 0 < chunk_visibility(vp, T_near, K_SMALL, tiles=tiles, tile_px=8).sum() < len(vp.chunk_lo[0])
     with pytest.raises(ValueError, match="chunk_visibility: tiles must be uint8"):
         chunk_visibility(vp, T_near, K_SMALL, tiles=tiles[:-1], tile_px=8)
     with pytest.raises(ValueError, match="tiles must be uint8"):
         chunk_visibility(vp, T_near, K_SMALL, tiles=tiles.astype(bool), tile_px=8)
-    for v in (vp, world):  # and both warps equal the full warp on the marked tiles
-        full = warp_layers(v, T_near, K_SMALL, 1e-3, cull=False)
-        fd = full.depth_m.copy()
-        lay = warp_layers(v, T_near, K_SMALL, 1e-3, tiles=tiles, tile_px=8)
-        on = np.repeat(np.repeat(tiles, 8, 0), 8, 1)[:K_SMALL.height, :K_SMALL.width].astype(bool)
-        assert (fd[:, on] > 0).any()
-        np.testing.assert_array_equal(lay.depth_m[:, on], fd[:, on])
+    full = warp_layers(vp, T_near, K_SMALL, 1e-3, cull=False)
+    fd = full.depth_m.copy()
+    lay = warp_layers(vp, T_near, K_SMALL, 1e-3, tiles=tiles, tile_px=8)
+    on = np.repeat(np.repeat(tiles, 8, 0), 8, 1)[:K_SMALL.height, :K_SMALL.width].astype(bool)
+    assert (fd[:, on] > 0).any()
+    np.testing.assert_array_equal(lay.depth_m[:, on], fd[:, on])

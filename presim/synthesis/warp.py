@@ -62,7 +62,6 @@ class ChunkBounds(NamedTuple):
 
     lo: np.ndarray
     hi: np.ndarray
-    projective: bool
     to_world: np.ndarray
     abs_max: float
 
@@ -133,22 +132,16 @@ def _chunk_bounds_src_kernel(xyz, R, chunk):  # pragma: no cover
     return lo, hi
 
 
-def chunk_bounds(xyz_world: np.ndarray, chunk: int = CHUNK_PTS, T_world_src: np.ndarray | None = None
+def chunk_bounds(xyz_world: np.ndarray, T_world_src: np.ndarray, chunk: int = CHUNK_PTS
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of each run of ``chunk`` points: ``(lo, hi)``, float32 (3, ceil(n / chunk)), rounded outwards:
-    world boxes, or with ``T_world_src`` ranges of ``(x / z, y / z, z)`` in that camera (2-8x smaller projected
-    boxes on apc; a chunk with a point not in front of it is never culled)."""
+    """Bounds of each run of ``chunk`` points in their source camera (4x4 ``T_world_src``): ``(lo, hi)``, float32
+    (3, ceil(n / chunk)) ranges of ``(x / z, y / z, z)``, rounded outwards (2-8x smaller projected boxes than world
+    boxes on apc); a chunk with a point not in front of the camera is unbounded (never culled)."""
     xyz = np.ascontiguousarray(xyz_world, np.float32)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"chunk_bounds: need (n, 3) points, got {xyz.shape}")
     if chunk < 1:
         raise ValueError(f"chunk_bounds: chunk must be >= 1, got {chunk}")
-    if T_world_src is None:
-        starts = np.arange(0, len(xyz), int(chunk))
-        if not len(xyz):
-            return np.empty((3, 0), np.float32), np.empty((3, 0), np.float32)
-        return (np.ascontiguousarray(np.minimum.reduceat(xyz, starts).T),
-                np.ascontiguousarray(np.maximum.reduceat(xyz, starts).T))
     T = np.asarray(T_world_src, np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise ValueError(f"chunk_bounds: T_world_src must be a finite 4x4 pose, got shape {T.shape}")
@@ -168,32 +161,27 @@ class ViewPoints:
     """int64 (L + 1,): points of layer l are ``[layer_start[l], layer_start[l + 1])``."""
     depth_range_m: tuple[float, float]
     """(min, max) valid depth of the view, metres (the layer split)."""
-    T_world_src: np.ndarray | None = field(default=None, repr=False, compare=False)
-    """4x4 pose of the source camera or None; with it the chunk bounds are projective (:func:`chunk_bounds`)."""
+    T_world_src: np.ndarray = field(repr=False, compare=False)
+    """4x4 pose of the source camera (the frame of the chunk bounds, :func:`chunk_bounds`)."""
     image: Any = field(default=None, repr=False, compare=False)
     """The source image (:class:`presim.synthesis.resample.SourceImage`) for backward colour sampling, or None."""
     chunk_lo: np.ndarray = field(init=False, repr=False, compare=False)
     """float32 (3, ceil(n / CHUNK_PTS)): :func:`chunk_bounds` of the points; ``chunk_hi`` the upper ones."""
     chunk_hi: np.ndarray = field(init=False, repr=False, compare=False)
     chunk_to_world: np.ndarray = field(init=False, repr=False, compare=False)
-    """float64 (3, 4): the frame of the bounds -> world (``T_world_src[:3]``, or the identity)."""
+    """float64 (3, 4): ``T_world_src[:3]``."""
     chunk_abs_max: float = field(init=False, repr=False, compare=False)
     """Largest |world coordinate| of the points (inf if one is not finite): bounds the projection's rounding."""
 
     def __post_init__(self) -> None:
-        T = None if self.T_world_src is None else np.asarray(self.T_world_src, np.float64)
+        T = np.asarray(self.T_world_src, np.float64)
         xyz = np.ascontiguousarray(self.xyz_world, np.float32)
         A = max(-float(xyz.min()), float(xyz.max())) if len(xyz) else 0.0
-        lo, hi = chunk_bounds(xyz, T_world_src=T)
+        lo, hi = chunk_bounds(xyz, T)
         for name, value in (("T_world_src", T), ("chunk_lo", lo), ("chunk_hi", hi),
                             ("chunk_abs_max", A if np.isfinite(A) else np.inf),
-                            ("chunk_to_world", np.ascontiguousarray((np.eye(4) if T is None else T)[:3, :4]))):
+                            ("chunk_to_world", np.ascontiguousarray(T[:3, :4]))):
             object.__setattr__(self, name, value)
-
-    @property
-    def chunk_projective(self) -> bool:
-        """The chunk bounds are of ``(x / z, y / z, z)`` in the source camera (else world boxes)."""
-        return self.T_world_src is not None
 
     @property
     def num_layers(self) -> int:
@@ -367,7 +355,7 @@ def _layer_slots_kernel(layer_start, n_slots):  # pragma: no cover
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _corner_boxes(lo, hi, projective, F, fx, fy, box):  # pragma: no cover
+def _corner_boxes(lo, hi, F, fx, fy, box):  # pragma: no cover
     # box[:, c] = ranges of chunk c's 8 corners' fx x / z, fy y / z (pixels before + c + 0.5) and z in the target.
     # F unpacked into scalars, only min / max in the loop: it vectorizes.
     L0, L1, L2 = lo[0], lo[1], lo[2]
@@ -384,8 +372,8 @@ def _corner_boxes(lo, hi, projective, F, fx, fy, box):  # pragma: no cover
                 fb = H1[c] if ib else L1[c]
                 for iz in range(2):
                     z = H2[c] if iz else L2[c]
-                    f0 = fa * z if projective else fa
-                    f1 = fb * z if projective else fb
+                    f0 = fa * z
+                    f1 = fb * z
                     t0 = f00 * f0 + f01 * f1 + f02 * z + f03
                     t1 = f10 * f0 + f11 * f1 + f12 * z + f13
                     t2 = f20 * f0 + f21 * f1 + f22 * z + f23
@@ -404,17 +392,16 @@ def _corner_boxes(lo, hi, projective, F, fx, fy, box):  # pragma: no cover
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division branch (the loops vectorize)
 def chunk_keep_kernel(b, cam, margin_rel, tm, vis):  # pragma: no cover
-    # Per chunk from its bounds (world boxes: corners (x, y, z); source-frame bounds: corners (a z, b z, z) of a
-    # frustum piece holding the chunk); branch-free loops over chunks (they vectorize).
+    # Per chunk from its source-frame bounds (corners (a z, b z, z) of a frustum piece holding the chunk);
+    # branch-free loops over chunks (they vectorize).
     # 1. Frustum: the warp kernel's keep tests as 5 linear functions g_k >= 0 of the target point (z > near,
     #    u >= 0, u < W, v >= 0, v < H, multiplied out by z > 0); G_k = the same of the frame point. Their maximum
-    #    is at a corner chosen per coefficient sign (box), or at z0 or z1 with the bracket at its largest
-    #    (frustum piece, g = z (G0 a + G1 b + G2) + G3). Culled when for one k it is below -margin_rel x a bound
+    #    over the piece, g = z (G0 a + G1 b + G2) + G3, is at z0 or z1 with the bracket at its largest. Culled when for one k it is below -margin_rel x a bound
     #    of |g_k| (mag: bounds of any target point's |x|, |y|, |z|; the kernel's float32 rounding is ~1e-7 of them).
     # 2. Tiles: with every corner in front of the near plane, the points' pixels lie in the box of the corners'
     #    pixels; culled when that box, widened by a rounding margin, meets no marked tile (sat: summed-area table).
     # Non-finite bounds are kept (x - x == 0 only for finite x).
-    lo, hi, projective, S, A = b.lo, b.hi, b.projective, b.to_world, b.abs_max
+    lo, hi, S, A = b.lo, b.hi, b.to_world, b.abs_max
     M32, fx, fy, cx, cy, near, W, H = cam.M, cam.fx, cam.fy, cam.cx, cam.cy, cam.near, cam.W, cam.H
     sat, tile_px, use_tiles = tm.sat, tm.tile_px, tm.use
     # F = M S: bounds' frame -> target (M: the warp kernel's float32 matrix, in float64; S: frame -> world);
@@ -461,17 +448,13 @@ def chunk_keep_kernel(b, cam, margin_rel, tm, vis):  # pragma: no cover
                   & (h2 - h2 == 0.0))
         keep = True
         for k in range(5):
-            if projective:
-                h = G[k, 2] + max(G[k, 0] * l0, G[k, 0] * h0) + max(G[k, 1] * l1, G[k, 1] * h1)
-                g = G[k, 3] + max(l2 * h, h2 * h)
-            else:
-                g = (G[k, 3] + max(G[k, 0] * l0, G[k, 0] * h0) + max(G[k, 1] * l1, G[k, 1] * h1)
-                     + max(G[k, 2] * l2, G[k, 2] * h2))
+            h = G[k, 2] + max(G[k, 0] * l0, G[k, 0] * h0) + max(G[k, 1] * l1, G[k, 1] * h1)
+            g = G[k, 3] + max(l2 * h, h2 * h)
             keep = keep & (g >= e[k])
         vis[c] = np.uint8(keep | (not finite))
     if use_tiles:
         box = np.empty((6, m))
-        _corner_boxes(lo, hi, projective, F, fx, fy, box)
+        _corner_boxes(lo, hi, F, fx, fy, box)
         z_safe = near + margin_rel * (mag[2] + abs(near))
         tpx = np.float64(tile_px)
         tw1 = np.float64(sat.shape[1] - 2)  # the last tile column / row
@@ -541,7 +524,7 @@ def tile_marks(tiles: np.ndarray | None, K: Intrinsics, tile_px: int, who: str) 
 
 
 def chunk_bounds_of(view: ViewPoints) -> ChunkBounds:
-    return ChunkBounds(view.chunk_lo, view.chunk_hi, view.chunk_projective, view.chunk_to_world, view.chunk_abs_max)
+    return ChunkBounds(view.chunk_lo, view.chunk_hi, view.chunk_to_world, view.chunk_abs_max)
 
 
 def chunk_visibility(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3,

@@ -170,7 +170,7 @@ def _fields(view: Any) -> tuple:
     """The kernel's per-view arguments (points, layer starts, chunk bounds), contiguous: one compilation."""
     c = np.ascontiguousarray
     return (c(view.xyz_world), c(view.rgb), c(view.layer_start), ChunkBounds(
-        c(view.chunk_lo), c(view.chunk_hi), bool(view.chunk_projective), c(view.chunk_to_world),
+        c(view.chunk_lo), c(view.chunk_hi), c(view.chunk_to_world),
         float(view.chunk_abs_max)))
 
 
