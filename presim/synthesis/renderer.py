@@ -253,18 +253,21 @@ class Renderer:
             self._grid_zsrc[idx] = z = np.ascontiguousarray(z)
         return z
 
-    def _prepare(self, idx: int, level: int) -> ViewPoints:
+    def _prepare(self, idx: int, level: int, completed: bool = False) -> ViewPoints:
+        """View ``idx``'s points at ``level``; with ``completed`` those of its completed depth (one layer)."""
         color, depth = self._load_frame(idx)
-        if idx not in self._grids:
+        if completed:
+            depth = np.asarray(self.scene.depth_completed[idx])
+        elif idx not in self._grids:
             self._grids[idx] = self._grid_from_depth(idx, depth)
         K = self.scene.intrinsics[idx]
         c, d = color, depth
         if level > 0:
             c, d, K = build_level(color, depth, K, level, self.config.lod_depth_tol)
         image = None
-        if self.config.backward_color:  # kept with the points (the map's pages are dropped below)
+        if self.config.backward_color and not completed:  # kept with the points (the map's pages are dropped below)
             image = SourceImage(np.array(c, np.uint8), np.array(d, np.float32), K, self._T_cam_world_src[idx])
-        view = prepare_view(c, d, K, self.scene.T_world_cam[idx], self.config.num_layers, image)
+        view = prepare_view(c, d, K, self.scene.T_world_cam[idx], 1 if completed else self.config.num_layers, image)
         unmap_pages(color)
         unmap_pages(depth)
         return view
@@ -275,19 +278,7 @@ class Renderer:
 
     def completed_view(self, idx: int, level: int = 0) -> ViewPoints:
         """The points of view ``idx``'s completed depth at ``level`` (cached, numpy on every backend)."""
-        def build() -> ViewPoints:
-            color, _ = self._load_frame(idx)
-            K = self.scene.intrinsics[idx]
-            depth = np.asarray(self.scene.depth_completed[idx])
-            c, d = color, depth
-            if level > 0:
-                c, d, K = build_level(c, d, K, level, self.config.lod_depth_tol)
-            view = prepare_view(c, d, K, self.scene.T_world_cam[idx], 1)
-            unmap_pages(color)
-            unmap_pages(depth)
-            return view
-
-        return self.executor.view((idx, level, "completed"), build)
+        return self.executor.view((idx, level, "completed"), lambda: self._prepare(idx, level, completed=True))
 
     def lod_level_in(self, idx: int, grids: FrameGrids) -> int:
         """Pyramid level of view ``idx`` for the frame's target camera, from its one projection of the grids
