@@ -13,9 +13,7 @@ __all__ = ["RGBD"]
 
 @dataclass(frozen=True)
 class RGBD:
-    """A synthesized RGB-D image at one camera pose.
-
-    ``color`` and ``depth_m`` are complete unless hole filling is off; ``valid`` marks synthesized pixels."""
+    """A synthesized RGB-D image at one camera pose; ``color`` and ``depth_m`` are complete unless filling is off."""
 
     color: np.ndarray
     """uint8 (H, W, 3) RGB."""

@@ -85,7 +85,6 @@ def splat_into_holes_ref(points: list[CompletedPoints], T_cam_world: np.ndarray,
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _splat_kernel(xyz, rgb, view_id, M, cam, holes, zbuf, cbuf, sbuf):  # pragma: no cover
-    # cam = (fx, fy, cx, cy, near_m)
     fx, fy, cx, cy, near = cam[0], cam[1], cam[2], cam[3], cam[4]
     H, W = holes.shape
     for i in range(xyz.shape[0]):
@@ -166,8 +165,7 @@ def _close_kernel(holes, zbuf, cbuf, sbuf, depth, color, source):  # pragma: no 
 
 def splat_into_holes(points: list[CompletedPoints], T_cam_world: np.ndarray, K: Intrinsics, near_m: float,
                      target: Target) -> int:
-    """Splat the completed points into the hole pixels of ``target`` (module docstring); returns the
-    number of pixels filled (``target.holes`` is cleared there)."""
+    """Splat into the holes of ``target`` (module docstring); returns the pixels filled (``target.holes`` cleared)."""
     H, W = K.height, K.width
     zbuf = np.zeros((H, W), np.float64)
     cbuf = np.zeros((H, W, 3), np.uint8)

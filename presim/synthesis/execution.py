@@ -63,31 +63,26 @@ class Executor:
     def __init__(self, perf: PerfConfig, config: RenderConfig):
         self.perf = perf
         self.kernels = stage_kernels(perf.backend, perf.torch_device)
-        """The backend's stage kernels."""
         self.cache = ViewCache(perf.cache_mb * 2**20)
         self.workspace = Workspace()
         # Warping ahead needs the numba backend's banded crack pass, no blending (which keeps the
         # loop's own warps) and a second core.
-        self._can_ahead = (perf.backend == "numba" and perf.warp_ahead and perf.threads == 0
-                           and not config.blend and banded_applies(config, config.num_layers)
-                           and (os.cpu_count() or 1) >= 2)
+        self._can_ahead = (perf.backend == "numba" and perf.warp_ahead and perf.threads == 0 and not config.blend
+                           and banded_applies(config, config.num_layers) and (os.cpu_count() or 1) >= 2)
         self._ahead: WarpAhead | None = None
         self._ahead_on = False
         self.max_later = config.fixed_views if config.fixed_views > 0 else config.max_views
 
-    # ---- views ---------------------------------------------------------------------------------
     def view(self, key: Hashable, build: Callable[[], Any]) -> Any:
         """The prepared view under ``key`` from the cache, built now when missing."""
         return self.cache.get(key, build)
 
-    # ---- one frame -----------------------------------------------------------------------------
     def frame_threads(self, K: Intrinsics) -> int:
         return frame_threads(K.width, K.height, self.perf.threads)
 
     @contextlib.contextmanager
     def frame(self, K: Intrinsics) -> Iterator[None]:
-        """Run one frame of size ``K`` with its numba thread count; the views handed to
-        :meth:`warp_ahead` are dropped when it ends."""
+        """A frame of size ``K`` at its numba thread count; on exit, views given to :meth:`warp_ahead` are dropped."""
         try:
             with numba_threads(self.frame_threads(K)):
                 yield
@@ -101,9 +96,8 @@ class Executor:
         return self._can_ahead and K.width * K.height < TILED_MIN_PIXELS and self.frame_threads(K) == 1
 
     def warp_ahead(self, views: list[Any], T_cam_world: np.ndarray, K: Intrinsics, near_m: float) -> None:
-        """Hand ``views`` (prepared, in the order the loop will likely want them) to the helper thread
-        for this frame (inside :meth:`frame`). Views of fewer than ``WARP_AHEAD_MIN_POINTS`` points
-        are left to the loop (the handover costs about what warping them does)."""
+        """Hand ``views`` (prepared, likely loop order) to the helper thread for this frame (inside :meth:`frame`);
+        views of fewer than ``WARP_AHEAD_MIN_POINTS`` points are left to the loop."""
         views = [v for v in views if len(v.xyz_world) >= WARP_AHEAD_MIN_POINTS]
         if not views or not self.ahead_possible(K):
             return

@@ -1,9 +1,8 @@
 """Final fill of pixels no view covered; they stay ``valid=False``.
 
-``"telea"`` inpaints colour (:func:`presim.imaging.inpaint.telea_inpaint`, reference ``cv2.inpaint``);
-``"pushpull"`` is pull-push interpolation (:func:`presim.imaging.pushpull.pushpull_rgbd`, reference
-:func:`presim.imaging.pushpull.pushpull_fill`); ``"auto"`` uses telea below ``telea_max_hole_frac`` of the image.
-Depth is pull-pushed."""
+``"telea"`` inpaints colour (:func:`presim.imaging.inpaint.telea_inpaint`, reference ``cv2.inpaint``), ``"pushpull"``
+pull-pushes (:func:`presim.imaging.pushpull.pushpull_rgbd`, reference :func:`presim.imaging.pushpull.pushpull_fill`);
+``"auto"`` uses telea below ``telea_max_hole_frac`` of the image. Depth is pull-pushed."""
 
 from __future__ import annotations
 
@@ -48,11 +47,9 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
                telea_max_hole_frac: float = 0.02, background_rim_px: int = 0,
                pushpull: Callable = pushpull_rgbd) -> tuple[np.ndarray, np.ndarray]:
     """Fill ``color`` (uint8 (H, W, 3)) and ``depth_m`` (float32) where ``valid`` is False: new arrays.
-
-    ``"auto"`` uses pull-push above ``telea_max_hole_frac``; ``background_rim_px`` > 0: :func:`foreground_rim`
-    pixels neither feed the colour fill nor change. ``pushpull``: the pull-push kernel
-    (:func:`~presim.imaging.pushpull.pushpull_rgbd`'s contract; the torch backend's); Telea and the rim run on the
-    host."""
+    ``background_rim_px`` > 0: :func:`foreground_rim` pixels neither feed the colour fill nor change. ``pushpull``: the
+    pull-push kernel (:func:`~presim.imaging.pushpull.pushpull_rgbd`'s contract; the torch backend's); Telea and the rim
+    run on the host."""
     if method not in FILL_METHODS:
         raise ValueError(f"fill method must be one of {FILL_METHODS}, got {method!r}")
     holes = ~valid
@@ -64,10 +61,7 @@ def fill_holes(color: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, method
     rim = foreground_rim(depth_m, valid, background_rim_px) if background_rim_px > 0 else None
     if rim is not None and rim.any():
         src = valid & ~rim  # the fill reads the background side only
-        if method == "telea":
-            out_c = telea_inpaint(color, ~src, 3)
-        else:
-            out_c = pushpull(color, depth_m, src)[0]
+        out_c = telea_inpaint(color, ~src, 3) if method == "telea" else pushpull(color, depth_m, src)[0]
         out_c[rim] = color[rim]
         return out_c, pushpull(None, depth_m, valid)[1]
     if method == "telea":

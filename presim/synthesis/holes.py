@@ -19,6 +19,7 @@ __all__ = ["HoleStats", "merge_view_holes", "merge_into_holes", "analyse_holes",
 
 _NO_MASK = np.zeros((1, 1), np.bool_)
 
+
 @nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id):  # pragma: no cover
     # The accumulator's pixel (v, u) := the view's, and its source id.
@@ -31,8 +32,7 @@ def _take_pixel(acc_d, acc_c, acc_src, d, c, v, u, view_id):  # pragma: no cover
 
 @parallel_kernel(cache=True, serial_below=LIGHT_SERIAL_BELOW["pass"], error_model="numpy")
 def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, holes):  # pragma: no cover
-    # Merge (take the view's pixel where replace and it has a value; first view: source ids only) + the
-    # result's hole mask (1 where the accumulated depth is not > 0) and its count, in one pass.
+    # merge_view_holes in one pass: merge (first view: source ids only), then the result's hole mask and its count.
     H, W = acc_d.shape
     n = 0
     for v in nb.prange(H):
@@ -47,12 +47,11 @@ def _merge_holes_kernel(acc_d, acc_c, acc_src, replace, d, c, view_id, first, ho
     return n
 
 
-def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
-                     replace: np.ndarray | None, depth_m: np.ndarray, color: np.ndarray, view_id: int,
-                     holes: np.ndarray) -> int:
+def merge_view_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray, replace: np.ndarray | None,
+                     depth_m: np.ndarray, color: np.ndarray, view_id: int, holes: np.ndarray) -> int:
     """Merge a view into the accumulator where ``replace`` (bool (H, W)) and write ``holes`` (uint8 (H, W), 1 where
-    ``acc_depth_m`` is not > 0) in one numba pass; returns the number of hole pixels. ``replace`` None: the first
-    view, whose image is the accumulator; only ``acc_source`` is written (``view_id`` where it has a value, else -1)."""
+    ``acc_depth_m`` is not > 0); returns the number of hole pixels. ``replace`` None: the first view, whose image is
+    the accumulator; only ``acc_source`` is written (``view_id`` where it has a value, else -1)."""
     first = replace is None
     return int(_merge_holes_kernel(acc_depth_m, acc_color, acc_source, _NO_MASK if first else replace, depth_m,
                                    color, np.int32(view_id), first, holes))
@@ -84,9 +83,8 @@ def _merge_into_holes_kernel(acc_d, acc_c, acc_src, replace, words, d, c, view_i
     return filled
 
 
-def merge_into_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
-                     replace: np.ndarray, depth_m: np.ndarray, color: np.ndarray, view_id: int,
-                     holes: np.ndarray) -> int:
+def merge_into_holes(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray, replace: np.ndarray,
+                     depth_m: np.ndarray, color: np.ndarray, view_id: int, holes: np.ndarray) -> int:
     """The merge of :func:`merge_view_holes` for a later view, updating ``holes`` (uint8 (H, W), the mask before
     the merge) in place and visiting only replaceable pixels (same result, tested). Returns the holes filled."""
     r8 = replace.view(np.uint8)

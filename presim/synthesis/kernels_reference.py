@@ -1,9 +1,9 @@
 """Plain numpy reference of the synthesis kernels: the definitions the fast paths are tested against.
 
-They define the rules the fast paths are tested against: a point lands on pixel ``floor(u + 0.5)``; z <= ``near_m``
-is dropped; per layer the smallest float32 z wins, ties to the lower point index; empty = depth 0, colour 0; the
-switching median (eq. 3.9) fills an empty pixel whose N x N window (outside = empty) is more than half non-empty
-with the lower median per channel; the plain median takes the zero-padded window; layers composite front to back."""
+A point lands on pixel ``floor(u + 0.5)``; z <= ``near_m`` is dropped; per layer the smallest float32 z wins, ties to
+the lower point index; empty = depth 0, colour 0; the switching median (eq. 3.9) fills an empty pixel whose N x N
+window (outside = empty) is more than half non-empty with the lower median per channel; the plain median takes the
+zero-padded window; layers composite front to back."""
 
 from __future__ import annotations
 
@@ -12,18 +12,11 @@ import numpy as np
 from presim.capture.reprojection import zbuffer_splat
 from presim.geometry import Intrinsics, project, transform_points
 
-__all__ = [
-    "assign_layers_ref",
-    "warp_layers_ref",
-    "switching_median_ref",
-    "plain_median_ref",
-    "composite_layers_ref",
-]
+__all__ = ["assign_layers_ref", "warp_layers_ref", "switching_median_ref", "plain_median_ref", "composite_layers_ref"]
 
 
 def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> np.ndarray:
-    """(n,) int64 layer of each depth in (n,) ``depth_m`` (all > 0): ``num_layers`` equal slices of [min, max],
-    layer 0 nearest."""
+    """int64 (n,) layer of each ``depth_m`` (all > 0): ``num_layers`` equal slices of [min, max], layer 0 nearest."""
     d = np.asarray(depth_m, dtype=np.float64)
     if d.size == 0:
         return np.zeros(0, np.int64)
@@ -37,8 +30,7 @@ def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> np.ndarray:
 
 
 def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, num_layers: int,
-                    T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3
-                    ) -> tuple[np.ndarray, np.ndarray]:
+                    T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
     """Forward-warp world points (n, 3) with ``rgb`` and ``layer`` into ``num_layers`` z-buffered images of
     the target camera: ``(depth_m (L, H, W) float32, color (L, H, W, 3) uint8)``, 0 where empty."""
     H, W = K.height, K.width
@@ -70,8 +62,7 @@ def _windows(a: np.ndarray, r: int) -> np.ndarray:
     return w.reshape(w.shape[:-2] + (-1,))
 
 
-def switching_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def switching_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Switching median (eq. 3.9) of one image: depth (H, W), color (H, W, 3). Returns new arrays."""
     r = kernel_px // 2
     full = _windows(depth_m, r) > 0  # (H, W, n): the window's non-empty pixels
@@ -86,10 +77,8 @@ def switching_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int 
     return out_d, out_c
 
 
-def plain_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Traditional median of every pixel over its N x N window (zero padded, empties included); colour 0 where
-    the median depth is not > 0."""
+def plain_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Median of each pixel's N x N window (zero padded, empties included); colour 0 where median depth is not > 0."""
     r, mid = kernel_px // 2, (kernel_px * kernel_px - 1) // 2
     out_d = np.sort(_windows(depth_m, r), -1)[..., mid]
     out_c = np.where((out_d > 0)[..., None], np.sort(_windows(color, r), -1)[..., mid], np.uint8(0))
@@ -97,8 +86,7 @@ def plain_median_ref(depth_m: np.ndarray, color: np.ndarray, kernel_px: int = 3
 
 
 def composite_layers_ref(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Front-to-back composite of (L, H, W) / (L, H, W, 3) layers -> (H, W), (H, W, 3): each pixel's first
-    non-empty layer, 0 where none is."""
+    """Composite of (L, H, W) / (L, H, W, 3) layers -> (H, W), (H, W, 3): each pixel's first non-empty layer, else 0."""
     full = depth_m > 0
     front = np.argmax(full, axis=0)[None]
     hit = full.any(0)

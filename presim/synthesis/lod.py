@@ -31,8 +31,7 @@ class LodConfig:
 
 def half_intrinsics(K: Intrinsics) -> Intrinsics:
     """Intrinsics of a 2x2-pooled image (``W // 2`` x ``H // 2``; block i = source pixels 2i..2i+1, centre 2i + 0.5)."""
-    return Intrinsics(K.fx / 2.0, K.fy / 2.0, (K.cx - 0.5) / 2.0, (K.cy - 0.5) / 2.0,
-                      K.width // 2, K.height // 2)
+    return Intrinsics(K.fx / 2.0, K.fy / 2.0, (K.cx - 0.5) / 2.0, (K.cy - 0.5) / 2.0, K.width // 2, K.height // 2)
 
 
 def build_level(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, level: int, depth_tol: float = 0.02

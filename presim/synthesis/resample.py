@@ -16,7 +16,8 @@ import numpy as np
 from presim.geometry import Intrinsics
 from presim.numba_threads import parallel_kernel
 
-__all__ = ["MAX_SOURCES", "SourceImage", "SourceStack", "stack_sources", "source_projection", "resample_colors_ref", "resample_colors"]
+__all__ = ["MAX_SOURCES", "SourceImage", "SourceStack", "stack_sources", "source_projection", "resample_colors_ref",
+           "resample_colors"]
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,7 @@ class SourceStack(NamedTuple):
 
 
 def stack_sources(ids: Sequence[int], images: Sequence[SourceImage]) -> SourceStack:
-    """The images of the views ``ids`` (scene frame indices), the first :data:`MAX_SOURCES`, for the
-    kernels (no copy of the pixels)."""
+    """The first :data:`MAX_SOURCES` ``ids`` (scene frame indices) and ``images`` for the kernels (no pixel copy)."""
     ids, images = list(ids)[:MAX_SOURCES], list(images)[:MAX_SOURCES]
     n = len(ids)
     lut = np.full(max(ids, default=-1) + 1, -1, np.int32)
@@ -129,7 +129,8 @@ def resample_colors_ref(color: np.ndarray, depth_m: np.ndarray, source: np.ndarr
             wsum += w
         use = wsum > 1e-9
         inv = 1.0 / wsum[use]
-        out[rows[inside][use], cols[inside][use]] = np.floor(acc[use] * inv[:, None] + 0.5).clip(0, 255).astype(np.uint8)
+        out[rows[inside][use], cols[inside][use]] = (
+            np.floor(acc[use] * inv[:, None] + 0.5).clip(0, 255).astype(np.uint8))
     return out
 
 

@@ -29,8 +29,7 @@ class Selection:
     """(k,) overlap of the view's sub-sampled grid with the target image (nan when not computed)."""
 
 
-def view_overlap(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics,
-                 near_m: float = 1e-3) -> float:
+def view_overlap(grid_xyz_world: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics, near_m: float = 1e-3) -> float:
     """Fraction of the world points (m, 3) that project inside the target image, in front of it."""
     if len(grid_xyz_world) == 0:
         return 0.0
@@ -56,20 +55,17 @@ def _first_overlaps(idx: np.ndarray, overlaps: Callable[[np.ndarray], np.ndarray
     return ov
 
 
-def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarray,
-                 directions_world: np.ndarray, hfov_deg: np.ndarray,
-                 grid_points: Callable[[int], np.ndarray], mode: str = "adaptive",
+def select_views(T_world_cam: np.ndarray, K: Intrinsics, centres_world: np.ndarray, directions_world: np.ndarray,
+                 hfov_deg: np.ndarray, grid_points: Callable[[int], np.ndarray], mode: str = "adaptive",
                  max_candidates: int = 10, order: str = "distance",
                  overlaps: Callable[[np.ndarray], np.ndarray] | None = None,
-                 overlapping: Callable[[np.ndarray], np.ndarray] | None = None,
-                 exact_overlaps: int = 0) -> Selection:
-    """Select and order the input views for a target camera (4x4 ``T_world_cam``, ``K``).
-
-    centres_world, directions_world: (N, 3) input camera centres and unit optical axes; hfov_deg: (N,);
-    grid_points(i) -> (m, 3) world points of view i's grid; order: adaptive mode only. ``overlaps(idx)`` ->
-    (k,) :func:`view_overlap` per view (fast path: :class:`presim.synthesis.grids.FrameGrids`); with
-    ``overlapping(idx)`` -> ``overlaps(idx) > 0`` and ``exact_overlaps`` > 0 (distance order) only the first
-    ``exact_overlaps`` views get an overlap, later ones nan (same selection)."""
+                 overlapping: Callable[[np.ndarray], np.ndarray] | None = None, exact_overlaps: int = 0) -> Selection:
+    """Select and order the input views for a target camera (4x4 ``T_world_cam``). centres_world, directions_world:
+    (N, 3) input camera centres and unit optical axes; hfov_deg: (N,); grid_points(i) -> (m, 3) world points of view
+    i's grid; order: adaptive mode only. ``overlaps(idx)`` -> (k,) :func:`view_overlap` per view (fast path:
+    :class:`presim.synthesis.grids.FrameGrids`); with ``overlapping(idx)`` -> ``overlaps(idx) > 0`` and
+    ``exact_overlaps`` > 0 (distance order) only the first ``exact_overlaps`` views get an overlap, later ones nan
+    (same selection)."""
     if mode not in SELECTION_MODES:
         raise ValueError(f"selection must be one of {SELECTION_MODES}, got {mode!r}")
     if order not in VIEW_ORDERS:

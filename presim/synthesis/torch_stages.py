@@ -1,7 +1,6 @@
-"""Torch kernels of the stages after the view image (``PerfConfig(backend="torch")``): merge + hole analysis,
-blend and exposure (the pull-push fill's: :mod:`presim.imaging.torch_ops`). Host arrays in and out, as
-:mod:`presim.synthesis.torch_kernels`; the work runs on ``device`` (None: CUDA when present, else CPU). Each is
-tested against its numba / numpy path."""
+"""Torch kernels of the stages after the view image (``PerfConfig(backend="torch")``): merge + hole analysis, blend and
+exposure, each tested against its numba / numpy path (pull-push fill: :mod:`presim.imaging.torch_ops`). Host arrays in
+and out, as :mod:`presim.synthesis.torch_kernels`; computed on ``device`` (None: CUDA when present, else CPU)."""
 
 from __future__ import annotations
 
@@ -129,8 +128,7 @@ def blend_torch(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
     d = _on(inp.depth_m, dev).to(f64)
     H, W = d.shape
     T = torch.as_tensor(np.asarray(T_world_cam, np.float64), device=dev)
-    v, u = torch.meshgrid(torch.arange(H, dtype=f64, device=dev), torch.arange(W, dtype=f64, device=dev),
-                          indexing="ij")
+    v, u = torch.meshgrid(torch.arange(H, dtype=f64, device=dev), torch.arange(W, dtype=f64, device=dev), indexing="ij")
     P = torch.stack([(u - K.cx) / K.fx * d, (v - K.cy) / K.fy * d, d], -1)
     X = P @ T[:3, :3].T + T[:3, 3]
     rt = X - T[:3, 3]

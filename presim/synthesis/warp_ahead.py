@@ -1,10 +1,9 @@
 """Later candidate views warped on a helper thread while the main thread runs the adaptive loop.
 
-:class:`WarpAhead` warps and crack-filters the views in one GIL-free numba call per frame
-(:func:`_warp_jobs_kernel`: culling, the serial warp kernel and the banded crack pass). Jobs have int32 states
-shared by both threads (queued, running, done, claimed; ``done`` stored with release order after the images):
-:meth:`WarpAhead.take` uses a done job, waits for a running one, or claims a queued one for the loop. The images
-equal the loop's own (same kernels and inputs, tested)."""
+:class:`WarpAhead` warps and crack-filters the views in one GIL-free numba call per frame (:func:`_warp_jobs_kernel`:
+culling, serial warp, banded crack pass). Jobs have int32 states shared by both threads (queued, running, done, claimed;
+``done`` stored with release order after the images): :meth:`WarpAhead.take` uses a done job, waits for a running one,
+or claims a queued one for the loop. The images equal the loop's own (same kernels and inputs, tested)."""
 
 from __future__ import annotations
 
@@ -33,8 +32,7 @@ WARP_AHEAD_MIN_POINTS = 10_000
 """Views of fewer points are warped by the loop: the handover (~34-107 us per frame) costs about as much as
 warping them (~5-9 ns per point)."""
 
-QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3
-"""Job states (int32)."""
+QUEUED, RUNNING, DONE, CLAIMED = 0, 1, 2, 3  # job states (int32)
 
 _warp_serial = warp_layers_kernel.serial
 _crack_serial = banded_crack_kernel.serial
@@ -50,7 +48,8 @@ def _store_release(typingctx, arr, idx, val):  # pragma: no cover - compiled int
     def codegen(context, builder, signature, args):
         aryty, idxty, valty = signature.args
         ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [context.cast(builder, args[1], idxty, types.intp)])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
+                                       [context.cast(builder, args[1], idxty, types.intp)])
         builder.store_atomic(context.cast(builder, args[2], valty, aryty.dtype), ptr, ordering="release", align=4)
         return context.get_dummy_value()
 
@@ -66,7 +65,8 @@ def _load_acquire(typingctx, arr, idx):  # pragma: no cover - compiled into the 
     def codegen(context, builder, signature, args):
         aryty, idxty = signature.args
         ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [context.cast(builder, args[1], idxty, types.intp)])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
+                                       [context.cast(builder, args[1], idxty, types.intp)])
         return builder.load_atomic(ptr, ordering="acquire", align=4)
 
     return types.int32(arr, idx), codegen
@@ -78,8 +78,7 @@ class Jobs(NamedTuple):
     xyz: tuple
     rgb: tuple
     layer_start: tuple
-    bounds: tuple
-    """:class:`~presim.synthesis.warp.ChunkBounds` per view."""
+    bounds: tuple  # :class:`~presim.synthesis.warp.ChunkBounds` per view
     zb: tuple
     cb: tuple
     d: tuple
@@ -117,8 +116,7 @@ class _Buffers:
         self.cb: list[np.ndarray] = []
         self.d: list[np.ndarray] = []
         self.c: list[np.ndarray] = []
-        self.user: _Frame | None = None
-        """The last frame that used the set."""
+        self.user: _Frame | None = None  # the last frame that used the set
 
     def fit(self, views: list[Any], H: int, W: int) -> None:
         """Buffers for ``views`` at H x W (kept when they fit)."""
@@ -151,10 +149,8 @@ class _Frame:
     cancel: np.ndarray
     bufs: _Buffers
     args: tuple
-    begun: bool = False
-    """The thread has taken the frame (its kernel call runs or has run)."""
-    finished: bool = False
-    """The kernel call has returned (or failed)."""
+    begun: bool = False  # the thread has taken the frame (its kernel call runs or has run)
+    finished: bool = False  # the kernel call has returned (or failed)
 
 
 class _Shared:
@@ -169,9 +165,8 @@ class _Shared:
 def _fields(view: Any) -> tuple:
     """The kernel's per-view arguments (points, layer starts, chunk bounds), contiguous: one compilation."""
     c = np.ascontiguousarray
-    return (c(view.xyz_world), c(view.rgb), c(view.layer_start), ChunkBounds(
-        c(view.chunk_lo), c(view.chunk_hi), c(view.chunk_to_world),
-        float(view.chunk_abs_max)))
+    return (c(view.xyz_world), c(view.rgb), c(view.layer_start), ChunkBounds(c(view.chunk_lo), c(view.chunk_hi),
+            c(view.chunk_to_world), float(view.chunk_abs_max)))
 
 
 def _serve(sh: _Shared) -> None:
@@ -209,8 +204,7 @@ class WarpAhead:
         # Two buffer sets used in turn: a new frame does not wait for the previous one's last (cancelled) warp.
         self._sets = (_Buffers(), _Buffers())
         self._turn = 0
-        self.taken = 0
-        """Views the loop took from the thread."""
+        self.taken = 0  # views the loop took from the thread
         self._finalizer = weakref.finalize(self, _close, self._sh)
 
     def close(self) -> None:
@@ -234,8 +228,7 @@ class WarpAhead:
                 sh.frame = None  # never begun: dropped
             while bufs.user is not None and bufs.user.begun and not bufs.user.finished:
                 sh.cv.wait()  # the frame before the previous one still runs (its buffers are these)
-        H, W = K.height, K.width
-        bufs.fit(views, H, W)
+        bufs.fit(views, K.height, K.width)
         n = len(views)
         fields = [_fields(v) for v in views]
         fields += [fields[0]] * (MAX_JOBS - n)  # fixed-size tuples; jobs >= n are never run
@@ -243,8 +236,8 @@ class WarpAhead:
         state[:n] = QUEUED
         cancel = np.zeros(1, np.int32)
         jobs = Jobs(*zip(*fields), bufs.padded("zb", n), bufs.padded("cb", n), bufs.padded("d", n), bufs.padded("c", n))
-        args = (state, cancel, n, jobs, target_cam(T_cam_world, K, near_m), target_cam(T_cam_world, K, near_m, np.float64),
-                tile_marks(None, K, 16, "warp ahead"), BAND_ROWS)
+        args = (state, cancel, n, jobs, target_cam(T_cam_world, K, near_m),
+                target_cam(T_cam_world, K, near_m, np.float64), tile_marks(None, K, 16, "warp ahead"), BAND_ROWS)
         frame = _Frame(views, state, cancel, bufs, args)
         with sh.cv:
             bufs.user = frame
