@@ -13,7 +13,8 @@ from presim.synthesis.cracks import crack_filter
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.grids import FrameGrids
 from presim.synthesis.select import ring_views
-from presim.synthesis.warp import assign_layers, prepare_view
+from presim.synthesis.kernels_reference import assign_layers_ref
+from presim.synthesis.warp import prepare_view
 
 K = Intrinsics(100.0, 100.0, 59.5, 44.5, 120, 90)
 
@@ -68,7 +69,7 @@ def test_two_planes_leave_disocclusion_of_known_width():
 
 def test_layer_assignment_even_between_min_and_max():
     d = np.array([1.0, 1.24, 1.26, 1.5, 1.74, 1.76, 2.0])
-    layer, (lo, hi) = assign_layers(d, 4)
+    layer, (lo, hi) = assign_layers_ref(d, 4)
     assert (lo, hi) == (1.0, 2.0)
     np.testing.assert_array_equal(layer, [0, 0, 1, 2, 2, 3, 3])
     # Prepared views are sorted by layer with the right slice sizes.

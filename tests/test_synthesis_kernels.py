@@ -17,7 +17,7 @@ from presim.synthesis import kernels_reference as ref
 from presim.testing import rect_scene as S
 from presim.synthesis.cracks import crack_filter
 from presim.testing.naive import naive_zbuffer
-from presim.synthesis.warp import assign_layers, prepare_view, warp_layers
+from presim.synthesis.warp import prepare_view, warp_layers
 
 K_SMALL = Intrinsics.from_fov(96, 72, 60.0)
 
@@ -34,12 +34,12 @@ def _frac_diff(a, b):
     return float(np.mean(a != b)) if a.ndim == 2 else float(np.mean(np.any(a != b, axis=-1)))
 
 
-def test_assign_layers_matches_reference():
+def test_assign_layers_reference_is_the_per_point_rule():
     d = np.random.default_rng(0).uniform(0.3, 4.0, 5000)
     for L in (1, 2, 4, 8):
-        lay, (lo, hi) = assign_layers(d, L)
-        np.testing.assert_array_equal(lay, ref.assign_layers_ref(d, L))
+        lay, (lo, hi) = ref.assign_layers_ref(d, L)
         assert lo == d.min() and hi == d.max()
+        np.testing.assert_array_equal(lay, [min(int((x - lo) / (hi - lo) * L), L - 1) for x in d])
 
 
 @pytest.mark.parametrize("L", [1, 4])
@@ -183,7 +183,7 @@ def _reference_view_chain(ld, lc):
 def test_prepare_view_numba_matches_reference(L):
     """One-pass numba view preparation = the numpy reference: same points (float32 rounding of the
     same float64 arithmetic), colours, layer split and order (stable within a layer)."""
-    from presim.synthesis.warp import prepare_view_ref
+    from presim.synthesis.kernels_reference import prepare_view_ref
 
     T_src = look_at((0.0, -1.0, 1.3), (0.0, 0.5, 0.4))
     color, depth = S.raycast(S.room_rects(), T_src, K_SMALL)
@@ -205,7 +205,7 @@ def test_prepare_view_layers_at_the_layer_boundaries_match_the_reference():
     """Depths on and one float32 step beside every layer boundary (the numba kernel keeps each pixel's
     layer from its counting pass and takes the column / row divisions once): same layer split, same
     colours in the same order as the reference, and points within float32 rounding."""
-    from presim.synthesis.warp import prepare_view_ref
+    from presim.synthesis.kernels_reference import prepare_view_ref
 
     K = Intrinsics(40.0, 40.0, 11.5, 7.5, 24, 16)
     lo, hi, L = 1.0, 3.0, 4
@@ -274,7 +274,8 @@ def test_tiled_crack_pass_and_masked_warp_match_reference(band, tile_cols):
     """Later views (a replace mask): the crack pass on runs of tiles holding masked pixels, over
     layers warped only into the tiles within 2 px of them (stale garbage elsewhere), equals the
     numpy reference chain over a full warp on every masked pixel, whatever the tile sizes."""
-    from presim.synthesis.cracks import filtered_composite_banded, tile_any, warp_tiles
+    from presim.imaging.masks import tile_any
+    from presim.synthesis.cracks import filtered_composite_banded, warp_tiles
 
     vp, T_cam_world = _room_view(L=4)
     full = warp_layers(vp, T_cam_world, K_SMALL, 1e-3)
@@ -348,8 +349,7 @@ def test_tile_any_matches_reference():
     dilate-then-block-any reference, for
     sparse, clustered and dense masks, tile sizes that do and do not divide the image, grow 0-5
     (wider than some tiles)."""
-    from presim.synthesis.cracks import tile_any
-    from presim.synthesis.kernels_reference import tile_any_ref
+    from presim.imaging.masks import tile_any, tile_any_ref
 
     rng = np.random.default_rng(7)
     n = 0

@@ -104,7 +104,8 @@ def test_hole_runs_components_equal_scipy_labelling():
     any big, and the big-hole mask; an n_hole below the mask's count is refused."""
     from scipy import ndimage
 
-    from presim.synthesis.holes import _NO_HALF, _NO_U8, _ellipse_rows, _hole_runs_kernel, row_words
+    from presim.imaging.masks import row_words
+    from presim.synthesis.holes import _NO_HALF, _NO_U8, _ellipse_rows, _hole_runs_kernel
 
     rng = np.random.default_rng(21)
     masks = []
@@ -144,7 +145,7 @@ def test_row_words_are_the_rows_zero_padded_to_8_pixels():
     """row_words: a C-contiguous mask whose width is a multiple of 8 is viewed as uint64 rows (no
     copy); any other width, or a strided mask, is copied into rows zero-padded to a multiple of 8;
     the bytes of the words are the mask's pixels in order."""
-    from presim.synthesis.holes import row_words
+    from presim.imaging.masks import row_words
 
     rng = np.random.default_rng(3)
     for H, W in ((3, 16), (5, 13), (1, 1), (4, 7), (2, 638)):

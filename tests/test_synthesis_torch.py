@@ -99,14 +99,14 @@ def test_hole_analysis_matches_numba(room, kw):
 
 def test_component_labels_are_scipys_8_connected_components(room):
     for holes in _masks(room):
-        lab = ts.label_components_torch(torch.from_numpy(holes != 0)).numpy()
+        lab = torch_ops.label_components_torch(torch.from_numpy(holes != 0)).numpy()
         ref, _ = ndimage.label(holes, np.ones((3, 3)))
         m = holes != 0
         assert np.array_equal(lab < 0, ~m)
         pairs = np.unique(np.stack([lab[m], ref[m]]), axis=1)  # one scipy label per torch label and back
         assert len(np.unique(pairs[0])) == len(np.unique(pairs[1])) == pairs.shape[1]
         assert np.all(np.take(np.arange(holes.size), lab[m]) <= np.flatnonzero(m))  # the smallest index in it
-    lab = ts.label_components_torch(torch.tensor([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 0, 0], [1, 1, 0, 1]]).bool())
+    lab = torch_ops.label_components_torch(torch.tensor([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 0, 0], [1, 1, 0, 1]]).bool())
     assert lab.tolist() == [[0, -1, -1, 3], [-1, 0, -1, 3], [-1, -1, -1, -1], [12, 12, -1, 15]]
 
 

@@ -1,6 +1,6 @@
-"""Torch versions of the image operations (float32; CUDA when present, else CPU): the Gaussian filter and pull-push
-fill. Host arrays in and out; each is tested against its numpy / numba version. The only module of
-:mod:`presim.imaging` that imports torch."""
+"""Torch versions of the image operations (float32; CUDA when present, else CPU): the Gaussian filter, pull-push
+fill and 8-connected component labels. Host arrays in and out (labels: tensors); each is tested against its numpy /
+numba version. The only module of :mod:`presim.imaging` that imports torch."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from presim.imaging.gaussian import MIN_SIGMA_PX, check_smooth_input, gaussian_taps
 
-__all__ = ["resolve_device", "smooth_colors_torch", "pushpull_rgbd_torch"]
+__all__ = ["resolve_device", "smooth_colors_torch", "pushpull_rgbd_torch", "label_components_torch"]
 
 
 def resolve_device(name: str | None = None) -> torch.device:
@@ -96,3 +96,29 @@ def pushpull_rgbd_torch(color: np.ndarray | None, depth_m: np.ndarray, valid: np
         return None, out_d
     rounded = (est[:3] + 0.5).clamp(0.0, 255.0).to(torch.uint8).permute(1, 2, 0)
     return torch.where(known[..., None], c, rounded).cpu().numpy(), out_d
+
+
+def label_components_torch(mask: torch.Tensor) -> torch.Tensor:
+    """int64 (H, W) 8-connected components of a bool (H, W) mask: every pixel of a component holds the smallest
+    flat index in it, -1 outside. Roots hook onto the smaller root across each edge, then pointer jumping, until
+    no edge joins two roots (Shiloach-Vishkin style; O(log n) rounds on the masks tested)."""
+    H, W = mask.shape
+    idx = torch.arange(H * W, device=mask.device).view(H, W)
+    ends = []
+    for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each 8-neighbour pair once
+        x0, x1 = max(0, -dx), W - max(0, dx)
+        both = mask[:H - dy, x0:x1] & mask[dy:, x0 + dx:x1 + dx]
+        ends.append((idx[:H - dy, x0:x1][both], idx[dy:, x0 + dx:x1 + dx][both]))
+    a, b = torch.cat([e[0] for e in ends]), torch.cat([e[1] for e in ends])
+    parent = idx.reshape(-1).clone()
+    while len(a):
+        pa, pb = parent[a], parent[b]
+        split = pa != pb
+        a, b, pa, pb = a[split], b[split], pa[split], pb[split]  # joined edges stay joined
+        parent.scatter_reduce_(0, torch.maximum(pa, pb), torch.minimum(pa, pb), "amin")
+        while True:  # parent[i] <= i: no cycle, jumping ends at the roots
+            up = parent[parent]
+            if torch.equal(up, parent):
+                break
+            parent = up
+    return torch.where(mask.reshape(-1), parent, -1).view(H, W)

@@ -8,19 +8,17 @@ Rules and the reference: :mod:`kernels_reference` (:func:`crack_filter`: any mod
 
 from __future__ import annotations
 
-import sys
-
 import cv2
 import numba as nb
 import numpy as np
 
+from presim.imaging.masks import tile_any
 from presim.numba_threads import parallel_kernel
 from presim.synthesis import kernels_reference as ref
 from presim.synthesis.config import CRACK_FILTERS
-from presim.synthesis.holes import row_words
 
 __all__ = ["BANDED_MAX_LAYERS", "TILED_MIN_PIXELS", "TILED_MAX_FRAC", "WARP_TILE_PX",
-           "crack_filter", "filtered_composite_banded", "tile_any", "warp_tiles"]
+           "crack_filter", "filtered_composite_banded", "warp_tiles"]
 
 
 BANDED_MAX_LAYERS = 8
@@ -382,54 +380,6 @@ def tiled_crack_kernel(d, c, lowest, need, use_need, mask, items, dout, cout):  
     for it in nb.prange(items.shape[0]):
         _crack_item(d, c, lowest, need, use_need, mask, items[it, 0], items[it, 1], items[it, 2],
                     items[it, 3], dout, cout)
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _tile_any_words_kernel(words, H, W, tile_h, tile_w, grow):  # pragma: no cover
-    # tile_any on rows as uint64 words (little-endian: pixel 8k + j is byte j of word k): per row of tiles the
-    # OR of its grown rows' words; per tile the OR of the words its grown columns touch, outside bytes masked off.
-    th = (H + tile_h - 1) // tile_h
-    tw = (W + tile_w - 1) // tile_w
-    nw = words.shape[1]
-    out = np.zeros((th, tw), np.uint8)
-    band = np.empty(nw, np.uint64)
-    ones = np.uint64(0xFFFFFFFFFFFFFFFF)
-    one = np.uint64(1)
-    zero = np.uint64(0)
-    for ty in range(th):
-        ya = max(ty * tile_h - grow, 0)
-        yb = min((ty + 1) * tile_h + grow, H)
-        band[:] = zero
-        for v in range(ya, yb):
-            wrow = words[v]
-            for k in range(nw):
-                band[k] |= wrow[k]
-        for tx in range(tw):
-            xa = max(tx * tile_w - grow, 0)
-            xb = min((tx + 1) * tile_w + grow, W)
-            wa = xa // 8
-            wb = (xb + 7) // 8
-            acc = zero
-            for k in range(wa, wb):
-                w = band[k]
-                if k == wa:  # drop the pixels left of xa
-                    w &= ones << np.uint64(8 * (xa - 8 * wa))
-                if k == wb - 1 and xb < 8 * wb:  # and those from xb on
-                    w &= (one << np.uint64(8 * (xb - 8 * k))) - one
-                acc |= w
-            out[ty, tx] = acc != zero
-    return out
-
-
-def tile_any(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
-    """uint8 (ceil(H / tile_h), ceil(W / tile_w)): 1 where a nonzero pixel of ``mask`` (uint8 or bool, H x W)
-    lies within ``grow`` pixels (Chebyshev) of the tile; ORs of 8-pixel words (:func:`row_words`), 13 against
-    102 us per 640x480 apc replace mask for a per-tile scan. Reference: :func:`kernels_reference.tile_any_ref`."""
-    m = np.ascontiguousarray(mask).view(np.uint8)
-    H, W = m.shape
-    if W and sys.byteorder == "little":
-        return _tile_any_words_kernel(row_words(m), H, W, int(tile_h), int(tile_w), int(grow))
-    return ref.tile_any_ref(m, tile_h, tile_w, grow)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")

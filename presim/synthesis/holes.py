@@ -13,9 +13,10 @@ import cv2
 import numba as nb
 import numpy as np
 
+from presim.imaging.masks import row_words
 from presim.numba_threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
-__all__ = ["HoleStats", "merge_view_holes", "merge_into_holes", "analyse_holes", "analyse_hole_mask", "row_words"]
+__all__ = ["HoleStats", "merge_view_holes", "merge_into_holes", "analyse_holes", "analyse_hole_mask"]
 
 _NO_MASK = np.zeros((1, 1), np.bool_)
 
@@ -206,17 +207,6 @@ def _hole_runs_kernel(holes, words, n_hole, big_hole_px, big, half, replace):  #
                 for x in range(max(rx0[i] - h, 0), min(rx1[i] + h, W)):
                     replace[y, x] = 1
     return largest, any_big
-
-
-def row_words(mask: np.ndarray) -> np.ndarray:
-    """The rows of a uint8 (H, W) mask as ``ceil(W / 8)`` uint64 words (pixel 8k + j = byte j of word k,
-    little-endian); a view when C-contiguous with W % 8 == 0, else a zero-padded copy; (H, 0) when W is 0."""
-    H, W = mask.shape
-    if W % 8 == 0 and mask.flags.c_contiguous:
-        return mask.view(np.uint64) if W else np.zeros((H, 0), np.uint64)
-    padded = np.zeros((H, -(-W // 8) * 8), np.uint8)
-    padded[:, :W] = mask
-    return padded.view(np.uint64)
 
 
 _NO_HALF = np.zeros(0, np.int64)

@@ -10,23 +10,38 @@ from __future__ import annotations
 import numpy as np
 
 from presim.capture.reprojection import zbuffer_splat
-from presim.geometry import Intrinsics, project, transform_points
+from presim.geometry import Intrinsics, project, transform_points, unproject_depth
+from presim.synthesis.warp import ViewPoints
 
-__all__ = ["assign_layers_ref", "warp_layers_ref", "switching_median_ref", "plain_median_ref", "composite_layers_ref"]
+__all__ = ["assign_layers_ref", "prepare_view_ref", "warp_layers_ref", "switching_median_ref", "plain_median_ref", "composite_layers_ref"]
 
 
-def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> np.ndarray:
-    """int64 (n,) layer of each ``depth_m`` (all > 0): ``num_layers`` equal slices of [min, max], layer 0 nearest."""
+def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tuple[float, float]]:
+    """``(layer, (min, max))``: int64 (n,) layer of each valid depth (> 0, metres), ``num_layers`` equal slices
+    of [min, max] (0 = nearest, max in the last)."""
     d = np.asarray(depth_m, dtype=np.float64)
+    if num_layers < 1:
+        raise ValueError(f"num_layers must be >= 1, got {num_layers}")
     if d.size == 0:
-        return np.zeros(0, np.int64)
-    lo, hi = d.min(), d.max()
+        return np.zeros(0, np.int64), (0.0, 0.0)
+    lo, hi = float(d.min()), float(d.max())
     if hi <= lo:
-        return np.zeros(d.shape, np.int64)
-    out = np.empty(d.shape, np.int64)
-    for i, di in enumerate(d):
-        out[i] = min(int((di - lo) / (hi - lo) * num_layers), num_layers - 1)
-    return out
+        return np.zeros(d.shape, np.int64), (lo, hi)
+    return np.minimum(((d - lo) / (hi - lo) * num_layers).astype(np.int64), num_layers - 1), (lo, hi)
+
+
+def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
+                     num_layers: int) -> ViewPoints:
+    """Reference of :func:`presim.synthesis.warp.prepare_view` (numpy, via geometry.py), without ``image``."""
+    if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
+        raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
+    pts, mask = unproject_depth(K, depth_m, T_world_cam)
+    layer, rng = assign_layers_ref(np.asarray(depth_m)[mask], num_layers)
+    order = np.argsort(layer, kind="stable")
+    start = np.zeros(num_layers + 1, np.int64)
+    start[1:] = np.cumsum(np.bincount(layer, minlength=num_layers))
+    return ViewPoints(np.ascontiguousarray(pts[order], np.float32),
+                      np.ascontiguousarray(color[mask][order], np.uint8), start, rng, T_world_cam)
 
 
 def warp_layers_ref(xyz_world: np.ndarray, rgb: np.ndarray, layer: np.ndarray, num_layers: int,
@@ -93,19 +108,3 @@ def composite_layers_ref(depth_m: np.ndarray, color: np.ndarray) -> tuple[np.nda
     out_d = np.where(hit, np.take_along_axis(depth_m, front, 0)[0], np.float32(0))
     out_c = np.where(hit[..., None], np.take_along_axis(color, front[..., None], 0)[0], np.uint8(0))
     return out_d, out_c
-
-
-def tile_any_ref(mask: np.ndarray, tile_h: int, tile_w: int, grow: int) -> np.ndarray:
-    """Reference of :func:`presim.synthesis.cracks.tile_any`: uint8 (ceil(H / tile_h), ceil(W / tile_w)), 1 where
-    a nonzero ``mask`` pixel lies within ``grow`` pixels (Chebyshev) of the tile."""
-    m = np.asarray(mask) != 0
-    H, W = m.shape
-    grown = np.zeros_like(m)
-    for dy in range(-grow, grow + 1):
-        for dx in range(-grow, grow + 1):
-            src = m[max(-dy, 0):H - max(dy, 0), max(-dx, 0):W - max(dx, 0)]
-            grown[max(dy, 0):H - max(-dy, 0), max(dx, 0):W - max(-dx, 0)] |= src
-    th, tw = -(-H // tile_h), -(-W // tile_w)
-    padded = np.zeros((th * tile_h, tw * tile_w), bool)
-    padded[:H, :W] = grown
-    return padded.reshape(th, tile_h, tw, tile_w).any(axis=(1, 3)).astype(np.uint8)

@@ -12,13 +12,12 @@ import torch
 import torch.nn.functional as F
 
 from presim.geometry import Intrinsics
-from presim.imaging.torch_ops import resolve_device
+from presim.imaging.torch_ops import label_components_torch, resolve_device
 from presim.photometric.apply import gain_bias_lut
 from presim.synthesis.blend import BlendConfig, BlendInput, feather_box
 from presim.synthesis.holes import HoleStats
 
-__all__ = ["merge_holes_torch", "label_components_torch", "analyse_hole_mask_torch", "blend_torch",
-           "apply_exposure_torch"]
+__all__ = ["merge_holes_torch", "analyse_hole_mask_torch", "blend_torch", "apply_exposure_torch"]
 
 
 def _on(a: np.ndarray, dev: torch.device) -> torch.Tensor:
@@ -51,32 +50,6 @@ def merge_holes_torch(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source
     return int(n)
 
 
-def label_components_torch(mask: torch.Tensor) -> torch.Tensor:
-    """int64 (H, W) 8-connected components of a bool (H, W) mask: every pixel of a component holds the smallest
-    flat index in it, -1 outside. Roots hook onto the smaller root across each edge, then pointer jumping, until
-    no edge joins two roots (Shiloach-Vishkin style; O(log n) rounds on the masks tested)."""
-    H, W = mask.shape
-    idx = torch.arange(H * W, device=mask.device).view(H, W)
-    ends = []
-    for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each 8-neighbour pair once
-        x0, x1 = max(0, -dx), W - max(0, dx)
-        both = mask[:H - dy, x0:x1] & mask[dy:, x0 + dx:x1 + dx]
-        ends.append((idx[:H - dy, x0:x1][both], idx[dy:, x0 + dx:x1 + dx][both]))
-    a, b = torch.cat([e[0] for e in ends]), torch.cat([e[1] for e in ends])
-    parent = idx.reshape(-1).clone()
-    while len(a):
-        pa, pb = parent[a], parent[b]
-        split = pa != pb
-        a, b, pa, pb = a[split], b[split], pa[split], pb[split]  # joined edges stay joined
-        parent.scatter_reduce_(0, torch.maximum(pa, pb), torch.minimum(pa, pb), "amin")
-        while True:  # parent[i] <= i: no cycle, jumping ends at the roots
-            up = parent[parent]
-            if torch.equal(up, parent):
-                break
-            parent = up
-    return torch.where(mask.reshape(-1), parent, -1).view(H, W)
-
-
 @functools.lru_cache(maxsize=8)
 def _ellipse(k: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)).astype(np.float32)
@@ -86,7 +59,7 @@ def analyse_hole_mask_torch(holes: np.ndarray, n_hole: int, big_hole_px: int = 1
                             want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True,
                             device: torch.device | str | None = None) -> HoleStats:
     """:func:`~presim.synthesis.holes.analyse_hole_mask` in torch (the same :class:`HoleStats`): components by
-    :func:`label_components_torch`, areas by ``bincount``, big holes dilated by OpenCV's elliptic element."""
+    :func:`~presim.imaging.torch_ops.label_components_torch`, areas by ``bincount``, big holes dilated by OpenCV's elliptic element."""
     H, W = holes.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)

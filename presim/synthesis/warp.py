@@ -12,12 +12,11 @@ from typing import Any, NamedTuple
 import numba as nb
 import numpy as np
 
-from presim.geometry import Intrinsics, unproject_depth
+from presim.geometry import Intrinsics
 from presim.numba_threads import parallel_kernel
 
 __all__ = ["CHUNK_PTS", "TargetCam", "TileMarks", "ChunkBounds", "target_cam", "tile_marks", "chunk_bounds_of",
-           "ViewPoints", "LayeredImage", "assign_layers", "chunk_bounds", "chunk_visibility",
-           "prepare_view", "prepare_view_ref", "warp_layers"]
+           "ViewPoints", "LayeredImage", "chunk_bounds", "chunk_visibility", "prepare_view", "warp_layers"]
 
 CHUNK_PTS = 32
 """Points per chunk: a run of neighbouring source pixels within a layer, culled as one (:func:`chunk_visibility`)."""
@@ -208,39 +207,6 @@ class LayeredImage:
     """uint8 (L, H, W, 3)."""
 
 
-def assign_layers(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tuple[float, float]]:
-    """``(layer, (min, max))``: int64 (n,) layer of each valid depth (> 0, metres), ``num_layers`` equal slices
-    of [min, max] (0 = nearest, max in the last)."""
-    d = np.asarray(depth_m, dtype=np.float64)
-    if num_layers < 1:
-        raise ValueError(f"num_layers must be >= 1, got {num_layers}")
-    if d.size == 0:
-        return np.zeros(0, np.int64), (0.0, 0.0)
-    lo, hi = float(d.min()), float(d.max())
-    if hi <= lo:
-        return np.zeros(d.shape, np.int64), (lo, hi)
-    layer = np.minimum(((d - lo) / (hi - lo) * num_layers).astype(np.int64), num_layers - 1)
-    return layer, (lo, hi)
-
-
-def prepare_view_ref(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_cam: np.ndarray,
-                 num_layers: int) -> ViewPoints:
-    """Reference (numpy, via geometry.py) of :func:`prepare_view`, without ``image``."""
-    if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
-        raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
-    pts, mask = unproject_depth(K, depth_m, T_world_cam)
-    d = np.asarray(depth_m)[mask]
-    layer, rng = assign_layers(d, num_layers)
-    # Stable sort of small integer keys: numpy uses a radix sort for 8/16-bit ints (~10x faster).
-    key = layer.astype(np.uint8 if num_layers <= 255 else np.uint16)
-    order = np.argsort(key, kind="stable")
-    counts = np.bincount(layer, minlength=num_layers)
-    start = np.zeros(num_layers + 1, np.int64)
-    start[1:] = np.cumsum(counts)
-    return ViewPoints(np.ascontiguousarray(pts[order], np.float32),
-                      np.ascontiguousarray(color[mask][order], np.uint8), start, rng, T_world_cam)
-
-
 @nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: views are also prepared in a background thread
 def _prepare_kernel(depth, color, fx, fy, cx, cy, T, num_layers):  # pragma: no cover
     # Passes: depth range; each pixel's layer (num_layers = invalid) and layer counts; points at their layer's
@@ -306,7 +272,8 @@ def prepare_view(color: np.ndarray, depth_m: np.ndarray, K: Intrinsics, T_world_
                  num_layers: int, image: Any = None) -> ViewPoints:
     """Back-project the valid pixels of one RGB-D view (color uint8 (h, w, 3); depth_m float32 (h, w), 0 = invalid;
     K its intrinsics; T_world_cam its 4x4 pose), assign layers and sort by layer (numba; reference
-    :func:`prepare_view_ref`, tested equal). ``image`` is kept as ``ViewPoints.image`` (backward colour sampling)."""
+    :func:`~presim.synthesis.kernels_reference.prepare_view_ref`, tested equal). ``image`` is kept as
+    ``ViewPoints.image`` (backward colour sampling)."""
     if color.shape != (K.height, K.width, 3) or color.dtype != np.uint8:
         raise ValueError(f"color must be uint8 {K.height}x{K.width}x3, got {color.dtype} {color.shape}")
     depth = np.asarray(depth_m)
