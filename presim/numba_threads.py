@@ -4,7 +4,8 @@ Waking an idle OpenMP thread costs each parallel region ~0.1-0.4 ms on 2 cores, 
 so frames of at most :data:`SERIAL_MAX_PIXELS` pixels run on one thread. :func:`parallel_kernel` compiles a kernel
 twice (``parallel=True``, and serial with ``nogil=True``); inside :func:`numba_threads` ``(1)`` or
 :func:`serial_kernels` a Python thread runs the serial twins, so helper threads can run kernels at once under any
-threading layer. Outputs never depend on the thread count (tested)."""
+threading layer. Outputs never depend on the thread count (tested). Kernels that share state with another thread
+read and write it with :func:`load_acquire` / :func:`store_release` (atomic int32, acquire / release order)."""
 
 from __future__ import annotations
 
@@ -15,9 +16,12 @@ from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
 import numba
+from numba import types as nbtypes
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 __all__ = ["SERIAL_MAX_PIXELS", "LIGHT_SERIAL_BELOW", "frame_threads", "numba_threads", "serial_kernels", "serial_now",
-           "parallel_kernel", "TwinKernel"]
+           "parallel_kernel", "TwinKernel", "store_release", "load_acquire"]
 
 SERIAL_MAX_PIXELS = 40_000
 """Frames of at most this many pixels render on one numba thread with the renderer's ``PerfConfig.threads`` = 0
@@ -101,3 +105,36 @@ def parallel_kernel(serial_below: int = 0, size_arg: int = 0, **options: Any) ->
     """Decorator replacing ``@numba.njit(parallel=True, ...)``: a :class:`TwinKernel`. The project's kernels pass
     ``error_model="numpy"`` (no ZeroDivisionError branch, which keeps division loops from vectorizing)."""
     return lambda fn: TwinKernel(fn, serial_below, size_arg, **options)
+
+
+@intrinsic
+def store_release(typingctx, arr, idx, val):  # pragma: no cover - compiled into the kernel
+    """``arr[idx] = val`` (int32 array) as an atomic store with release order."""
+    if not isinstance(arr, nbtypes.Array) or arr.dtype != nbtypes.int32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        aryty, idxty, valty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
+                                       [context.cast(builder, args[1], idxty, nbtypes.intp)])
+        builder.store_atomic(context.cast(builder, args[2], valty, aryty.dtype), ptr, ordering="release", align=4)
+        return context.get_dummy_value()
+
+    return nbtypes.void(arr, idx, val), codegen
+
+
+@intrinsic
+def load_acquire(typingctx, arr, idx):  # pragma: no cover - compiled into the kernel
+    """``arr[idx]`` (int32 array) as an atomic load with acquire order (read anew each time)."""
+    if not isinstance(arr, nbtypes.Array) or arr.dtype != nbtypes.int32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        aryty, idxty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
+                                       [context.cast(builder, args[1], idxty, nbtypes.intp)])
+        return builder.load_atomic(ptr, ordering="acquire", align=4)
+
+    return nbtypes.int32(arr, idx), codegen

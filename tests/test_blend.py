@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from presim.geometry import Intrinsics, look_at
-from presim.synthesis.blend import BlendConfig, BlendInput, blend_numba, blend_reference, feather_map
+from presim.imaging.feather import coverage_counts, feather_box, feather_map
+from presim.synthesis.blend import BlendConfig, BlendInput, blend_numba, blend_reference
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.testing import rect_scene as S
 
@@ -69,7 +70,6 @@ def test_views_behind_the_front_surface_are_not_blended():
 def test_feather_counts_give_feather_map_exactly():
     """The kernel's feathering (integer box counts, scaled as OpenCV's float box filter scales
     them) equals feather_map bit for bit, for every box size up to 15 px and at image borders."""
-    from presim.synthesis.blend import coverage_counts, feather_box
 
     rng = np.random.default_rng(3)
     depth = np.where(rng.random((50, 70)) < 0.6, rng.uniform(0.5, 2.0, (50, 70)), 0).astype(np.float32)

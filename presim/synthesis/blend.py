@@ -4,8 +4,8 @@ Among the first ``max_views`` warped views, view ``k`` counts at pixel ``p`` whe
 the winner's ``d(p)`` within ``depth_tol_rel * d(p)`` (the winner always does), with weight
 ``feather_k(p) * quality_k / (a_k + resolution_weight * r_k + penalty_eps)``: ``a_k`` the chord of the angle
 between target and view rays at the surface point, ``r_k = max(0, |X - C_k| / |X - C_t| - 1)``, ``feather_k``
-(:func:`feather_map`; the winner keeps >= ``1 / feather_px``). Where >= 2 views count, the weighted mean replaces
-the winner's colour. Reference :func:`blend_reference`; numba :func:`blend_numba`."""
+(:func:`~presim.imaging.feather.feather_map`; the winner keeps >= ``1 / feather_px``). Where >= 2 views count, the
+weighted mean replaces the winner's colour. Reference :func:`blend_reference`; numba :func:`blend_numba`."""
 
 from __future__ import annotations
 
@@ -13,15 +13,14 @@ import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple, Sequence
 
-import cv2
 import numba as nb
 import numpy as np
 
 from presim.geometry import Intrinsics
+from presim.imaging.feather import coverage_counts, feather_box, feather_map
 from presim.numba_threads import parallel_kernel
 
-__all__ = ["BlendConfig", "BlendInput", "feather_map", "feather_box", "coverage_counts",
-           "front_of_layers", "blend_reference",
+__all__ = ["BlendConfig", "BlendInput", "front_of_layers", "blend_reference",
            "blend_numba", "blend_stacks", "blend_frame"]
 
 
@@ -70,39 +69,6 @@ class BlendInput(NamedTuple):
     """float64 (n,) per-view factor (sharpness), > 0."""
     feather_count: np.ndarray | None = None
     """Optional (n, H, W) :func:`coverage_counts` (None = computed; unused by the reference)."""
-
-
-def feather_map(depth_m: np.ndarray, feather_px: float) -> np.ndarray:
-    """Feathering factor of a view's coverage (float32 (H, W), 0 outside): ``clip(2 m - 1, 0, 1)`` of the covered
-    fraction ``m`` in a ``feather_px`` box (0 at a straight border, 1 from ``feather_px / 2`` inside)."""
-    cov = (depth_m > 0).astype(np.float32)
-    if feather_px <= 1:
-        return cov
-    k = feather_box(feather_px)
-    m = cv2.blur(cov, (k, k), borderType=cv2.BORDER_REPLICATE)
-    f = np.clip(2.0 * m - 1.0, 0.0, 1.0)
-    f *= cov
-    return f
-
-
-def feather_box(feather_px: float) -> int:
-    """Side of :func:`feather_map`'s box filter (odd, >= 3)."""
-    return max(3, int(round(feather_px)) | 1)
-
-
-def coverage_counts(depth_m: np.ndarray, feather_px: float, out: np.ndarray | None = None,
-                    coverage: np.ndarray | None = None) -> np.ndarray:
-    """Integer form of :func:`feather_map`: covered pixels in the ``feather_box`` box (border replicated), uint8
-    (uint16 for boxes over 15 px). :func:`feather_map` equals ``clip(2 * float32(count * (1 / box**2)) - 1, 0, 1)``
-    on covered pixels bit for bit (tested), which the blend kernel evaluates. ``coverage``: ``depth_m > 0`` uint8."""
-    k = feather_box(feather_px)
-    dt = np.uint8 if k * k <= 255 else np.uint16
-    cov = (depth_m > 0).view(np.uint8) if coverage is None else coverage
-    if out is None:
-        out = np.empty(depth_m.shape, dt)
-    cv2.boxFilter(cov, cv2.CV_8U if dt == np.uint8 else cv2.CV_16U, (k, k), dst=out, normalize=False,
-                  borderType=cv2.BORDER_REPLICATE)
-    return out
 
 
 def front_of_layers(layer_depth_m: np.ndarray, layer_color: np.ndarray, depth_out: np.ndarray,

@@ -21,6 +21,7 @@ from presim.capture.store import unmap_pages
 from presim.capture.sharpness import ViewSharpness
 from presim.geometry import Intrinsics, check_rigid, invert, transform_points, unproject_depth
 from presim.photometric.apply import OutputVignetting, SourceColorCorrection, predict_exposure
+from presim.sensors.rgbd import RGBD
 from presim.synthesis.blend import BlendConfig, blend_frame, blend_stacks, front_of_layers
 from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import PerfConfig, RenderConfig
@@ -29,7 +30,6 @@ from presim.synthesis.grids import FrameGrids
 from presim.synthesis.lod import LodConfig, build_level
 from presim.synthesis.pipeline import STAGES, ViewImage, synthesize_frame
 from presim.synthesis.resample import SourceImage, SourceStack, stack_sources
-from presim.sensors.rgbd import RGBD
 from presim.synthesis.select import Selection, ring_views, select_views
 from presim.synthesis.warp import ViewPoints, prepare_view, warp_layers
 

@@ -12,9 +12,10 @@ import torch
 import torch.nn.functional as F
 
 from presim.geometry import Intrinsics
+from presim.imaging.feather import feather_box
 from presim.imaging.torch_ops import label_components_torch, resolve_device
 from presim.photometric.apply import gain_bias_lut
-from presim.synthesis.blend import BlendConfig, BlendInput, feather_box
+from presim.synthesis.blend import BlendConfig, BlendInput
 from presim.synthesis.holes import HoleStats
 
 __all__ = ["merge_holes_torch", "analyse_hole_mask_torch", "blend_torch", "apply_exposure_torch"]
@@ -81,8 +82,8 @@ def analyse_hole_mask_torch(holes: np.ndarray, n_hole: int, big_hole_px: int = 1
 
 
 def _feather(depth_m: torch.Tensor, feather_px: float) -> torch.Tensor:
-    """:func:`~presim.synthesis.blend.feather_map` of (n, H, W) depths, bit for bit (box counts, as
-    :func:`~presim.synthesis.blend.coverage_counts`)."""
+    """:func:`~presim.imaging.feather.feather_map` of (n, H, W) depths, bit for bit (box counts, as
+    :func:`~presim.imaging.feather.coverage_counts`)."""
     cov = (depth_m > 0).float()
     if feather_px <= 1:
         return cov

@@ -14,11 +14,9 @@ from typing import Any, NamedTuple
 
 import numba as nb
 import numpy as np
-from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
 
 from presim.geometry import Intrinsics
+from presim.numba_threads import load_acquire, store_release
 from presim.synthesis.cracks import BAND_ROWS, LOWEST_SET_BIT, banded_crack_kernel
 from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, chunk_keep_kernel, target_cam, tile_marks,
                                    warp_layers_kernel)
@@ -39,39 +37,6 @@ _crack_serial = banded_crack_kernel.serial
 _NO_MASK = np.zeros((1, 1), np.bool_)
 
 
-@intrinsic
-def _store_release(typingctx, arr, idx, val):  # pragma: no cover - compiled into the kernel
-    """``arr[idx] = val`` (int32 array) as an atomic store with release order."""
-    if not isinstance(arr, types.Array) or arr.dtype != types.int32:
-        return None
-
-    def codegen(context, builder, signature, args):
-        aryty, idxty, valty = signature.args
-        ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
-                                       [context.cast(builder, args[1], idxty, types.intp)])
-        builder.store_atomic(context.cast(builder, args[2], valty, aryty.dtype), ptr, ordering="release", align=4)
-        return context.get_dummy_value()
-
-    return types.void(arr, idx, val), codegen
-
-
-@intrinsic
-def _load_acquire(typingctx, arr, idx):  # pragma: no cover - compiled into the kernel
-    """``arr[idx]`` (int32 array) as an atomic load with acquire order (read anew each time)."""
-    if not isinstance(arr, types.Array) or arr.dtype != types.int32:
-        return None
-
-    def codegen(context, builder, signature, args):
-        aryty, idxty = signature.args
-        ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
-                                       [context.cast(builder, args[1], idxty, types.intp)])
-        return builder.load_atomic(ptr, ordering="acquire", align=4)
-
-    return types.int32(arr, idx), codegen
-
-
 class Jobs(NamedTuple):
     """One frame's jobs: per view (tuples of :data:`MAX_JOBS`) points, chunk bounds and output buffers."""
 
@@ -90,22 +55,22 @@ def _warp_jobs_kernel(state, cancel, n, jobs, cam, cam64, tm, band):  # pragma: 
     # Jobs k < n in order: warp_layers(view k) without tiles into zb[k] / cb[k], then filtered_composite_banded
     # (no replace mask) into d[k] / c[k]. Claimed jobs are skipped; cancel[0] set (the loop has ended) stops it.
     for k in range(n):
-        if _load_acquire(cancel, 0) != 0:
+        if load_acquire(cancel, 0) != 0:
             return
-        if _load_acquire(state, k) != QUEUED:
+        if load_acquire(state, k) != QUEUED:
             continue
-        _store_release(state, k, RUNNING)
+        store_release(state, k, RUNNING)
         b = jobs.bounds[k]
         vis = np.ones(b.lo.shape[1], np.uint8)
         if cam.near > 0 and b.abs_max < np.inf:
             chunk_keep_kernel(b, cam64, CULL_MARGIN, tm, vis)
         # the crack pass reads colour only where depth > 0: no clearing needed
         _warp_serial(jobs.xyz[k], jobs.rgb[k], jobs.layer_start[k], 1, cam, tm, vis, False, jobs.zb[k], jobs.cb[k])
-        if _load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
-            _store_release(state, k, CLAIMED)
+        if load_acquire(cancel, 0) != 0:  # nobody will read it: no crack pass, not done
+            store_release(state, k, CLAIMED)
             return
         _crack_serial(jobs.zb[k], jobs.cb[k], LOWEST_SET_BIT, _NO_MASK, False, _NO_MASK, band, jobs.d[k], jobs.c[k])
-        _store_release(state, k, DONE)  # after the images: the loop reads them once it sees DONE
+        store_release(state, k, DONE)  # after the images: the loop reads them once it sees DONE
 
 
 class _Buffers:
