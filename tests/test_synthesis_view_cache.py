@@ -1,4 +1,4 @@
-"""The Renderer's view cache (presim/synthesis/execution.py, ViewCache): LRU bound, views built ahead in a
+"""The Renderer's view cache (presim/lru.py, LRUCache, owned by the executor): LRU bound, views built ahead in a
 background thread, and images that do not depend on who built a view."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 from presim.capture.scene import SceneError
 from presim.geometry import Intrinsics, look_at
 from presim.imaging.pool import pool_depth_aware
+from presim.lru import LRUCache
 from presim.numba_threads import serial_kernels
-from presim.synthesis.execution import ViewCache
 from presim.synthesis.renderer import PerfConfig, RenderConfig, Renderer
 from presim.testing import rect_scene as S
 
@@ -23,7 +23,7 @@ class _Item:
 
 
 def test_lru_bound_in_bytes_and_one_build_per_key():
-    c = ViewCache(limit_bytes=25)
+    c = LRUCache(limit_bytes=25)
     calls = []
 
     def build(k):
@@ -36,7 +36,7 @@ def test_lru_bound_in_bytes_and_one_build_per_key():
     c.get("a", lambda: build("a"))  # a is now the most recent
     c.get("c", lambda: build("c"))  # 30 bytes > 25: the least recent (b) goes
     assert "b" not in c and "a" in c and "c" in c and c.nbytes == 20 and len(c) == 2
-    big = ViewCache(limit_bytes=5)
+    big = LRUCache(limit_bytes=5)
     big.get("x", lambda: _Item("x", 100))
     assert "x" in big  # the newest view is always kept
 

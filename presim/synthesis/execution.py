@@ -2,59 +2,27 @@
 
 Frames of at most ``numba_threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (the serial twins); such a frame
 leaves a core idle, so a helper thread (:mod:`presim.synthesis.warp_ahead`) warps the later candidates the
-stream's previous frame drew while the loop works on the first view. Prepared views live in a :class:`ViewCache`.
-Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and earned >= 10 % on a case of
+stream's previous frame drew while the loop works on the first view. Prepared views (2-9 ms each at 640x480: read,
+pool the level, back-project, sort by layer) live in an :class:`~presim.lru.LRUCache`. Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and earned >= 10 % on a case of
 ``benchmarks/bench_ab.py`` (docs/synthesis.md)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
-from collections import OrderedDict
 from typing import Any, Callable, Hashable, Iterator
 
 import numpy as np
 
 from presim.geometry import Intrinsics
+from presim.lru import LRUCache
 from presim.numba_threads import frame_threads, numba_threads
 from presim.synthesis.config import PerfConfig, RenderConfig
 from presim.synthesis.cracks import TILED_MIN_PIXELS
 from presim.synthesis.pipeline import ViewImage, Workspace, banded_applies, stage_kernels
 from presim.synthesis.warp_ahead import WARP_AHEAD_MIN_POINTS, WarpAhead
 
-__all__ = ["Executor", "ViewCache"]
-
-
-class ViewCache:
-    """LRU cache of prepared views bounded in bytes (each value has ``.nbytes``); the newest always stays.
-    A prepared view costs 2-9 ms at 640x480 (read, pool the level, back-project, sort by layer)."""
-
-    def __init__(self, limit_bytes: float):
-        self.limit_bytes = float(limit_bytes)
-        self._items: OrderedDict[Hashable, Any] = OrderedDict()
-        self.nbytes = 0
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def __contains__(self, key: Hashable) -> bool:
-        return key in self._items
-
-    def peek(self, key: Hashable) -> Any | None:
-        """The cached value of ``key`` or None, without building it or changing the LRU order."""
-        return self._items.get(key)
-
-    def get(self, key: Hashable, build: Callable[[], Any]) -> Any:
-        """The value of ``key``, built with ``build()`` and cached when missing."""
-        value = self._items.get(key)
-        if value is not None:
-            self._items.move_to_end(key)
-            return value
-        value = self._items[key] = build()
-        self.nbytes += int(value.nbytes)
-        while self.nbytes > self.limit_bytes and len(self._items) > 1:
-            self.nbytes -= int(self._items.popitem(last=False)[1].nbytes)
-        return value
+__all__ = ["Executor"]
 
 
 class Executor:
@@ -63,7 +31,7 @@ class Executor:
     def __init__(self, perf: PerfConfig, config: RenderConfig):
         self.perf = perf
         self.kernels = stage_kernels(perf.backend, perf.torch_device)
-        self.cache = ViewCache(perf.cache_mb * 2**20)
+        self.cache = LRUCache(perf.cache_mb * 2**20)
         self.workspace = Workspace()
         # Warping ahead needs the numba backend's banded crack pass, no blending (which keeps the
         # loop's own warps) and a second core.
