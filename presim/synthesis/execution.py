@@ -3,8 +3,8 @@
 Frames of at most ``numba_threads.SERIAL_MAX_PIXELS`` pixels run on one numba thread (the serial twins); such a frame
 leaves a core idle, so a helper thread (:mod:`presim.synthesis.warp_ahead`) warps the later candidates the
 stream's previous frame drew while the loop works on the first view. Prepared views (2-9 ms each at 640x480: read,
-pool the level, back-project, sort by layer) live in an :class:`~presim.lru.LRUCache`. Each mechanism is switched by :class:`~presim.synthesis.config.PerfConfig` and earned >= 10 % on a case of
-``benchmarks/bench_ab.py`` (docs/synthesis.md)."""
+pool the level, back-project, sort by layer) live in an :class:`~presim.lru.LRUCache`. Each mechanism is switched
+by :class:`~presim.synthesis.config.PerfConfig` and earned >= 10 % on a case of ``benchmarks/bench_ab.py``."""
 
 from __future__ import annotations
 
