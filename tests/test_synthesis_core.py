@@ -15,7 +15,7 @@ from presim.synthesis.completion import CompletedPoints
 from presim.synthesis.config import BACKENDS, PerfConfig, RenderConfig
 from presim.synthesis.fill import fill_holes
 from presim.synthesis.grids import FrameGrids, grid_pixels
-from presim.synthesis.holes import analyse_holes, merge_view_holes
+from presim.synthesis.holes import analyse_hole_mask, merge_view_holes
 from presim.synthesis.pipeline import NUMBA, ViewImage, Workspace, stage_kernels, synthesize_frame
 
 H, W = 48, 64
@@ -96,6 +96,12 @@ def test_fill_respects_the_valid_mask(method):
         assert np.array_equal(c, color) and c is not color and np.array_equal(d, depth)
     with pytest.raises(ValueError, match="fill method"):
         fill_holes(color, depth, valid, "nope")
+
+
+def analyse_holes(valid, *args, **kw):
+    """analyse_hole_mask of a coverage mask (bool, or 0 = hole)."""
+    holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
+    return analyse_hole_mask(holes, int(holes.sum()), *args, **kw)
 
 
 # ---- analyse_holes ----------------------------------------------------------------------------------
@@ -450,7 +456,7 @@ def test_synthesis_imports_nothing_above_capture():
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('presim.'))))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     # presim.runtime is the package's own import-time process setup (imported by presim/__init__).
-    allowed = ("capture", "geometry", "imaging", "io_utils", "numba_threads", "sensors", "synthesis", "runtime")
+    allowed = ("capture", "geometry", "imaging", "io_utils", "lru", "numba_threads", "sensors", "synthesis", "runtime")
     assert out and not [m for m in out if m.split(".")[1] not in allowed
                         and m not in ("presim.photometric", "presim.photometric.apply")], out
 

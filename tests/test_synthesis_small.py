@@ -9,7 +9,7 @@ import numba
 import numpy as np
 import pytest
 
-from presim.synthesis.holes import analyse_hole_mask, analyse_holes, merge_view_holes
+from presim.synthesis.holes import analyse_hole_mask, merge_view_holes
 
 
 def test_merge_view_holes_equals_merge_then_mask():
@@ -26,7 +26,7 @@ def test_merge_view_holes_equals_merge_then_mask():
     np.testing.assert_array_equal(src, np.where(d1 > 0, 4, -1))
     np.testing.assert_array_equal(holes, (~(d1 > 0)).view(np.uint8))
     assert n == np.count_nonzero(~(d1 > 0))
-    replace = analyse_holes(d1 > 0, 4, 1).replace
+    replace = analyse_hole_mask(holes, n, 4, 1).replace
     d2 = np.where(rng.random((H, W)) < 0.7, rng.random((H, W)) + 0.1, 0).astype(np.float32)
     c2 = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     ref = [a.copy() for a in (d1, c1, src)]  # numpy reference of the merge
@@ -78,23 +78,6 @@ def test_merge_into_holes_equals_merge_view_holes(words, monkeypatch):
             np.testing.assert_array_equal(h_new, (~(new[0] > 0)).view(np.uint8))
             assert n_new == n_ref
         assert n_ref < np.count_nonzero(~(d0 > 0))  # the chain filled some holes
-
-
-def test_analyse_hole_mask_equals_analyse_holes():
-    rng = np.random.default_rng(7)
-    for p in (0.02, 0.3, 0.6):
-        valid = rng.random((40, 50)) > p
-        valid[5:12, 5:12] = False  # one big hole
-        holes = (~valid).view(np.uint8)
-        for kw in ({}, {"hole_dilation_px": 0}, {"big_hole_px": 200}, {"want_replace": False},
-                   {"stop_px": 1e6}, {"want_replace": False, "want_largest": False}):
-            a = analyse_holes(valid, **kw)
-            b = analyse_hole_mask(holes, int(holes.sum()), **kw)
-            assert (a.hole_frac, a.largest_hole_px) == (b.hole_frac, b.largest_hole_px)
-            for x, y in ((a.replace, b.replace), (a.big, b.big)):
-                assert (x is None) == (y is None)
-                if x is not None:
-                    np.testing.assert_array_equal(x, y)
 
 
 def test_hole_runs_components_equal_scipy_labelling():

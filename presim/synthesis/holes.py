@@ -16,7 +16,7 @@ import numpy as np
 from presim.imaging.masks import row_words
 from presim.numba_threads import LIGHT_SERIAL_BELOW, parallel_kernel
 
-__all__ = ["HoleStats", "merge_view_holes", "merge_into_holes", "analyse_holes", "analyse_hole_mask"]
+__all__ = ["HoleStats", "merge_view_holes", "merge_into_holes", "analyse_hole_mask"]
 
 _NO_MASK = np.zeros((1, 1), np.bool_)
 
@@ -228,20 +228,12 @@ def _ellipse_rows(k: int) -> np.ndarray:
     return half
 
 
-def analyse_holes(valid: np.ndarray, big_hole_px: int = 16, hole_dilation_px: int = 2,
-                  want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
-    """Hole statistics of a coverage mask ``valid`` (bool (H, W)) and the pixels the next view may replace
-    (holes of >= ``big_hole_px`` dilated by ``hole_dilation_px``). ``stop_px``: when all holes total at most
-    this, components are skipped (``largest_hole_px`` = total); ``want_largest`` and ``want_replace`` False:
-    only the fraction. One numba pass (93 vs 499 us for OpenCV labelling + area passes at 640x480)."""
-    holes = (~valid).view(np.uint8) if valid.dtype == np.bool_ else (valid == 0).astype(np.uint8)
-    return analyse_hole_mask(holes, cv2.countNonZero(holes), big_hole_px, hole_dilation_px, want_replace,
-                             stop_px, want_largest)
-
-
 def analyse_hole_mask(holes: np.ndarray, n_hole: int, big_hole_px: int = 16, hole_dilation_px: int = 2,
                       want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True) -> HoleStats:
-    """:func:`analyse_holes` from ``holes`` uint8 (H, W) (1 = empty) and its count ``n_hole``."""
+    """Hole statistics of ``holes`` uint8 (H, W) (1 = empty; ``n_hole`` of them) and the pixels the next view may
+    replace (holes of >= ``big_hole_px`` dilated by ``hole_dilation_px``). ``stop_px``: when all holes total at most
+    this, components are skipped (``largest_hole_px`` = total); ``want_largest`` and ``want_replace`` False: only
+    the fraction. One numba pass (93 vs 499 us for OpenCV labelling + area passes at 640x480)."""
     H, W = holes.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)
