@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from presim.geometry import Intrinsics, invert, look_at
-from presim.synthesis.grids import FrameGrids, count_in_mask, fill_area_ref, grid_pixels, per_coordinate, project_grid_ref
+from presim.synthesis.grids import (FrameGrids, count_in_mask, fill_area_ref, grid_pixels, per_coordinate,
+                                    project_grid_ref)
 from presim.synthesis.lod import choose_level, footprint_ratio
 from presim.synthesis.renderer import RenderConfig, Renderer
 from presim.synthesis.select import view_overlap
@@ -76,7 +77,8 @@ def test_frame_grids_answers_equal_the_reference_functions():
                               float(np.sqrt(Kt.fx * Kt.fy)), 0.01, Kt)
         ref_near = footprint_ratio(grid, invert(scene.T_world_cam[v]), float(r.src_focal[v]), T_cw,
                                    float(np.sqrt(Kt.fx * Kt.fy)), r.config.near_m, Kt)
-        assert r.lod_level_in(v, g) == choose_level(ref_near, r._lod)
+        got_level = g.lod_level(v, r.grid_zsrc(v), float(r.src_focal[v]), r.config.near_m, r.lod)
+        assert got_level == choose_level(ref_near, r.lod)
         got = g.footprint_ratio(v, r.grid_zsrc(v), float(r.src_focal[v]), 0.01)
         assert got == pytest.approx(ref, rel=1e-6)
     assert 0.3 < ov.max() <= 1.0

@@ -149,7 +149,7 @@ class RenderConfig:
             (self.max_zoom > 0, "max_zoom must be > 0"),
             (self.smooth_sigma_px is None or 0.0 <= self.smooth_sigma_px <= 8.0, "smooth_sigma_px must be in [0, 8]"),
             (0 <= self.lod_levels <= 8, "lod_levels must be in [0, 8]"),
-            (self.lod_max_footprint > 0 and self.lod_depth_tol >= 0, "lod_max_footprint must be > 0, lod_depth_tol >= 0"),
+            (self.lod_max_footprint > 0 and self.lod_depth_tol >= 0, "lod_max_footprint > 0, lod_depth_tol >= 0"),
             (self.reuse_move_m >= 0 and self.reuse_turn_deg >= 0, "reuse_move_m / reuse_turn_deg must be >= 0"),
             (self.blend_views >= 1, "blend_views must be >= 1"),
             (0.0 < self.blend_depth_tol < 1.0, "blend_depth_tol must be in (0, 1)"),

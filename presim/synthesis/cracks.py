@@ -406,7 +406,8 @@ def _tile_items_kernel(active, tile_h, tile_w, H, W):  # pragma: no cover
 
 
 def filtered_composite_banded(depth_m: np.ndarray, color: np.ndarray, replace: np.ndarray | None = None,
-                              band_rows: int | None = None, tile_cols: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                              band_rows: int | None = None, tile_cols: int | None = None
+                              ) -> tuple[np.ndarray, np.ndarray]:
     """3 x 3 switching median per layer, composite and seam pass fused per band of :data:`BANDED_MAX_LAYERS` <= 8
     layers: ``(depth_m (H, W), color (H, W, 3))``, bit-identical to the :func:`crack_filter` chain (tested).
 

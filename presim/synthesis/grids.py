@@ -313,7 +313,8 @@ class FrameGrids:
         """The adaptive loop's next view in one kernel call: index in ``ids`` of the first view whose count of grid
         pixels on ``mask_flat`` reaches ``frac`` x the largest, counting only views whose fill area reaches ``need``
         (None: all): the target pixels its grid points on ``mask_flat`` stand for, each ``(stride_px x z_src / z_t x
-        f_t / f_src)^2``; -1 if none. References: :func:`count_in_mask` of :func:`grid_pixels`, :func:`fill_area_ref`."""
+        f_t / f_src)^2``; -1 if none. References: :func:`count_in_mask` of :func:`grid_pixels`,
+        :func:`fill_area_ref`."""
         ids = [int(v) for v in ids]
         if not ids:
             return -1

@@ -13,7 +13,8 @@ from presim.capture.reprojection import zbuffer_splat
 from presim.geometry import Intrinsics, project, transform_points, unproject_depth
 from presim.synthesis.warp import ViewPoints
 
-__all__ = ["assign_layers_ref", "prepare_view_ref", "warp_layers_ref", "switching_median_ref", "plain_median_ref", "composite_layers_ref"]
+__all__ = ["assign_layers_ref", "prepare_view_ref", "warp_layers_ref", "switching_median_ref", "plain_median_ref",
+           "composite_layers_ref"]
 
 
 def assign_layers_ref(depth_m: np.ndarray, num_layers: int) -> tuple[np.ndarray, tuple[float, float]]:

@@ -82,9 +82,11 @@ class _FrameViews:
         self.fronts: list[int] = []  # views whose front surface the loop wrote into the blend stacks
 
     def level(self, v: int) -> int:
+        """View ``v``'s pyramid level from the frame's one projection of the grids (reference: lod.footprint_ratio)."""
         lv = self.levels.get(v)
         if lv is None:
-            lv = self.levels[v] = self.r.lod_level_in(v, self.grids)
+            r = self.r
+            lv = self.levels[v] = self.grids.lod_level(v, r.grid_zsrc(v), float(r.src_focal[v]), r.config.near_m, r.lod)
         return lv
 
     def view_image(self, view_id: int, replace: np.ndarray | None) -> ViewImage:
@@ -185,7 +187,7 @@ class Renderer:
         """Sigma of the reconstruction filter at the capture's sampling (pixels; 0 = none)."""
         self._grids: dict[int, np.ndarray] = {}
         self._grid_zsrc: dict[int, np.ndarray] = {}
-        self._lod = LodConfig(config.lod_levels, config.lod_max_footprint, config.lod_depth_tol)
+        self.lod = LodConfig(config.lod_levels, config.lod_max_footprint, config.lod_depth_tol)
         self.executor = Executor(perf, config)
         if perf.backend == "torch":
             from presim.synthesis import torch_kernels  # torch is imported only when asked for
@@ -205,8 +207,9 @@ class Renderer:
                                                             config.exposure_frame)
             if calib.vignetting is not None and config.exposure_frame is not None:
                 self._output_vignetting = OutputVignetting(calib, config.exposure_frame)
-        self.blend_config = BlendConfig(config.blend_views, config.blend_depth_tol, penalty_eps=config.blend_penalty_eps,
-                                        feather_px=config.blend_feather_px) if config.blend else None
+        self.blend_config = None if not config.blend else BlendConfig(
+            config.blend_views, config.blend_depth_tol, penalty_eps=config.blend_penalty_eps,
+            feather_px=config.blend_feather_px)
         self.blend_buffers: dict = {}
         self._sharpness = None
         if config.sharpness:
@@ -279,13 +282,6 @@ class Renderer:
     def completed_view(self, idx: int, level: int = 0) -> ViewPoints:
         """The points of view ``idx``'s completed depth at ``level`` (cached, numpy on every backend)."""
         return self.executor.view((idx, level, "completed"), lambda: self._prepare(idx, level, completed=True))
-
-    def lod_level_in(self, idx: int, grids: FrameGrids) -> int:
-        """Pyramid level of view ``idx`` for the frame's target camera, from its one projection of the grids
-        (reference: :func:`~presim.synthesis.lod.choose_level` of :func:`~presim.synthesis.lod.footprint_ratio`)."""
-        if self._lod.levels == 0:
-            return 0
-        return grids.lod_level(idx, self.grid_zsrc(idx), float(self.src_focal[idx]), self.config.near_m, self._lod)
 
     # ---- public API ----------------------------------------------------------------------------
     def select(self, T_world_cam: np.ndarray, K: Intrinsics, grids: FrameGrids | None = None) -> Selection:
@@ -367,8 +363,8 @@ class Renderer:
         res.ms["select"] += select_ms
         stream.views_drawn = tuple(res.views)
         stats = RenderStats(views=res.views, selection=sel, hole_frac_per_view=res.hole_frac_per_view, ms=res.ms,
-                            skipped=res.skipped, completed=res.completed, lod_levels=[frame.levels.get(v, 0) for v in res.views],
-                            reused_selection=reused)
+                            skipped=res.skipped, completed=res.completed, reused_selection=reused,
+                            lod_levels=[frame.levels.get(v, 0) for v in res.views])
         color = res.color if self._output_vignetting is None else self._output_vignetting(res.color, K)
         return RGBD(color, res.depth_m, res.valid, res.source_view, K, T_world_cam, res.hole_frac), stats
 

@@ -60,7 +60,8 @@ def analyse_hole_mask_torch(holes: np.ndarray, n_hole: int, big_hole_px: int = 1
                             want_replace: bool = True, stop_px: float = 0.0, want_largest: bool = True,
                             device: torch.device | str | None = None) -> HoleStats:
     """:func:`~presim.synthesis.holes.analyse_hole_mask` in torch (the same :class:`HoleStats`): components by
-    :func:`~presim.imaging.torch_ops.label_components_torch`, areas by ``bincount``, big holes dilated by OpenCV's elliptic element."""
+    :func:`~presim.imaging.torch_ops.label_components_torch`, areas by ``bincount``, big holes dilated by OpenCV's
+    elliptic element."""
     H, W = holes.shape
     if n_hole == 0:
         return HoleStats(0.0, 0, np.zeros((H, W), bool) if want_replace else None)

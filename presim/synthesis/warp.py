@@ -193,8 +193,8 @@ class ViewPoints:
 
     @property
     def nbytes(self) -> int:
-        return int(self.xyz_world.nbytes + self.rgb.nbytes + self.layer_start.nbytes + self.chunk_lo.nbytes
-                   + self.chunk_hi.nbytes + self.chunk_to_world.nbytes + (self.image.nbytes if self.image is not None else 0))
+        parts = (self.xyz_world, self.rgb, self.layer_start, self.chunk_lo, self.chunk_hi, self.chunk_to_world)
+        return int(sum(a.nbytes for a in parts) + (self.image.nbytes if self.image is not None else 0))
 
 
 @dataclass(frozen=True)
@@ -363,8 +363,9 @@ def chunk_keep_kernel(b, cam, margin_rel, tm, vis):  # pragma: no cover
     # branch-free loops over chunks (they vectorize).
     # 1. Frustum: the warp kernel's keep tests as 5 linear functions g_k >= 0 of the target point (z > near,
     #    u >= 0, u < W, v >= 0, v < H, multiplied out by z > 0); G_k = the same of the frame point. Their maximum
-    #    over the piece, g = z (G0 a + G1 b + G2) + G3, is at z0 or z1 with the bracket at its largest. Culled when for one k it is below -margin_rel x a bound
-    #    of |g_k| (mag: bounds of any target point's |x|, |y|, |z|; the kernel's float32 rounding is ~1e-7 of them).
+    #    over the piece, g = z (G0 a + G1 b + G2) + G3, is at z0 or z1 with the bracket at its largest. Culled when
+    #    for one k it is below -margin_rel x a bound of |g_k| (mag: bounds of any target point's |x|, |y|, |z|; the
+    #    kernel's float32 rounding is ~1e-7 of them).
     # 2. Tiles: with every corner in front of the near plane, the points' pixels lie in the box of the corners'
     #    pixels; culled when that box, widened by a rounding margin, meets no marked tile (sat: summed-area table).
     # Non-finite bounds are kept (x - x == 0 only for finite x).
@@ -622,6 +623,7 @@ def warp_layers(view: ViewPoints, T_cam_world: np.ndarray, K: Intrinsics, near_m
                            np.empty((L, K.height, K.width, 3), np.uint8))
     tm = tile_marks(tiles, K, tile_px, "warp_layers")
     vis = chunk_visibility(view, T_cam_world, K, near_m, tm=tm) if cull else np.ones(view.chunk_lo.shape[1], np.uint8)
-    warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), target_cam(T_cam_world, K, near_m),
-                       tm, vis, bool(clear_color), out.depth_m, out.color)
+    cam = target_cam(T_cam_world, K, near_m)
+    warp_layers_kernel(view.xyz_world, view.rgb, view.layer_start, nb.get_num_threads(), cam, tm, vis,
+                       bool(clear_color), out.depth_m, out.color)
     return out
