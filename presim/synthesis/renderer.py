@@ -201,7 +201,8 @@ class Renderer:
         self._batch_streams: list[_Stream] = []
         self._source_correction = self._output_vignetting = None
         calib = self.calib = getattr(scene, "photometric", None) if config.use_photometric else None
-        self.calib_rows = [_calib_row(calib, f) for f in scene.frame_ids] if calib is not None else []
+        rows = {f: i for i, f in enumerate(calib.frame_ids)} if calib is not None else {}
+        self.calib_rows = [rows.get(f, -1) for f in scene.frame_ids]  # -1: not calibrated, keeps its colours
         if calib is not None:  # applied to each frame's pixels when its view is prepared (cached)
             self._source_correction = SourceColorCorrection(calib, scene.frame_ids, scene.intrinsics,
                                                             config.exposure_frame)
@@ -391,13 +392,6 @@ class Renderer:
         if math.degrees(math.acos(min(max(cos, -1.0), 1.0))) > cfg.reuse_turn_deg:
             return None
         return sel
-
-
-def _calib_row(calib, frame_id: str) -> int:
-    try:
-        return calib.index(frame_id)
-    except KeyError:  # a frame the calibration does not know keeps its colours
-        return -1
 
 
 def _check_K(K) -> Intrinsics:
