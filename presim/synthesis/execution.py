@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from typing import Any, Callable, Hashable, Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -40,10 +40,6 @@ class Executor:
         self._ahead: WarpAhead | None = None
         self._ahead_on = False
         self.max_later = config.fixed_views if config.fixed_views > 0 else config.max_views
-
-    def view(self, key: Hashable, build: Callable[[], Any]) -> Any:
-        """The prepared view under ``key`` from the cache, built now when missing."""
-        return self.cache.get(key, build)
 
     def frame_threads(self, K: Intrinsics) -> int:
         return frame_threads(K.width, K.height, self.perf.threads)
@@ -75,8 +71,9 @@ class Executor:
         self._ahead_on = True
 
     def view_image(self, view: Any, T_cam_world: np.ndarray, K: Intrinsics, config: RenderConfig,
-                   replace: np.ndarray | None) -> ViewImage:
-        """The view's image: taken from the helper thread when it warped it, else computed here."""
+                   replace: np.ndarray | None, front: tuple[np.ndarray, np.ndarray] | None = None) -> ViewImage:
+        """The view's image: taken from the helper thread when it warped it, else computed here; a numba view image
+        also writes its front-most surface into ``front`` (blending, which keeps the helper thread off)."""
         if self._ahead_on:
             got = self._ahead.take(view)
             if got is not None:
@@ -84,14 +81,9 @@ class Executor:
                 if replace is None:  # the first view's image becomes the frame's: not the thread's buffers
                     d, c = d.copy(), c.copy()
                 return ViewImage(d, c)
-        return self.kernels.view_image(view, T_cam_world, K, config, replace, self.workspace)
-
-    @contextlib.contextmanager
-    def with_front(self, front: tuple[np.ndarray, np.ndarray] | None) -> Iterator[None]:
-        """Within the block, numba view images also write their front-most surface into ``front``."""
         self.workspace.front = front
         try:
-            yield
+            return self.kernels.view_image(view, T_cam_world, K, config, replace, self.workspace)
         finally:
             self.workspace.front = None
 

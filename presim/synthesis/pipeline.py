@@ -335,17 +335,12 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         if hs.largest_hole_px >= ring_px:
             m.replace = m.big = hs.big
             _draw(views, kern, cfg, K, m, [v for v in views.ring() if v not in warped], ring=True)
-    acc_d, acc_c, acc_src, holes, n_hole = m.depth_m, m.color, m.source, m.holes, m.n_hole
-    hole_fracs, skipped = m.hole_fracs, m.skipped
-    if holes is None:  # no view warped
-        acc_d = np.zeros((H, W), np.float32)
-        acc_c = np.zeros((H, W, 3), np.uint8)
+    acc_d, acc_c, acc_src, n_hole = m.depth_m, m.color, m.source, m.n_hole
+    if m.holes is None:  # no view warped: every pixel is a hole
+        acc_d, acc_c, n_hole = np.zeros((H, W), np.float32), np.zeros((H, W, 3), np.uint8), H * W
         acc_src.fill(-1)
-        valid = acc_d > 0
-        hole_frac = float(1.0 - valid.mean())
-    else:  # the same float operations as 1 - valid.mean()
-        valid = holes == 0
-        hole_frac = float(1.0 - (H * W - n_hole) / float(H * W))
+    valid = acc_d > 0 if m.holes is None else m.holes == 0
+    hole_frac = float(1.0 - (H * W - n_hole) / float(H * W))  # the same float operations as 1 - valid.mean()
     if cfg.backward_color and warped:
         t = time.perf_counter()
         acc_c = kern.resample(acc_c, acc_d, acc_src, K, invert(T_cam_world), views.sources(warped),
@@ -372,4 +367,4 @@ def synthesize_frame(views: FrameViews, T_cam_world: np.ndarray, K: Intrinsics, 
         if exposure is not None:
             acc_c = kern.apply_exposure(acc_c, *exposure)
         ms["exposure"] = (time.perf_counter() - t) * 1e3
-    return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, warped, hole_fracs, skipped, ms, completed)
+    return FrameResult(acc_c, acc_d, valid, acc_src, hole_frac, warped, m.hole_fracs, m.skipped, ms, completed)

@@ -99,8 +99,7 @@ class _FrameViews:
             d, c, _ = blend_stacks(r.blend_buffers, r.blend_config.max_views, self.K.height, self.K.width,
                                    r.blend_config.feather_px)
             front = (d[len(self.fronts)], c[len(self.fronts)])
-        with r.executor.with_front(front):
-            img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace)
+        img = r.executor.view_image(view, self.T_cam_world, self.K, r.config, replace, front)
         if front is not None:
             self.fronts.append(view_id)
         img.load_ms = load_ms
@@ -278,11 +277,12 @@ class Renderer:
 
     def view(self, idx: int, level: int = 0):
         """View ``idx`` prepared at ``level`` in the backend's form (cached)."""
-        return self.executor.view(idx if level == 0 else (idx, level), lambda: self._upload(self._prepare(idx, level)))
+        key = idx if level == 0 else (idx, level)
+        return self.executor.cache.get(key, lambda: self._upload(self._prepare(idx, level)))
 
     def completed_view(self, idx: int, level: int = 0) -> ViewPoints:
         """The points of view ``idx``'s completed depth at ``level`` (cached, numpy on every backend)."""
-        return self.executor.view((idx, level, "completed"), lambda: self._prepare(idx, level, completed=True))
+        return self.executor.cache.get((idx, level, "completed"), lambda: self._prepare(idx, level, completed=True))
 
     # ---- public API ----------------------------------------------------------------------------
     def select(self, T_world_cam: np.ndarray, K: Intrinsics, grids: FrameGrids | None = None) -> Selection:

@@ -18,7 +18,7 @@ import numpy as np
 from presim.geometry import Intrinsics
 from presim.numba_threads import load_acquire, store_release
 from presim.synthesis.cracks import BAND_ROWS, LOWEST_SET_BIT, banded_crack_kernel
-from presim.synthesis.warp import (CULL_MARGIN, ChunkBounds, chunk_keep_kernel, target_cam, tile_marks,
+from presim.synthesis.warp import (CULL_MARGIN, chunk_bounds_of, chunk_keep_kernel, target_cam, tile_marks,
                                    warp_layers_kernel)
 
 __all__ = ["WarpAhead", "MAX_JOBS", "WARP_AHEAD_MIN_POINTS"]
@@ -130,8 +130,7 @@ class _Shared:
 def _fields(view: Any) -> tuple:
     """The kernel's per-view arguments (points, layer starts, chunk bounds), contiguous: one compilation."""
     c = np.ascontiguousarray
-    return (c(view.xyz_world), c(view.rgb), c(view.layer_start), ChunkBounds(c(view.chunk_lo), c(view.chunk_hi),
-            c(view.chunk_to_world), float(view.chunk_abs_max)))
+    return c(view.xyz_world), c(view.rgb), c(view.layer_start), chunk_bounds_of(view)
 
 
 def _serve(sh: _Shared) -> None:
