@@ -137,6 +137,8 @@ class StageKernels(NamedTuple):
     (:mod:`presim.imaging.gaussian`) that weighs the splats' placement (up to half a pixel off) and sensor noise
     against detail, sigma fitted per capture (docs/synthesis.md, item 13)."""
     apply_exposure: Callable[..., np.ndarray]
+    upload: Callable[[ViewPoints], object] = lambda view: view
+    """A prepared view in the backend's form (torch: a ``TorchView`` on its device)."""
 
 
 NUMBA = StageKernels(view_image_numba, merge_view_holes, merge_into_holes, analyse_hole_mask,
@@ -166,7 +168,8 @@ def stage_kernels(backend: str, device: str | None = None) -> StageKernels:
     return StageKernels(view_image_torch, merge, merge, on(ts.analyse_hole_mask_torch, device=device),
                         on(tk.splat_into_holes_torch, device=device), on(tk.resample_colors_torch, device=device),
                         on(torch_ops.pushpull_rgbd_torch, device=device), on(ts.blend_torch, device=device),
-                        on(torch_ops.smooth_colors_torch, device=device), on(ts.apply_exposure_torch, device=device))
+                        on(torch_ops.smooth_colors_torch, device=device), on(ts.apply_exposure_torch, device=device),
+                        on(tk.to_device, device=tk.resolve_device(device)))
 
 
 class FrameViews(Protocol):

@@ -188,13 +188,6 @@ class Renderer:
         self._grid_zsrc: dict[int, np.ndarray] = {}
         self.lod = LodConfig(config.lod_levels, config.lod_max_footprint, config.lod_depth_tol)
         self.executor = Executor(perf, config)
-        if perf.backend == "torch":
-            from presim.synthesis import torch_kernels  # torch is imported only when asked for
-
-            self._device = torch_kernels.resolve_device(perf.torch_device)
-            self._upload = lambda v: torch_kernels.to_device(v, self._device)
-        else:
-            self._upload = lambda v: v
         self.last = RenderStats()
         self._stream = _Stream()
         self._batch_streams: list[_Stream] = []
@@ -278,7 +271,7 @@ class Renderer:
     def view(self, idx: int, level: int = 0):
         """View ``idx`` prepared at ``level`` in the backend's form (cached)."""
         key = idx if level == 0 else (idx, level)
-        return self.executor.cache.get(key, lambda: self._upload(self._prepare(idx, level)))
+        return self.executor.cache.get(key, lambda: self.executor.kernels.upload(self._prepare(idx, level)))
 
     def completed_view(self, idx: int, level: int = 0) -> ViewPoints:
         """The points of view ``idx``'s completed depth at ``level`` (cached, numpy on every backend)."""
