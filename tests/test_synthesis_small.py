@@ -143,12 +143,14 @@ def test_row_words_are_the_rows_zero_padded_to_8_pixels():
     assert row_words(np.zeros((4, 0), np.uint8)).shape == (4, 0)
 
 
-def test_median_ratio_kernel_equals_numpy_median():
+def test_footprint_median_equals_numpy_median():
     """LOD footprint median: numpy's ``np.median(z_s[ok] / z_t[ok])`` with ``ok`` from float32
     comparisons and the in-image test, exactly (odd / even counts, ties, inputs in increasing and
-    decreasing order, a few points and a few hundred, none ok -> nan; the kernel selects in place)."""
-    from presim.synthesis.grids import _median_ratio_kernel
+    decreasing order, a few points and a few hundred, none ok -> nan)."""
+    from presim.geometry import Intrinsics
+    from presim.synthesis.grids import FrameGrids
 
+    K = Intrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)
     rng = np.random.default_rng(0)
     for t in range(400):
         n = int(rng.integers(0, 40 if t % 2 else 400))
@@ -163,12 +165,13 @@ def test_median_ratio_kernel_equals_numpy_median():
         zs[: n // 4] = np.float32(near)
         pix = np.where(rng.random(n) < 0.2, -1, rng.integers(0, 1000, n)).astype(np.int64)  # -1: outside
         ok = (zs > near) & (zt > near) & (pix >= 0)
-        got = _median_ratio_kernel(zs, zt, pix, np.float32(near))
+        g = FrameGrids(np.eye(4), K, lambda v: np.zeros((n, 3), np.float32))
+        g._proj[0] = (pix, zt)
+        got = g.footprint_ratio(0, zs, 100.0, near)
         if not ok.any():
             assert np.isnan(got)
             continue
-        ref = np.median(zs[ok] / zt[ok])
-        assert np.float32(got) == ref and float(np.float32(got) * np.sqrt(2.0)) == float(ref * np.sqrt(2.0))
+        assert got == float(np.median(zs[ok] / zt[ok]) * np.sqrt(K.fx * K.fy) / 100.0)
 
 
 def test_frame_grids_lod_level_is_choose_level_of_the_footprint_median():
@@ -196,6 +199,43 @@ def test_frame_grids_lod_level_is_choose_level_of_the_footprint_median():
         assert g.lod_level(0, z_src, f_s, 0.01, LodConfig(levels=0)) == 0
         levels.append(want)
     assert levels == [0, 1, 2, 3, 0, 3]
+
+
+def test_lod_level_by_counts_is_choose_level_of_the_median(monkeypatch):
+    """FrameGrids.lod_level (counts of the ratios under each level's float32 threshold) = choose_level of the
+    exact median, on random grids whose ratios sit at, just below and just above the thresholds, odd and even
+    counts (a threshold between the two middle ratios), points behind the cameras, other focal lengths and
+    footprints."""
+    from presim.geometry import Intrinsics
+    from presim.synthesis.grids import FrameGrids, _level_taus
+    from presim.synthesis.lod import LodConfig, choose_level
+
+    rng = np.random.default_rng(4)
+    seen, medians = set(), []
+    exact = FrameGrids.footprint_ratio
+    monkeypatch.setattr(FrameGrids, "footprint_ratio", lambda self, *a: medians.append(1) or exact(self, *a))
+    for trial in range(300):
+        cfg = LodConfig(levels=int(rng.integers(1, 5)), max_footprint=float(rng.choice([1.0, 0.7, 2.5])))
+        f_t, f_s = float(rng.uniform(40, 600)), float(rng.uniform(200, 900))
+        K = Intrinsics(f_t, f_t * float(rng.uniform(0.9, 1.1)), 31.5, 23.5, 64, 48)
+        taus = _level_taus(np.sqrt(K.fx * K.fy), f_s, cfg)
+        n = int(rng.integers(1, 12))
+        pick = rng.choice(taus[1:], n)
+        near = np.array([np.nextafter(pick, np.float32(0)), pick, np.nextafter(pick, np.float32(9))])
+        ratios = np.where(rng.random(n) < 0.7, near[rng.integers(0, 3, n), np.arange(n)],
+                          rng.uniform(0.01, 2.0 * float(taus[1]) + 0.01, n)).astype(np.float32)
+        z_t = np.ones(n, np.float32)  # ratio = z_src exactly
+        pts = np.stack([np.zeros(n), np.zeros(n), np.linspace(1.0, 2.0, n)], 1).astype(np.float32)
+        g = FrameGrids(np.eye(4), K, lambda v: pts)
+        g.project([0])
+        g._proj[0] = (g._proj[0][0], z_t)
+        z_src = ratios.copy()
+        z_src[rng.random(n) < 0.1] = -1.0  # behind the source camera: not counted
+        want = choose_level(exact(g, 0, z_src, f_s, 0.01), cfg)
+        assert g.lod_level(0, z_src, f_s, 0.01, cfg) == want, (trial, ratios, z_src, taus)
+        seen.add(want)
+    assert seen == {0, 1, 2, 3, 4}
+    assert 0 < len(medians) < 100  # a threshold between the two middle ratios: the median decides
 
 
 def test_grid_count_kernels_equal_numpy():

@@ -8,6 +8,7 @@ reference :func:`presim.synthesis.lod.footprint_ratio`). :class:`FrameGrids` pro
 
 from __future__ import annotations
 
+import functools
 from typing import Callable, Sequence
 
 import numba as nb
@@ -82,66 +83,37 @@ def _any_front_kernel(P, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
     return False
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")  # nogil: also run by the view cache's background thread
-def _median_ratio_kernel(z_src, z_t, pix, near):  # pragma: no cover
-    # np.median(z_src[ok] / z_t[ok]), ok = (z_src > near) & (z_t > near) & (pix >= 0), float32; nan if none.
-    # Exact order statistics (in-place quickselect); an even count halves the float32 sum of the middle two.
-    n = z_src.shape[0]
-    r = np.empty(n, np.float32)
-    m = 0
-    for i in range(n):
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _ratio_counts_kernel(z_src, z_t, pix, near, taus, counts):  # pragma: no cover
+    # counts[0]: grid points with both depths > near inside the target; counts[1 + k]: those whose float32 ratio
+    # z_src / z_t is <= taus[k]. Branch-free: it vectorizes.
+    counts[:] = 0
+    for i in range(z_src.shape[0]):
         a = z_src[i]
         b = z_t[i]
-        if a > near and b > near and pix[i] >= 0:
-            r[m] = a / b
-            m += 1
-    if m == 0:
-        return np.nan
-    k = m // 2
-    _select_kth(r, m, k)  # in place: r[:k] <= r[k] <= r[k + 1:m] (no copy: half the time of np.partition)
-    hi = r[k]
-    if m % 2:
-        return np.float64(hi)
-    lo = r[0]
-    for i in range(1, k):  # the largest of the lower part: the (k - 1)-th order statistic
-        lo = max(lo, r[i])
-    return np.float64(np.float32(lo + hi) / np.float32(2.0))
+        ok = (a > near) & (b > near) & (pix[i] >= 0)
+        r = np.float32(a / b)
+        counts[0] += ok
+        for k in range(taus.shape[0]):
+            counts[k + 1] += ok & (r <= taus[k])
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _select_kth(a, m, k):  # pragma: no cover
-    # In-place quickselect (Hoare, median-of-3) on NaN-free a[:m]: a[:k] <= a[k] <= a[k + 1:m] afterwards.
-    lo = 0
-    hi = m
-    while hi - lo > 1:
-        x = a[lo]
-        y = a[(lo + hi - 1) // 2]
-        z = a[hi - 1]
-        if x > y:
-            x, y = y, x
-        if y > z:
-            y = z
-        if x > y:
-            y = x
-        i = lo
-        j = hi - 1
-        while i <= j:
-            while a[i] < y:
-                i += 1
-            while a[j] > y:
-                j -= 1
-            if i <= j:
-                t = a[i]
-                a[i] = a[j]
-                a[j] = t
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j + 1
-        elif k >= i:
-            lo = i
-        else:
-            return
+@functools.lru_cache(maxsize=256)
+def _level_taus(q: np.float64, f_src_px: float, config: LodConfig) -> np.ndarray:
+    """float32 (1 + levels,): 0, then for level k the largest float32 median whose footprint ratio (the arithmetic
+    of :meth:`FrameGrids.footprint_ratio`, ``q`` = sqrt(fx fy) of the target) passes ``choose_level``'s test."""
+    def passes(m: np.float32, k: int) -> bool:
+        return bool((2 ** k) * float(np.float32(m) * q / f_src_px) <= config.max_footprint)
+
+    taus = [np.float32(0.0)]
+    for k in range(1, config.levels + 1):
+        t = np.float32(min(config.max_footprint / 2 ** k * f_src_px / q, np.finfo(np.float32).max))
+        while t > 0 and not passes(t, k):
+            t = np.nextafter(t, np.float32(0.0))
+        while np.isfinite(np.nextafter(t, np.float32(np.inf))) and passes(np.nextafter(t, np.float32(np.inf)), k):
+            t = np.nextafter(t, np.float32(np.inf))
+        taus.append(t)
+    return np.array(taus, np.float32)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -292,20 +264,41 @@ class FrameGrids:
         return out
 
     def footprint_ratio(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float) -> float:
-        """= :func:`presim.synthesis.lod.footprint_ratio` (with ``K_tgt``) from the view's source depths ``z_src``."""
+        """= :func:`presim.synthesis.lod.footprint_ratio` (with ``K_tgt``) from the view's source depths ``z_src``: the
+        median of the float32 ratios (an even count halves the float32 sum of the middle two)."""
         pix, z_t = self.projection(v)
-        if len(z_t) == 0:
+        near = np.float32(near_m)
+        z_src = np.asarray(z_src, np.float32)
+        ok = (z_src > near) & (z_t > near) & (pix >= 0)
+        r, h = z_src[ok] / z_t[ok], int(ok.sum()) // 2
+        if len(r) == 0:  # no grid point in front of both cameras and inside the target image
             return float("nan")
-        med = _median_ratio_kernel(np.ascontiguousarray(z_src, np.float32), z_t, pix, np.float32(near_m))
-        if med != med:  # no grid point in front of both cameras and inside the target image
-            return float("nan")
+        r = np.partition(r, [h - 1, h] if h else [h])
+        med = r[h] if len(r) % 2 else np.float32(r[h - 1] + r[h]) / np.float32(2.0)
         return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)
 
     def lod_level(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float, config: LodConfig) -> int:
-        """= :func:`~presim.synthesis.lod.choose_level` of :meth:`footprint_ratio` (0 without levels)."""
+        """= :func:`~presim.synthesis.lod.choose_level` of :meth:`footprint_ratio` (0 without levels), decided by
+        counting the ratios under each level's threshold (8 vs 30 us per 4 800-point grid); the median is taken only
+        when a threshold lies between the two middle ratios of an even count."""
         if config.levels == 0:
             return 0
-        return choose_level(self.footprint_ratio(v, z_src, f_src_px, near_m), config)
+        pix, z_t = self.projection(v)
+        taus = _level_taus(np.sqrt(self.K.fx * self.K.fy), float(f_src_px), config)
+        counts = np.empty(len(taus) + 1, np.int64)
+        _ratio_counts_kernel(np.ascontiguousarray(z_src, np.float32), z_t, pix, np.float32(near_m), taus, counts)
+        m, half = int(counts[0]), int(counts[0]) // 2
+        if m == 0:
+            return 0
+        for k in range(len(taus)):
+            if m % 2 == 0 and counts[k + 1] == half:  # the median could lie either side: compute it
+                return choose_level(self.footprint_ratio(v, z_src, f_src_px, near_m), config)
+            below = counts[k + 1] > half  # the median is <= taus[k]
+            if k == 0 and below:  # a median <= 0 is level 0
+                return 0
+            if k > 0 and not below:
+                return k - 1
+        return len(taus) - 1
 
     def next_view(self, ids: Sequence[int], mask_flat: np.ndarray, z_src: Callable[[int], np.ndarray],
                   f_src_px: Callable[[int], float], near_m: float, stride_px: float, need: float | None,
