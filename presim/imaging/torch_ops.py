@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from presim.imaging.gaussian import MIN_SIGMA_PX, check_smooth_input, gaussian_taps
 
-__all__ = ["resolve_device", "smooth_colors_torch", "pushpull_rgbd_torch", "label_components_torch"]
+__all__ = ["resolve_device", "to_tensor", "smooth_colors_torch", "pushpull_rgbd_torch", "label_components_torch"]
 
 
 def resolve_device(name: str | None = None) -> torch.device:
@@ -21,7 +21,8 @@ def resolve_device(name: str | None = None) -> torch.device:
     return torch.device(name if name else "cuda" if torch.cuda.is_available() else "cpu")
 
 
-def _on(a: np.ndarray, dev: torch.device) -> torch.Tensor:
+def to_tensor(a: np.ndarray, dev: torch.device) -> torch.Tensor:
+    """A host array as a tensor on ``dev`` (contiguous; no copy on the CPU when it is already)."""
     return torch.from_numpy(np.ascontiguousarray(a)).to(dev)
 
 
@@ -76,9 +77,9 @@ def pushpull_rgbd_torch(color: np.ndarray | None, depth_m: np.ndarray, valid: np
     by ``clip(w, 0, 1)``. Known pixels unchanged; the rest within float32 rounding of
     :func:`~presim.imaging.pushpull.pushpull_fill`."""
     dev = resolve_device(device)
-    known = _on(valid, dev).bool()
-    d = _on(np.asarray(depth_m, np.float32), dev)
-    c = None if color is None else _on(color, dev)
+    known = to_tensor(valid, dev).bool()
+    d = to_tensor(np.asarray(depth_m, np.float32), dev)
+    c = None if color is None else to_tensor(color, dev)
     v = d[None] if c is None else torch.cat([c.permute(2, 0, 1).float(), d[None]])
     acc, w = torch.where(known, v, 0.0), known.float()
     levels = []

@@ -105,12 +105,13 @@ def _level_taus(q: np.float64, f_src_px: float, config: LodConfig) -> np.ndarray
         return bool((2 ** k) * float(np.float32(m) * q / f_src_px) <= config.max_footprint)
 
     taus = [np.float32(0.0)]
+    up, down = np.float32(np.inf), np.float32(0.0)
     for k in range(1, config.levels + 1):
         t = np.float32(min(config.max_footprint / 2 ** k * f_src_px / q, np.finfo(np.float32).max))
         while t > 0 and not passes(t, k):
-            t = np.nextafter(t, np.float32(0.0))
-        while np.isfinite(np.nextafter(t, np.float32(np.inf))) and passes(np.nextafter(t, np.float32(np.inf)), k):
-            t = np.nextafter(t, np.float32(np.inf))
+            t = np.nextafter(t, down)
+        while np.isfinite(nxt := np.nextafter(t, up)) and passes(nxt, k):
+            t = nxt
         taus.append(t)
     return np.array(taus, np.float32)
 
@@ -269,9 +270,10 @@ class FrameGrids:
         near = np.float32(near_m)
         z_src = np.asarray(z_src, np.float32)
         ok = (z_src > near) & (z_t > near) & (pix >= 0)
-        r, h = z_src[ok] / z_t[ok], int(ok.sum()) // 2
+        r = z_src[ok] / z_t[ok]
         if len(r) == 0:  # no grid point in front of both cameras and inside the target image
             return float("nan")
+        h = len(r) // 2
         r = np.partition(r, [h - 1, h] if h else [h])
         med = r[h] if len(r) % 2 else np.float32(r[h - 1] + r[h]) / np.float32(2.0)
         return float(np.float32(med) * np.sqrt(self.K.fx * self.K.fy) / f_src_px)

@@ -13,16 +13,12 @@ import torch.nn.functional as F
 
 from presim.geometry import Intrinsics
 from presim.imaging.feather import feather_box
-from presim.imaging.torch_ops import label_components_torch, resolve_device
+from presim.imaging.torch_ops import label_components_torch, resolve_device, to_tensor
 from presim.photometric.apply import gain_bias_lut
 from presim.synthesis.blend import BlendConfig, BlendInput
 from presim.synthesis.holes import HoleStats
 
 __all__ = ["merge_holes_torch", "analyse_hole_mask_torch", "blend_torch", "apply_exposure_torch"]
-
-
-def _on(a: np.ndarray, dev: torch.device) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(a)).to(dev)
 
 
 def merge_holes_torch(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source: np.ndarray,
@@ -32,19 +28,19 @@ def merge_holes_torch(acc_depth_m: np.ndarray, acc_color: np.ndarray, acc_source
     accumulator) or :func:`~presim.synthesis.holes.merge_into_holes` (``holes`` the mask before the merge): the
     host arrays updated in place, the same pixels and return value (the hole count; the holes filled)."""
     dev = resolve_device(device)
-    has = _on(depth_m, dev) > 0
+    has = to_tensor(depth_m, dev) > 0
     if replace is None:
         np.copyto(acc_source, torch.where(has, int(view_id), -1).cpu().numpy(), casting="unsafe")
         h = ~has
         n = h.sum()
     else:
-        take = _on(replace, dev).bool() & has
+        take = to_tensor(replace, dev).bool() & has
         for acc, new in ((acc_depth_m, depth_m), (acc_color, color), (acc_source, None)):
-            a = _on(acc, dev)
-            b = torch.full_like(a, int(view_id)) if new is None else _on(new, dev)
+            a = to_tensor(acc, dev)
+            b = torch.full_like(a, int(view_id)) if new is None else to_tensor(new, dev)
             t = take if a.dim() == 2 else take[..., None]
             np.copyto(acc, torch.where(t, b, a).cpu().numpy())
-        h = _on(holes, dev).bool()
+        h = to_tensor(holes, dev).bool()
         n = (h & take).sum()
         h &= ~take
     np.copyto(holes, h.cpu().numpy(), casting="unsafe")
@@ -68,7 +64,7 @@ def analyse_hole_mask_torch(holes: np.ndarray, n_hole: int, big_hole_px: int = 1
     if n_hole <= stop_px or not (want_largest or want_replace):
         return HoleStats(n_hole / float(H * W), n_hole, None, None)
     dev = resolve_device(device)
-    m = _on(holes, dev) != 0
+    m = to_tensor(holes, dev) != 0
     lab = label_components_torch(m)
     area = torch.bincount(lab[m], minlength=H * W)
     largest = int(area.max())
@@ -100,7 +96,7 @@ def blend_torch(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
     Ignores ``inp.feather_count`` (feathers from the view depths)."""
     dev = resolve_device(device)
     f64 = torch.float64
-    d = _on(inp.depth_m, dev).to(f64)
+    d = to_tensor(inp.depth_m, dev).to(f64)
     H, W = d.shape
     T = torch.as_tensor(np.asarray(T_world_cam, np.float64), device=dev)
     v, u = torch.meshgrid(torch.arange(H, dtype=f64, device=dev), torch.arange(W, dtype=f64, device=dev), indexing="ij")
@@ -108,8 +104,8 @@ def blend_torch(inp: BlendInput, K: Intrinsics, T_world_cam: np.ndarray, config:
     X = P @ T[:3, :3].T + T[:3, 3]
     rt = X - T[:3, 3]
     lt = rt.pow(2).sum(-1).sqrt()
-    color, source = _on(inp.color, dev), _on(inp.source, dev)
-    vdepth, vcolor = _on(inp.view_depth_m, dev), _on(inp.view_color, dev)
+    color, source = to_tensor(inp.color, dev), to_tensor(inp.source, dev)
+    vdepth, vcolor = to_tensor(inp.view_depth_m, dev), to_tensor(inp.view_color, dev)
     centres = torch.as_tensor(np.asarray(inp.centres, np.float64), device=dev)
     feather = _feather(vdepth, config.feather_px)
     min_f = torch.tensor(1.0 / config.feather_px, dtype=torch.float32, device=dev)
@@ -140,9 +136,9 @@ def apply_exposure_torch(color: np.ndarray, A: np.ndarray, b: np.ndarray,
     256-entry tables (equal bytes); any other ``round(clip(A x + b))`` in float64, a channel at 0 stays 0."""
     dev = resolve_device(device)
     A = np.asarray(A, np.float64)
-    c = _on(color, dev)
+    c = to_tensor(color, dev)
     if np.count_nonzero(A - np.diag(np.diag(A))) == 0:
-        lut = _on(gain_bias_lut(np.ones(3), np.zeros(3), np.diag(A), np.asarray(b))[0], dev)  # (256, 3)
+        lut = to_tensor(gain_bias_lut(np.ones(3), np.zeros(3), np.diag(A), np.asarray(b))[0], dev)  # (256, 3)
         return lut[c.long(), torch.arange(3, device=dev)].cpu().numpy()
     y = c.to(torch.float64) @ torch.as_tensor(A.T, device=dev) + torch.as_tensor(np.asarray(b, np.float64), device=dev)
     return torch.where(c == 0, 0, torch.floor(y + 0.5).clamp(0, 255)).to(torch.uint8).cpu().numpy()
